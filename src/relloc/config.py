@@ -1,0 +1,364 @@
+"""Team configuration: robots, reference robot, prior area, sensors and filter parameters.
+
+A team is described by one TOML file (see ``configs/``)::
+
+    name = "multi4_shortbag_20221011"
+    reference = "turtle04"
+    area = [-4.0, 4.0, -4.5, 4.5]          # xmin, xmax, ymin, ymax of the arena (m)
+
+    [[robots]]
+    name = "turtle01"
+    uwb_node = "n_7"
+    odom_topic = "/cali/turtle01/odom"
+    odom_mode = "twist"                   # integrate the twist ("twist") or use the pose ("pose")
+    heading_offset_deg = 12.0             # odometry frame -> shared heading frame (the compass)
+    odom_scale = 1.0
+    mocap_body = "turtlebot1_cap"
+
+    [uwb]
+    default_bias = 0.3
+    [uwb.pairs."n_3-n_7"]
+    bias = 0.39
+
+    [filter]
+    particles = 20000
+
+Everything has a default except the robots; unknown keys are errors (a typo must not silently
+fall back to a default). ``TeamConfig.to_toml`` writes the file back, which is how
+``relloc calibrate`` stores what it estimated.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import asdict, dataclass, field, fields, replace
+from pathlib import Path
+from typing import Any, Literal
+
+from relloc.events import pair_key
+
+
+class ConfigError(ValueError):
+    """The team configuration is invalid; the message says which key and why."""
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """Pose of the camera optical frame on the robot (x right, y down, z forward in the image).
+
+    ``x, y, z`` is the optical centre in the robot body frame (m); ``yaw_deg`` and ``pitch_deg``
+    turn a forward-looking, level camera (yaw left positive, pitch down positive).
+    """
+
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+    yaw_deg: float = 0.0
+    pitch_deg: float = 0.0
+    fov_deg: float = 70.0
+    max_range: float = 5.0
+
+
+@dataclass(frozen=True)
+class RobotConfig:
+    """One robot of the team and where its data comes from."""
+
+    name: str
+    uwb_node: str = ""
+    odom_topic: str = ""
+    odom_mode: Literal["pose", "twist"] = "pose"
+    heading_offset_deg: float = 0.0
+    """Rotation from this robot's odometry frame to the shared heading frame (the compass)."""
+    odom_scale: float = 1.0
+    """Multiplies odometry displacements (wheel-scale calibration)."""
+    odom_zero_stamps: bool = False
+    """The odometry topic has all-zero header stamps: use receive time minus the clock offset."""
+    mocap_body: str = ""
+    detection_topic: str = ""
+    detection_format: Literal["depthai", "posearray", ""] = ""
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    zenoh_scope: str = ""
+    """Optional key prefix for this robot's topics in Zenoh (e.g. ``tb1``)."""
+    cmd_vel_topic: str = ""
+
+    @property
+    def heading_offset(self) -> float:
+        """Heading offset in radians."""
+        return math.radians(self.heading_offset_deg)
+
+
+@dataclass(frozen=True)
+class PairCalibration:
+    """Range calibration of one UWB transceiver pair: ``measured = scale * true + bias``."""
+
+    bias: float = 0.0
+    scale: float = 1.0
+    sigma: float | None = None
+    """Range noise for this pair; ``None`` uses the filter's ``sigma_uwb``."""
+    source: str = ""
+    """Which recording this calibration was estimated from."""
+
+
+@dataclass(frozen=True)
+class UwbConfig:
+    """UWB topics and per-transceiver-pair calibration."""
+
+    range_topic: str = "/uwb/tof/{a}/{b}/distance"
+    """Topic template; ``{a}`` and ``{b}`` are node ids."""
+    default_bias: float = 0.3
+    """Bias assumed for a pair with no calibration (m)."""
+    default_bias_sigma: float = 0.15
+    """Extra range noise for an uncalibrated pair (added in quadrature to ``sigma_uwb``)."""
+    pairs: dict[str, PairCalibration] = field(default_factory=dict)
+
+    def calibration(self, node_a: str, node_b: str) -> tuple[float, float, float | None]:
+        """(bias, scale, extra_sigma or per-pair sigma) for a node pair.
+
+        Returns ``(bias, scale, sigma)`` where ``sigma`` is the pair's own noise if calibrated
+        with one, or ``None``; the caller adds ``default_bias_sigma`` for uncalibrated pairs via
+        :meth:`is_calibrated`.
+        """
+        cal = self.pairs.get(pair_key(node_a, node_b))
+        if cal is None:
+            return self.default_bias, 1.0, None
+        return cal.bias, cal.scale, cal.sigma
+
+    def is_calibrated(self, node_a: str, node_b: str) -> bool:
+        return pair_key(node_a, node_b) in self.pairs
+
+
+@dataclass(frozen=True)
+class FilterConfig:
+    """Particle-filter parameters. The defaults are the ones used on every shared recording."""
+
+    particles: int = 20000
+    sigma_uwb: float = 0.15
+    """Standard deviation of the Gaussian part of the range likelihood (m)."""
+    outlier_fraction: float = 0.1
+    """Weight of the uniform (NLOS/outlier) part of the range likelihood."""
+    max_range: float = 15.0
+    """Support of the uniform outlier density (m)."""
+    sigma_det: float = 0.15
+    """Standard deviation of a cooperative-detection relative position, per axis (m)."""
+    odom_noise_per_m: float = 0.05
+    """Odometry displacement noise, standard deviation per metre travelled (fraction)."""
+    odom_noise_per_rad: float = 0.02
+    """Lateral noise per radian turned (m/rad), for heading errors during turns."""
+    process_noise: float = 0.03
+    """Random-walk noise of every relative position (m per sqrt(s)); keeps static robots alive."""
+    resample: Literal["every_step", "ess"] = "ess"
+    ess_threshold: float = 0.5
+    """Resample when the effective sample size falls below this fraction of ``particles``."""
+    reinject_fraction: float = 0.01
+    """Fraction of particles re-drawn from the prior at each resampling (recovery)."""
+    update_period: float = 0.1
+    """Measurements arriving within this window are fused in one update (s)."""
+    estimate_period: float = 0.1
+    """Estimates are emitted at this period (s)."""
+    init_window: float = 0.5
+    """Collect ranges for this long before the first (annealed) update (s)."""
+    anneal_steps: int = 12
+    mcmc_steps: int = 3
+    spread_rotations: bool = True
+    """After the annealed start, spread particles over rotations/reflections about the reference
+    (exact while only ranges have been seen); odometry motion then selects the right one."""
+    max_odom_extrapolation: float = 0.5
+    """How far past a robot's last odometry message its motion is extrapolated (s)."""
+
+
+@dataclass(frozen=True)
+class TeamConfig:
+    """Everything the engine needs to know about a team."""
+
+    robots: tuple[RobotConfig, ...]
+    reference: str
+    name: str = "team"
+    area: tuple[float, float, float, float] = (-4.0, 4.0, -4.5, 4.5)
+    """Prior box of every robot's position: xmin, xmax, ymin, ymax (m)."""
+    uwb: UwbConfig = field(default_factory=UwbConfig)
+    filter: FilterConfig = field(default_factory=FilterConfig)
+    mocap_topic: str = "/vrpn_client_node/{body}/pose"
+    clock_offset: float | None = None
+    """Header stamp minus receive time (s) for topics with zero stamps; ``None``: estimate it."""
+
+    def __post_init__(self) -> None:
+        names = [r.name for r in self.robots]
+        if len(names) < 2:
+            raise ConfigError("a team needs at least two robots")
+        if len(set(names)) != len(names):
+            raise ConfigError(f"robot names must be unique, got {names}")
+        if self.reference not in names:
+            raise ConfigError(f"reference robot {self.reference!r} is not one of {names}")
+        xmin, xmax, ymin, ymax = self.area
+        if not (xmin < xmax and ymin < ymax):
+            raise ConfigError(f"area must be [xmin, xmax, ymin, ymax] with min < max: {self.area}")
+        nodes = [r.uwb_node for r in self.robots if r.uwb_node]
+        if len(set(nodes)) != len(nodes):
+            raise ConfigError(f"each UWB node may be on one robot only: {nodes}")
+
+    @property
+    def robot_names(self) -> tuple[str, ...]:
+        return tuple(r.name for r in self.robots)
+
+    @property
+    def others(self) -> tuple[str, ...]:
+        """Non-reference robots, in config order: the order of the filter state."""
+        return tuple(r.name for r in self.robots if r.name != self.reference)
+
+    def robot(self, name: str) -> RobotConfig:
+        for r in self.robots:
+            if r.name == name:
+                return r
+        raise KeyError(f"unknown robot {name!r}; the team is {list(self.robot_names)}")
+
+    def robot_of_node(self, node: str) -> str | None:
+        for r in self.robots:
+            if r.uwb_node == node:
+                return r.name
+        return None
+
+    def with_filter(self, **changes: Any) -> TeamConfig:
+        """A copy with some filter parameters changed."""
+        return replace(self, filter=replace(self.filter, **changes))
+
+    def with_robot(self, name: str, **changes: Any) -> TeamConfig:
+        """A copy with one robot's settings changed."""
+        robots = tuple(replace(r, **changes) if r.name == name else r for r in self.robots)
+        return replace(self, robots=robots)
+
+    # ------------------------------------------------------------------ (de)serialisation
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> TeamConfig:
+        data = dict(data)
+        try:
+            robots_raw = data.pop("robots")
+        except KeyError:
+            raise ConfigError("the config has no [[robots]]") from None
+        robots = []
+        for i, raw in enumerate(robots_raw):
+            raw = dict(raw)
+            camera = _build(CameraConfig, raw.pop("camera", {}), f"robots[{i}].camera")
+            robots.append(_build(RobotConfig, {**raw, "camera": camera}, f"robots[{i}]"))
+        uwb_raw = dict(data.pop("uwb", {}))
+        pairs = {
+            pair_key(*_split_pair(k)): _build(PairCalibration, v, f"uwb.pairs.{k}")
+            for k, v in uwb_raw.pop("pairs", {}).items()
+        }
+        uwb = _build(UwbConfig, {**uwb_raw, "pairs": pairs}, "uwb")
+        flt = _build(FilterConfig, data.pop("filter", {}), "filter")
+        if "area" in data:
+            data["area"] = tuple(float(v) for v in data["area"])
+            if len(data["area"]) != 4:
+                raise ConfigError("area must have four numbers: xmin, xmax, ymin, ymax")
+        return _build(cls, {**data, "robots": tuple(robots), "uwb": uwb, "filter": flt}, "team")
+
+    @classmethod
+    def load(cls, path: str | Path) -> TeamConfig:
+        path = Path(path)
+        try:
+            with path.open("rb") as fh:
+                data = tomllib.load(fh)
+        except FileNotFoundError:
+            raise ConfigError(f"config file not found: {path}") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+        try:
+            return cls.from_dict(data)
+        except ConfigError as exc:
+            raise ConfigError(f"{path}: {exc}") from None
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["area"] = list(self.area)
+        d["robots"] = [asdict(r) for r in self.robots]
+        d["uwb"]["pairs"] = {k: _drop_none(asdict(v)) for k, v in self.uwb.pairs.items()}
+        return _drop_none(d)
+
+    def to_toml(self) -> str:
+        return _dump_toml(self.to_dict())
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(self.to_toml())
+
+
+# ---------------------------------------------------------------------------- helpers
+def _build(cls: type, raw: dict[str, Any], where: str) -> Any:
+    known = {f.name for f in fields(cls)}
+    unknown = set(raw) - known
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; known: {sorted(known)}")
+    try:
+        obj = cls(**raw)
+    except TypeError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+    for f in fields(cls):
+        value = getattr(obj, f.name)
+        if f.type in ("float", "int") and not isinstance(value, int | float):
+            raise ConfigError(f"{where}.{f.name}: expected a number, got {value!r}")
+        if f.type == "str" and not isinstance(value, str):
+            raise ConfigError(f"{where}.{f.name}: expected a string, got {value!r}")
+    return obj
+
+
+def _split_pair(key: str) -> tuple[str, str]:
+    parts = key.split("-")
+    if len(parts) != 2 or not all(parts):
+        raise ConfigError(f"uwb.pairs key {key!r} must look like 'n_3-n_7'")
+    return parts[0], parts[1]
+
+
+def _drop_none(d: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        if v is None:
+            continue
+        out[k] = _drop_none(v) if isinstance(v, dict) else v
+    return out
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, int | float):
+        return repr(float(v)) if isinstance(v, float) else str(v)
+    if isinstance(v, str):
+        return '"' + v.replace("\\", "\\\\").replace('"', '\\"') + '"'
+    if isinstance(v, list | tuple):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    raise TypeError(f"cannot write {v!r} to TOML")
+
+
+def _dump_toml(d: dict[str, Any]) -> str:
+    lines: list[str] = []
+    scalars = {k: v for k, v in d.items() if not isinstance(v, dict) and k != "robots"}
+    for k, v in scalars.items():
+        lines.append(f"{k} = {_toml_value(v)}")
+
+    def table(prefix: str, t: dict[str, Any]) -> None:
+        lines.append("")
+        lines.append(f"[{prefix}]")
+        subtables = {}
+        for k, v in t.items():
+            if isinstance(v, dict):
+                subtables[k] = v
+            else:
+                lines.append(f"{k} = {_toml_value(v)}")
+        for k, v in subtables.items():
+            key = f'"{k}"' if "-" in k or "." in k else k
+            table(f"{prefix}.{key}", v)
+
+    for robot in d.get("robots", []):
+        lines.append("")
+        lines.append("[[robots]]")
+        camera = robot.get("camera", {})
+        for k, v in robot.items():
+            if k != "camera":
+                lines.append(f"{k} = {_toml_value(v)}")
+        lines.append("[robots.camera]")
+        for k, v in camera.items():
+            lines.append(f"{k} = {_toml_value(v)}")
+    for k, v in d.items():
+        if isinstance(v, dict):
+            table(k, v)
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,115 @@
+"""Measurement events: the only vocabulary shared by sources, stages and the localizer.
+
+Every source (the simulator, a rosbag2 file, live Zenoh subscriptions) turns what it reads into
+these small immutable records, each stamped with a time in seconds (header stamps, one clock
+for the whole team) and the names of the robots it concerns. The localizer never learns where
+an event came from, so offline evaluation and the live engine run exactly the same code.
+
+Frames
+------
+* ``OdometryEvent`` carries the robot's pose in its *own* odometry frame (``odom``) and its
+  body-frame twist. Putting it into the team's shared heading frame (heading offset, scale,
+  pose-vs-twist integration) is the job of :mod:`relloc.odometry`, configured per robot.
+* ``RangeEvent`` carries the UWB node ids as well as the robots: range biases belong to the
+  transceivers, not to the robot names.
+* ``DetectionEvent`` carries object positions in the robot's body frame (``base_link``, x
+  forward, y left, z up); the source applies the camera extrinsics from the team config.
+* ``GroundTruthEvent`` is motion capture in the world frame, for evaluation only: the localizer
+  ignores it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+
+@dataclass(frozen=True, slots=True)
+class OdometryEvent:
+    """Pose of ``robot`` in its own odometry frame and its body-frame twist at time ``t``."""
+
+    t: float
+    robot: str
+    x: float
+    y: float
+    yaw: float
+    v: float = 0.0
+    """Forward speed along the body x axis (m/s)."""
+    w: float = 0.0
+    """Yaw rate (rad/s)."""
+
+
+@dataclass(frozen=True, slots=True)
+class RangeEvent:
+    """A UWB range between the transceivers carried by ``robot_a`` and ``robot_b``."""
+
+    t: float
+    robot_a: str
+    robot_b: str
+    distance: float
+    node_a: str = ""
+    node_b: str = ""
+    corrected: bool = False
+    """True once a range-correction stage removed the pair's error (the filter then applies no
+    bias of its own)."""
+
+    @property
+    def node_pair(self) -> str:
+        """Canonical key of the transceiver pair (sorted node ids), e.g. ``"n_3-n_7"``."""
+        a, b = self.node_a or self.robot_a, self.node_b or self.robot_b
+        return pair_key(a, b)
+
+
+@dataclass(frozen=True, slots=True)
+class ObjectDetection:
+    """One object seen by a robot's camera, position in the robot's body frame (m)."""
+
+    label: str
+    x: float
+    y: float
+    z: float = 0.0
+    score: float = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class DetectionEvent:
+    """All objects one robot's camera reported in one frame captured at time ``t``."""
+
+    t: float
+    robot: str
+    objects: tuple[ObjectDetection, ...] = field(default_factory=tuple)
+
+
+@dataclass(frozen=True, slots=True)
+class GroundTruthEvent:
+    """Motion-capture pose of ``robot`` in the world frame (evaluation only)."""
+
+    t: float
+    robot: str
+    x: float
+    y: float
+    yaw: float = 0.0
+
+
+@dataclass(frozen=True, slots=True)
+class RelativeObservation:
+    """A measured relative position ``p_target - p_observer`` in the shared heading frame.
+
+    Produced by the detection-association stage from two robots' detections of one object;
+    consumed by the localizer like any other measurement.
+    """
+
+    t: float
+    observer: str
+    target: str
+    dx: float
+    dy: float
+    sigma: float
+
+
+Event = OdometryEvent | RangeEvent | DetectionEvent | GroundTruthEvent | RelativeObservation
+
+
+def pair_key(a: str, b: str) -> str:
+    """Order-independent key for a pair of names: ``pair_key("n_7", "n_3") == "n_3-n_7"``."""
+    lo, hi = sorted((a, b))
+    return f"{lo}-{hi}"

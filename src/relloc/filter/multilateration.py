@@ -1,0 +1,105 @@
+"""Multilateration baseline: least-squares relative positions from the ranges present.
+
+Ranges between robots fix the formation only up to a rotation and a reflection about the
+reference robot (and nothing at all when the range graph is not rigid: a single range between
+two robots gives a distance, not a relative position). ``solve`` therefore
+
+1. checks that the graph can determine a formation (at least three robots, every robot with at
+   least two ranges, and the rigidity matrix at the solution of rank ``2N - 3``), and reports
+   *no estimate* otherwise;
+2. starts from the previous solution when there is one (so the arbitrary rotation stays
+   continuous from step to step, without ground truth), else from classical multidimensional
+   scaling when all pairs are present, else from a few random starts;
+3. minimises the squared range residuals with SciPy's ``least_squares``.
+
+The formation is returned with the reference at the origin, in an arbitrary but continuous
+gauge; evaluation fits one rotation/reflection for a whole run (see :mod:`relloc.sinks.metrics`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+
+def classical_mds(distances: FloatArray) -> FloatArray:
+    """2-D coordinates (N, 2) whose pairwise distances best match the full matrix ``distances``."""
+    n = distances.shape[0]
+    j = np.eye(n) - np.ones((n, n)) / n
+    b = -0.5 * j @ (distances**2) @ j
+    vals, vecs = np.linalg.eigh(b)
+    order = np.argsort(vals)[::-1][:2]
+    return vecs[:, order] * np.sqrt(np.maximum(vals[order], 0.0))
+
+
+def rigidity_rank(positions: FloatArray, pairs: IntArray) -> int:
+    """Rank of the 2-D rigidity matrix of the graph ``pairs`` at ``positions``."""
+    n = positions.shape[0]
+    r = np.zeros((len(pairs), 2 * n))
+    for k, (a, b) in enumerate(pairs):
+        d = positions[a] - positions[b]
+        r[k, 2 * a : 2 * a + 2] = d
+        r[k, 2 * b : 2 * b + 2] = -d
+    return int(np.linalg.matrix_rank(r, tol=1e-6 * max(1.0, float(np.abs(r).max(initial=0.0)))))
+
+
+def can_determine(n_robots: int, pairs: IntArray) -> bool:
+    """Necessary counting conditions for a formation: >= 3 robots, >= 2N-3 ranges, degree >= 2."""
+    if n_robots < 3 or len(pairs) < 2 * n_robots - 3:
+        return False
+    degree = np.bincount(np.asarray(pairs).ravel(), minlength=n_robots)
+    return bool(np.all(degree >= 2))
+
+
+def solve(
+    n_robots: int,
+    reference: int,
+    pairs: IntArray,
+    distances: FloatArray,
+    initial: FloatArray | None = None,
+    rng: np.random.Generator | None = None,
+) -> FloatArray | None:
+    """Positions (N, 2) relative to ``reference``, or ``None`` when the ranges cannot fix them."""
+    pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
+    distances = np.asarray(distances, dtype=float)
+    if not can_determine(n_robots, pairs):
+        return None
+    free = np.array([i for i in range(n_robots) if i != reference], dtype=np.intp)
+
+    def unpack(v: FloatArray) -> FloatArray:
+        p = np.zeros((n_robots, 2))
+        p[free] = v.reshape(-1, 2)
+        return p
+
+    def residuals(v: FloatArray) -> FloatArray:
+        p = unpack(v)
+        return np.linalg.norm(p[pairs[:, 0]] - p[pairs[:, 1]], axis=1) - distances
+
+    starts: list[FloatArray] = []
+    if initial is not None:
+        starts.append(initial - initial[reference])
+    else:
+        full = np.full((n_robots, n_robots), np.nan)
+        full[pairs[:, 0], pairs[:, 1]] = distances
+        full[pairs[:, 1], pairs[:, 0]] = distances
+        np.fill_diagonal(full, 0.0)
+        if not np.any(np.isnan(full)):
+            x = classical_mds(full)
+            starts.append(x - x[reference])
+        rng = rng or np.random.default_rng(0)
+        scale = float(np.median(distances))
+        starts += [rng.normal(scale=scale, size=(n_robots, 2)) for _ in range(5)]
+    best: FloatArray | None = None
+    best_cost = np.inf
+    for start in starts:
+        s = start - start[reference]
+        result = least_squares(residuals, s[free].ravel(), method="trf")
+        if result.cost < best_cost:
+            best, best_cost = unpack(result.x), result.cost
+    if best is None or rigidity_rank(best, pairs) < 2 * n_robots - 3:
+        return None
+    return best

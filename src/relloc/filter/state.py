@@ -1,0 +1,61 @@
+"""Layout of the particle state.
+
+A particle is one row of an ``(M, D)`` array. The first ``2(N-1)`` columns hold the positions
+of the non-reference robots relative to the reference robot, in the team's shared heading
+frame (``x, y`` of each robot in config order). The reference robot is the origin and is not
+stored. Further blocks (per-robot heading offsets, per-pair range biases, odometry scales) can
+be appended by self-calibrating models; ``StateLayout`` names every column block so that
+models index the state by meaning, never by magic number.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class StateLayout:
+    """Robots of the team, the reference robot, and the column blocks of the particle state."""
+
+    robots: tuple[str, ...]
+    reference: str
+
+    def __post_init__(self) -> None:
+        if self.reference not in self.robots:
+            raise ValueError(f"reference {self.reference!r} is not one of {self.robots}")
+        if len(self.robots) < 2:
+            raise ValueError("a team needs at least two robots")
+
+    @property
+    def others(self) -> tuple[str, ...]:
+        """The robots whose positions are in the state, in state order."""
+        return tuple(r for r in self.robots if r != self.reference)
+
+    @property
+    def dim(self) -> int:
+        return 2 * (len(self.robots) - 1)
+
+    def index(self, robot: str) -> int:
+        """Index of ``robot`` in :attr:`robots` (the reference included)."""
+        try:
+            return self.robots.index(robot)
+        except ValueError:
+            raise KeyError(f"unknown robot {robot!r}") from None
+
+    def columns(self, robot: str) -> slice:
+        """Columns of ``robot``'s relative position (the reference has none)."""
+        k = self.others.index(robot)
+        return slice(2 * k, 2 * k + 2)
+
+    def positions(self, particles: FloatArray) -> FloatArray:
+        """All robots' relative positions, shape ``(M, N, 2)``, the reference at the origin."""
+        m = particles.shape[0]
+        out = np.zeros((m, len(self.robots), 2))
+        mask = np.array([r != self.reference for r in self.robots])
+        out[:, mask, :] = particles[:, : self.dim].reshape(m, -1, 2)
+        return out

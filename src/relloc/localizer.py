@@ -1,0 +1,396 @@
+"""The localizer: the one holder of filter state. Events in, estimates out.
+
+Sensors are asynchronous: each robot's odometry, each UWB pair and each camera arrive at their
+own rates and lags. The localizer
+
+* validates every event (non-finite values, negative ranges, unknown robots, time going
+  backwards): a bad event is **rejected and counted** in :attr:`Localizer.stats` (and logged),
+  never allowed to crash the engine or to corrupt the estimate;
+* keeps each robot's odometry in an :class:`~relloc.odometry.OdometryTrack` (shared heading
+  frame), so that it can predict to any instant;
+* gathers the measurements that arrive within ``update_period`` into one batch, predicts with
+  every robot's odometry up to the batch time, and fuses the batch in one update (the stacked
+  measurement vector of the paper);
+* emits an :class:`Estimate` (each robot's position relative to the reference, with covariance)
+  at ``estimate_period``.
+
+:class:`ParticleFilterLocalizer` and :class:`MultilaterationLocalizer` share all of this and
+differ only in ``_step``, the fusion of one batch.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from relloc.config import TeamConfig
+from relloc.events import (
+    DetectionEvent,
+    Event,
+    GroundTruthEvent,
+    OdometryEvent,
+    RangeEvent,
+    RelativeObservation,
+)
+from relloc.filter import multilateration
+from relloc.filter.models import OdometryMotion, RangeBatch, RelativePositionBatch
+from relloc.filter.pf import LogLikelihood, ParticleFilter
+from relloc.filter.state import StateLayout
+from relloc.odometry import OdometryTrack
+
+log = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+Measurement = RangeEvent | RelativeObservation
+
+_TIME_TOLERANCE = 1e-9
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """Positions of every non-reference robot relative to the reference, shared heading frame."""
+
+    t: float
+    method: str
+    reference: str
+    positions: dict[str, tuple[float, float]]
+    covariances: dict[str, tuple[tuple[float, float], tuple[float, float]]] = field(
+        default_factory=dict
+    )
+    ess: float | None = None
+
+    def std(self, robot: str) -> float:
+        """Position standard deviation of ``robot``: sqrt of the covariance's largest eigenvalue."""
+        cov = self.covariances.get(robot)
+        if cov is None:
+            return math.nan
+        return float(np.sqrt(np.max(np.linalg.eigvalsh(np.array(cov)))))
+
+
+class Localizer:
+    """Validation, odometry tracks and measurement batching common to every method."""
+
+    method = "base"
+
+    def __init__(self, config: TeamConfig) -> None:
+        self.config = config
+        self.layout = StateLayout(config.robot_names, config.reference)
+        fc = config.filter
+        self.update_period = fc.update_period
+        self.estimate_period = fc.estimate_period
+        self.tracks = {
+            r.name: OdometryTrack(
+                r.heading_offset,
+                r.odom_scale,
+                r.odom_mode,
+                max_extrapolation=fc.max_odom_extrapolation,
+            )
+            for r in config.robots
+        }
+        self.stats: Counter[str] = Counter()
+        self._pending: list[Measurement] = []
+        self._batch_start = math.nan
+        self._closed_until = -math.inf  # measurements older than this come too late
+        self._last_range: dict[tuple[str, str], float] = {}
+        self._last_emit = -math.inf
+
+    # ---------------------------------------------------------------- public API
+    def process(self, event: Event) -> list[Estimate]:
+        """Consume one event; returns the estimates that became due (often none)."""
+        reason = self._rejection(event)
+        if reason is not None:
+            self._reject(reason, event)
+            return []
+        if isinstance(event, OdometryEvent):
+            self.tracks[event.robot].add(event)
+            self.stats["odometry"] += 1
+            return self._advance(event.t)
+        if isinstance(event, RangeEvent | RelativeObservation):
+            out: list[Estimate] = []
+            if self._pending and event.t >= self._batch_start + self.update_period:
+                out += self._run_batch()
+            if not self._pending:
+                self._batch_start = event.t
+            self._pending.append(event)
+            self.stats["range" if isinstance(event, RangeEvent) else "relative"] += 1
+            return out
+        self.stats["ignored_" + type(event).__name__] += 1
+        return []
+
+    def flush(self) -> list[Estimate]:
+        """Fuse what is still pending (end of a recording)."""
+        return self._run_batch() if self._pending else []
+
+    # ---------------------------------------------------------------- validation
+    def _rejection(self, event: Event) -> str | None:
+        if isinstance(event, GroundTruthEvent | DetectionEvent):
+            return None
+        if not math.isfinite(event.t):
+            return "invalid_time"
+        names = self.layout.robots
+        if isinstance(event, OdometryEvent):
+            if event.robot not in names:
+                return "unknown_robot"
+            if not all(map(math.isfinite, (event.x, event.y, event.yaw, event.v, event.w))):
+                return "invalid_odometry"
+            if event.t <= self.tracks[event.robot].last_time + _TIME_TOLERANCE:
+                return "out_of_order_odometry"
+            return None
+        if isinstance(event, RangeEvent):
+            if event.robot_a not in names or event.robot_b not in names:
+                return "unknown_robot"
+            if event.robot_a == event.robot_b:
+                return "self_range"
+            d = event.distance
+            if not math.isfinite(d) or d < 0.0 or d > self.config.filter.max_range:
+                return "invalid_range"
+            if event.t < self._closed_until:
+                return "late_measurement"
+            key = (event.robot_a, event.robot_b)
+            if self._last_range.get(key) == d:
+                return "repeated_range"  # a stale sample re-published, not a new measurement
+            self._last_range[key] = d
+            return None
+        if isinstance(event, RelativeObservation):
+            if event.observer not in names or event.target not in names:
+                return "unknown_robot"
+            if not all(map(math.isfinite, (event.dx, event.dy, event.sigma))) or event.sigma <= 0:
+                return "invalid_relative_observation"
+            if event.t < self._closed_until:
+                return "late_measurement"
+            return None
+        return "unknown_event_type"
+
+    def _reject(self, reason: str, event: Event) -> None:
+        self.stats["rejected_" + reason] += 1
+        n = self.stats["rejected_" + reason]
+        if n == 1 or n % 1000 == 0:
+            log.warning("rejected %s (%s, %d so far): %r", type(event).__name__, reason, n, event)
+
+    @property
+    def rejected(self) -> dict[str, int]:
+        return {k.removeprefix("rejected_"): v for k, v in self.stats.items() if k.startswith("rejected_")}
+
+    # ---------------------------------------------------------------- batching
+    def _advance(self, now: float) -> list[Estimate]:
+        """Odometry moved the clock: fuse a batch that is complete by now."""
+        if self._pending and now >= self._batch_start + 2 * self.update_period:
+            return self._run_batch()
+        return []
+
+    def _run_batch(self) -> list[Estimate]:
+        batch, self._pending = self._pending, []
+        t = max(m.t for m in batch)
+        self._closed_until = max(self._closed_until, self._batch_start)
+        est = self._step(t, batch)
+        if est is None:
+            return []
+        if est.t - self._last_emit >= self.estimate_period - 1e-6:
+            self._last_emit = est.t
+            return [est]
+        return []
+
+    def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
+        raise NotImplementedError
+
+    # ---------------------------------------------------------------- helpers for subclasses
+    def _pair_ranges(self, batch: list[Measurement]) -> tuple[list[tuple[int, int]], FloatArray, FloatArray, FloatArray]:
+        """Per robot pair in the batch: median range, bias and sigma (one row per pair).
+
+        Several ranges of one pair in a batch are not independent evidence (their errors are
+        strongly correlated over a tenth of a second): the median stands for them.
+        """
+        groups: dict[tuple[int, int], list[RangeEvent]] = {}
+        for m in batch:
+            if isinstance(m, RangeEvent):
+                a, b = self.layout.index(m.robot_a), self.layout.index(m.robot_b)
+                groups.setdefault((min(a, b), max(a, b)), []).append(m)
+        pairs, dist, bias, sigma = [], [], [], []
+        fc, uwb = self.config.filter, self.config.uwb
+        for key, events in groups.items():
+            e = events[0]
+            node_a = e.node_a or self.config.robot(e.robot_a).uwb_node or e.robot_a
+            node_b = e.node_b or self.config.robot(e.robot_b).uwb_node or e.robot_b
+            values = [ev.distance for ev in events]
+            if all(ev.corrected for ev in events):
+                b, s = 0.0, fc.sigma_uwb
+            else:
+                b, _, pair_sigma = uwb.calibration(node_a, node_b)
+                s = pair_sigma if pair_sigma is not None else fc.sigma_uwb
+                if not uwb.is_calibrated(node_a, node_b):
+                    s = math.hypot(s, uwb.default_bias_sigma)
+            pairs.append(key)
+            dist.append(float(np.median(values)))
+            bias.append(b)
+            sigma.append(s)
+        return pairs, np.array(dist), np.array(bias), np.array(sigma)
+
+
+class ParticleFilterLocalizer(Localizer):
+    """Odometry + UWB ranges (+ relative observations from detections) in a particle filter."""
+
+    method = "pf"
+
+    def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
+        super().__init__(config)
+        self.method = method
+        fc = config.filter
+        self.rng = np.random.default_rng(seed)
+        self.pf = ParticleFilter(
+            self.layout,
+            fc.particles,
+            config.area,
+            rng=self.rng,
+            motion=OdometryMotion(process_noise=fc.process_noise),
+            resample=fc.resample,
+            ess_threshold=fc.ess_threshold,
+            reinject_fraction=fc.reinject_fraction,
+        )
+        self.initialized = False
+        self.t = math.nan
+        self._anchor: dict[str, tuple[float, float, float]] = {}
+        self._init_batch: list[Measurement] = []
+        self.last_estimate: Estimate | None = None
+
+    def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
+        if not self.initialized:
+            self._init_batch += batch
+            first = min(m.t for m in self._init_batch)
+            if t - first < self.config.filter.init_window:
+                return None
+            return self._initialize(t)
+        self._predict(t)
+        loglik = self._loglik(batch)
+        if loglik is not None:
+            ll = self.pf.update(loglik)
+            if not np.any(np.isfinite(ll)):
+                self.stats["update_no_support"] += 1
+        est = self._estimate(t)
+        if self.pf.maybe_resample():
+            self.stats["resampled"] += 1
+        return est
+
+    def _initialize(self, t: float) -> Estimate | None:
+        batch, self._init_batch = self._init_batch, []
+        loglik = self._loglik(batch)
+        if loglik is None:
+            return None
+        fc = self.config.filter
+        guide = self._loglik(batch, outliers=False)
+        stages = self.pf.initialize_annealed(loglik, guide, mcmc_steps=fc.mcmc_steps)
+        self.stats["anneal_stages"] = stages
+        has_vectors = any(isinstance(m, RelativeObservation) for m in batch)
+        if fc.spread_rotations and not has_vectors:
+            self.pf.spread_symmetries()
+        self.initialized = True
+        self.t = t
+        self._anchor = {r: self._odometry_pose(r, t) for r in self.layout.robots}
+        return self._estimate(t)
+
+    def _odometry_pose(self, robot: str, t: float) -> tuple[float, float, float]:
+        track = self.tracks[robot]
+        if track.empty:
+            return (math.nan, math.nan, math.nan)
+        x, y, yaw, _ = track.pose_at(t)
+        return (x, y, yaw)
+
+    def _predict(self, t: float) -> None:
+        fc = self.config.filter
+        n = len(self.layout.robots)
+        disp = np.zeros((n, 2))
+        sigma = np.zeros(n)
+        for i, robot in enumerate(self.layout.robots):
+            now = self._odometry_pose(robot, t)
+            before = self._anchor.get(robot, (math.nan,) * 3)
+            if math.isnan(now[0]):
+                continue
+            if math.isnan(before[0]):
+                before = now  # odometry started since the last step: no known motion yet
+            disp[i] = (now[0] - before[0], now[1] - before[1])
+            dist = math.hypot(*disp[i])
+            turn = abs(math.remainder(now[2] - before[2], math.tau))
+            sigma[i] = fc.odom_noise_per_m * dist + fc.odom_noise_per_rad * turn
+            self._anchor[robot] = now
+        dt = max(t - self.t, 0.0)
+        self.pf.predict(disp, sigma, dt)
+        self.t = t
+
+    def _loglik(self, batch: list[Measurement], outliers: bool = True) -> LogLikelihood | None:
+        """Stacked log-likelihood of a batch; ``outliers=False`` drops the robust floor (the
+        plain Gaussian that guides the annealed start)."""
+        fc = self.config.filter
+        eps = fc.outlier_fraction if outliers else 0.0
+        pairs, dist, bias, sigma = self._pair_ranges(batch)
+        parts: list[RangeBatch | RelativePositionBatch] = []
+        if pairs:
+            idx = np.array(pairs, dtype=np.intp)
+            parts.append(RangeBatch(idx[:, 0], idx[:, 1], dist, bias, sigma, None, eps, fc.max_range))
+        vectors = [m for m in batch if isinstance(m, RelativeObservation)]
+        if vectors:
+            parts.append(
+                RelativePositionBatch(
+                    np.array([self.layout.index(v.observer) for v in vectors], dtype=np.intp),
+                    np.array([self.layout.index(v.target) for v in vectors], dtype=np.intp),
+                    np.array([[v.dx, v.dy] for v in vectors]),
+                    np.array([v.sigma for v in vectors]),
+                    outlier_fraction=0.02 if outliers else 0.0,
+                )
+            )
+        if not parts:
+            return None
+
+        def loglik(positions: FloatArray) -> FloatArray:
+            total = parts[0].log_likelihood(positions)
+            for part in parts[1:]:
+                total = total + part.log_likelihood(positions)
+            return total
+
+        return loglik
+
+    def _estimate(self, t: float) -> Estimate:
+        fe = self.pf.estimate()
+        positions, covs = {}, {}
+        for k, robot in enumerate(self.layout.others):
+            positions[robot] = (float(fe.mean[k, 0]), float(fe.mean[k, 1]))
+            c = fe.cov[k]
+            covs[robot] = ((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1])))
+        est = Estimate(t, self.method, self.layout.reference, positions, covs, fe.ess)
+        self.last_estimate = est
+        return est
+
+
+class MultilaterationLocalizer(Localizer):
+    """Least-squares formation from the latest range of every pair, gauge kept continuous."""
+
+    method = "multilateration"
+
+    def __init__(self, config: TeamConfig, *, max_age: float = 0.5, seed: int = 0) -> None:
+        super().__init__(config)
+        self.max_age = max_age
+        self._latest: dict[tuple[int, int], tuple[float, float]] = {}  # pair -> (t, corrected d)
+        self._previous: FloatArray | None = None
+        self.rng = np.random.default_rng(seed)
+
+    def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
+        pairs, dist, bias, _ = self._pair_ranges(batch)
+        for key, d, b in zip(pairs, dist, bias, strict=True):
+            self._latest[key] = (t, max(d - b, 0.0))
+        fresh = {k: d for k, (tk, d) in self._latest.items() if t - tk <= self.max_age}
+        n = len(self.layout.robots)
+        ref = self.layout.index(self.layout.reference)
+        if not fresh:
+            self.stats["no_estimate"] += 1
+            return None
+        keys = np.array(list(fresh), dtype=np.intp)
+        sol = multilateration.solve(n, ref, keys, np.array(list(fresh.values())), self._previous, self.rng)
+        if sol is None:
+            self.stats["no_estimate"] += 1
+            return None
+        self._previous = sol
+        positions = {r: (float(sol[self.layout.index(r), 0]), float(sol[self.layout.index(r), 1])) for r in self.layout.others}
+        return Estimate(t, self.method, self.layout.reference, positions)

@@ -1,0 +1,52 @@
+"""Named methods, as in the paper's results, built as engine pipelines.
+
+=================  ==========================================================================
+``pf``             particle filter, UWB ranges + odometry (the paper's PF_U)
+``pf_ul``          ``pf`` with learned range-error correction in front (PF_UL)
+``pf_uv``          ``pf`` with cooperative detections (association stage in front)
+``pf_ulv``         both (PF_ULV)
+``multilateration``  least squares on the ranges present (the paper's Multi)
+=================  ==========================================================================
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from relloc.config import TeamConfig
+from relloc.engine import Pipeline, Stage
+from relloc.localizer import MultilaterationLocalizer, ParticleFilterLocalizer
+
+METHODS = ("pf", "pf_ul", "pf_uv", "pf_ulv", "multilateration")
+
+
+class MethodError(ValueError):
+    """A method name is unknown or its requirements (e.g. a models directory) are missing."""
+
+
+def parse_methods(text: str) -> list[str]:
+    names = [m.strip() for m in text.split(",") if m.strip()]
+    unknown = [m for m in names if m not in METHODS]
+    if unknown or not names:
+        raise MethodError(f"unknown method(s) {unknown or text!r}; choose from {', '.join(METHODS)}")
+    return names
+
+
+def build_pipeline(method: str, config: TeamConfig, *, seed: int = 0, models: Path | None = None) -> Pipeline:
+    """The pipeline (stages + localizer) of one named method."""
+    if method == "multilateration":
+        return Pipeline(method, MultilaterationLocalizer(config, seed=seed))
+    if method not in METHODS:
+        raise MethodError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
+    stages: list[Stage] = []
+    if method in ("pf_ul", "pf_ulv"):
+        if models is None:
+            raise MethodError(f"method {method} needs --models DIR (trained range-error models)")
+        from relloc.stages.range_correction import RangeCorrector
+
+        stages.append(RangeCorrector.from_directory(models, config))
+    if method in ("pf_uv", "pf_ulv"):
+        from relloc.stages.association import DetectionAssociator
+
+        stages.append(DetectionAssociator(config))
+    return Pipeline(method, ParticleFilterLocalizer(config, seed=seed, method=method), stages)

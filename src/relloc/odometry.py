@@ -1,0 +1,120 @@
+"""Each robot's odometry, put into the team's shared heading frame and queryable at any time.
+
+Robots publish odometry in their own ``odom`` frame, at their own rate, with their own lag. The
+filter needs, for any two instants, how far each robot moved in the *shared* heading frame.
+``OdometryTrack`` keeps a short history of the robot's pose in that frame and interpolates it
+(or extrapolates with the last velocity, for a bounded time) at the instants the filter asks.
+
+Two ways to read a message, chosen per robot in the team config (``odom_mode``):
+
+* ``"pose"``: use the message's pose. Position and yaw are rotated by the robot's heading
+  offset (the rotation from its odometry frame to the shared frame: the paper's compass) and
+  positions are multiplied by its odometry scale.
+* ``"twist"``: integrate the body twist (forward speed along the integrated heading, yaw rate)
+  from the first message's pose. Some recordings (the shortbag's ``/cali/`` topics) freeze the
+  orientation of the pose, and their twist integrates to a better path than their positions.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass
+
+from relloc.events import OdometryEvent
+
+
+@dataclass
+class _Sample:
+    t: float
+    x: float
+    y: float
+    yaw: float
+
+
+class OdometryTrack:
+    """Pose history of one robot in the shared heading frame."""
+
+    def __init__(
+        self,
+        heading_offset: float = 0.0,
+        scale: float = 1.0,
+        mode: str = "pose",
+        *,
+        max_extrapolation: float = 0.5,
+        history: float = 30.0,
+    ) -> None:
+        if mode not in ("pose", "twist"):
+            raise ValueError(f"odometry mode must be 'pose' or 'twist', got {mode!r}")
+        self.heading_offset = heading_offset
+        self.scale = scale
+        self.mode = mode
+        self.max_extrapolation = max_extrapolation
+        self.history = history
+        self._t: list[float] = []
+        self._s: list[_Sample] = []
+        self._last_event: OdometryEvent | None = None
+
+    @property
+    def empty(self) -> bool:
+        return not self._s
+
+    @property
+    def last_time(self) -> float:
+        return self._t[-1] if self._t else -math.inf
+
+    def add(self, ev: OdometryEvent) -> None:
+        """Append a message; its time must be later than the last one's (the caller checks)."""
+        c, s = math.cos(self.heading_offset), math.sin(self.heading_offset)
+        prev = self._last_event
+        if self.mode == "pose" or prev is None:
+            x = self.scale * (c * ev.x - s * ev.y)
+            y = self.scale * (s * ev.x + c * ev.y)
+            sample = _Sample(ev.t, x, y, ev.yaw + self.heading_offset)
+        else:
+            last = self._s[-1]
+            dt = ev.t - prev.t
+            w = 0.5 * (prev.w + ev.w)
+            v = 0.5 * (prev.v + ev.v)
+            mid = last.yaw + 0.5 * w * dt
+            x = last.x + self.scale * v * dt * math.cos(mid)
+            y = last.y + self.scale * v * dt * math.sin(mid)
+            sample = _Sample(ev.t, x, y, last.yaw + w * dt)
+        self._t.append(ev.t)
+        self._s.append(sample)
+        self._last_event = ev
+        # Forget what the filter can no longer ask for.
+        if len(self._t) > 64 and self._t[0] < ev.t - self.history:
+            cut = bisect.bisect_left(self._t, ev.t - self.history)
+            del self._t[:cut]
+            del self._s[:cut]
+
+    def pose_at(self, t: float) -> tuple[float, float, float, float]:
+        """``(x, y, yaw, extrapolated_seconds)`` in the shared frame at time ``t``.
+
+        Before the first message the robot is taken to be where the first message puts it;
+        after the last, its last velocity is extrapolated for at most ``max_extrapolation``.
+        """
+        if not self._s:
+            raise ValueError("no odometry yet")
+        if t <= self._t[0]:
+            s = self._s[0]
+            return s.x, s.y, s.yaw, 0.0
+        if t >= self._t[-1]:
+            last = self._s[-1]
+            ahead = min(t - self._t[-1], self.max_extrapolation)
+            ev = self._last_event
+            if ev is None or ahead <= 0.0:
+                return last.x, last.y, last.yaw, 0.0
+            dx = self.scale * ev.v * ahead
+            return (
+                last.x + dx * math.cos(last.yaw),
+                last.y + dx * math.sin(last.yaw),
+                last.yaw + ev.w * ahead,
+                ahead,
+            )
+        i = bisect.bisect_right(self._t, t)
+        a, b = self._s[i - 1], self._s[i]
+        f = (t - a.t) / (b.t - a.t)
+        dyaw = math.remainder(b.yaw - a.yaw, math.tau)
+        return a.x + f * (b.x - a.x), a.y + f * (b.y - a.y), a.yaw + f * dyaw, 0.0

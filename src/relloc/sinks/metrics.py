@@ -1,0 +1,235 @@
+"""Evaluation against motion capture: APE, ATE, convergence time, TUM export.
+
+Definitions follow evo (MichaelGrupp/evo), applied to *relative* positions:
+
+* **APE** of robot ``i`` at an estimate time ``t``: ``|| p_hat_i(t) - (g_i(t) - g_ref(t)) ||``
+  where ``g`` is the motion-capture position interpolated at ``t`` (linear, only across gaps
+  shorter than ``max_gap``), in the shared heading frame. Reported as median, mean, RMSE, std
+  and max over the estimates after a warm-up window. The particle filter is never aligned.
+* **ATE** of a trajectory: the APE RMSE after aligning the whole estimated relative trajectory
+  of one robot to ground truth with one rigid 2-D transform (rotation + translation, Umeyama /
+  Kabsch, no scale): it measures the shape of the path, forgiving a constant offset.
+* **Multilateration** knows the formation only up to rotation and reflection: its fair figure
+  uses *one* orthogonal transform (rotation or reflection about the reference) fitted to the
+  whole run (``align="run"``); the per-step fit (``align="step"``) is an oracle that uses
+  ground truth at every step and is reported as such.
+* **Convergence time**: the first estimate time after which at most 5 % of estimates have a
+  worst-robot APE above ``threshold`` (0.3 m by default).
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from relloc.events import GroundTruthEvent
+from relloc.localizer import Estimate
+
+FloatArray = NDArray[np.float64]
+
+
+class GroundTruth:
+    """Motion-capture tracks of the robots, interpolated with a bounded gap."""
+
+    def __init__(self, reference: str, max_gap: float = 0.25) -> None:
+        self.reference = reference
+        self.max_gap = max_gap
+        self._t: dict[str, list[float]] = {}
+        self._xy: dict[str, list[tuple[float, float, float]]] = {}
+        self._sorted = True
+
+    def add(self, ev: GroundTruthEvent) -> None:
+        ts = self._t.setdefault(ev.robot, [])
+        if ts and ev.t < ts[-1]:
+            self._sorted = False
+        ts.append(ev.t)
+        self._xy.setdefault(ev.robot, []).append((ev.x, ev.y, ev.yaw))
+
+    def _sort(self) -> None:
+        if self._sorted:
+            return
+        for r in self._t:
+            order = np.argsort(self._t[r], kind="stable")
+            self._t[r] = [self._t[r][i] for i in order]
+            self._xy[r] = [self._xy[r][i] for i in order]
+        self._sorted = True
+
+    @property
+    def robots(self) -> list[str]:
+        return list(self._t)
+
+    def pose_at(self, robot: str, t: float) -> tuple[float, float, float] | None:
+        """World pose ``(x, y, yaw)`` at ``t``, or None outside the track or across a long gap."""
+        self._sort()
+        ts = self._t.get(robot)
+        if not ts or t < ts[0] or t > ts[-1]:
+            return None
+        i = bisect.bisect_left(ts, t)
+        if ts[i] == t:
+            return self._xy[robot][i]
+        a, b = i - 1, i
+        if ts[b] - ts[a] > self.max_gap:
+            return None
+        f = (t - ts[a]) / (ts[b] - ts[a])
+        (xa, ya, wa), (xb, yb, wb) = self._xy[robot][a], self._xy[robot][b]
+        return xa + f * (xb - xa), ya + f * (yb - ya), wa + f * math.remainder(wb - wa, math.tau)
+
+    def relative_at(self, robot: str, t: float) -> tuple[float, float] | None:
+        """``g_robot(t) - g_reference(t)`` in the world frame, or None if either is unknown."""
+        p, q = self.pose_at(robot, t), self.pose_at(self.reference, t)
+        if p is None or q is None:
+            return None
+        return p[0] - q[0], p[1] - q[1]
+
+    def trajectory(self, robot: str) -> tuple[FloatArray, FloatArray]:
+        self._sort()
+        return np.array(self._t.get(robot, [])), np.array(self._xy.get(robot, [])).reshape(-1, 3)
+
+
+@dataclass(frozen=True)
+class ApeStats:
+    median: float
+    mean: float
+    rmse: float
+    std: float
+    max: float
+    n: int
+
+    @classmethod
+    def of(cls, errors: FloatArray) -> ApeStats:
+        e = np.asarray(errors, dtype=float)
+        if e.size == 0:
+            return cls(math.nan, math.nan, math.nan, math.nan, math.nan, 0)
+        return cls(
+            float(np.median(e)),
+            float(np.mean(e)),
+            float(np.sqrt(np.mean(e**2))),
+            float(np.std(e)),
+            float(np.max(e)),
+            int(e.size),
+        )
+
+
+@dataclass
+class Paired:
+    """Estimates of one robot associated with ground truth: times, estimates, truths (K, 2)."""
+
+    t: FloatArray
+    est: FloatArray
+    gt: FloatArray
+    std: FloatArray
+
+    @property
+    def errors(self) -> FloatArray:
+        return np.linalg.norm(self.est - self.gt, axis=1) if len(self.t) else np.zeros(0)
+
+
+def associate(estimates: Sequence[Estimate], gt: GroundTruth, robots: Iterable[str]) -> dict[str, Paired]:
+    """Pair every estimate of every robot with interpolated relative ground truth."""
+    out: dict[str, Paired] = {}
+    for robot in robots:
+        t, e, g, s = [], [], [], []
+        for est in estimates:
+            if robot not in est.positions:
+                continue
+            truth = gt.relative_at(robot, est.t)
+            if truth is None:
+                continue
+            t.append(est.t)
+            e.append(est.positions[robot])
+            g.append(truth)
+            s.append(est.std(robot))
+        out[robot] = Paired(np.array(t), np.array(e).reshape(-1, 2), np.array(g).reshape(-1, 2), np.array(s))
+    return out
+
+
+def orthogonal_procrustes(src: FloatArray, dst: FloatArray) -> FloatArray:
+    """The 2x2 orthogonal matrix (rotation or reflection) minimising ``||src R^T - dst||``."""
+    u, _, vt = np.linalg.svd(dst.T @ src)
+    return u @ vt
+
+
+def umeyama_se2(src: FloatArray, dst: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Rotation R (proper) and translation t minimising ``||src R^T + t - dst||``."""
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    h = (dst - mu_d).T @ (src - mu_s)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(u @ vt))
+    r = u @ np.diag([1.0, d]) @ vt
+    return r, mu_d - r @ mu_s
+
+
+def align(paired: dict[str, Paired], mode: str) -> dict[str, Paired]:
+    """Align estimates about the reference: ``"run"`` one orthogonal map, ``"step"`` one per time."""
+    if mode == "none":
+        return paired
+    if mode == "run":
+        src = np.concatenate([p.est for p in paired.values()]) if paired else np.zeros((0, 2))
+        dst = np.concatenate([p.gt for p in paired.values()]) if paired else np.zeros((0, 2))
+        if len(src) < 2:
+            return paired
+        r = orthogonal_procrustes(src, dst)
+        return {k: Paired(p.t, p.est @ r.T, p.gt, p.std) for k, p in paired.items()}
+    if mode == "step":
+        times = sorted({float(t) for p in paired.values() for t in p.t})
+        out = {k: Paired(p.t, p.est.copy(), p.gt, p.std) for k, p in paired.items()}
+        for t in times:
+            rows = {k: np.flatnonzero(p.t == t) for k, p in out.items()}
+            src = np.concatenate([out[k].est[i] for k, i in rows.items()])
+            dst = np.concatenate([out[k].gt[i] for k, i in rows.items()])
+            if len(src) < 2:
+                continue
+            r = orthogonal_procrustes(src, dst)
+            for k, i in rows.items():
+                out[k].est[i] = out[k].est[i] @ r.T
+        return out
+    raise ValueError(f"unknown alignment {mode!r}")
+
+
+def ate(p: Paired) -> float:
+    """ATE (RMSE) of one robot's relative trajectory after one SE(2) alignment."""
+    if len(p.t) < 2:
+        return math.nan
+    r, t = umeyama_se2(p.est, p.gt)
+    return float(np.sqrt(np.mean(np.sum((p.est @ r.T + t - p.gt) ** 2, axis=1))))
+
+
+def convergence_time(paired: dict[str, Paired], threshold: float = 0.3, tolerance: float = 0.05) -> float:
+    """Seconds from the first estimate until the worst-robot APE stays (95 %) below threshold."""
+    if not paired:
+        return math.nan
+    times = np.array(sorted({float(t) for p in paired.values() for t in p.t}))
+    if times.size == 0:
+        return math.nan
+    worst = np.zeros(times.size)
+    for p in paired.values():
+        idx = np.searchsorted(times, p.t)
+        np.maximum.at(worst, idx, p.errors)
+    bad = (worst > threshold).astype(float)
+    # fraction of bad estimates from each index to the end
+    tail_bad = np.cumsum(bad[::-1])[::-1] / np.arange(times.size, 0, -1)
+    ok = np.flatnonzero(tail_bad <= tolerance)
+    if ok.size == 0:
+        return math.nan
+    return float(times[ok[0]] - times[0])
+
+
+def after(p: Paired, t_start: float) -> Paired:
+    """The part of ``p`` at or after ``t_start``."""
+    keep = p.t >= t_start
+    return Paired(p.t[keep], p.est[keep], p.gt[keep], p.std[keep])
+
+
+def write_tum(path: Path, times: FloatArray, xy: FloatArray) -> None:
+    """A TUM trajectory file (``t x y z qx qy qz qw``) of 2-D positions, for evo."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w") as fh:
+        fh.write("# timestamp tx ty tz qx qy qz qw\n")
+        for t, (x, y) in zip(times, xy, strict=True):
+            fh.write(f"{t:.6f} {x:.6f} {y:.6f} 0 0 0 0 1\n")

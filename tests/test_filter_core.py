@@ -1,0 +1,133 @@
+"""Unit tests of the filter's pure-NumPy parts: resampling, models, prior, annealing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from relloc.filter.models import OdometryMotion, RangeBatch, RelativePositionBatch
+from relloc.filter.pf import ParticleFilter
+from relloc.filter.resampling import ess, log_normalize, normalize, systematic_resample
+from relloc.filter.state import StateLayout
+
+
+def test_log_normalize_sums_to_one_without_underflow() -> None:
+    logw = np.array([-1000.0, -1001.0, -1002.0])
+    w = normalize(logw)
+    assert w.sum() == pytest.approx(1.0)
+    assert w[0] > w[1] > w[2] > 0
+    assert np.exp(log_normalize(logw)).sum() == pytest.approx(1.0)
+
+
+def test_ess_bounds() -> None:
+    assert ess(np.zeros(100)) == pytest.approx(100.0)
+    one_hot = np.full(100, -np.inf)
+    one_hot[3] = 0.0
+    assert ess(one_hot) == pytest.approx(1.0)
+
+
+def test_systematic_resampling_preserves_weights_in_expectation() -> None:
+    rng = np.random.default_rng(0)
+    w = rng.random(50)
+    w /= w.sum()
+    counts = np.zeros(50)
+    trials = 4000
+    for _ in range(trials):
+        counts += np.bincount(systematic_resample(w, rng), minlength=50)
+    np.testing.assert_allclose(counts / (trials * 50), w, atol=2e-3)
+    # systematic resampling copies each particle floor(M w) or ceil(M w) times
+    idx = systematic_resample(w, rng)
+    c = np.bincount(idx, minlength=50)
+    assert np.all(c >= np.floor(50 * w) - 1e-9) and np.all(c <= np.ceil(50 * w) + 1e-9)
+
+
+def test_layout_positions_put_reference_at_origin() -> None:
+    layout = StateLayout(("a", "b", "c"), "b")
+    particles = np.array([[1.0, 2.0, 3.0, 4.0]])
+    pos = layout.positions(particles)
+    np.testing.assert_array_equal(pos[0], [[1.0, 2.0], [0.0, 0.0], [3.0, 4.0]])
+    assert layout.columns("c") == slice(2, 4)
+    with pytest.raises(KeyError):
+        layout.index("z")
+
+
+def test_range_likelihood_peaks_at_true_distance_and_is_robust() -> None:
+    pos = np.zeros((3, 2, 2))
+    pos[:, 1, 0] = [1.0, 2.0, 3.0]  # three particles: robot 1 at x = 1, 2, 3
+    batch = RangeBatch(
+        np.array([0]), np.array([1]), np.array([2.3]), np.array([0.3]), np.array([0.1]),
+        outlier_fraction=0.1, max_range=15.0,
+    )
+    ll = batch.log_likelihood(pos)
+    assert np.argmax(ll) == 1
+    # a wild outlier cannot push the log-likelihood below the uniform floor
+    far = RangeBatch(np.array([0]), np.array([1]), np.array([50.0]), np.array([0.0]), np.array([0.1]))
+    assert np.all(far.log_likelihood(pos) >= np.log(0.1 / 15.0) - 1e-9)
+
+
+def test_relative_position_likelihood_peaks_at_measured_vector() -> None:
+    pos = np.zeros((2, 2, 2))
+    pos[0, 1] = [1.0, 1.0]
+    pos[1, 1] = [1.0, -1.0]
+    batch = RelativePositionBatch(np.array([0]), np.array([1]), np.array([[1.0, 1.0]]), np.array([0.1]))
+    ll = batch.log_likelihood(pos)
+    assert ll[0] > ll[1]
+
+
+def test_odometry_motion_moves_by_relative_displacement() -> None:
+    rng = np.random.default_rng(1)
+    particles = np.zeros((20000, 4))
+    disp = np.array([[0.5, 0.0], [1.0, 0.0], [0.0, 2.0]])  # robots a (ref), b, c
+    sigma = np.array([0.0, 0.1, 0.0])
+    OdometryMotion(process_noise=0.0).propagate(particles, np.array([1, 2]), 0, disp, sigma, 0.1, rng)
+    np.testing.assert_allclose(particles.mean(axis=0), [0.5, 0.0, -0.5, 2.0], atol=0.01)
+    assert particles[:, 0].std() == pytest.approx(0.1, rel=0.05)
+    assert particles[:, 2].std() == pytest.approx(0.0, abs=1e-12)
+
+
+def _triangle_loglik(truth: np.ndarray, sigma: float = 0.05):
+    layout = StateLayout(("r", "a", "b"), "r")
+    pairs = np.array([[0, 1], [0, 2], [1, 2]])
+    full = np.vstack([[0.0, 0.0], truth])
+    d = np.linalg.norm(full[pairs[:, 0]] - full[pairs[:, 1]], axis=1)
+    robust = RangeBatch(pairs[:, 0], pairs[:, 1], d, np.zeros(3), np.full(3, sigma))
+    gaussian = RangeBatch(pairs[:, 0], pairs[:, 1], d, np.zeros(3), np.full(3, sigma), outlier_fraction=0.0)
+    return layout, robust.log_likelihood, gaussian.log_likelihood
+
+
+def test_annealed_start_finds_the_formation_up_to_symmetry() -> None:
+    truth = np.array([[2.0, 0.5], [0.5, 2.5]])
+    layout, loglik, guide = _triangle_loglik(truth)
+    pf = ParticleFilter(layout, 4000, (-4, 4, -4.5, 4.5), rng=np.random.default_rng(0))
+    stages = pf.initialize_annealed(loglik, guide)
+    assert stages > 1
+    pos = layout.positions(pf.particles)
+    # distances of every particle match the true ones (ranges fix the shape, not the rotation)
+    d_ra = np.linalg.norm(pos[:, 1], axis=1)
+    d_ab = np.linalg.norm(pos[:, 1] - pos[:, 2], axis=1)
+    assert np.median(np.abs(d_ra - np.linalg.norm(truth[0]))) < 0.05
+    assert np.median(np.abs(d_ab - np.linalg.norm(truth[0] - truth[1]))) < 0.05
+    # spreading over rotations keeps the shape and spreads the bearing over the circle
+    pf.spread_symmetries()
+    pos = layout.positions(pf.particles)
+    assert np.median(np.abs(np.linalg.norm(pos[:, 1], axis=1) - np.linalg.norm(truth[0]))) < 0.05
+    bearings = np.arctan2(pos[:, 1, 1], pos[:, 1, 0])
+    hist, _ = np.histogram(bearings, bins=8, range=(-np.pi, np.pi))
+    assert hist.min() > 0.6 * hist.mean()
+
+
+def test_resample_reinjects_prior_fraction() -> None:
+    layout = StateLayout(("r", "a"), "r")
+    pf = ParticleFilter(layout, 1000, (-4, 4, -4.5, 4.5), rng=np.random.default_rng(0), reinject_fraction=0.05)
+    pf.particles[:] = 0.0
+    pf.resample()
+    moved = np.any(pf.particles != 0.0, axis=1).sum()
+    assert moved == 50
+
+
+def test_filter_rejects_bad_parameters() -> None:
+    layout = StateLayout(("r", "a"), "r")
+    with pytest.raises(ValueError):
+        ParticleFilter(layout, 0, (-1, 1, -1, 1), rng=np.random.default_rng(0))
+    with pytest.raises(ValueError):
+        ParticleFilter(layout, 10, (-1, 1, -1, 1), rng=np.random.default_rng(0), resample="sometimes")
