@@ -19,7 +19,7 @@ from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from relloc.engine import Engine
 from relloc.methods import build_pipeline
 from relloc.sinks.plots import plot_ape, plot_ape_over_time, plot_trajectories
-from relloc.sinks.report import ScenarioReport, evaluate, print_table
+from relloc.sinks.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.sources.simulator import Simulation, multi_scenario, single_scenario
 
 
@@ -67,7 +67,7 @@ def run_scenario(name: str, opts: DemoOptions, console: Console) -> ScenarioRepo
 
 
 def run_demo(opts: DemoOptions, console: Console | None = None) -> dict[str, Any]:
-    console = console or Console()
+    console = console or make_console()
     results: dict[str, Any] = {"seed": opts.seed, "scenarios": {}}
     for name in opts.scenarios:
         report = run_scenario(name, opts, console)

@@ -134,7 +134,7 @@ class ParticleFilter:
         """Systematic resampling, then re-injection of a fraction of particles from the prior."""
         idx = systematic_resample(np.exp(self.logw), self.rng)
         self.particles = self.particles[idx]
-        k = int(round(self.reinject_fraction * self.n))
+        k = round(self.reinject_fraction * self.n)
         if k > 0:
             slots = self.rng.choice(self.n, size=k, replace=False)
             self.particles[slots] = self.sample_prior(k)

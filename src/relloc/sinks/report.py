@@ -11,6 +11,7 @@ ground truth at every step (an oracle, for reference only).
 from __future__ import annotations
 
 import math
+import sys
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -106,22 +107,23 @@ def evaluate(engine: Engine, name: str, warmup: float, robots: list[str] | None 
     return ScenarioReport(name, warmup, duration, methods, t0)
 
 
+def make_console() -> Console:
+    """A console for tables: the terminal's width, or 120 columns when output is redirected."""
+    return Console() if sys.stdout.isatty() else Console(width=120)
+
+
 def print_table(report: ScenarioReport, console: Console | None = None) -> None:
-    """The method x robot table: APE median / RMSE (m), n, and convergence time."""
-    console = console or Console()
+    """One row per method and robot: APE median / RMSE / max (m), n, and convergence time."""
+    console = console or make_console()
     table = Table(title=f"{report.name}: APE after {report.warmup:g} s warm-up ({report.duration:.1f} s run)")
-    table.add_column("method")
-    robots = sorted({r for m in report.methods.values() for r in m.robots})
-    for r in robots:
-        table.add_column(f"{r}\nmedian / rmse", justify="right")
-    table.add_column("mean\nmedian", justify="right")
-    table.add_column("converged\nafter (s)", justify="right")
+    for col in ("method", "robot", "APE median", "APE rmse", "APE max", "ATE", "n", "converged after"):
+        table.add_column(col, justify="left" if col in ("method", "robot") else "right")
     for method, m in report.methods.items():
-        cells = []
-        for r in robots:
-            s = m.robots.get(r)
-            cells.append("-" if s is None or s.n == 0 else f"{s.median:.3f} / {s.rmse:.3f}")
-        conv = "never" if not math.isfinite(m.convergence_s) else f"{m.convergence_s:.1f}"
-        mean = "-" if not math.isfinite(m.mean_ape_median) else f"{m.mean_ape_median:.3f}"
-        table.add_row(method, *cells, mean, conv)
+        conv = "never" if not math.isfinite(m.convergence_s) else f"{m.convergence_s:.1f} s"
+        for k, (robot, s) in enumerate(sorted(m.robots.items())):
+            if s.n == 0:
+                cells = ["no estimate", "", "", "", "0"]
+            else:
+                cells = [f"{s.median:.3f}", f"{s.rmse:.3f}", f"{s.max:.3f}", f"{m.ate.get(robot, math.nan):.3f}", str(s.n)]
+            table.add_row(method if k == 0 else "", robot, *cells, conv if k == 0 else "", end_section=k == len(m.robots) - 1)
     console.print(table)
