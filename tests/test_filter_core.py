@@ -44,16 +44,16 @@ def test_systematic_resampling_preserves_weights_in_expectation() -> None:
 def test_layout_positions_put_reference_at_origin() -> None:
     layout = StateLayout(("a", "b", "c"), "b")
     particles = np.array([[1.0, 2.0, 3.0, 4.0]])
-    pos = layout.positions(particles)
-    np.testing.assert_array_equal(pos[0], [[1.0, 2.0], [0.0, 0.0], [3.0, 4.0]])
+    pos = layout.positions(particles)  # (2, N, M)
+    np.testing.assert_array_equal(pos[:, :, 0].T, [[1.0, 2.0], [0.0, 0.0], [3.0, 4.0]])
     assert layout.columns("c") == slice(2, 4)
     with pytest.raises(KeyError):
         layout.index("z")
 
 
 def test_range_likelihood_peaks_at_true_distance_and_is_robust() -> None:
-    pos = np.zeros((3, 2, 2))
-    pos[:, 1, 0] = [1.0, 2.0, 3.0]  # three particles: robot 1 at x = 1, 2, 3
+    pos = np.zeros((2, 2, 3))  # (xy, robot, particle)
+    pos[0, 1, :] = [1.0, 2.0, 3.0]  # three particles: robot 1 at x = 1, 2, 3
     batch = RangeBatch(
         np.array([0]), np.array([1]), np.array([2.3]), np.array([0.3]), np.array([0.1]),
         outlier_fraction=0.1, max_range=15.0,
@@ -66,9 +66,9 @@ def test_range_likelihood_peaks_at_true_distance_and_is_robust() -> None:
 
 
 def test_relative_position_likelihood_peaks_at_measured_vector() -> None:
-    pos = np.zeros((2, 2, 2))
-    pos[0, 1] = [1.0, 1.0]
-    pos[1, 1] = [1.0, -1.0]
+    pos = np.zeros((2, 2, 2))  # (xy, robot, particle)
+    pos[:, 1, 0] = [1.0, 1.0]
+    pos[:, 1, 1] = [1.0, -1.0]
     batch = RelativePositionBatch(np.array([0]), np.array([1]), np.array([[1.0, 1.0]]), np.array([0.1]))
     ll = batch.log_likelihood(pos)
     assert ll[0] > ll[1]
@@ -101,7 +101,7 @@ def test_annealed_start_finds_the_formation_up_to_symmetry() -> None:
     pf = ParticleFilter(layout, 4000, (-4, 4, -4.5, 4.5), rng=np.random.default_rng(0))
     stages = pf.initialize_annealed(loglik, guide)
     assert stages > 1
-    pos = layout.positions(pf.particles)
+    pos = layout.positions(pf.particles).transpose(2, 1, 0)  # (M, N, 2)
     # distances of every particle match the true ones (ranges fix the shape, not the rotation)
     d_ra = np.linalg.norm(pos[:, 1], axis=1)
     d_ab = np.linalg.norm(pos[:, 1] - pos[:, 2], axis=1)
@@ -109,7 +109,7 @@ def test_annealed_start_finds_the_formation_up_to_symmetry() -> None:
     assert np.median(np.abs(d_ab - np.linalg.norm(truth[0] - truth[1]))) < 0.05
     # spreading over rotations keeps the shape and spreads the bearing over the circle
     pf.spread_symmetries()
-    pos = layout.positions(pf.particles)
+    pos = layout.positions(pf.particles).transpose(2, 1, 0)
     assert np.median(np.abs(np.linalg.norm(pos[:, 1], axis=1) - np.linalg.norm(truth[0]))) < 0.05
     bearings = np.arctan2(pos[:, 1, 1], pos[:, 1, 0])
     hist, _ = np.histogram(bearings, bins=8, range=(-np.pi, np.pi))

@@ -38,6 +38,47 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_run(args: argparse.Namespace) -> int:
+    from relloc.config import TeamConfig
+    from relloc.methods import parse_methods
+    from relloc.recording import RunOptions, run_recording
+
+    config = TeamConfig.load(args.config)
+    opts = RunOptions(
+        methods=tuple(parse_methods(args.methods)),
+        seed=args.seed,
+        warmup=args.warmup,
+        particles=args.particles,
+        models=Path(args.models) if args.models else None,
+        out=Path(args.out) if args.out else None,
+        json_path=Path(args.json) if args.json else None,
+        progress=not args.no_progress,
+    )
+    run_recording(Path(args.bag), config, opts)
+    return 0
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    import json
+
+    from relloc.config import TeamConfig
+    from relloc.recording import calibrate
+
+    config = TeamConfig.load(args.config)
+    node_map = None
+    if args.node_map:
+        try:
+            node_map = {int(k): v for k, v in (item.split("=") for item in args.node_map.split(","))}
+        except ValueError:
+            raise UserError(f"--node-map must look like 1=n_7,3=n_3, got {args.node_map!r}") from None
+    new, summary = calibrate(Path(args.source), config, node_map=node_map, headings=args.headings, fit_scale=args.scale)
+    out = Path(args.write or args.config)
+    new.save(out)
+    print(json.dumps(summary, indent=2))
+    print(f"calibration from {args.source} written to {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="relloc",
@@ -57,6 +98,28 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--json", default=None, metavar="FILE", help="write the figures as JSON")
     demo.add_argument("--no-progress", action="store_true")
     demo.set_defaults(handler=_cmd_demo)
+
+    run = sub.add_parser("run", help="run methods over a rosbag2 recording and evaluate them")
+    run.add_argument("bag", help="bag folder (metadata.yaml) or .db3/.mcap file")
+    run.add_argument("--config", required=True, help="team config (TOML), e.g. configs/tiers/...")
+    run.add_argument("--methods", default="pf,multilateration")
+    run.add_argument("--seed", type=int, default=0)
+    run.add_argument("--warmup", type=float, default=5.0, help="seconds excluded from APE")
+    run.add_argument("--particles", type=int, default=None)
+    run.add_argument("--models", default=None, help="trained range-error models (for pf_ul)")
+    run.add_argument("--out", default=None, help="folder for plots and TUM trajectories")
+    run.add_argument("--json", default=None, metavar="FILE")
+    run.add_argument("--no-progress", action="store_true")
+    run.set_defaults(handler=_cmd_run)
+
+    cal = sub.add_parser("calibrate", help="estimate UWB pair biases (and heading offsets) into a config")
+    cal.add_argument("source", help="a bag with motion capture, or a CSV of UWB errors")
+    cal.add_argument("--config", required=True)
+    cal.add_argument("--write", default=None, help="write here instead of over --config")
+    cal.add_argument("--node-map", default=None, help="CSV robot numbers to nodes, e.g. 1=n_7,3=n_3")
+    cal.add_argument("--headings", action="store_true", help="also heading offsets from the first mocap pose")
+    cal.add_argument("--scale", action="store_true", help="also fit a range scale per pair")
+    cal.set_defaults(handler=_cmd_calibrate)
 
     _register_optional(sub)
     return parser
@@ -93,6 +156,12 @@ def _is_user_error(exc: Exception) -> bool:
     from relloc.methods import MethodError
 
     known: tuple[type[Exception], ...] = (UserError, ConfigError, MethodError, FileNotFoundError)
+    try:
+        from relloc.calibration import CalibrationError
+
+        known += (CalibrationError,)
+    except ImportError:
+        pass
     try:
         from relloc.sources.rosbag import BagError
 

@@ -2,8 +2,8 @@
 
 Every measurement model is a small immutable batch of measurements that knows its own
 log-likelihood ``log p(z | x)`` for all particles: ``log_likelihood(positions)`` takes the
-robots' relative positions of shape ``(M, N, 2)`` (from :class:`StateLayout.positions`) and
-returns ``(M,)``. The filter sums the log-likelihoods of whatever arrived in one update — the
+robots' relative positions as coordinate planes of shape ``(2, N, M)`` (from
+:meth:`StateLayout.positions`) and returns ``(M,)``. The filter sums the log-likelihoods of whatever arrived in one update — the
 "stacked measurement vector" of the paper — so adding a sensor means adding a model here, not
 editing the filter.
 
@@ -60,17 +60,18 @@ class RangeBatch:
         return len(self.distance)
 
     def predicted(self, positions: FloatArray) -> FloatArray:
-        """True distances of each particle's pairs, shape ``(M, K)``."""
-        diff = positions[:, self.index_a, :] - positions[:, self.index_b, :]
-        return np.sqrt(np.einsum("mkd,mkd->mk", diff, diff))
+        """True distances of each particle's pairs, shape ``(K, M)``."""
+        dx = positions[0, self.index_a] - positions[0, self.index_b]
+        dy = positions[1, self.index_a] - positions[1, self.index_b]
+        return np.sqrt(dx * dx + dy * dy)
 
     def log_likelihood(self, positions: FloatArray) -> FloatArray:
         d = self.predicted(positions)
         if self.scale is not None:
-            d = d * self.scale
-        residual = (self.distance - self.bias) - d
-        ll = _robust_gaussian_loglik(residual, self.sigma, self.outlier_fraction, self.max_range)
-        return ll.sum(axis=1)
+            d = d * self.scale[:, None]
+        residual = (self.distance - self.bias)[:, None] - d
+        ll = _robust_gaussian_loglik(residual, self.sigma[:, None], self.outlier_fraction, self.max_range)
+        return ll.sum(axis=0)
 
 
 @dataclass(frozen=True)
@@ -92,15 +93,15 @@ class RelativePositionBatch:
         return len(self.sigma)
 
     def log_likelihood(self, positions: FloatArray) -> FloatArray:
-        pred = positions[:, self.index_target, :] - positions[:, self.index_observer, :]
-        r2 = np.sum((pred - self.vector) ** 2, axis=2)  # (M, K)
-        s2 = self.sigma**2
-        log_gauss = -0.5 * r2 / s2 - np.log(2.0 * np.pi * s2)
+        ex = positions[0, self.index_target] - positions[0, self.index_observer] - self.vector[:, 0:1]
+        ey = positions[1, self.index_target] - positions[1, self.index_observer] - self.vector[:, 1:2]
+        s2 = (self.sigma**2)[:, None]
+        log_gauss = -0.5 * (ex * ex + ey * ey) / s2 - np.log(2.0 * np.pi * s2)  # (K, M)
         eps = self.outlier_fraction
         if eps <= 0.0:
-            return log_gauss.sum(axis=1)
+            return log_gauss.sum(axis=0)
         ll = np.logaddexp(np.log1p(-eps) + log_gauss, np.log(eps / self.support))
-        return ll.sum(axis=1)
+        return ll.sum(axis=0)
 
 
 @dataclass(frozen=True)

@@ -38,7 +38,7 @@ from relloc.filter.state import StateLayout
 
 FloatArray = NDArray[np.float64]
 LogLikelihood = Callable[[FloatArray], FloatArray]
-"""Maps relative positions ``(M, N, 2)`` to log-likelihoods ``(M,)``."""
+"""Maps relative positions (coordinate planes ``(2, N, M)``) to log-likelihoods ``(M,)``."""
 
 
 @dataclass(frozen=True)

@@ -53,9 +53,16 @@ class StateLayout:
         return slice(2 * k, 2 * k + 2)
 
     def positions(self, particles: FloatArray) -> FloatArray:
-        """All robots' relative positions, shape ``(M, N, 2)``, the reference at the origin."""
+        """All robots' relative positions as coordinate planes of shape ``(2, N, M)``.
+
+        ``positions[0, i]`` holds robot ``i``'s x over all particles (the reference's row is
+        zero). Robot-major rows make the gathers of the measurement models
+        (``positions[:, index_a]``) contiguous, which is several times faster than gathering
+        along the middle axis of an ``(M, N, 2)`` array.
+        """
         m = particles.shape[0]
-        out = np.zeros((m, len(self.robots), 2))
+        out = np.zeros((2, len(self.robots), m))
         mask = np.array([r != self.reference for r in self.robots])
-        out[:, mask, :] = particles[:, : self.dim].reshape(m, -1, 2)
+        rel = particles[:, : self.dim].T.reshape(-1, 2, m)  # (N-1, 2, M)
+        out[:, mask, :] = rel.transpose(1, 0, 2)
         return out
