@@ -147,6 +147,9 @@ class FilterConfig:
     """Lateral noise per radian turned (m/rad), for heading errors during turns."""
     process_noise: float = 0.03
     """Random-walk noise of every relative position (m per sqrt(s)); keeps static robots alive."""
+    rotation_noise: float = 0.0
+    """Random turn of the whole formation about the reference (rad per sqrt(s)): the drift of
+    the shared heading, and the only diversity along the direction ranges cannot see."""
     resample: Literal["every_step", "ess"] = "ess"
     ess_threshold: float = 0.5
     """Resample when the effective sample size falls below this fraction of ``particles``."""

@@ -317,7 +317,7 @@ class ParticleFilterLocalizer(Localizer):
             sigma[i] = fc.odom_noise_per_m * dist + fc.odom_noise_per_rad * turn
             self._anchor[robot] = now
         dt = max(t - self.t, 0.0)
-        self.pf.predict(disp, sigma, dt)
+        self.pf.predict(disp, sigma, dt, fc.rotation_noise)
         self.t = t
 
     def _loglik(self, batch: list[Measurement], outliers: bool = True) -> LogLikelihood | None:

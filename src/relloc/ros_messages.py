@@ -49,6 +49,7 @@ from relloc.events import (
 )
 
 __all__ = [
+    "MSG_DIR",
     "ODOMETRY",
     "POSE_ARRAY",
     "POSE_STAMPED",
@@ -58,7 +59,9 @@ __all__ = [
     "TWIST",
     "MessageDecodeError",
     "camera_to_body",
+    "custom_types",
     "decode",
+    "detection_rejection",
     "detections_to_event",
     "encode",
     "header_stamp_from_cdr",
@@ -68,6 +71,7 @@ __all__ = [
     "pose_with_covariance_msg",
     "quaternion_from_yaw",
     "range_msg",
+    "range_rejection",
     "range_to_event",
     "stamp_to_sec",
     "time_msg",
@@ -270,7 +274,9 @@ def _rotation_camera_to_body(camera: CameraConfig) -> np.ndarray:
     return r_yaw @ r_pitch @ optical_to_link
 
 
-def camera_to_body(points: np.ndarray | Sequence[Sequence[float]], camera: CameraConfig) -> np.ndarray:
+def camera_to_body(
+    points: np.ndarray | Sequence[Sequence[float]], camera: CameraConfig
+) -> np.ndarray:
     """Transform points ``(N, 3)`` from the camera optical frame to the robot body frame."""
     pts = np.asarray(points, dtype=float).reshape(-1, 3)
     rot = _rotation_camera_to_body(camera)
@@ -341,7 +347,9 @@ def detections_to_event(
     if kept:
         body = camera_to_body([item[2:] for item in kept], camera)
         objects = tuple(
-            ObjectDetection(label=item[0], x=float(b[0]), y=float(b[1]), z=float(b[2]), score=item[1])
+            ObjectDetection(
+                label=item[0], x=float(b[0]), y=float(b[1]), z=float(b[2]), score=item[1]
+            )
             for item, b in zip(kept, body, strict=True)
         )
     return DetectionEvent(t=_msg_time(msg, t), robot=robot, objects=objects), rejected

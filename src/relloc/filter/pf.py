@@ -104,9 +104,16 @@ class ParticleFilter:
         return self.layout.positions(self.particles if particles is None else particles)
 
     # ---------------------------------------------------------------- cycle
-    def predict(self, disp: FloatArray, sigma: FloatArray, dt: float) -> None:
-        """Move particles by every robot's displacement ``disp`` (N, 2) with std ``sigma`` (N,)."""
+    def predict(self, disp: FloatArray, sigma: FloatArray, dt: float, rotation_noise: float = 0.0) -> None:
+        """Move particles by every robot's displacement ``disp`` (N, 2) with std ``sigma`` (N,).
+
+        ``rotation_noise`` (rad/sqrt(s)) also turns each particle's whole formation about the
+        reference by a small random angle: the one direction ranges cannot see, along which
+        only the robots' headings inform the filter (their drift is this noise).
+        """
         self.motion.propagate(self.particles, self._others, self._reference, disp, sigma, dt, self.rng)
+        if rotation_noise > 0.0 and dt > 0.0:
+            self.rotate(self.rng.normal(0.0, rotation_noise * np.sqrt(dt), self.n))
 
     def update(self, loglik: LogLikelihood) -> FloatArray:
         """Add ``loglik`` to the log-weights; returns the per-particle log-likelihood."""
@@ -237,9 +244,14 @@ class ParticleFilter:
         if reflections:
             flip = self.rng.random(m) < 0.5
             rel[flip, :, 1] *= -1.0
-        theta = self.rng.uniform(-np.pi, np.pi, m)
+        self.particles[:, : self.layout.dim] = rel.reshape(m, -1)
+        self.rotate(self.rng.uniform(-np.pi, np.pi, m))
+
+    def rotate(self, theta: FloatArray) -> None:
+        """Turn particle ``k``'s formation about the reference by ``theta[k]`` (rad)."""
+        m = self.particles.shape[0]
+        rel = self.particles[:, : self.layout.dim].reshape(m, -1, 2)
         c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
         x, y = rel[:, :, 0].copy(), rel[:, :, 1].copy()
         rel[:, :, 0] = c * x - s * y
         rel[:, :, 1] = s * x + c * y
-        self.particles[:, : self.layout.dim] = rel.reshape(m, -1)
