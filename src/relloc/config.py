@@ -132,7 +132,7 @@ class UwbConfig:
 class FilterConfig:
     """Particle-filter parameters. The defaults are the ones used on every shared recording."""
 
-    particles: int = 20000
+    particles: int = 50000
     sigma_uwb: float = 0.15
     """Standard deviation of the Gaussian part of the range likelihood (m)."""
     outlier_fraction: float = 0.1
@@ -168,6 +168,25 @@ class FilterConfig:
     (exact while only ranges have been seen); odometry motion then selects the right one."""
     max_odom_extrapolation: float = 0.5
     """How far past a robot's last odometry message its motion is extrapolated (s)."""
+    # Cooperative detections (relloc.stages.association, methods pf_uv / pf_ulv).
+    detection_window: float = 0.1
+    """Detections of two robots are paired when their capture times differ by at most this (s)."""
+    d_th: float = 0.15
+    """Association threshold: a detection pair must agree with the converged estimate within
+    this (m), widened by the estimate's own uncertainty (``det_gate_sigmas``)."""
+    det_sigma_per_m: float = 0.03
+    """Relative-position noise growing with detection distance (m per m, per detection, added
+    in quadrature to ``sigma_det``): stereo depth noise and heading error grow with range."""
+    det_converged_std: float = 0.5
+    """The estimate of a pair counts as converged (and gates detections) when both robots'
+    position standard deviations are below this (m)."""
+    det_gate_sigmas: float = 2.0
+    """Widening of the estimate gate by the estimate's standard deviation (multiples)."""
+    det_range_gate: float = 0.3
+    """Before convergence: a pair's implied distance must match the pair's latest (bias-corrected)
+    UWB range within this (m)."""
+    det_range_max_age: float = 0.3
+    """The UWB range used by the range gate must be at most this old (s)."""
 
 
 @dataclass(frozen=True)
