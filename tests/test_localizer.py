@@ -70,13 +70,13 @@ def _team_localizer(**filter_changes):
 
 @pytest.mark.parametrize("distance", [math.nan, -0.5, math.inf, 1e6])
 def test_invalid_ranges_are_rejected_and_counted(distance: float) -> None:
-    sim, loc = _team_localizer()
+    _, loc = _team_localizer()
     assert loc.process(RangeEvent(1.0, "r0", "r1", distance, "n_0", "n_1")) == []
     assert loc.rejected == {"invalid_range": 1}
 
 
 def test_unknown_robots_and_bad_odometry_are_rejected_and_counted() -> None:
-    sim, loc = _team_localizer()
+    _, loc = _team_localizer()
     loc.process(RangeEvent(1.0, "r0", "ghost", 2.0))
     loc.process(OdometryEvent(1.0, "ghost", 0.0, 0.0, 0.0))
     loc.process(OdometryEvent(1.0, "r1", math.nan, 0.0, 0.0))
@@ -111,7 +111,7 @@ def test_time_going_backwards_is_rejected_and_counted_without_crash() -> None:
 
 
 def test_repeated_range_values_are_not_fused_twice() -> None:
-    sim, loc = _team_localizer()
+    _, loc = _team_localizer()
     loc.process(RangeEvent(1.0, "r0", "r1", 2.0, "n_0", "n_1"))
     loc.process(RangeEvent(1.1, "r0", "r1", 2.0, "n_0", "n_1"))
     assert loc.rejected == {"repeated_range": 1}
