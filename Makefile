@@ -20,8 +20,18 @@ test: setup
 	$(BIN)/ruff check src tests benchmarks examples
 	$(BIN)/python -m pytest -q
 
-bench: setup
-	$(BIN)/python benchmarks/filter_vs_pfilter.py
+# The benchmark has an environment of its own: relloc plus the pfilter reference (not a dependency).
+BENCH_VENV := .venv-bench
+BENCH_ARGS ?= --json out/bench/filter_vs_pfilter.json
+
+$(BENCH_VENV)/.installed: pyproject.toml benchmarks/requirements-pfilter.txt
+	$(PYTHON) -m venv $(BENCH_VENV)
+	$(BENCH_VENV)/bin/python -m pip install -q --upgrade pip
+	$(BENCH_VENV)/bin/python -m pip install -q -e . -r benchmarks/requirements-pfilter.txt
+	touch $@
+
+bench: $(BENCH_VENV)/.installed
+	$(BENCH_VENV)/bin/python benchmarks/filter_vs_pfilter.py $(BENCH_ARGS)
 
 clean:
 	rm -rf $(VENV) out build *.egg-info

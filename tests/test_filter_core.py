@@ -131,3 +131,29 @@ def test_filter_rejects_bad_parameters() -> None:
         ParticleFilter(layout, 0, (-1, 1, -1, 1), rng=np.random.default_rng(0))
     with pytest.raises(ValueError):
         ParticleFilter(layout, 10, (-1, 1, -1, 1), rng=np.random.default_rng(0), resample="sometimes")
+
+
+def test_estimate_is_the_weighted_mean_and_covariance() -> None:
+    layout = StateLayout(("a", "b", "c"), "a")
+    pf = ParticleFilter(layout, 3000, (-4, 4, -4.5, 4.5), rng=np.random.default_rng(0))
+    pf.logw = log_normalize(np.log(np.random.default_rng(1).random(3000)))
+    est = pf.estimate()
+    w = np.exp(pf.logw)
+    for k in range(2):
+        x = pf.particles[:, 2 * k : 2 * k + 2]
+        np.testing.assert_allclose(est.mean[k], w @ x)
+        np.testing.assert_allclose(est.cov[k], np.cov(x.T, aweights=w, bias=True))
+    assert est.ess == pytest.approx(ess(pf.logw))
+
+
+def test_robust_likelihood_matches_the_log_space_formula() -> None:
+    rng = np.random.default_rng(2)
+    pos = rng.normal(size=(2, 3, 50))
+    batch = RangeBatch(np.array([0, 1]), np.array([1, 2]), np.array([1.0, 2.0]), np.array([0.2, 0.3]),
+                       np.array([0.1, 0.2]), outlier_fraction=0.1, max_range=15.0)
+    d = batch.predicted(pos)
+    r = (batch.distance - batch.bias)[:, None] - d
+    s = batch.sigma[:, None]
+    gauss = np.exp(-0.5 * (r / s) ** 2) / (s * np.sqrt(2 * np.pi))
+    expected = np.log(0.9 * gauss + 0.1 / 15.0).sum(axis=0)
+    np.testing.assert_allclose(batch.log_likelihood(pos), expected)

@@ -32,11 +32,22 @@ _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 
 
 def _robust_gaussian_loglik(residual: FloatArray, sigma: FloatArray, eps: float, support: float) -> FloatArray:
-    """Elementwise log of ``(1-eps) N(residual; 0, sigma^2) + eps / support``."""
-    log_gauss = -0.5 * (residual / sigma) ** 2 - np.log(sigma) - _LOG_SQRT_2PI
+    """Elementwise log of ``(1-eps) N(residual; 0, sigma^2) + eps / support``.
+
+    Computed in linear space (one ``exp`` and one ``log``, in place): exact, because the
+    uniform floor keeps the sum away from zero, and about twice as fast as ``logaddexp``.
+    """
+    z = residual / sigma
+    z *= z
+    z *= -0.5
     if eps <= 0.0:
-        return log_gauss
-    return np.logaddexp(np.log1p(-eps) + log_gauss, np.log(eps / support))
+        z -= np.log(sigma) + _LOG_SQRT_2PI
+        return z
+    np.exp(z, out=z)
+    z *= (1.0 - eps) / (sigma * np.sqrt(2.0 * np.pi))
+    z += eps / support
+    np.log(z, out=z)
+    return z
 
 
 @dataclass(frozen=True)
@@ -96,12 +107,12 @@ class RelativePositionBatch:
         ex = positions[0, self.index_target] - positions[0, self.index_observer] - self.vector[:, 0:1]
         ey = positions[1, self.index_target] - positions[1, self.index_observer] - self.vector[:, 1:2]
         s2 = (self.sigma**2)[:, None]
-        log_gauss = -0.5 * (ex * ex + ey * ey) / s2 - np.log(2.0 * np.pi * s2)  # (K, M)
+        r2 = ex * ex + ey * ey  # (K, M)
         eps = self.outlier_fraction
         if eps <= 0.0:
-            return log_gauss.sum(axis=0)
-        ll = np.logaddexp(np.log1p(-eps) + log_gauss, np.log(eps / self.support))
-        return ll.sum(axis=0)
+            return (-0.5 * r2 / s2 - np.log(2.0 * np.pi * s2)).sum(axis=0)
+        dens = (1.0 - eps) / (2.0 * np.pi * s2) * np.exp(-0.5 * r2 / s2) + eps / self.support
+        return np.log(dens).sum(axis=0)
 
 
 @dataclass(frozen=True)
@@ -131,8 +142,10 @@ class OdometryMotion:
         m = particles.shape[0]
         n_others = len(others)
         rel = particles[:, : 2 * n_others].reshape(m, n_others, 2)
-        rel += disp[others] - disp[reference]
         own = np.sqrt(sigma[others] ** 2 + self.process_noise**2 * max(dt, 0.0))
-        rel += rng.standard_normal((m, n_others, 2)) * own[None, :, None]
+        noise = rng.standard_normal((m, n_others, 2))
+        noise *= own[None, :, None]
+        noise += disp[others] - disp[reference]
         if sigma[reference] > 0.0:
-            rel -= rng.standard_normal((m, 1, 2)) * sigma[reference]
+            noise -= rng.standard_normal((m, 1, 2)) * sigma[reference]
+        rel += noise

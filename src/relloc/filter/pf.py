@@ -37,6 +37,9 @@ from relloc.filter.resampling import ess, log_normalize, systematic_resample
 from relloc.filter.state import StateLayout
 
 FloatArray = NDArray[np.float64]
+_BLOCK = 4096
+"""Particles per block when evaluating likelihoods (see ``ParticleFilter.log_likelihood``)."""
+
 LogLikelihood = Callable[[FloatArray], FloatArray]
 """Maps relative positions (coordinate planes ``(2, N, M)``) to log-likelihoods ``(M,)``."""
 
@@ -117,8 +120,7 @@ class ParticleFilter:
 
     def update(self, loglik: LogLikelihood) -> FloatArray:
         """Add ``loglik`` to the log-weights; returns the per-particle log-likelihood."""
-        ll = loglik(self.positions())
-        ll = np.where(np.isfinite(ll), ll, -np.inf)
+        ll = self.log_likelihood(loglik, self.particles)
         new = self.logw + ll
         if not np.any(np.isfinite(new)):
             # No particle explains the measurement at all: keep the weights and let the
@@ -126,6 +128,20 @@ class ParticleFilter:
             return ll
         self.logw = log_normalize(new)
         return ll
+
+    def log_likelihood(self, loglik: LogLikelihood, particles: FloatArray) -> FloatArray:
+        """``loglik`` of every particle, evaluated in cache-sized blocks (non-finite -> -inf).
+
+        Full-size temporaries of tens of thousands of particles times ranges fall out of the
+        cache; blocks of a few thousand particles keep them in it.
+        """
+        m = particles.shape[0]
+        out = np.empty(m)
+        for start in range(0, m, _BLOCK):
+            block = particles[start : start + _BLOCK]
+            out[start : start + _BLOCK] = loglik(self.layout.positions(block))
+        out[~np.isfinite(out)] = -np.inf
+        return out
 
     def ess(self) -> float:
         return ess(self.logw)
@@ -149,14 +165,22 @@ class ParticleFilter:
         self.resample_count += 1
 
     def estimate(self) -> FilterEstimate:
-        """Weighted mean and covariance of each robot's relative position."""
+        """Weighted mean and covariance of each robot's relative position.
+
+        Only the 2x2 blocks are computed (variances and the x-y covariance of each robot), as
+        two-operand reductions: no (D, D) product, no multi-threaded BLAS call on a hot path.
+        """
         w = np.exp(self.logw)
-        m = self.particles.shape[0]
-        rel = self.particles[:, : self.layout.dim].reshape(m, -1, 2)
-        mean = np.einsum("m,mkd->kd", w, rel)
+        rel = self.particles[:, : self.layout.dim]
+        mean = w @ rel
         centred = rel - mean
-        cov = np.einsum("m,mki,mkj->kij", w, centred, centred)
-        return FilterEstimate(mean=mean, cov=cov, ess=self.ess())
+        weighted = centred * w[:, None]
+        var = np.einsum("md,md->d", weighted, centred).reshape(-1, 2)  # (k, 2): xx, yy
+        cxy = np.einsum("mk,mk->k", weighted[:, 0::2], centred[:, 1::2])  # (k,)
+        cov = np.empty((var.shape[0], 2, 2))
+        cov[:, 0, 0], cov[:, 1, 1] = var[:, 0], var[:, 1]
+        cov[:, 0, 1] = cov[:, 1, 0] = cxy
+        return FilterEstimate(mean=mean.reshape(-1, 2), cov=cov, ess=float(1.0 / (w @ w)))
 
     # ---------------------------------------------------------------- initialisation
     def initialize_annealed(
@@ -184,7 +208,7 @@ class ParticleFilter:
         """
         guide = guide or loglik
         self.particles = self.sample_prior(self.n)
-        ll = guide(self.positions())
+        ll = self.log_likelihood(guide, self.particles)
         beta = 0.0
         stages = 0
         self._mcmc_scale = 0.5
@@ -197,7 +221,7 @@ class ParticleFilter:
             self.particles, ll = self.particles[idx], ll[idx]
             ll = self._metropolis(guide, ll, beta, mcmc_steps)
         if guide is not loglik:
-            target = loglik(self.positions())
+            target = self.log_likelihood(loglik, self.particles)
             logw = np.where(np.isfinite(target), target, -1e300) - ll
             idx = systematic_resample(np.exp(log_normalize(logw)), self.rng)
             self.particles = self.particles[idx]
@@ -223,8 +247,7 @@ class ParticleFilter:
         spread = np.std(self.particles, axis=0) + 1e-3
         for _ in range(steps):
             proposal = self.particles + self.rng.standard_normal(self.particles.shape) * (self._mcmc_scale * spread)
-            ll_prop = loglik(self.positions(proposal))
-            ll_prop = np.where(np.isfinite(ll_prop), ll_prop, -np.inf)
+            ll_prop = self.log_likelihood(loglik, proposal)
             log_ratio = beta * (ll_prop - ll)
             accept = self.in_prior(proposal) & (np.log(self.rng.random(self.n)) < log_ratio)
             self.particles[accept] = proposal[accept]

@@ -42,7 +42,10 @@ def systematic_resample(weights: FloatArray, rng: np.random.Generator, n: int | 
     ``weights`` must be normalised (non-negative, summing to one).
     """
     m = len(weights) if n is None else n
-    positions = (rng.random() + np.arange(m)) / m
+    u = rng.random()
     cumulative = np.cumsum(weights)
-    cumulative[-1] = 1.0  # guard against round-off leaving the last point uncovered
-    return np.searchsorted(cumulative, positions, side="right").astype(np.intp)
+    cumulative /= cumulative[-1]  # guard against round-off leaving the last point uncovered
+    # Particle i is copied once for every point u + k (k integer) in (m c_{i-1}, m c_i]:
+    # the difference of floor(m c_i - u) counts them, with no search.
+    counts = np.diff(np.floor(m * cumulative - u), prepend=np.floor(-u))
+    return np.repeat(np.arange(len(weights)), counts.astype(np.intp))
