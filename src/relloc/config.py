@@ -150,6 +150,17 @@ class FilterConfig:
     rotation_noise: float = 0.0
     """Random turn of the whole formation about the reference (rad per sqrt(s)): the drift of
     the shared heading, and the only diversity along the direction ranges cannot see."""
+    bias_mode: Literal["calibrated", "online"] = "calibrated"
+    """``calibrated``: each pair's bias is the config's (or ``uwb.default_bias``);
+    ``online``: every particle carries a Kalman belief about each pair's bias (Rao-Blackwellised),
+    its prior the calibration when present, else wide around ``uwb.default_bias``."""
+    bias_prior_sigma: float = 0.05
+    """Online mode: prior standard deviation of a calibrated pair's bias (m)."""
+    bias_prior_sigma_uncalibrated: float = 0.25
+    """Online mode: prior standard deviation of an uncalibrated pair's bias (m)."""
+    bias_walk: float = 0.01
+    """Online mode: random walk of each bias (m per sqrt(s)): orientation-dependent errors
+    make the effective bias drift as the robots turn."""
     resample: Literal["every_step", "ess"] = "ess"
     ess_threshold: float = 0.5
     """Resample when the effective sample size falls below this fraction of ``particles``."""

@@ -36,10 +36,11 @@ from relloc.events import (
     OdometryEvent,
     RangeEvent,
     RelativeObservation,
+    pair_key,
 )
 from relloc.filter import multilateration
 from relloc.filter.models import OdometryMotion, RangeBatch, RelativePositionBatch
-from relloc.filter.pf import LogLikelihood, ParticleFilter
+from relloc.filter.pf import ParticleFilter
 from relloc.filter.state import StateLayout
 from relloc.odometry import OdometryTrack
 
@@ -199,8 +200,20 @@ class Localizer:
         raise NotImplementedError
 
     # ---------------------------------------------------------------- helpers for subclasses
-    def _pair_ranges(self, batch: list[Measurement]) -> tuple[list[tuple[int, int]], FloatArray, FloatArray, FloatArray]:
-        """Per robot pair in the batch: median range, bias and sigma (one row per pair).
+    def _node_pair(self, robot_a: str, robot_b: str) -> str:
+        """Key of the UWB transceiver pair between two robots (robot names if no node ids)."""
+        a = self.config.robot(robot_a).uwb_node or robot_a
+        b = self.config.robot(robot_b).uwb_node or robot_b
+        return pair_key(a, b)
+
+    def _pair_ranges(
+        self, batch: list[Measurement], online_bias: bool = False
+    ) -> tuple[list[tuple[int, int]], FloatArray, FloatArray, FloatArray, list[str]]:
+        """Per robot pair in the batch: median range, bias, sigma and node-pair key (or ``""``
+        where the range was corrected upstream and carries no bias).
+
+        With ``online_bias`` the bias is left to the particles (returned as 0) and the sigma
+        is the plain range noise.
 
         Several ranges of one pair in a batch are not independent evidence (their errors are
         strongly correlated over a tenth of a second): the median stands for them.
@@ -210,14 +223,17 @@ class Localizer:
             if isinstance(m, RangeEvent):
                 a, b = self.layout.index(m.robot_a), self.layout.index(m.robot_b)
                 groups.setdefault((min(a, b), max(a, b)), []).append(m)
-        pairs, dist, bias, sigma = [], [], [], []
+        pairs, dist, bias, sigma, keys = [], [], [], [], []
         fc, uwb = self.config.filter, self.config.uwb
         for key, events in groups.items():
             e = events[0]
             node_a = e.node_a or self.config.robot(e.robot_a).uwb_node or e.robot_a
             node_b = e.node_b or self.config.robot(e.robot_b).uwb_node or e.robot_b
             values = [ev.distance for ev in events]
+            node_pair = pair_key(node_a, node_b)
             if all(ev.corrected for ev in events):
+                b, s, node_pair = 0.0, fc.sigma_uwb, ""
+            elif online_bias:
                 b, s = 0.0, fc.sigma_uwb
             else:
                 b, _, pair_sigma = uwb.calibration(node_a, node_b)
@@ -228,7 +244,28 @@ class Localizer:
             dist.append(float(np.median(values)))
             bias.append(b)
             sigma.append(s)
-        return pairs, np.array(dist), np.array(bias), np.array(sigma)
+            keys.append(node_pair)
+        return pairs, np.array(dist), np.array(bias), np.array(sigma), keys
+
+
+@dataclass(frozen=True)
+class StackedMeasurement:
+    """Everything that arrived in one batch, fused as one measurement (the paper's stacked
+    measurement vector): the log-likelihoods of the parts add up."""
+
+    parts: tuple[RangeBatch | RelativePositionBatch, ...]
+
+    def log_likelihood(self, positions: FloatArray, particles: FloatArray) -> FloatArray:
+        total = self.parts[0].log_likelihood(positions, particles)
+        for part in self.parts[1:]:
+            total = total + part.log_likelihood(positions, particles)
+        return total
+
+    def kalman_update(self, pf: ParticleFilter) -> None:
+        """Update the particles' online range-bias beliefs (no-op without online biases)."""
+        for part in self.parts:
+            if isinstance(part, RangeBatch) and part.bias_columns is not None:
+                part.kalman_update(pf.positions(), pf.particles)
 
 
 class ParticleFilterLocalizer(Localizer):
@@ -241,6 +278,18 @@ class ParticleFilterLocalizer(Localizer):
         self.method = method
         fc = config.filter
         self.rng = np.random.default_rng(seed)
+        self.online_bias = fc.bias_mode == "online"
+        extra: list[float] = []
+        if self.online_bias:
+            names = config.robot_names
+            node_pairs = sorted({self._node_pair(a, b) for i, a in enumerate(names) for b in names[i + 1 :]})
+            self.layout = StateLayout(config.robot_names, config.reference, tuple(node_pairs))
+            for pair in node_pairs:
+                cal = config.uwb.pairs.get(pair)
+                if cal is not None:
+                    extra += [cal.bias, fc.bias_prior_sigma**2]
+                else:
+                    extra += [config.uwb.default_bias, fc.bias_prior_sigma_uncalibrated**2]
         self.pf = ParticleFilter(
             self.layout,
             fc.particles,
@@ -250,6 +299,7 @@ class ParticleFilterLocalizer(Localizer):
             resample=fc.resample,
             ess_threshold=fc.ess_threshold,
             reinject_fraction=fc.reinject_fraction,
+            extra_prior=np.array(extra),
         )
         self.initialized = False
         self.t = math.nan
@@ -265,11 +315,12 @@ class ParticleFilterLocalizer(Localizer):
                 return None
             return self._initialize(t)
         self._predict(t)
-        loglik = self._loglik(batch)
-        if loglik is not None:
-            ll = self.pf.update(loglik)
+        model = self._model(batch)
+        if model is not None:
+            ll = self.pf.update(model.log_likelihood)
             if not np.any(np.isfinite(ll)):
                 self.stats["update_no_support"] += 1
+            model.kalman_update(self.pf)
         est = self._estimate(t)
         if self.pf.maybe_resample():
             self.stats["resampled"] += 1
@@ -277,12 +328,12 @@ class ParticleFilterLocalizer(Localizer):
 
     def _initialize(self, t: float) -> Estimate | None:
         batch, self._init_batch = self._init_batch, []
-        loglik = self._loglik(batch)
-        if loglik is None:
+        model = self._model(batch)
+        guide = self._model(batch, outliers=False)
+        if model is None or guide is None:
             return None
         fc = self.config.filter
-        guide = self._loglik(batch, outliers=False)
-        stages = self.pf.initialize_annealed(loglik, guide, mcmc_steps=fc.mcmc_steps)
+        stages = self.pf.initialize_annealed(model.log_likelihood, guide.log_likelihood, mcmc_steps=fc.mcmc_steps)
         self.stats["anneal_stages"] = stages
         has_vectors = any(isinstance(m, RelativeObservation) for m in batch)
         if fc.spread_rotations and not has_vectors:
@@ -318,18 +369,23 @@ class ParticleFilterLocalizer(Localizer):
             self._anchor[robot] = now
         dt = max(t - self.t, 0.0)
         self.pf.predict(disp, sigma, dt, fc.rotation_noise)
+        if self.online_bias and dt > 0.0:
+            self.pf.particles[:, self.layout.dim + 1 :: 2] += fc.bias_walk**2 * dt  # variances
         self.t = t
 
-    def _loglik(self, batch: list[Measurement], outliers: bool = True) -> LogLikelihood | None:
-        """Stacked log-likelihood of a batch; ``outliers=False`` drops the robust floor (the
+    def _model(self, batch: list[Measurement], outliers: bool = True) -> StackedMeasurement | None:
+        """The stacked measurement of a batch; ``outliers=False`` drops the robust floor (the
         plain Gaussian that guides the annealed start)."""
         fc = self.config.filter
         eps = fc.outlier_fraction if outliers else 0.0
-        pairs, dist, bias, sigma = self._pair_ranges(batch)
+        pairs, dist, bias, sigma, keys = self._pair_ranges(batch, self.online_bias)
         parts: list[RangeBatch | RelativePositionBatch] = []
         if pairs:
             idx = np.array(pairs, dtype=np.intp)
-            parts.append(RangeBatch(idx[:, 0], idx[:, 1], dist, bias, sigma, None, eps, fc.max_range))
+            columns = None
+            if self.online_bias:
+                columns = np.array([self.layout.bias_columns(k)[0] if k else -1 for k in keys], dtype=np.intp)
+            parts.append(RangeBatch(idx[:, 0], idx[:, 1], dist, bias, sigma, None, eps, fc.max_range, columns))
         vectors = [m for m in batch if isinstance(m, RelativeObservation)]
         if vectors:
             parts.append(
@@ -341,16 +397,7 @@ class ParticleFilterLocalizer(Localizer):
                     outlier_fraction=0.02 if outliers else 0.0,
                 )
             )
-        if not parts:
-            return None
-
-        def loglik(positions: FloatArray) -> FloatArray:
-            total = parts[0].log_likelihood(positions)
-            for part in parts[1:]:
-                total = total + part.log_likelihood(positions)
-            return total
-
-        return loglik
+        return StackedMeasurement(tuple(parts)) if parts else None
 
     def _estimate(self, t: float) -> Estimate:
         fe = self.pf.estimate()
@@ -377,7 +424,7 @@ class MultilaterationLocalizer(Localizer):
         self.rng = np.random.default_rng(seed)
 
     def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
-        pairs, dist, bias, _ = self._pair_ranges(batch)
+        pairs, dist, bias, _, _ = self._pair_ranges(batch)
         for key, d, b in zip(pairs, dist, bias, strict=True):
             self._latest[key] = (t, max(d - b, 0.0))
         fresh = {k: d for k, (tk, d) in self._latest.items() if t - tk <= self.max_age}

@@ -44,7 +44,7 @@ def build_pipeline(method: str, config: TeamConfig, *, seed: int = 0, models: Pa
             raise MethodError(f"method {method} needs --models DIR (trained range-error models)")
         from relloc.stages.range_correction import RangeCorrector
 
-        stages.append(RangeCorrector.from_directory(models, config))
+        stages.append(RangeCorrector.from_config(config, models))
     if method in ("pf_uv", "pf_ulv"):
         from relloc.stages.association import DetectionAssociator
 

@@ -1,9 +1,10 @@
 """Process and measurement models, each vectorised over all particles at once.
 
 Every measurement model is a small immutable batch of measurements that knows its own
-log-likelihood ``log p(z | x)`` for all particles: ``log_likelihood(positions)`` takes the
-robots' relative positions as coordinate planes of shape ``(2, N, M)`` (from
-:meth:`StateLayout.positions`) and returns ``(M,)``. The filter sums the log-likelihoods of whatever arrived in one update — the
+log-likelihood ``log p(z | x)`` for all particles: ``log_likelihood(positions, particles)``
+takes the robots' relative positions as coordinate planes of shape ``(2, N, M)`` (from
+:meth:`StateLayout.positions`) and the particle rows themselves (for the blocks beyond the
+positions, such as online range biases) and returns ``(M,)``. The filter sums the log-likelihoods of whatever arrived in one update — the
 "stacked measurement vector" of the paper — so adding a sensor means adding a model here, not
 editing the filter.
 
@@ -15,7 +16,11 @@ UWB ranges are biased (0.2-0.5 m per transceiver pair), noisy, and occasionally 
     p(z | x) = (1 - eps) N(z - b; ||p_a - p_b||, sigma^2) + eps / R
 
 with ``b`` the pair's bias, ``eps`` the outlier fraction and ``R`` the support of the
-outliers. The uniform floor bounds the damage one spike can do to a good particle.
+outliers. The uniform floor bounds the damage one spike can do to a good particle. When the
+bias is estimated online, each particle holds a Gaussian belief ``N(mu, v)`` about it and the
+range likelihood marginalises it: ``N(z - mu; ||p_a - p_b||, sigma^2 + v)``; after the weights
+are updated, ``RangeBatch.kalman_update`` updates ``mu, v`` (a scalar Kalman filter per
+particle and pair).
 """
 
 from __future__ import annotations
@@ -66,9 +71,46 @@ class RangeBatch:
     scale: FloatArray | None = None
     outlier_fraction: float = 0.1
     max_range: float = 15.0
+    bias_columns: IntArray | None = None
+    """Per range, the state column of the particle's bias mean (the variance is the next
+    column), or -1 where the bias is the fixed ``bias``; ``None``: all fixed."""
 
     def __len__(self) -> int:
         return len(self.distance)
+
+    def _residual_and_sigma(self, positions: FloatArray, particles: FloatArray | None) -> tuple[FloatArray, FloatArray]:
+        d = self.predicted(positions)
+        if self.scale is not None:
+            d = d * self.scale[:, None]
+        residual = (self.distance - self.bias)[:, None] - d
+        sigma = np.broadcast_to(self.sigma[:, None], residual.shape)
+        if self.bias_columns is not None and particles is not None:
+            online = self.bias_columns >= 0
+            if np.any(online):
+                cols = self.bias_columns[online]
+                residual[online] -= particles[:, cols].T
+                sigma = sigma.copy()
+                sigma[online] = np.sqrt(self.sigma[online, None] ** 2 + particles[:, cols + 1].T)
+        return residual, sigma
+
+    def kalman_update(self, positions: FloatArray, particles: FloatArray) -> None:
+        """Update each particle's online bias beliefs with this batch, in place.
+
+        The Kalman gain is scaled by the probability that the range is an inlier under the
+        robust mixture, so an NLOS spike barely moves the bias.
+        """
+        if self.bias_columns is None or not np.any(self.bias_columns >= 0):
+            return
+        online = self.bias_columns >= 0
+        residual, sigma = self._residual_and_sigma(positions, particles)
+        r, s = residual[online], sigma[online]
+        cols = self.bias_columns[online]
+        var = particles[:, cols + 1].T  # (K', M)
+        gauss = (1.0 - self.outlier_fraction) * np.exp(-0.5 * (r / s) ** 2) / (s * np.sqrt(2.0 * np.pi))
+        inlier = gauss / (gauss + self.outlier_fraction / self.max_range)
+        gain = inlier * var / (s * s)
+        particles[:, cols] += (gain * r).T
+        particles[:, cols + 1] = ((1.0 - gain) * var).T
 
     def predicted(self, positions: FloatArray) -> FloatArray:
         """True distances of each particle's pairs, shape ``(K, M)``."""
@@ -76,12 +118,9 @@ class RangeBatch:
         dy = positions[1, self.index_a] - positions[1, self.index_b]
         return np.sqrt(dx * dx + dy * dy)
 
-    def log_likelihood(self, positions: FloatArray) -> FloatArray:
-        d = self.predicted(positions)
-        if self.scale is not None:
-            d = d * self.scale[:, None]
-        residual = (self.distance - self.bias)[:, None] - d
-        ll = _robust_gaussian_loglik(residual, self.sigma[:, None], self.outlier_fraction, self.max_range)
+    def log_likelihood(self, positions: FloatArray, particles: FloatArray | None = None) -> FloatArray:
+        residual, sigma = self._residual_and_sigma(positions, particles)
+        ll = _robust_gaussian_loglik(residual, sigma, self.outlier_fraction, self.max_range)
         return ll.sum(axis=0)
 
 
@@ -103,7 +142,7 @@ class RelativePositionBatch:
     def __len__(self) -> int:
         return len(self.sigma)
 
-    def log_likelihood(self, positions: FloatArray) -> FloatArray:
+    def log_likelihood(self, positions: FloatArray, particles: FloatArray | None = None) -> FloatArray:
         ex = positions[0, self.index_target] - positions[0, self.index_observer] - self.vector[:, 0:1]
         ey = positions[1, self.index_target] - positions[1, self.index_observer] - self.vector[:, 1:2]
         s2 = (self.sigma**2)[:, None]

@@ -40,8 +40,9 @@ FloatArray = NDArray[np.float64]
 _BLOCK = 4096
 """Particles per block when evaluating likelihoods (see ``ParticleFilter.log_likelihood``)."""
 
-LogLikelihood = Callable[[FloatArray], FloatArray]
-"""Maps relative positions (coordinate planes ``(2, N, M)``) to log-likelihoods ``(M,)``."""
+LogLikelihood = Callable[[FloatArray, FloatArray], FloatArray]
+"""Maps relative positions (coordinate planes ``(2, N, M)``) and the particle rows ``(M, D)``
+to log-likelihoods ``(M,)``."""
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,7 @@ class ParticleFilter:
         resample: str = "ess",
         ess_threshold: float = 0.5,
         reinject_fraction: float = 0.01,
+        extra_prior: FloatArray | None = None,
     ) -> None:
         if n_particles < 1:
             raise ValueError("n_particles must be positive")
@@ -75,6 +77,9 @@ class ParticleFilter:
         if not 0.0 <= reinject_fraction < 1.0:
             raise ValueError("reinject_fraction must be in [0, 1)")
         self.layout = layout
+        self.extra_prior = np.zeros(layout.width - layout.dim) if extra_prior is None else np.asarray(extra_prior, float)
+        if self.extra_prior.shape != (layout.width - layout.dim,):
+            raise ValueError(f"extra_prior needs {layout.width - layout.dim} values")
         self.n = n_particles
         self.rng = rng
         self.motion = motion or OdometryMotion()
@@ -93,10 +98,14 @@ class ParticleFilter:
 
     # ---------------------------------------------------------------- prior
     def sample_prior(self, m: int) -> FloatArray:
-        """``m`` particles uniform over the prior box of relative positions."""
+        """``m`` particles uniform over the prior box of relative positions (further blocks at
+        their prior values)."""
         k = len(self.layout.others)
         u = self.rng.uniform(-1.0, 1.0, size=(m, k, 2)) * self.half_extent
-        return u.reshape(m, 2 * k)
+        out = np.empty((m, self.layout.width))
+        out[:, : 2 * k] = u.reshape(m, 2 * k)
+        out[:, 2 * k :] = self.extra_prior
+        return out
 
     def in_prior(self, particles: FloatArray) -> NDArray[np.bool_]:
         m = particles.shape[0]
@@ -139,7 +148,7 @@ class ParticleFilter:
         out = np.empty(m)
         for start in range(0, m, _BLOCK):
             block = particles[start : start + _BLOCK]
-            out[start : start + _BLOCK] = loglik(self.layout.positions(block))
+            out[start : start + _BLOCK] = loglik(self.layout.positions(block), block)
         out[~np.isfinite(out)] = -np.inf
         return out
 
@@ -246,7 +255,9 @@ class ParticleFilter:
         """Random-walk Metropolis on ``prior * L^beta``; the step adapts to the acceptance rate."""
         spread = np.std(self.particles, axis=0) + 1e-3
         for _ in range(steps):
-            proposal = self.particles + self.rng.standard_normal(self.particles.shape) * (self._mcmc_scale * spread)
+            proposal = self.particles.copy()
+            d = self.layout.dim  # only the positions are sampled; other blocks ride along
+            proposal[:, :d] += self.rng.standard_normal((self.n, d)) * (self._mcmc_scale * spread[:d])
             ll_prop = self.log_likelihood(loglik, proposal)
             log_ratio = beta * (ll_prop - ll)
             accept = self.in_prior(proposal) & (np.log(self.rng.random(self.n)) < log_ratio)

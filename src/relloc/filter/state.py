@@ -3,9 +3,17 @@
 A particle is one row of an ``(M, D)`` array. The first ``2(N-1)`` columns hold the positions
 of the non-reference robots relative to the reference robot, in the team's shared heading
 frame (``x, y`` of each robot in config order). The reference robot is the origin and is not
-stored. Further blocks (per-robot heading offsets, per-pair range biases, odometry scales) can
-be appended by self-calibrating models; ``StateLayout`` names every column block so that
-models index the state by meaning, never by magic number.
+stored. Further blocks are appended by self-calibrating models; ``StateLayout`` names every
+column block so that models index the state by meaning, never by magic number:
+
+* ``bias_pairs``: for each UWB node pair whose range bias is estimated online, two columns,
+  the mean and the variance of that particle's Gaussian belief about the bias. The bias is
+  *Rao-Blackwellised*: given a particle's positions a range is linear in the bias, so each
+  particle carries a one-dimensional Kalman filter per pair instead of sampling the bias
+  (which would multiply the particles needed).
+
+Only the position block is *sampled* (moved by Metropolis steps, rotated by symmetries);
+the other blocks are sufficient statistics that resampling copies along.
 """
 
 from __future__ import annotations
@@ -24,6 +32,8 @@ class StateLayout:
 
     robots: tuple[str, ...]
     reference: str
+    bias_pairs: tuple[str, ...] = ()
+    """Node pairs (``"n_3-n_7"``) whose range bias is estimated online, in column order."""
 
     def __post_init__(self) -> None:
         if self.reference not in self.robots:
@@ -39,6 +49,16 @@ class StateLayout:
     @property
     def dim(self) -> int:
         return 2 * (len(self.robots) - 1)
+
+    @property
+    def width(self) -> int:
+        """All columns: positions, then a (mean, variance) pair per online bias."""
+        return self.dim + 2 * len(self.bias_pairs)
+
+    def bias_columns(self, pair: str) -> tuple[int, int]:
+        """Columns (mean, variance) of ``pair``'s online bias belief."""
+        k = self.bias_pairs.index(pair)
+        return self.dim + 2 * k, self.dim + 2 * k + 1
 
     def index(self, robot: str) -> int:
         """Index of ``robot`` in :attr:`robots` (the reference included)."""

@@ -1,0 +1,295 @@
+"""Train one range-error model per UWB node pair (needs ``relloc[train]``).
+
+For each pair of the CSV: drop repeated ranges, split the rows chronologically into train /
+validation / test (:data:`relloc.ranging.dataset.DEFAULT_SPLIT`), build windows, fit the
+normalisation on the training windows, and train with Adam on the MSE of the normalised error,
+stopping early when the validation MSE has not improved for ``patience`` epochs (the best
+weights are kept). Mini-batches are shuffled *within* the training part only; nothing crosses
+the chronological split. Training is seeded per pair and single-threaded, so it is
+deterministic and does not depend on which other pairs are trained.
+
+The test rows are not touched here; ``relloc ranging eval`` scores them, against the
+zero-error and constant-bias baselines.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from relloc.ranging.dataset import (
+    DEFAULT_NODE_MAP,
+    DEFAULT_SPLIT,
+    PairSeries,
+    RangingDataError,
+    drop_repeats,
+    file_sha256,
+    load_csv,
+    make_windows,
+    split_bounds,
+)
+from relloc.ranging.export import export_model, save_checkpoint
+from relloc.ranging.manifest import write_manifest
+from relloc.ranging.models import Architecture, Normalisation, RangeErrorModel, build_model
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation settings (the architecture is :class:`~relloc.ranging.models.Architecture`)."""
+
+    n_steps: int = 10
+    """Frames per window (repeat-free UWB samples, about 1.5 s at 7 Hz)."""
+    epochs: int = 150
+    """Upper bound on epochs; early stopping usually ends sooner."""
+    patience: int = 15
+    """Stop after this many epochs without a better validation MSE."""
+    batch_size: int = 32
+    lr: float = 1e-3
+    weight_decay: float = 1e-4
+    """AdamW decoupled weight decay: a little regularisation for one short session."""
+    seed: int = 0
+    split: tuple[float, float, float] = DEFAULT_SPLIT
+
+    def __post_init__(self) -> None:
+        if self.n_steps < 1 or self.epochs < 1 or self.patience < 1 or self.batch_size < 1:
+            raise ValueError(f"n_steps, epochs, patience and batch_size must be >= 1: {self}")
+        split_bounds(100, self.split)  # validates the fractions
+
+
+@dataclass
+class PairReport:
+    """What training one pair did (stored in the manifest and printed)."""
+
+    pair: str
+    n_rows: int
+    repeats_dropped: int
+    n_train: int
+    n_val: int
+    n_test: int
+    epochs: int
+    best_epoch: int
+    val_mse: float
+    val_mse_bias: float
+    val_mse_zero: float
+    train_bias: float
+    train_time_s: float
+
+
+Progress = Callable[[str, int, int, float], None]
+"""``progress(pair, epoch, max_epochs, val_mse)`` after each epoch."""
+
+
+def _as_tensor(a: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+
+
+def _seed_for(seed: int, pair: str) -> int:
+    """A per-pair seed independent of the other pairs in the file."""
+    return (seed * 1_000_003 + sum((i + 1) * ord(c) for i, c in enumerate(pair))) % (2**31)
+
+
+def fit_normalisation(
+    model: RangeErrorModel, windows: np.ndarray, errors: np.ndarray
+) -> Normalisation:
+    """Feature mean/std over every frame of the training windows; target mean/std."""
+    with torch.no_grad():
+        feats = model.transform.raw(_as_tensor(windows)).reshape(-1, model.arch.n_features)
+    mean = feats.mean(dim=0)
+    std = feats.std(dim=0, unbiased=False)
+    target_std = float(np.std(errors))
+    return Normalisation(
+        feature_mean=tuple(float(v) for v in mean),
+        feature_std=tuple(float(v) for v in std),
+        target_mean=float(np.mean(errors)),
+        target_std=target_std if target_std > 1e-6 else 1.0,
+    )
+
+
+def train_model(
+    train: tuple[np.ndarray, np.ndarray],
+    val: tuple[np.ndarray, np.ndarray],
+    arch: Architecture,
+    config: TrainConfig,
+    *,
+    seed: int | None = None,
+    on_epoch: Callable[[int, float], None] | None = None,
+) -> tuple[RangeErrorModel, dict[str, Any]]:
+    """Train one model on ``(windows, errors)`` with early stopping on ``val``.
+
+    Returns the model with its best weights (eval mode) and ``{"epochs", "best_epoch",
+    "val_mse"}`` (validation MSE in m^2 of the best weights).
+    """
+    train_w, train_y = train
+    val_w, val_y = val
+    if len(train_w) == 0 or len(val_w) == 0:
+        raise RangingDataError(
+            f"too few samples to train: {len(train_w)} training and {len(val_w)} validation "
+            f"windows of {config.n_steps} frames"
+        )
+    seed = config.seed if seed is None else seed
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    model = build_model(arch, config.n_steps)
+    norm = fit_normalisation(model, train_w, train_y)
+    model.set_normalisation(norm)
+    x, y = _as_tensor(train_w), _as_tensor((train_y - norm.target_mean) / norm.target_std)
+    xv, yv = _as_tensor(val_w), _as_tensor(val_y)
+    optimiser = torch.optim.AdamW(
+        model.parameters(), lr=config.lr, weight_decay=config.weight_decay
+    )
+    loss_fn = nn.MSELoss()
+
+    def val_mse() -> float:
+        model.eval()
+        with torch.no_grad():
+            return float(torch.mean((model(xv)[:, 0] - yv) ** 2))
+
+    best = val_mse()
+    best_state = {k: v.clone() for k, v in model.state_dict().items()}
+    best_epoch, epoch = 0, 0
+    for epoch in range(1, config.epochs + 1):
+        model.train()
+        order = rng.permutation(len(x))
+        for start in range(0, len(order), config.batch_size):
+            idx = torch.from_numpy(order[start : start + config.batch_size])
+            optimiser.zero_grad()
+            loss = loss_fn(model.forward_normalised(x[idx])[:, 0], y[idx])
+            loss.backward()
+            nn.utils.clip_grad_norm_(model.parameters(), 1.0)
+            optimiser.step()
+        current = val_mse()
+        if current < best:
+            best, best_epoch = current, epoch
+            best_state = {k: v.clone() for k, v in model.state_dict().items()}
+        if on_epoch is not None:
+            on_epoch(epoch, current)
+        if epoch - best_epoch >= config.patience:
+            break
+    model.load_state_dict(best_state)
+    model.eval()
+    return model, {"epochs": epoch, "best_epoch": best_epoch, "val_mse": best}
+
+
+def split_pair(
+    series: PairSeries, config: TrainConfig
+) -> tuple[PairSeries, int, dict[str, tuple[np.ndarray, np.ndarray]], tuple[int, int]]:
+    """Repeat-free series, repeats dropped, windows per part and the split row indices."""
+    clean, dropped = drop_repeats(series)
+    end_train, end_val = split_bounds(len(clean), config.split)
+    parts = {
+        "train": slice(0, end_train),
+        "val": slice(end_train, end_val),
+        "test": slice(end_val, len(clean)),
+    }
+    windows = {}
+    for name, sl in parts.items():
+        w, e, _ = make_windows(clean, config.n_steps, sl)
+        windows[name] = (w, e)
+    return clean, dropped, windows, (end_train, end_val)
+
+
+def train_directory(
+    csv_path: str | Path,
+    out: str | Path,
+    arch: Architecture,
+    config: TrainConfig,
+    *,
+    node_map: Mapping[str, str] | None = None,
+    pairs: Sequence[str] | None = None,
+    progress: Progress | None = None,
+) -> tuple[dict[str, Any], list[PairReport]]:
+    """Train every pair (or ``pairs``) of ``csv_path``; write ONNX files and the manifest to ``out``.
+
+    Returns the manifest and one :class:`PairReport` per pair.
+    """
+    torch.set_num_threads(1)
+    node_map = dict(DEFAULT_NODE_MAP if node_map is None else node_map)
+    series = load_csv(csv_path, node_map)
+    if pairs:
+        unknown = sorted(set(pairs) - set(series))
+        if unknown:
+            raise RangingDataError(f"pair(s) {unknown} not in {csv_path}; it has {sorted(series)}")
+        series = {k: v for k, v in series.items() if k in set(pairs)}
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    reports: list[PairReport] = []
+    entries: dict[str, Any] = {}
+    for key, s in series.items():
+        t0 = time.perf_counter()
+        clean, dropped, win, (end_train, end_val) = split_pair(s, config)
+
+        def on_epoch(epoch: int, mse: float, key: str = key) -> None:
+            if progress is not None:
+                progress(key, epoch, config.epochs, mse)
+
+        model, info = train_model(
+            win["train"],
+            win["val"],
+            arch,
+            config,
+            seed=_seed_for(config.seed, key),
+            on_epoch=on_epoch,
+        )
+        train_errors = clean.error[:end_val]  # everything before the test rows
+        bias = float(np.mean(train_errors))
+        val_err = win["val"][1]
+        onnx_name, ckpt_name = f"{key}.onnx", f"{key}.pt"
+        diff = export_model(model, out / onnx_name)
+        save_checkpoint(model, out / ckpt_name)
+        report = PairReport(
+            pair=key,
+            n_rows=len(s),
+            repeats_dropped=dropped,
+            n_train=len(win["train"][1]),
+            n_val=len(val_err),
+            n_test=len(win["test"][1]),
+            epochs=info["epochs"],
+            best_epoch=info["best_epoch"],
+            val_mse=info["val_mse"],
+            val_mse_bias=float(np.mean((val_err - np.mean(clean.error[:end_train])) ** 2)),
+            val_mse_zero=float(np.mean(val_err**2)),
+            train_bias=bias,
+            train_time_s=time.perf_counter() - t0,
+        )
+        reports.append(report)
+        norm = model.transform
+        entries[key] = {
+            "nodes": [clean.node_a, clean.node_b],
+            "onnx": onnx_name,
+            "checkpoint": ckpt_name,
+            "normalisation": {
+                "feature_mean": [float(v) for v in norm.mean],
+                "feature_scale": [float(v) for v in norm.scale],
+                "target_mean": float(model.target_mean),
+                "target_std": float(model.target_std),
+            },
+            "error_min": float(np.min(clean.error[:end_train])),
+            "error_max": float(np.max(clean.error[:end_train])),
+            "split_rows": [end_train, end_val, len(clean)],
+            "onnx_max_diff": diff,
+            **{k: v for k, v in asdict(report).items() if k != "pair"},
+        }
+    manifest: dict[str, Any] = {
+        "variant": arch.variant,
+        "n_steps": config.n_steps,
+        "architecture": arch.to_dict(),
+        "node_map": node_map,
+        "training": {
+            "csv": str(csv_path),
+            "csv_sha256": file_sha256(csv_path),
+            **{k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(config).items()},
+            "torch": torch.__version__,
+        },
+        "mean_val_mse": float(np.mean([r.val_mse for r in reports])),
+        "mean_val_mse_bias": float(np.mean([r.val_mse_bias for r in reports])),
+        "pairs": entries,
+    }
+    write_manifest(out, manifest)
+    return manifest, reports

@@ -1,0 +1,251 @@
+"""Learned UWB range correction (``PF_UL``): a stage between the source and the localizer.
+
+For each UWB node pair with a trained model (``relloc ranging train``), the stage keeps the
+pair's window of the last ``n_steps`` frames ``[range, yaw_a, yaw_b]`` from the live events and
+replaces each range by ``range - predicted error``, marked ``corrected=True`` so the filter
+applies no bias of its own. Inference is onnxruntime only: nothing here imports torch.
+
+Usage by the engine::
+
+    corrector = RangeCorrector.from_config(team, "models/ranging/bilstm")
+    for event in events:
+        corrector.observe(event)            # odometry -> headings; other events ignored
+        if isinstance(event, RangeEvent):
+            event = corrector.correct(event)
+
+The frames must look like the training frames:
+
+* **Headings** in the shared heading frame, which must be the frame of the training yaws (the
+  motion-capture frame for the TIERS CSV) unless the models were trained with the
+  heading-free ``invariant`` features. The stage integrates odometry itself (one
+  :class:`relloc.odometry.OdometryTrack` per robot: heading offset, pose or twist mode from the
+  team config) and reads the heading interpolated at the range's time; or the engine tells it
+  headings with :meth:`RangeCorrector.set_yaw`, or gives it a ``yaw_provider`` function.
+* **Canonical order**: ``yaw_a`` belongs to the node that sorts first in the pair key,
+  whichever order the event names the robots in.
+* **No repeats**: a range equal to the pair's previous one is the same measurement read again
+  (training dropped those rows); it is not pushed into the window a second time and gets the
+  correction already computed for that window.
+
+A range passes through unchanged (``corrected=False``) when the stage cannot correct it, and
+:attr:`RangeCorrector.stats` counts every range by what happened to it:
+
+==================== ==========================================================
+``corrected``         corrected with a fresh prediction
+``corrected_repeat``  a repeated range, corrected with the window's prediction
+``window_not_full``   fewer than ``n_steps`` distinct ranges since start or reset
+``no_model``          no model for this node pair
+``no_yaw``            no heading yet for one of the two robots
+``stale_yaw``         the last heading is older than ``max_yaw_age``
+``invalid_range``     distance not finite or not positive
+``out_of_order``      older than the pair's previous range
+``already_corrected`` the event was corrected upstream
+==================== ==========================================================
+
+plus two occurrence counters that are not outcomes: ``window_reset`` (a gap longer than
+``max_gap`` emptied the pair's window) and ``clipped`` (a prediction was clipped to the
+training errors' range).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter, deque
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from relloc.config import TeamConfig
+from relloc.events import Event, OdometryEvent, RangeEvent
+from relloc.odometry import OdometryTrack
+from relloc.ranging.inference import ModelSet, PairModel
+
+YawProvider = Callable[[str, float], float | None]
+"""``(robot, t) -> heading in the shared frame (rad)``, or ``None`` if unknown."""
+
+OUTCOMES: tuple[str, ...] = (
+    "corrected",
+    "corrected_repeat",
+    "window_not_full",
+    "no_model",
+    "no_yaw",
+    "stale_yaw",
+    "invalid_range",
+    "out_of_order",
+    "already_corrected",
+)
+"""Keys of :attr:`RangeCorrector.stats` that count ranges (each range counts once)."""
+
+
+@dataclass
+class _PairState:
+    """Live window of one pair: frames ``[range, yaw_a, yaw_b]``, oldest first."""
+
+    frames: deque[tuple[float, float, float]]
+    last_t: float = -math.inf
+    last_distance: float = math.nan
+    last_error: float | None = None
+    """Prediction for the current window, reused for repeats; ``None`` until the window is full."""
+
+
+@dataclass
+class _ToldYaw:
+    t: float
+    yaw: float
+
+
+@dataclass
+class RangeCorrector:
+    """Correct UWB ranges with per-node-pair models; see the module docstring."""
+
+    models: Mapping[str, PairModel]
+    """Pair key -> model (a :class:`~relloc.ranging.inference.ModelSet` or any mapping)."""
+    tracks: dict[str, OdometryTrack] = field(default_factory=dict)
+    """Per-robot odometry in the shared heading frame; robots not listed get a pose-mode track
+    with no heading offset when their first odometry arrives."""
+    yaw_provider: YawProvider | None = None
+    """If given, headings come from it instead of the stage's own odometry tracks."""
+    max_yaw_age: float | None = 1.0
+    """Pass a range through if a robot's last heading is older than this (s); None: no limit."""
+    max_gap: float | None = 2.0
+    """Empty a pair's window when its ranges pause longer than this (s); None: never."""
+    stats: Counter[str] = field(default_factory=Counter)
+    _pairs: dict[str, _PairState] = field(default_factory=dict, repr=False)
+    _told: dict[str, _ToldYaw] = field(default_factory=dict, repr=False)
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_dir(cls, path: str | Path, **kwargs: object) -> RangeCorrector:
+        """Load a model directory written by ``relloc ranging train``."""
+        return cls(ModelSet.load(path), **kwargs)  # type: ignore[arg-type]
+
+    @classmethod
+    def from_config(
+        cls, team: TeamConfig, models: str | Path | Mapping[str, PairModel], **kwargs: object
+    ) -> RangeCorrector:
+        """Stage for ``team``: odometry tracks with each robot's heading offset, mode, scale."""
+        tracks = {
+            r.name: OdometryTrack(r.heading_offset, r.odom_scale, r.odom_mode) for r in team.robots
+        }
+        loaded = ModelSet.load(models) if isinstance(models, str | Path) else models
+        return cls(loaded, tracks=tracks, **kwargs)  # type: ignore[arg-type]
+
+    # ------------------------------------------------------------------ engine stage
+    def process(self, event: Event) -> list[Event]:
+        """Engine stage: ranges come out corrected (or passed through), the rest unchanged."""
+        if isinstance(event, RangeEvent):
+            return [self.correct(event)]
+        self.observe(event)
+        return [event]
+
+    def feedback(self, estimate: object) -> None:
+        """The corrector needs no estimate (the engine calls this on every stage)."""
+
+    # ------------------------------------------------------------------ headings
+    def observe(self, event: Event) -> None:
+        """Feed any event; odometry updates the robot's heading, the rest is ignored."""
+        if not isinstance(event, OdometryEvent):
+            return
+        track = self.tracks.get(event.robot)
+        if track is None:
+            track = self.tracks[event.robot] = OdometryTrack()
+        if event.t > track.last_time:
+            track.add(event)
+
+    def set_yaw(self, robot: str, t: float, yaw: float) -> None:
+        """Tell the heading of ``robot`` (shared frame, rad) at time ``t``; overrides odometry."""
+        self._told[robot] = _ToldYaw(t, yaw)
+
+    def _yaw(self, robot: str, t: float) -> tuple[float | None, bool]:
+        """``(heading at t, stale)``; ``(None, False)`` if there is none."""
+        if self.yaw_provider is not None:
+            yaw = self.yaw_provider(robot, t)
+            return (None, False) if yaw is None else (float(yaw), False)
+        told = self._told.get(robot)
+        if told is not None:
+            return told.yaw, self._stale(t - told.t)
+        track = self.tracks.get(robot)
+        if track is None or track.empty:
+            return None, False
+        return track.pose_at(t)[2], self._stale(t - track.last_time)
+
+    def _stale(self, age: float) -> bool:
+        return self.max_yaw_age is not None and age > self.max_yaw_age
+
+    # ------------------------------------------------------------------ ranges
+    def correct(self, event: RangeEvent) -> RangeEvent:
+        """The corrected range, or ``event`` itself when it cannot be corrected (counted)."""
+        if event.corrected:
+            return self._pass(event, "already_corrected")
+        if not (math.isfinite(event.distance) and event.distance > 0.0):
+            return self._pass(event, "invalid_range")
+        key = event.node_pair
+        model = self.models.get(key)
+        if model is None:
+            return self._pass(event, "no_model")
+        state = self._pairs.get(key)
+        if state is None:
+            state = self._pairs[key] = _PairState(deque(maxlen=model.n_steps))
+        if event.t < state.last_t:
+            return self._pass(event, "out_of_order")
+        if self.max_gap is not None and event.t - state.last_t > self.max_gap and state.frames:
+            state.frames.clear()
+            state.last_error = None
+            self.stats["window_reset"] += 1
+        if event.distance == state.last_distance and state.frames:
+            # The same measurement read again: not a new frame.
+            state.last_t = event.t
+            if state.last_error is None:
+                return self._pass(event, "window_not_full")
+            return self._corrected(event, state.last_error, "corrected_repeat")
+        node_a = event.node_a or event.robot_a
+        node_b = event.node_b or event.robot_b
+        # Canonical order (as pair_key sorts): yaw_a is the heading of the first node's robot.
+        first, second = (
+            (event.robot_a, event.robot_b) if node_a <= node_b else (event.robot_b, event.robot_a)
+        )
+        yaw_a, stale_a = self._yaw(first, event.t)
+        yaw_b, stale_b = self._yaw(second, event.t)
+        if yaw_a is None or yaw_b is None:
+            return self._pass(event, "no_yaw")
+        if stale_a or stale_b:
+            return self._pass(event, "stale_yaw")
+        state.frames.append((event.distance, yaw_a, yaw_b))
+        state.last_t = event.t
+        state.last_distance = event.distance
+        state.last_error = None
+        if len(state.frames) < model.n_steps:
+            return self._pass(event, "window_not_full")
+        window = np.asarray(state.frames, dtype=np.float32)[None]
+        raw = float(model.predict_raw(window)[0])
+        error = min(max(raw, model.error_min), model.error_max)
+        if error != raw:
+            self.stats["clipped"] += 1
+        state.last_error = error
+        return self._corrected(event, error, "corrected")
+
+    def _pass(self, event: RangeEvent, reason: str) -> RangeEvent:
+        self.stats[reason] += 1
+        return event
+
+    def _corrected(self, event: RangeEvent, error: float, reason: str) -> RangeEvent:
+        self.stats[reason] += 1
+        return replace(event, distance=event.distance - error, corrected=True)
+
+    def reset(self) -> None:
+        """Forget every window, heading and count (e.g. when a recording restarts)."""
+        self._pairs.clear()
+        self._told.clear()
+        self.tracks = {
+            robot: OdometryTrack(
+                t.heading_offset,
+                t.scale,
+                t.mode,
+                max_extrapolation=t.max_extrapolation,
+                history=t.history,
+            )
+            for robot, t in self.tracks.items()
+        }
+        self.stats.clear()
