@@ -7,10 +7,11 @@ two robots gives a distance, not a relative position). ``solve`` therefore
 1. checks that the graph can determine a formation (at least three robots, every robot with at
    least two ranges, and the rigidity matrix at the solution of rank ``2N - 3``), and reports
    *no estimate* otherwise;
-2. starts from the previous solution when there is one (so the arbitrary rotation stays
-   continuous from step to step, without ground truth), else from classical multidimensional
-   scaling when all pairs are present, else from a few random starts;
-3. minimises the squared range residuals with SciPy's ``least_squares``.
+2. starts from the previous solution when there is one, else from classical
+   multidimensional scaling when all pairs are present, else from a few random starts;
+3. minimises the squared range residuals with SciPy's ``least_squares``;
+4. turns the result about the reference onto the previous solution, so the arbitrary
+   rotation stays continuous from step to step (without ground truth).
 
 The formation is returned with the reference at the origin, in an arbitrary but continuous
 gauge; evaluation fits one rotation/reflection for a whole run (see :mod:`relloc.sinks.metrics`).
@@ -102,4 +103,18 @@ def solve(
             best, best_cost = unpack(result.x), result.cost
     if best is None or rigidity_rank(best, pairs) < 2 * n_robots - 3:
         return None
+    if initial is not None:
+        best = _rotate_onto(best, initial - initial[reference])
     return best
+
+
+def _rotate_onto(points: FloatArray, target: FloatArray) -> FloatArray:
+    """``points`` turned about the origin (a proper rotation) to best match ``target``.
+
+    The solver is free to slide along the rotation that ranges cannot see; turning each new
+    solution back onto the previous one keeps the gauge continuous (no ground truth used).
+    """
+    h = target.T @ points
+    angle = np.arctan2(h[1, 0] - h[0, 1], h[0, 0] + h[1, 1])
+    c, s = np.cos(angle), np.sin(angle)
+    return points @ np.array([[c, -s], [s, c]]).T
