@@ -93,7 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--warmup", type=float, default=10.0, help="seconds excluded from APE")
     demo.add_argument("--particles", type=int, default=None, help="override the particle count")
     demo.add_argument("--methods", default="pf,multilateration")
-    demo.add_argument("--scenarios", default="multi,single")
+    demo.add_argument("--scenarios", default="multi,single,nav")
     demo.add_argument("--out", default="out/demo", help="folder for plots")
     demo.add_argument("--json", default=None, metavar="FILE", help="write the figures as JSON")
     demo.add_argument("--no-progress", action="store_true")

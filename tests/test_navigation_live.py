@@ -1,0 +1,308 @@
+"""The live navigation system over Zenoh on loopback: ``relloc sim-robots`` + ``relloc serve`` +
+``relloc navigate`` as separate processes, and Ctrl-C of ``relloc navigate``.
+
+Every session is a peer on 127.0.0.1 with explicit listen/connect endpoints on free ports and
+multicast scouting off: no other service, nothing leaves the machine. The simulated team runs
+twice as fast as real time (``--rate 2``) and the server and the navigator are told so
+(``--clock-rate 2``): every clock, the control period included, runs twice as fast, so the
+system is the real one, sped up.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from relloc.live import ZenohOptions, free_tcp_port, open_session
+from relloc.navigation.path import load_path
+from relloc.ros_messages import (
+    TWIST,
+    decode,
+    encode,
+    odometry_msg,
+    pose_with_covariance_msg,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+SMALL = REPO / "configs" / "paths" / "small_rectangle.toml"
+
+
+def relloc(*args: str, log: Path) -> subprocess.Popen[bytes]:
+    """Start ``relloc ARGS`` (this interpreter) with its output in ``log``."""
+    with log.open("wb") as fh:
+        return subprocess.Popen(
+            [sys.executable, "-m", "relloc.cli", *args],
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            cwd=REPO,
+        )
+
+
+def stop(proc: subprocess.Popen[bytes], timeout: float = 15.0) -> int:
+    """SIGINT, then wait (kill if it hangs)."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
+def zenoh_args(*, listen: int | None = None, connect: int | None = None) -> list[str]:
+    args = ["--no-multicast"]
+    if listen is not None:
+        args += ["--listen", f"tcp/127.0.0.1:{listen}"]
+    if connect is not None:
+        args += ["--connect", f"tcp/127.0.0.1:{connect}"]
+    return args
+
+
+def write_team(tmp: Path, particles: int = 4000) -> Path:
+    """The simulated nav team's config, written by ``relloc sim-robots --config-only``."""
+    team = tmp / "team.toml"
+    out = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "relloc.cli",
+            "sim-robots",
+            "--scenario",
+            "nav",
+            "--config-only",
+            "--write-config",
+            str(team),
+            "--particles",
+            str(particles),
+        ],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=60,
+    )
+    assert out.returncode == 0, out.stderr
+    return team
+
+
+@pytest.mark.slow
+def test_sim_robots_serve_and_navigate_drive_a_small_rectangle_over_zenoh(tmp_path: Path) -> None:
+    team = write_team(tmp_path)
+    port = free_tcp_port()
+    rate = "2"
+    procs = []
+    try:
+        sim = relloc(
+            "sim-robots",
+            "--scenario",
+            "nav",
+            "--config",
+            str(team),
+            "--rate",
+            rate,
+            "--duration",
+            "120",
+            "--json",
+            str(tmp_path / "sim.json"),
+            *zenoh_args(listen=port),
+            log=tmp_path / "sim.log",
+        )
+        procs.append(sim)
+        serve = relloc(
+            "serve",
+            "--config",
+            str(team),
+            "--clock-rate",
+            rate,
+            *zenoh_args(connect=port),
+            log=tmp_path / "serve.log",
+        )
+        procs.append(serve)
+        nav = relloc(
+            "navigate",
+            "--config",
+            str(team),
+            "--robot",
+            "r2",
+            "--path",
+            str(SMALL),
+            "--clock-rate",
+            rate,
+            "--duration",
+            "50",
+            "--json",
+            str(tmp_path / "nav.json"),
+            *zenoh_args(connect=port),
+            log=tmp_path / "nav.log",
+        )
+        procs.append(nav)
+        try:
+            code = nav.wait(timeout=75)
+        except subprocess.TimeoutExpired:
+            code = None
+        logs = {p.name: p.read_text() for p in tmp_path.glob("*.log")}
+        assert code == 0, f"navigate ended with {code}:\n" + "\n".join(
+            f"--- {k}\n{v}" for k, v in logs.items()
+        )
+    finally:
+        for proc in reversed(procs):
+            stop(proc)
+    summary = json.loads((tmp_path / "nav.json").read_text())
+    truth = json.loads((tmp_path / "sim.json").read_text())
+    assert summary["completed"] is True and summary["ended"] == "goal reached"
+    assert summary["cmd_vel_key"] == "r2/cmd_vel" and summary["estimate_key"] == "relloc/r2/pose"
+    assert [s["reason"] for s in summary["stops"]][-2:] == ["released", "goal reached"]
+    assert truth["commands_received"] > 50
+    # Tracking error: the robot's true position (the simulator's) against the planned path, from
+    # reaching the first waypoint to completing the path.
+    r2 = np.array(truth["truth"]["r2"])
+    r0 = np.array(truth["truth"]["r0"])
+    rel = r2[:, 1:3] - r0[:, 1:3]
+    window = (r2[:, 0] >= summary["path_start_t"]) & (r2[:, 0] <= summary["end_t"])
+    errors = load_path(SMALL).distance(rel[window])
+    assert errors.size > 100
+    print(f"live tracking error: median {np.median(errors):.3f} m, std {errors.std():.3f} m")
+    assert float(np.median(errors)) < 0.2
+    # And the robot stopped at the end.
+    last = r2[r2[:, 0] > summary["end_t"] + 1.0]
+    if len(last) > 1:
+        assert np.ptp(last[:, 1]) < 1e-6 and np.ptp(last[:, 2]) < 1e-6
+
+
+def test_ctrl_c_makes_navigate_send_zero_within_one_control_period(tmp_path: Path) -> None:
+    """A running ``relloc navigate`` gets SIGINT: a zero Twist follows within one period."""
+    from relloc.config import TeamConfig
+    from relloc.events import OdometryEvent
+
+    team = write_team(tmp_path)
+    config = TeamConfig.load(team)
+    port = free_tcp_port()
+    session = open_session(ZenohOptions(listen=(f"tcp/127.0.0.1:{port}",), multicast=False))
+    received: list[tuple[float, float, float]] = []
+    lock = threading.Lock()
+
+    def on_cmd(sample: Any) -> None:
+        msg = decode(sample.payload.to_bytes(), TWIST)
+        with lock:
+            received.append((time.monotonic(), float(msg.linear.x), float(msg.angular.z)))
+
+    sub = session.declare_subscriber("r2/cmd_vel", on_cmd)
+    odom_pub = session.declare_publisher("r2/odom")
+    pose_pub = session.declare_publisher("relloc/r2/pose")
+    halt = threading.Event()
+    heading = math.radians(config.robot("r2").heading_offset_deg)
+
+    def robot_and_engine() -> None:
+        # r2 stands at the first waypoint, its odometry and a converged estimate keep coming.
+        x0, y0 = load_path(SMALL).waypoints[0]
+        while not halt.is_set():
+            t = time.time()
+            odom_pub.put(encode(odometry_msg(OdometryEvent(t, "r2", 0.0, 0.0, -heading))))
+            cov = [[0.003, 0.0], [0.0, 0.003]]
+            pose_pub.put(encode(pose_with_covariance_msg(t - 0.1, x0, y0, cov=cov, frame_id="r0")))
+            halt.wait(0.05)
+
+    feeder = threading.Thread(target=robot_and_engine, daemon=True)
+    feeder.start()
+    nav = relloc(
+        "navigate",
+        "--config",
+        str(team),
+        "--robot",
+        "r2",
+        "--path",
+        str(SMALL),
+        "--settle-time",
+        "0.3",
+        *zenoh_args(connect=port),
+        log=tmp_path / "nav.log",
+    )
+    try:
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            with lock:
+                moving = [r for r in received if r[1] != 0.0 or r[2] != 0.0]
+            if len(moving) >= 3:
+                break
+            time.sleep(0.02)
+        assert moving, "navigate never commanded motion:\n" + (tmp_path / "nav.log").read_text()
+        pressed = time.monotonic()
+        nav.send_signal(signal.SIGINT)
+        code = nav.wait(timeout=15)
+        time.sleep(0.2)
+    finally:
+        halt.set()
+        stop(nav)
+        sub.undeclare()
+        session.close()
+    assert code == 130, (tmp_path / "nav.log").read_text()
+    with lock:
+        after = [r for r in received if r[0] >= pressed]
+    assert after, "no command after Ctrl-C"
+    first_zero = next(r for r in after if r[1] == 0.0 and r[2] == 0.0)
+    print(f"Ctrl-C to zero command on cmd_vel: {1e3 * (first_zero[0] - pressed):.1f} ms")
+    assert first_zero[0] - pressed <= 0.1  # one control period at the default 10 Hz
+    assert all(r[1] == 0.0 and r[2] == 0.0 for r in after if r[0] >= first_zero[0])
+    log = (tmp_path / "nav.log").read_text()
+    assert "interrupted" in log
+
+
+@pytest.mark.slow
+def test_navigate_in_process_without_serve(tmp_path: Path) -> None:
+    """``relloc navigate --in-process`` runs the localizer itself: sim-robots + navigate only."""
+    team = write_team(tmp_path, particles=3000)
+    port = free_tcp_port()
+    procs = []
+    try:
+        sim = relloc(
+            "sim-robots",
+            "--scenario",
+            "nav",
+            "--config",
+            str(team),
+            "--rate",
+            "2",
+            "--duration",
+            "120",
+            "--json",
+            str(tmp_path / "sim.json"),
+            *zenoh_args(listen=port),
+            log=tmp_path / "sim.log",
+        )
+        procs.append(sim)
+        nav = relloc(
+            "navigate",
+            "--config",
+            str(team),
+            "--robot",
+            "r2",
+            "--path",
+            str(SMALL),
+            "--in-process",
+            "--clock-rate",
+            "2",
+            "--duration",
+            "50",
+            "--json",
+            str(tmp_path / "nav.json"),
+            *zenoh_args(connect=port),
+            log=tmp_path / "nav.log",
+        )
+        procs.append(nav)
+        code = nav.wait(timeout=75)
+        assert code == 0, (tmp_path / "nav.log").read_text() + (tmp_path / "sim.log").read_text()
+    finally:
+        for proc in reversed(procs):
+            stop(proc)
+    summary = json.loads((tmp_path / "nav.json").read_text())
+    assert summary["completed"] is True and summary["estimate_key"] == "(in process)"
