@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import importlib
 
-_MODULES = ("relloc.ranging.cli",)
+_MODULES = ("relloc.ranging.cli", "relloc.live", "relloc.navigation.cli")
 
 
 def register_all(sub: argparse._SubParsersAction) -> None:

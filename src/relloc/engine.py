@@ -67,9 +67,19 @@ class Pipeline:
 class Engine:
     """Feeds events to pipelines, collects estimates and ground truth, calls sinks."""
 
-    def __init__(self, pipelines: list[Pipeline], reference: str, sinks: list[Sink] | None = None) -> None:
+    def __init__(
+        self,
+        pipelines: list[Pipeline],
+        reference: str,
+        sinks: list[Sink] | None = None,
+        *,
+        keep_estimates: int | None = None,
+    ) -> None:
+        """``keep_estimates`` bounds how many estimates each pipeline keeps (a live server
+        runs for hours; offline evaluation keeps all, ``None``)."""
         self.pipelines = pipelines
         self.sinks = sinks or []
+        self.keep_estimates = keep_estimates
         self.ground_truth = GroundTruth(reference)
         self.events = 0
         self.t_first: float | None = None
@@ -108,6 +118,8 @@ class Engine:
     def _emit(self, pipeline: Pipeline, estimates: list[Estimate]) -> None:
         for est in estimates:
             pipeline.estimates.append(est)
+            if self.keep_estimates is not None and len(pipeline.estimates) > self.keep_estimates:
+                del pipeline.estimates[: len(pipeline.estimates) - self.keep_estimates]
             for stage in pipeline.stages:
                 stage.feedback(est)
             for sink in self.sinks:

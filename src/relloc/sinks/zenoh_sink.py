@@ -1,0 +1,145 @@
+"""Estimates out over Eclipse Zenoh, as ROS 2 messages a bridge can hand to ROS.
+
+Keys (``prefix`` defaults to ``relloc``):
+
+``<prefix>/<robot>/pose``
+    Each non-reference robot's estimate as ``geometry_msgs/PoseWithCovarianceStamped`` CDR:
+    position relative to the reference robot in the shared heading frame (``frame_id`` = the
+    reference robot's name), header stamp = the estimate time (the newest measurement fused),
+    covariance of x and y from the particles. The orientation is not estimated: identity, with
+    yaw variance :data:`UNKNOWN_VARIANCE` so that no consumer mistakes it for a measurement.
+    Estimates of the primary (first) method use this key; other methods publish on
+    ``<prefix>/<method>/<robot>/pose``.
+``<prefix>/status``
+    JSON, about once per ``status_period``: whatever the server's status function returns
+    (rates, rejected counts, ESS, last estimate time, quiet robots; see ``relloc.live``).
+``<prefix>/trace``
+    JSON, one per estimate, only with ``trace=True``: the estimate time and the message that
+    triggered it (key, header stamp, send and receive wall time) and the publication wall time,
+    from which ``relloc bench resources`` measures end-to-end latency.
+
+A zenoh-bridge-ros2dds on the receiving side turns ``relloc/turtle01/pose`` into the ROS topic
+``/relloc/turtle01/pose``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections import Counter
+from typing import Any
+
+import numpy as np
+
+from relloc.config import TeamConfig
+from relloc.localizer import Estimate
+from relloc.ros_messages import encode, pose_with_covariance_msg
+from relloc.sources.zenoh_source import Arrival
+
+__all__ = ["UNKNOWN_VARIANCE", "ZenohSink", "pose_key"]
+
+log = logging.getLogger(__name__)
+
+UNKNOWN_VARIANCE = 1e6
+"""Yaw variance (rad^2) published with every pose: the filter estimates positions only."""
+
+
+def pose_key(prefix: str, robot: str, method: str | None = None) -> str:
+    """Key of a robot's estimate: ``<prefix>/<robot>/pose``, or with ``<method>/`` inserted."""
+    parts = [prefix.strip("/"), method or "", robot, "pose"]
+    return "/".join(p for p in parts if p)
+
+
+class ZenohSink:
+    """Engine sink publishing estimates (and status, and optionally traces) on a session.
+
+    Call it with each :class:`~relloc.localizer.Estimate` (the engine does); call
+    :meth:`set_trigger` before feeding an event so that traces can name it, and
+    :meth:`publish_status` about once a second. :meth:`close` undeclares the publishers (the
+    session belongs to the caller).
+    """
+
+    def __init__(
+        self,
+        session: Any,
+        config: TeamConfig,
+        *,
+        prefix: str = "relloc",
+        primary_method: str = "pf",
+        trace: bool = False,
+    ) -> None:
+        self.session = session
+        self.config = config
+        self.prefix = prefix.strip("/")
+        self.primary_method = primary_method
+        self.trace = trace
+        self.frame_id = config.reference
+        self.published: Counter[str] = Counter()
+        """Estimates published per method."""
+        self.last: dict[str, Estimate] = {}
+        """Last estimate published per method."""
+        self._publishers: dict[str, Any] = {}
+        self._trigger: Arrival | None = None
+        self.status_key = f"{self.prefix}/status" if self.prefix else "status"
+        self.trace_key = f"{self.prefix}/trace" if self.prefix else "trace"
+
+    def set_trigger(self, arrival: Arrival | None) -> None:
+        """The message being fed now: estimates emitted while it is processed name it."""
+        self._trigger = arrival
+
+    def key(self, robot: str, method: str) -> str:
+        return pose_key(self.prefix, robot, None if method == self.primary_method else method)
+
+    def __call__(self, estimate: Estimate) -> None:
+        for robot, (x, y) in estimate.positions.items():
+            cov = np.zeros((3, 3))
+            c = estimate.covariances.get(robot)
+            if c is not None:
+                cov[:2, :2] = c
+            cov[2, 2] = UNKNOWN_VARIANCE
+            msg = pose_with_covariance_msg(estimate.t, x, y, cov=cov, frame_id=self.frame_id)
+            self._put(self.key(robot, estimate.method), encode(msg))
+        self.published[estimate.method] += 1
+        self.last[estimate.method] = estimate
+        if self.trace:
+            self._put(self.trace_key, json.dumps(self._trace(estimate)).encode())
+
+    def publish_status(self, status: dict[str, Any]) -> None:
+        """Publish a status dict as JSON on ``<prefix>/status``."""
+        self._put(self.status_key, json.dumps(status, default=_jsonable).encode())
+
+    def close(self) -> None:
+        """Undeclare the publishers (idempotent)."""
+        pubs, self._publishers = self._publishers, {}
+        for pub in pubs.values():
+            try:
+                pub.undeclare()
+            except Exception as exc:  # the session may already be closed
+                log.debug("undeclaring a publisher failed: %s", exc)
+
+    def _put(self, key: str, payload: bytes) -> None:
+        pub = self._publishers.get(key)
+        if pub is None:
+            pub = self._publishers[key] = self.session.declare_publisher(key)
+        pub.put(payload)
+
+    def _trace(self, estimate: Estimate) -> dict[str, Any]:
+        trig = self._trigger
+        return {
+            "method": estimate.method,
+            "t": estimate.t,
+            "trigger_key": trig.key if trig else None,
+            "trigger_stamp": trig.event.t if trig else None,
+            "trigger_sent": trig.sent if trig else None,
+            "trigger_received": trig.received if trig else None,
+            "published": time.time(),
+        }
+
+
+def _jsonable(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Counter | set | frozenset | tuple):
+        return list(value) if not isinstance(value, Counter) else dict(value)
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")

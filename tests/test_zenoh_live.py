@@ -1,0 +1,244 @@
+"""The live engine over real Zenoh sessions on loopback.
+
+Every test opens peer sessions on 127.0.0.1 with explicit endpoints on a free TCP port and
+multicast scouting off (nothing leaks to or from the network), and closes them. The end-to-end
+test on the shared shortbag is skipped without ``../shared/data``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from relloc.config import TeamConfig
+from relloc.events import OdometryEvent
+from relloc.live import (
+    EstimateCollector,
+    LiveServer,
+    ReplayOptions,
+    ServeOptions,
+    ZenohOptions,
+    ape_against_bag,
+    free_tcp_port,
+    open_session,
+    publish_events,
+    replay_bag,
+    simulated_team,
+)
+from relloc.ros_messages import encode, odometry_msg
+from relloc.sources.zenoh_source import ZenohSource, ZenohSourceOptions
+
+REPO = Path(__file__).resolve().parents[1]
+SHORTBAG = "multi4_shortbag_20221011"
+
+
+@pytest.fixture
+def sessions() -> Iterator[tuple[Any, Any]]:
+    """Two peer sessions on loopback: (server side listening, client side connecting)."""
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    server = open_session(ZenohOptions(listen=(endpoint,), multicast=False))
+    client = open_session(ZenohOptions(connect=(endpoint,), multicast=False))
+    try:
+        yield server, client
+    finally:
+        client.close()
+        server.close()
+
+
+def wait_until(condition: Callable[[], bool], timeout: float = 5.0) -> bool:
+    end = time.time() + timeout
+    while time.time() < end:
+        if condition():
+            return True
+        time.sleep(0.01)
+    return condition()
+
+
+class Running:
+    """A LiveServer running on a thread; stopped and closed on exit."""
+
+    def __init__(self, server: LiveServer) -> None:
+        self.server = server
+        self.summary: dict[str, Any] = {}
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        self.summary = self.server.run()
+
+    def __enter__(self) -> LiveServer:
+        self.server.start()
+        self.thread.start()
+        return self.server
+
+    def __exit__(self, *exc: object) -> None:
+        self.server.stop()
+        self.thread.join(timeout=10)
+        self.server.close()
+
+
+def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
+    """Five simulated robots published as ROS 2 CDR; estimates, status and traces come back."""
+    srv_session, client = sessions
+    sim, config = simulated_team(seed=0, duration=16.0)
+    rate = 4.0
+    status: list[dict[str, Any]] = []
+    status_sub = client.declare_subscriber(
+        "relloc/status", lambda s: status.append(json.loads(s.payload.to_bytes()))
+    )
+    collector = EstimateCollector(client, config)
+    server = LiveServer(
+        config,
+        srv_session,
+        ServeOptions(particles=1000, clock_rate=rate, trace=True, status_period=0.25),
+    )
+    base = 1_700_000_000.0
+    with Running(server) as live:
+        stats = publish_events(sim.events(), config, client, rate=rate, time_base=base, wait=5.0)
+        assert stats.unmatched == []
+        assert wait_until(lambda: live.source.stats.events.total() >= stats.messages)
+    collector_estimates = collector.estimates()
+    traces = collector.traces()
+    collector.close()
+    status_sub.undeclare()
+
+    own = server.pipelines[0].estimates
+    assert len(collector_estimates) == len(own) > 100
+    last = collector_estimates[-1]
+    assert last.positions.keys() == set(config.others)
+    assert last.t == pytest.approx(own[-1].t, abs=1e-6)
+    assert last.positions["r1"] == pytest.approx(own[-1].positions["r1"])
+    late = [e for e in collector_estimates if e.t - base > 10.0]
+    errors = []
+    for est in late:
+        t = est.t - base
+        q = sim.true_pose("r0", t)
+        for robot, (x, y) in est.positions.items():
+            p = sim.true_pose(robot, t)
+            errors.append(math.hypot(x - (p[0] - q[0]), y - (p[1] - q[1])))
+    assert np.median(errors) < 0.3
+
+    assert server.summary()["source"]["rejected"] == {}
+    assert status and status[-1]["methods"]["pf"]["estimates"] > 0
+    assert status[-1]["source"]["messages"] > 0 and "robots" in status[-1]
+    timed = [r for r in traces if r["trigger_sent"] is not None]
+    assert len(timed) >= len(own) - 2
+    latency = [r["published"] - r["trigger_sent"] for r in timed]
+    assert min(latency) > 0.0 and np.median(latency) < 0.5
+    assert all(r["trigger_key"] in server.source.routes for r in timed)
+
+
+def test_malformed_payloads_and_unknown_keys_over_zenoh(sessions: tuple[Any, Any]) -> None:
+    srv_session, client = sessions
+    _, config = simulated_team(seed=0, duration=5.0)
+    source = ZenohSource(config, ZenohSourceOptions(prefix="lab", subscribe_all=True))
+    source.attach(srv_session)
+    try:
+        pub = client.declare_publisher("lab/r1/odom")
+        other = client.declare_publisher("lab/some/other/topic")
+        assert wait_until(lambda: pub.matching_status.matching and other.matching_status.matching)
+        good = encode(odometry_msg(OdometryEvent(1_700_000_000.0, "r1", 1.0, 2.0, 0.0)))
+        pub.put(b"\x00\x01\x00\x00 not an odometry message")
+        other.put(good)
+        pub.put(good)
+        released: list[Any] = []
+        assert wait_until(lambda: bool(released.extend(source.poll(0.05)) or len(released)))
+        assert source.stats.rejected == {"decode_error": 1, "unknown_key": 1}
+        (arrival,) = released
+        assert arrival.key == "lab/r1/odom" and arrival.event.x == 1.0
+        assert arrival.sent is None  # no relloc attachment on a plain put
+        pub.undeclare()
+        other.undeclare()
+    finally:
+        source.detach()
+
+
+def test_serve_command_shuts_down_cleanly_on_sigterm(
+    tmp_path: Path, sessions: tuple[Any, Any]
+) -> None:
+    _, config = simulated_team(seed=0, duration=5.0)
+    config_path = tmp_path / "team.toml"
+    config.save(config_path)
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    summary_path = tmp_path / "summary.json"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "relloc.cli", "serve", "--config", str(config_path),
+         "--listen", endpoint, "--no-multicast", "--particles", "500", "--json", str(summary_path)],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+    )  # fmt: skip
+    session = open_session(ZenohOptions(connect=(endpoint,), multicast=False))
+    try:
+        pub = session.declare_publisher("r1/odom")
+        assert wait_until(lambda: pub.matching_status.matching, timeout=30.0), (
+            "serve never subscribed"
+        )
+        for k in range(5):
+            pub.put(
+                encode(odometry_msg(OdometryEvent(1_700_000_000.0 + 0.05 * k, "r1", 0.0, 0.0, 0.0)))
+            )
+        pub.put(b"garbage")
+        time.sleep(0.3)
+        proc.send_signal(signal.SIGTERM)
+        out, _ = proc.communicate(timeout=20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+        session.close()
+    assert proc.returncode == 0, out
+    assert "stopped after" in out and "decode_error" in out
+    summary = json.loads(summary_path.read_text())
+    assert summary["source"]["stats"]["received"] == {"r1/odom": 6}
+    assert summary["source"]["rejected"] == {"decode_error": 1}
+    assert summary["methods"]["pf"]["stats"]["odometry"] == 5
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+def test_replayed_shortbag_matches_relloc_run(shared_data: Path, sessions: tuple[Any, Any]) -> None:
+    """Replay the 17 s shortbag at 2x into the live engine: same APE as ``relloc run``.
+
+    Same particles, same seed; the reorder window (0.2 s of header time) restores the header
+    order the rosbag source produces, so the filter sees the same event sequence.
+    """
+    from relloc.recording import RunOptions, run_recording
+
+    bag = shared_data / "tiers" / SHORTBAG
+    config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")
+    particles, seed, rate = 4000, 0, 2.0
+    report = run_recording(
+        bag, config, RunOptions(methods=("pf",), particles=particles, seed=seed, progress=False)
+    )
+    offline = report.methods["pf"]
+
+    srv_session, client = sessions
+    collector = EstimateCollector(client, config)
+    server = LiveServer(
+        config,
+        srv_session,
+        ServeOptions(particles=particles, seed=seed, reorder_window=0.2, clock_rate=rate),
+    )
+    with Running(server) as live:
+        stats = replay_bag(bag, config, client, ReplayOptions(rate=rate, wait=5.0))
+        assert stats.unmatched == []
+        expected = sum(n for k, n in stats.per_key.items() if k in live.source.routes)
+        assert wait_until(lambda: sum(live.source.stats.received.values()) >= expected)
+    estimates = collector.estimates()
+    collector.close()
+
+    served = ape_against_bag(estimates, bag, config, warmup=report.warmup, t0=report.t0)
+    assert abs(len(estimates) - offline.n_estimates) <= 2
+    assert served["mean_median"] == pytest.approx(offline.mean_ape_median, rel=0.10)
+    for robot, s in offline.robots.items():
+        assert served[robot]["n"] == pytest.approx(s.n, abs=2)
+    assert server.summary()["source"]["rejected"] == {}

@@ -1,0 +1,283 @@
+"""The live Zenoh source without a network: keys, decoding, rejections, ordering, clocks, and a
+robot that goes quiet for 5 s (on a simulated clock).
+
+Messages enter through ``ZenohSource.handle(key, payload, received)`` (what the Zenoh callback
+feeds the engine thread) with explicit receive times, so every test is deterministic.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+import pytest
+
+from relloc.config import ConfigError, RobotConfig, TeamConfig
+from relloc.events import OdometryEvent, RangeEvent
+from relloc.live import LiveServer, ServeOptions, event_messages, simulated_team
+from relloc.ros_messages import encode, odometry_msg, range_msg
+from relloc.sources.zenoh_source import (
+    Arrival,
+    HeaderClock,
+    ReorderBuffer,
+    ZenohSource,
+    ZenohSourceOptions,
+    build_routes,
+    decode_sent_time,
+    encode_sent_time,
+    key_for_topic,
+)
+
+T0 = 1_700_000_000.0
+
+
+def team(**robot_changes: Any) -> TeamConfig:
+    """Three robots; ``robot_changes`` apply to robot ``c``."""
+    robots = (
+        RobotConfig("a", uwb_node="n_1", odom_topic="/a/odom"),
+        RobotConfig("b", uwb_node="n_2", odom_topic="/b/odom", detection_topic="/b/dets"),
+        RobotConfig("c", **{"uwb_node": "n_3", "odom_topic": "/c/odom", **robot_changes}),
+    )
+    return TeamConfig(robots=robots, reference="a")
+
+
+def odom_payload(robot: str, t: float, x: float = 0.0) -> bytes:
+    return encode(odometry_msg(OdometryEvent(t, robot, x, 0.0, 0.0)))
+
+
+def range_payload(t: float, d: float) -> bytes:
+    return encode(range_msg(RangeEvent(t, "a", "b", d)))
+
+
+class _Nothing:
+    """Stands in for a Zenoh session/publisher/subscriber where nothing must go on the wire."""
+
+    def declare_publisher(self, key: str) -> _Nothing:
+        return self
+
+    def declare_subscriber(self, key: str, callback: Any) -> _Nothing:
+        return self
+
+    def put(self, payload: bytes, **kwargs: Any) -> None:
+        pass
+
+    def undeclare(self) -> None:
+        pass
+
+
+# ---------------------------------------------------------------------------- keys
+def test_keys_follow_the_bridge_convention_with_scopes_and_prefix() -> None:
+    assert key_for_topic("/tb1/odom") == "tb1/odom"
+    assert key_for_topic("/odom", prefix="lab/", scope="tb1") == "lab/tb1/odom"
+    with pytest.raises(ConfigError):
+        key_for_topic("/a/*/odom")
+
+    routes = build_routes(team(zenoh_scope="tbc"), prefix="lab")
+    assert routes["lab/a/odom"].robot == "a"
+    assert routes["lab/tbc/c/odom"].kind == "odometry"
+    # every pair, both node orders; a pair with a scoped robot also below its scope
+    r = routes["lab/uwb/tof/n_3/n_1/distance"]
+    assert (r.robot, r.robot_b, r.node_a, r.node_b) == ("c", "a", "n_3", "n_1")
+    assert "lab/tbc/uwb/tof/n_1/n_3/distance" in routes
+    assert "lab/tbc/uwb/tof/n_1/n_2/distance" not in routes
+    assert len([k for k, v in routes.items() if v.kind == "range"]) == 2 * 3 + 2 * 2
+    assert routes["lab/b/dets"].kind == "detection"
+    assert "lab/b/dets" not in build_routes(team(), prefix="lab", detections=False)
+
+
+def test_two_robots_on_one_key_is_a_config_error() -> None:
+    with pytest.raises(ConfigError, match="zenoh_scope"):
+        build_routes(team(odom_topic="/a/odom"))
+
+
+def test_sent_time_attachment_round_trips() -> None:
+    assert decode_sent_time(encode_sent_time(T0 + 0.25)) == T0 + 0.25
+    assert decode_sent_time(b"something else") is None
+    assert decode_sent_time(None) is None
+
+
+# ---------------------------------------------------------------------------- rejections
+def test_malformed_payloads_are_rejected_counted_and_do_not_stop_the_source() -> None:
+    src = ZenohSource(team())
+    good = odom_payload("a", T0)
+    src.handle("a/odom", b"\x00\x01\x00\x00garbage", T0)
+    src.handle("a/odom", good[: len(good) // 2], T0)  # truncated
+    src.handle("uwb/tof/n_1/n_2/distance", good, T0)  # an Odometry where a Range belongs
+    src.handle("a/odom", b"", T0)
+    assert src.stats.rejected["decode_error"] == 4
+    src.handle("a/odom", good, T0 + 0.1)
+    out = src.flush()
+    assert [type(a.event) for a in out] == [OdometryEvent]
+    assert src.stats.events == {"odometry": 1}
+
+
+def test_unknown_keys_and_bad_values_are_counted() -> None:
+    src = ZenohSource(team())
+    src.handle("someone/else/odom", odom_payload("a", T0), T0)
+    src.handle("uwb/tof/n_1/n_2/distance", range_payload(T0, math.nan), T0)
+    src.handle("uwb/tof/n_1/n_2/distance", range_payload(T0, -1.0), T0)
+    assert src.stats.rejected == {"unknown_key": 1, "range_nonfinite": 1, "range_nonpositive": 1}
+    assert src.flush() == []
+
+
+def test_detections_decode_in_the_body_frame() -> None:
+    from relloc.ros_messages import typestore
+
+    types = typestore().types
+    pose = types["geometry_msgs/msg/Pose"](
+        position=types["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=2.0),
+        orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+    )
+    from relloc.ros_messages import time_msg
+
+    header = types["std_msgs/msg/Header"](stamp=time_msg(T0), frame_id="cam")
+    msg = types["geometry_msgs/msg/PoseArray"](header=header, poses=[pose])
+    src = ZenohSource(team())
+    src.handle("b/dets", encode(msg), T0)
+    (arrival,) = src.flush()
+    (obj,) = arrival.event.objects
+    assert arrival.event.robot == "b"
+    assert obj.x == pytest.approx(2.0)  # optical z (forward) -> body x
+
+
+class _Sample:
+    """What the source reads from a ``zenoh.Sample``."""
+
+    def __init__(self, key: str, payload: bytes) -> None:
+        self.key_expr = key
+        self.payload = _Bytes(payload)
+        self.attachment = _Bytes(encode_sent_time(T0 - 1.0))
+
+
+class _Bytes:
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+def test_callback_enqueues_and_a_full_queue_drops_and_counts() -> None:
+    src = ZenohSource(team(), ZenohSourceOptions(queue_size=2))
+    for k in range(3):
+        src.on_sample(_Sample("a/odom", odom_payload("a", T0 + k)))
+    released = src.poll(timeout=0.0) + src.flush()
+    assert [a.event.t for a in released] == [T0, T0 + 1]
+    assert released[0].sent == T0 - 1.0
+    assert src.stats.rejected == {"queue_full": 1}
+
+
+# ---------------------------------------------------------------------------- ordering and clocks
+def arrival(t: float, received: float) -> Arrival:
+    return Arrival(OdometryEvent(t, "a", 0.0, 0.0, 0.0), "a/odom", received)
+
+
+def test_reorder_buffer_releases_in_stamp_order_within_its_window() -> None:
+    buf = ReorderBuffer(window=0.2)
+    for t in (10.00, 10.10, 10.05, 10.15):
+        buf.push(arrival(t, received=100.0))
+    assert buf.pop_ready(100.01) == []  # nothing is 0.2 s behind the newest yet
+    buf.push(arrival(10.30, received=100.02))
+    assert [a.event.t for a in buf.pop_ready(100.02)] == [10.00, 10.05, 10.10]
+    # the rest leaves once it has waited the window (a quiet team is not held back)
+    assert [a.event.t for a in buf.pop_ready(100.21)] == [10.15]
+    assert [a.event.t for a in buf.pop_ready(100.23)] == [10.30]
+    # later than the window: passed on, counted; the localizer judges it
+    buf.push(arrival(10.12, received=100.3))
+    assert [a.event.t for a in buf.pop_ready(100.3)] == [10.12]
+    assert buf.out_of_order == 1
+    assert buf.max_depth == 5
+
+
+def test_zero_window_passes_events_straight_through() -> None:
+    buf = ReorderBuffer(window=0.0)
+    buf.push(arrival(5.0, 1.0))
+    buf.push(arrival(4.0, 1.0))
+    assert [a.event.t for a in buf.pop_ready(1.0)] == [4.0, 5.0]
+    buf.push(arrival(3.0, 1.0))
+    assert [a.event.t for a in buf.pop_ready(1.0)] == [3.0]
+    assert buf.out_of_order == 1
+
+
+def test_late_events_reach_the_localizer_which_rejects_what_is_too_late() -> None:
+    """Out-of-order timestamps: reordered within the window, rejected by the localizer after."""
+    server = LiveServer(team(), _Nothing(), ServeOptions(reorder_window=0.1))
+    src = server.source
+    src.handle("a/odom", odom_payload("a", T0 + 0.00, 0.0), 50.0)
+    src.handle("a/odom", odom_payload("a", T0 + 0.10, 0.1), 50.1)
+    src.handle("a/odom", odom_payload("a", T0 + 0.05, 0.05), 50.1)  # late, within the window
+    src.handle("a/odom", odom_payload("a", T0 + 0.30, 0.3), 50.3)
+    server.feed(src.release(50.3))
+    src.handle("a/odom", odom_payload("a", T0 + 0.08, 0.08), 50.35)  # later than the window
+    server.feed(src.release(50.35))
+    server.feed(src.flush())
+    loc = server.pipelines[0].localizer
+    assert loc.stats["odometry"] == 4
+    assert loc.rejected == {"out_of_order_odometry": 1}
+    assert src.stats.out_of_order == 1
+
+
+def test_zero_stamps_get_the_receive_time_on_the_header_clock() -> None:
+    # c's odometry has zero stamps; a's are stamped 1000 s behind the wall clock, at 2x speed
+    src = ZenohSource(team(odom_zero_stamps=True), ZenohSourceOptions(clock_rate=2.0))
+    for k in range(5):
+        wall = 100.0 + 0.05 * k
+        src.handle("a/odom", odom_payload("a", 2 * wall - 1000.0), wall)
+    src.handle("c/odom", odom_payload("c", 0.0), 100.5)
+    src.handle("c/odom", odom_payload("c", 0.0), 100.5)  # same arrival: still increasing
+    c = [a.event.t for a in src.flush() if a.event.robot == "c"]
+    assert c[0] == pytest.approx(2 * 100.5 - 1000.0)
+    assert c[1] > c[0]
+    assert src.stats.restamped == {"c/odom": 2}
+
+
+def test_header_clock_falls_back_across_kinds_and_to_the_wall_clock() -> None:
+    clock = HeaderClock()
+    assert clock.stamp("odometry", 12.0) == 12.0
+    clock.observe("range", 50.0, 10.0)
+    assert clock.stamp("odometry", 12.0) == pytest.approx(52.0)
+    assert HeaderClock(fixed_offset=-3.0).stamp("range", 10.0) == 7.0
+
+
+# ---------------------------------------------------------------------------- a robot goes quiet
+def test_a_robot_quiet_for_5_s_does_not_stop_the_others_and_recovers() -> None:
+    """Simulated 5-robot team, simulated clock: r3 publishes nothing from 20 s to 25 s."""
+    sim, config = simulated_team(seed=0, duration=40.0)
+    server = LiveServer(config, _Nothing(), ServeOptions(particles=3000, seed=0))
+    src = server.source
+    quiet, gap = "r3", (20.0, 25.0)
+    status: dict[float, dict[str, Any]] = {}
+    nodes = {r.uwb_node: r.name for r in config.robots}
+    for t, key, payload in event_messages(sim.events(), config, time_base=T0):
+        route = src.routes[key]
+        involved = {route.robot, route.robot_b} if route.robot_b else {route.robot}
+        assert involved <= set(nodes.values())
+        if quiet in involved and gap[0] <= t < gap[1]:
+            continue
+        src.handle(key, payload, T0 + t)
+        server.feed(src.release(T0 + t))
+        for probe in (22.0, 30.0):
+            if probe not in status and t >= probe:
+                status[probe] = server.status(T0 + t)["robots"][quiet]
+    server.feed(src.flush())
+    assert status[22.0]["quiet"] and not status[30.0]["quiet"]
+
+    def errors(lo: float, hi: float, robot: str) -> list[float]:
+        out = []
+        for est in server.pipelines[0].estimates:
+            t = est.t - T0
+            if lo <= t < hi:
+                p, q = sim.true_pose(robot, t), sim.true_pose(config.reference, t)
+                x, y = est.positions[robot]
+                out.append(math.hypot(x - (p[0] - q[0]), y - (p[1] - q[1])))
+        return out
+
+    during = errors(*gap, "r1")
+    assert len(during) >= 30  # estimates keep coming at ~8 Hz while r3 is silent
+    for other in ("r1", "r2", "r4"):
+        assert np.median(errors(*gap, other)) < 0.4
+    assert max(errors(*gap, quiet)) < 1.5  # extrapolation is bounded: r3 does not drift away
+    assert np.median(errors(28.0, 40.0, quiet)) < 0.3  # back once it publishes again
+    assert server.engine_errors == 0
+    assert server.pipelines[0].localizer.rejected == {}
