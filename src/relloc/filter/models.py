@@ -83,13 +83,13 @@ class RangeBatch:
         if self.scale is not None:
             d = d * self.scale[:, None]
         residual = (self.distance - self.bias)[:, None] - d
-        sigma = np.broadcast_to(self.sigma[:, None], residual.shape)
+        sigma = self.sigma[:, None]  # (K, 1): broadcasts against (K, M)
         if self.bias_columns is not None and particles is not None:
             online = self.bias_columns >= 0
             if np.any(online):
                 cols = self.bias_columns[online]
                 residual[online] -= particles[:, cols].T
-                sigma = sigma.copy()
+                sigma = np.repeat(sigma, residual.shape[1], axis=1)
                 sigma[online] = np.sqrt(self.sigma[online, None] ** 2 + particles[:, cols + 1].T)
         return residual, sigma
 

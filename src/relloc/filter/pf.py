@@ -176,16 +176,17 @@ class ParticleFilter:
     def estimate(self) -> FilterEstimate:
         """Weighted mean and covariance of each robot's relative position.
 
-        Only the 2x2 blocks are computed (variances and the x-y covariance of each robot), as
-        two-operand reductions: no (D, D) product, no multi-threaded BLAS call on a hot path.
+        Only the 2x2 blocks are computed (variances and the x-y covariance of each robot), from
+        weighted second moments: no (D, D) product and no centred copy of the cloud.
         """
         w = np.exp(self.logw)
         rel = self.particles[:, : self.layout.dim]
         mean = w @ rel
-        centred = rel - mean
-        weighted = centred * w[:, None]
-        var = np.einsum("md,md->d", weighted, centred).reshape(-1, 2)  # (k, 2): xx, yy
-        cxy = np.einsum("mk,mk->k", weighted[:, 0::2], centred[:, 1::2])  # (k,)
+        # Second moments minus the squared mean: no centred copy of the cloud. Positions are
+        # metres and variances at least ~1e-4 m^2, far above float64 cancellation (~1e-14).
+        var = (w @ (rel * rel) - mean * mean).reshape(-1, 2)  # (k, 2): xx, yy
+        cxy = w @ (rel[:, 0::2] * rel[:, 1::2]) - mean[0::2] * mean[1::2]  # (k,)
+        var = np.maximum(var, 0.0)
         cov = np.empty((var.shape[0], 2, 2))
         cov[:, 0, 0], cov[:, 1, 1] = var[:, 0], var[:, 1]
         cov[:, 0, 1] = cov[:, 1, 0] = cxy

@@ -47,5 +47,8 @@ def systematic_resample(weights: FloatArray, rng: np.random.Generator, n: int | 
     cumulative /= cumulative[-1]  # guard against round-off leaving the last point uncovered
     # Particle i is copied once for every point u + k (k integer) in (m c_{i-1}, m c_i]:
     # the difference of floor(m c_i - u) counts them, with no search.
-    counts = np.diff(np.floor(m * cumulative - u), prepend=np.floor(-u))
-    return np.repeat(np.arange(len(weights)), counts.astype(np.intp))
+    edges = np.floor(m * cumulative - u).astype(np.intp)
+    counts = np.empty_like(edges)
+    counts[0] = edges[0] - int(np.floor(-u))
+    np.subtract(edges[1:], edges[:-1], out=counts[1:])
+    return np.repeat(np.arange(len(weights)), counts)

@@ -19,6 +19,7 @@ the other blocks are sufficient statistics that resampling copies along.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -82,7 +83,10 @@ class StateLayout:
         """
         m = particles.shape[0]
         out = np.zeros((2, len(self.robots), m))
-        mask = np.array([r != self.reference for r in self.robots])
         rel = particles[:, : self.dim].T.reshape(-1, 2, m)  # (N-1, 2, M)
-        out[:, mask, :] = rel.transpose(1, 0, 2)
+        out[:, self._other_rows, :] = rel.transpose(1, 0, 2)
         return out
+
+    @cached_property
+    def _other_rows(self) -> NDArray[np.intp]:
+        return np.array([i for i, r in enumerate(self.robots) if r != self.reference], dtype=np.intp)
