@@ -42,6 +42,7 @@ import numpy as np
 
 from relloc.config import PairCalibration, TeamConfig
 from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent, pair_key
+from relloc.ranging.dataset import CSV_COLUMNS
 from relloc.ros_messages import stamp_to_sec
 from relloc.sources.rosbag import RosbagSource, recording_name
 
@@ -58,16 +59,6 @@ __all__ = [
     "rank_node_assignments",
 ]
 
-CSV_COLUMNS = (
-    "timestamp",
-    "node1",
-    "node2",
-    "uwb_range",
-    "mocap_range",
-    "tb_node1_yaw",
-    "tb_node2_yaw",
-    "error",
-)
 """Columns of the TIERS UWB-error training table."""
 
 _MAD_TO_SIGMA = 1.4826

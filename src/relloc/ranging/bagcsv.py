@@ -24,20 +24,10 @@ import numpy as np
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
 
-from relloc.ranging.dataset import RangingDataError
+from relloc.ranging.dataset import CSV_COLUMNS, RangingDataError
 
 RANGE_PREFIX = "/uwb/tof/"
 MOCAP_TOPIC = "/vrpn_client_node/{body}/pose"
-COLUMNS = (
-    "timestamp",
-    "node1",
-    "node2",
-    "uwb_range",
-    "mocap_range",
-    "tb_node1_yaw",
-    "tb_node2_yaw",
-    "error",
-)
 
 
 def parse_bodies(text: str) -> dict[str, str]:
@@ -123,5 +113,5 @@ def write_csv(
     out.parent.mkdir(parents=True, exist_ok=True)
     with out.open("w", newline="") as fh:
         writer = csv.writer(fh)
-        writer.writerow(COLUMNS)
+        writer.writerow(CSV_COLUMNS)
         writer.writerows(rows)

@@ -37,6 +37,19 @@ import numpy as np
 
 from relloc.events import pair_key
 
+CSV_COLUMNS: tuple[str, ...] = (
+    "timestamp",
+    "node1",
+    "node2",
+    "uwb_range",
+    "mocap_range",
+    "tb_node1_yaw",
+    "tb_node2_yaw",
+    "error",
+)
+"""The TIERS UWB-error table layout (``error = uwb_range - mocap_range``); written by
+``relloc ranging bag-csv`` and the synthetic generator, read by training and calibration."""
+
 REQUIRED_COLUMNS: tuple[str, ...] = (
     "timestamp",
     "node1",

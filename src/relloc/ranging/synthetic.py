@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from relloc.events import pair_key
-from relloc.ranging.dataset import DEFAULT_NODE_MAP
+from relloc.ranging.dataset import CSV_COLUMNS, DEFAULT_NODE_MAP
 
 
 def synthetic_rows(
@@ -73,17 +73,6 @@ def write_synthetic_csv(path: str | Path, **kwargs: object) -> Path:
     path = Path(path)
     with path.open("w", newline="") as fh:
         writer = csv.writer(fh)
-        writer.writerow(
-            [
-                "timestamp",
-                "node1",
-                "node2",
-                "uwb_range",
-                "mocap_range",
-                "tb_node1_yaw",
-                "tb_node2_yaw",
-                "error",
-            ]
-        )
+        writer.writerow(CSV_COLUMNS)
         writer.writerows(synthetic_rows(**kwargs))  # type: ignore[arg-type]
     return path
