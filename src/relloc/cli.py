@@ -33,6 +33,9 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         out=Path(args.out) if args.out else None,
         json_path=Path(args.json) if args.json else None,
         progress=not args.no_progress,
+        heading=args.heading,
+        bias=args.bias,
+        odom_scale=args.odom_scale,
     )
     run_demo(opts)
     return 0
@@ -53,6 +56,10 @@ def _cmd_run(args: argparse.Namespace) -> int:
         out=Path(args.out) if args.out else None,
         json_path=Path(args.json) if args.json else None,
         progress=not args.no_progress,
+        heading=args.heading,
+        bias=args.bias,
+        odom_scale=args.odom_scale,
+        reference=args.reference,
     )
     run_recording(Path(args.bag), config, opts)
     return 0
@@ -97,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", default="out/demo", help="folder for plots")
     demo.add_argument("--json", default=None, metavar="FILE", help="write the figures as JSON")
     demo.add_argument("--no-progress", action="store_true")
+    _add_mode_flags(demo)
     demo.set_defaults(handler=_cmd_demo)
 
     run = sub.add_parser("run", help="run methods over a rosbag2 recording and evaluate them")
@@ -110,6 +118,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", default=None, help="folder for plots and TUM trajectories")
     run.add_argument("--json", default=None, metavar="FILE")
     run.add_argument("--no-progress", action="store_true")
+    _add_mode_flags(run)
+    run.add_argument("--reference", default=None, metavar="ROBOT", help="another reference robot than the config's")
     run.set_defaults(handler=_cmd_run)
 
     cal = sub.add_parser("calibrate", help="estimate UWB pair biases (and heading offsets) into a config")
@@ -123,6 +133,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     _register_optional(sub)
     return parser
+
+
+def _add_mode_flags(parser: argparse.ArgumentParser) -> None:
+    """Self-calibration modes (docs/self-calibration.md); the default is the config's."""
+    parser.add_argument(
+        "--heading", choices=("compass", "estimate"), default=None,
+        help="compass: heading offsets from the config; estimate: estimated online",
+    )
+    parser.add_argument(
+        "--bias", choices=("calibrated", "online"), default=None,
+        help="UWB pair biases from the config (calibrated) or estimated online",
+    )
+    parser.add_argument(
+        "--odom-scale", choices=("fixed", "online"), default=None,
+        help="odometry scales from the config (fixed) or estimated online",
+    )
 
 
 def _register_optional(sub: argparse._SubParsersAction) -> None:

@@ -198,6 +198,38 @@ class FilterConfig:
     UWB range within this (m)."""
     det_range_max_age: float = 0.3
     """The UWB range used by the range gate must be at most this old (s)."""
+    det_heading_drift: float = 0.003
+    """Growth of a robot's odometry-heading uncertainty per second of motion (rad/s), which
+    weakens its detection vectors over time (shortbag turtle03: 3.3 deg in 17 s of driving)."""
+    # Self-calibration (docs/self-calibration.md). The defaults are the compass/fixed modes.
+    heading_mode: Literal["compass", "estimate"] = "compass"
+    """``compass``: each robot's odometry is rotated by its configured ``heading_offset_deg``
+    into the shared frame; ``estimate``: the rotation of every robot's odometry frame relative
+    to the reference robot's is estimated online (uniform prior) and the estimates are
+    expressed in the reference robot's odometry frame (``heading_offset_deg`` is not read)."""
+    odom_scale_mode: Literal["fixed", "online"] = "fixed"
+    """``fixed``: odometry is multiplied by the configured ``odom_scale``; ``online``: every
+    robot's odometry scale is estimated (prior ``1 +- scale_prior_sigma``; not read from the
+    config)."""
+    heading_walk: float = 0.01
+    """Estimate mode: random walk of each relative heading (rad per sqrt(s)): gyro drift."""
+    reference_heading_walk: float = 0.003
+    """Estimate mode: random walk of the reference robot's own odometry heading (rad per
+    sqrt(s)); its drift turns the frame it defines, and only its motion tells it."""
+    heading_prior_sigma_deg: float = 0.0
+    """Estimate mode: > 0 uses the configured heading offsets as a prior with this standard
+    deviation (deg); 0 (default): uniform prior, the offsets are not read."""
+    scale_prior_sigma: float = 0.15
+    """Online scale: prior standard deviation of each odometry scale around 1."""
+    scale_walk: float = 0.001
+    """Online scale: random walk of each odometry scale (per sqrt(s))."""
+    selfcal_particles: int = 1000
+    """Particles (Gaussians) of the self-calibrating filter (heading estimate or online scale),
+    each carrying a Kalman filter over positions and calibration (relloc.filter.gaussian_sum)."""
+    selfcal_init_particles: int = 20000
+    """Particles of the annealed start of the self-calibrating filter (then subsampled)."""
+    selfcal_position_sigma: float = 0.2
+    """Initial position standard deviation of each Gaussian after the annealed start (m)."""
 
 
 @dataclass(frozen=True)
@@ -254,6 +286,38 @@ class TeamConfig:
     def with_filter(self, **changes: Any) -> TeamConfig:
         """A copy with some filter parameters changed."""
         return replace(self, filter=replace(self.filter, **changes))
+
+    def with_modes(
+        self,
+        *,
+        heading: str | None = None,
+        bias: str | None = None,
+        odom_scale: str | None = None,
+        reference: str | None = None,
+    ) -> TeamConfig:
+        """A copy with the self-calibration modes set (``None`` keeps the config's): ``heading``
+        ``compass|estimate``, ``bias`` ``calibrated|online``, ``odom_scale`` ``fixed|online``;
+        ``reference`` makes another robot the reference."""
+        for value, allowed, what in (
+            (heading, ("compass", "estimate"), "heading"),
+            (bias, ("calibrated", "online"), "bias"),
+            (odom_scale, ("fixed", "online"), "odom-scale"),
+        ):
+            if value is not None and value not in allowed:
+                raise ConfigError(f"{what} mode must be one of {', '.join(allowed)}, got {value!r}")
+        changes: dict[str, Any] = {}
+        if heading is not None:
+            changes["heading_mode"] = heading
+        if bias is not None:
+            changes["bias_mode"] = bias
+        if odom_scale is not None:
+            changes["odom_scale_mode"] = odom_scale
+        config = self.with_filter(**changes) if changes else self
+        if reference is not None and reference != config.reference:
+            if reference not in config.robot_names:
+                raise ConfigError(f"reference {reference!r} is not one of {list(config.robot_names)}")
+            config = replace(config, reference=reference)
+        return config
 
     def with_robot(self, name: str, **changes: Any) -> TeamConfig:
         """A copy with one robot's settings changed."""

@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
+from relloc.config import TeamConfig
 from relloc.engine import Engine
 from relloc.methods import build_pipeline
 from relloc.sinks.plots import plot_ape, plot_ape_over_time, plot_trajectories
@@ -36,6 +37,12 @@ class DemoOptions:
     out: Path | None = None
     json_path: Path | None = None
     progress: bool = True
+    heading: str | None = None
+    """Self-calibration modes (``None``: the scenario config's): ``compass|estimate``."""
+    bias: str | None = None
+    """``calibrated|online``: online biases are not told to the filter."""
+    odom_scale: str | None = None
+    """``fixed|online``."""
 
 
 SCENARIOS: dict[str, Callable[..., Simulation]] = {"multi": multi_scenario, "single": single_scenario}
@@ -45,11 +52,50 @@ DETECTION_METHODS: frozenset[str] = frozenset({"pf_uv", "pf_ulv"})
 cameras (otherwise it leaves them out, which keeps the other methods' runs as they were)."""
 
 
-def run_scenario(name: str, opts: DemoOptions, console: Console) -> ScenarioReport:
-    sim = SCENARIOS[name](opts.seed, detections=bool(DETECTION_METHODS & set(opts.methods)))
+MOVING_REFERENCE: dict[str, str] = {"multi": "r1", "single": "r1"}
+"""Reference robot of each scenario in heading-estimate mode. The estimates are expressed in
+the reference's odometry frame, which only the reference's own motion ties to the ranges: a
+static reference (the scenarios' default ``r0``) would leave the whole formation's bearing
+unobservable, so a moving robot (``r1``: the triangle, resp. the circle) takes its place."""
+
+
+def scenario_setup(name: str, opts: DemoOptions) -> tuple[Simulation, TeamConfig, dict[str, float] | None]:
+    """The simulation, the team config the filter gets, and the true pair biases to score
+    online bias estimates against (None when biases are not estimated).
+
+    In heading-estimate mode every robot's odometry frame is rotated by a random angle
+    (``heading_offsets="random"``) and the config carries no heading offset; with online
+    biases the config carries no pair bias (the simulator draws them in 0.1-0.5 m).
+    """
+    estimate = opts.heading == "estimate"
+    kwargs: dict[str, Any] = {"detections": bool(DETECTION_METHODS & set(opts.methods))}
+    if estimate:
+        kwargs["heading_offsets"] = "random"
+    sim = SCENARIOS[name](opts.seed, **kwargs)
     config = sim.config
+    if estimate:
+        config = replace(config, robots=tuple(replace(r, heading_offset_deg=0.0) for r in config.robots))
+    if opts.bias == "online":
+        config = replace(config, uwb=replace(config.uwb, pairs={}))
+    config = config.with_modes(
+        heading=opts.heading,
+        bias=opts.bias,
+        odom_scale=opts.odom_scale,
+        reference=MOVING_REFERENCE.get(name) if estimate else None,
+    )
     if opts.particles:
-        config = config.with_filter(particles=opts.particles)
+        config = config.with_filter(particles=opts.particles, selfcal_particles=opts.particles)
+    truth = dict(sim.true_biases) if config.filter.bias_mode == "online" else None
+    return sim, config, truth
+
+
+def run_scenario(name: str, opts: DemoOptions, console: Console) -> ScenarioReport:
+    sim, config, bias_truth = scenario_setup(name, opts)
+    if opts.heading == "estimate":
+        console.print(
+            f"{name}: headings estimated; reference {config.reference} (a moving robot: the "
+            "estimates are in its odometry frame, which a static reference would leave unobservable)"
+        )
     pipelines = [build_pipeline(m, config, seed=opts.seed) for m in opts.methods]
     engine = Engine(pipelines, config.reference)
     with Progress(
@@ -70,7 +116,7 @@ def run_scenario(name: str, opts: DemoOptions, console: Console) -> ScenarioRepo
             bar.update(task, completed=t - t_start[0])
 
         engine.run(sim.events(), progress)
-    return evaluate(engine, name, opts.warmup)
+    return evaluate(engine, name, opts.warmup, bias_truth=bias_truth)
 
 
 def run_nav(opts: DemoOptions, console: Console) -> dict[str, Any]:
@@ -101,6 +147,9 @@ def run_demo(opts: DemoOptions, console: Console | None = None) -> dict[str, Any
     results: dict[str, Any] = {"seed": opts.seed, "scenarios": {}}
     for name in opts.scenarios:
         if name == "nav":
+            if opts.heading == "estimate" or opts.odom_scale == "online":
+                console.print("nav: skipped (closed-loop navigation runs with the compass and fixed scales only)")
+                continue
             results["scenarios"]["nav"] = run_nav(opts, console)
             continue
         report = run_scenario(name, opts, console)

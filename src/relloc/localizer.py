@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -39,8 +39,10 @@ from relloc.events import (
     pair_key,
 )
 from relloc.filter import multilateration
+from relloc.filter.gaussian_sum import CalibrationLayout, CalibrationNoise, GaussianSumFilter
 from relloc.filter.models import OdometryMotion, RangeBatch, RelativePositionBatch
 from relloc.filter.pf import ParticleFilter
+from relloc.filter.resampling import systematic_resample
 from relloc.filter.state import StateLayout
 from relloc.odometry import OdometryTrack
 
@@ -50,11 +52,14 @@ FloatArray = NDArray[np.float64]
 Measurement = RangeEvent | RelativeObservation
 
 _TIME_TOLERANCE = 1e-9
+_YAW_LOG = 200_000
+"""Odometry yaws kept per robot for evaluation (heading-estimate mode): 5.5 h at 10 Hz."""
 
 
 @dataclass(frozen=True)
 class Estimate:
-    """Positions of every non-reference robot relative to the reference, shared heading frame."""
+    """Positions of every non-reference robot relative to the reference, in the shared heading
+    frame (heading-estimate mode: the reference robot's odometry frame)."""
 
     t: float
     method: str
@@ -64,6 +69,16 @@ class Estimate:
         default_factory=dict
     )
     ess: float | None = None
+    headings: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """Heading-estimate mode: per robot, the rotation that takes its odometry displacements
+    into the reference robot's odometry frame, as (circular mean, circular std) in rad. A
+    spread near pi says the heading is unobservable so far (the robot has not moved). The
+    reference's own entry starts at 0 (by definition) and follows its odometry's drift."""
+    biases: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """Online-bias mode: per UWB node pair, the range bias (mean, std) in m. A std still at its
+    prior says the bias is unobservable so far (the pair's distance has not changed)."""
+    scales: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """Online-scale mode: per robot, the odometry scale (mean, std)."""
 
     def std(self, robot: str) -> float:
         """Position standard deviation of ``robot``: sqrt of the covariance's largest eigenvalue."""
@@ -84,15 +99,21 @@ class Localizer:
         fc = config.filter
         self.update_period = fc.update_period
         self.estimate_period = fc.estimate_period
+        self.heading_estimated = fc.heading_mode == "estimate"
+        self.scale_estimated = fc.odom_scale_mode == "online"
+        # In an estimate/online mode the config's value of that quantity is not read: odometry
+        # stays in the robot's own frame (heading) or unscaled (scale), the filter applies them.
         self.tracks = {
             r.name: OdometryTrack(
-                r.heading_offset,
-                r.odom_scale,
+                0.0 if self.heading_estimated else r.heading_offset,
+                1.0 if self.scale_estimated else r.odom_scale,
                 r.odom_mode,
                 max_extrapolation=fc.max_odom_extrapolation,
             )
             for r in config.robots
         }
+        self.first_odometry: dict[str, tuple[float, float]] = {}
+        """Per robot, ``(t, yaw)`` of its first odometry sample (in its track's frame)."""
         self.stats: Counter[str] = Counter()
         self._pending: list[Measurement] = []
         self._batch_start = math.nan
@@ -108,7 +129,11 @@ class Localizer:
             self._reject(reason, event)
             return []
         if isinstance(event, OdometryEvent):
-            self.tracks[event.robot].add(event)
+            track = self.tracks[event.robot]
+            first = track.empty
+            track.add(event)
+            if first:
+                self.first_odometry[event.robot] = (event.t, track.pose_at(event.t)[2])
             self.stats["odometry"] += 1
             return self._advance(event.t)
         if isinstance(event, RangeEvent | RelativeObservation):
@@ -290,9 +315,19 @@ class ParticleFilterLocalizer(Localizer):
                     extra += [cal.bias, fc.bias_prior_sigma**2]
                 else:
                     extra += [config.uwb.default_bias, fc.bias_prior_sigma_uncalibrated**2]
+        self.gsf: GaussianSumFilter | None = None
+        self.odometry_yaws: dict[str, deque[tuple[float, float]]] = {}
+        """Heading-estimate mode: each robot's odometry yaw at every estimate time (for
+        evaluating the published headings; the filter does not use it). Bounded, for live runs."""
+        n_start = fc.particles
+        if self.heading_estimated or self.scale_estimated:
+            # Self-calibration: a Gaussian-sum filter; the sampled filter below only serves its
+            # annealed start (relloc.filter.gaussian_sum explains why).
+            n_start = max(fc.selfcal_init_particles, fc.selfcal_particles)
+            self.gsf = self._build_gaussian_sum(np.array(extra))
         self.pf = ParticleFilter(
             self.layout,
-            fc.particles,
+            n_start,
             config.area,
             rng=self.rng,
             motion=OdometryMotion(process_noise=fc.process_noise),
@@ -307,6 +342,45 @@ class ParticleFilterLocalizer(Localizer):
         self._init_batch: list[Measurement] = []
         self.last_estimate: Estimate | None = None
 
+    def _build_gaussian_sum(self, bias_prior: FloatArray) -> GaussianSumFilter:
+        fc = self.config.filter
+        layout = CalibrationLayout(
+            self.layout.robots,
+            self.layout.reference,
+            heading=self.heading_estimated,
+            scale=self.scale_estimated,
+            bias_pairs=self.layout.bias_pairs,
+        )
+        prior = None
+        if len(layout.bias_pairs):
+            prior = (bias_prior[0::2], bias_prior[1::2])
+        heading_prior: dict[str, tuple[float, float]] = {}
+        if self.heading_estimated and fc.heading_prior_sigma_deg > 0.0:
+            ref = self.config.robot(layout.reference).heading_offset
+            for robot in layout.others:
+                angle = math.remainder(self.config.robot(robot).heading_offset - ref, math.tau)
+                heading_prior[robot] = (angle, math.radians(fc.heading_prior_sigma_deg))
+        noise = CalibrationNoise(
+            heading_walk=fc.heading_walk,
+            reference_heading_walk=fc.reference_heading_walk,
+            scale_walk=fc.scale_walk,
+            bias_walk=fc.bias_walk,
+            scale_prior_sigma=fc.scale_prior_sigma,
+        )
+        return GaussianSumFilter(
+            layout,
+            fc.selfcal_particles,
+            self.config.area,
+            rng=self.rng,
+            noise=noise,
+            bias_prior=prior,
+            position_sigma=fc.selfcal_position_sigma,
+            process_noise=fc.process_noise,
+            ess_threshold=fc.ess_threshold,
+            reinject_fraction=fc.reinject_fraction,
+            heading_prior=heading_prior,
+        )
+
     def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
         if not self.initialized:
             self._init_batch += batch
@@ -314,6 +388,8 @@ class ParticleFilterLocalizer(Localizer):
             if t - first < self.config.filter.init_window:
                 return None
             return self._initialize(t)
+        if self.gsf is not None:
+            return self._step_gaussian_sum(t, batch)
         self._predict(t)
         model = self._model(batch)
         if model is not None:
@@ -341,6 +417,8 @@ class ParticleFilterLocalizer(Localizer):
         self.initialized = True
         self.t = t
         self._anchor = {r: self._odometry_pose(r, t) for r in self.layout.robots}
+        if self.gsf is not None:
+            return self._start_gaussian_sum(t)
         return self._estimate(t)
 
     def _odometry_pose(self, robot: str, t: float) -> tuple[float, float, float]:
@@ -368,10 +446,82 @@ class ParticleFilterLocalizer(Localizer):
             sigma[i] = fc.odom_noise_per_m * dist + fc.odom_noise_per_rad * turn
             self._anchor[robot] = now
         dt = max(t - self.t, 0.0)
+        if self.gsf is not None:
+            self.gsf.predict(disp, sigma, dt)
+            self.t = t
+            return
         self.pf.predict(disp, sigma, dt, fc.rotation_noise)
         if self.online_bias and dt > 0.0:
             self.pf.particles[:, self.layout.dim + 1 :: 2] += fc.bias_walk**2 * dt  # variances
         self.t = t
+
+    # ---------------------------------------------------------------- self-calibration
+    def _start_gaussian_sum(self, t: float) -> Estimate:
+        """Hand the annealed particles to the Gaussian-sum filter (one Gaussian per particle)."""
+        assert self.gsf is not None
+        gsf, particles = self.gsf, self.pf.particles
+        if particles.shape[0] != gsf.n:
+            idx = systematic_resample(np.full(particles.shape[0], 1.0 / particles.shape[0]), self.rng, gsf.n)
+            particles = particles[idx]
+        gsf.initialize(particles[:, : self.layout.dim])
+        # the sampled filter is no longer needed: keep a one-particle stub, free the memory
+        self.pf.particles = self.pf.particles[:1]
+        return self._estimate_gaussian_sum(t)
+
+    def _step_gaussian_sum(self, t: float, batch: list[Measurement]) -> Estimate:
+        assert self.gsf is not None
+        gsf, fc = self.gsf, self.config.filter
+        self._predict(t)
+        pairs, dist, bias, sigma, keys = self._pair_ranges(batch, self.online_bias)
+        for (a, b), z, bb, s, key in zip(pairs, dist, bias, sigma, keys, strict=True):
+            column = gsf.layout.bias_column(key) if self.online_bias and key else -1
+            gsf.update_range(int(a), int(b), float(z), float(s), float(bb), column, fc.outlier_fraction, fc.max_range)
+        for m in batch:
+            if isinstance(m, RelativeObservation):
+                if self.heading_estimated:
+                    # its vector is in the compass frame, which this mode does not have
+                    self.stats["ignored_relative_heading_estimate"] += 1
+                    continue
+                gsf.update_vector(
+                    self.layout.index(m.observer), self.layout.index(m.target), np.array([m.dx, m.dy]), m.sigma
+                )
+        if self.heading_estimated:
+            self.stats["scale_priors_applied"] += gsf.apply_magnitude_priors(np.ones(gsf.layout.n_others))
+        if not gsf.normalize():
+            self.stats["update_no_support"] += 1
+        gsf.symmetrize()
+        est = self._estimate_gaussian_sum(t)
+        if gsf.maybe_resample():
+            self.stats["resampled"] += 1
+        return est
+
+    def _estimate_gaussian_sum(self, t: float) -> Estimate:
+        assert self.gsf is not None
+        gsf = self.gsf
+        mean, cov = gsf.position_moments()
+        positions, covs = {}, {}
+        for k, robot in enumerate(self.layout.others):
+            positions[robot] = (float(mean[k, 0]), float(mean[k, 1]))
+            c = cov[k]
+            covs[robot] = ((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1])))
+        headings, biases, scales = {}, {}, {}
+        if self.heading_estimated:
+            for robot in self.layout.robots:  # the reference's: the drift of its own heading
+                headings[robot] = gsf.heading(robot)
+            for robot in self.layout.robots:
+                if not self.tracks[robot].empty:
+                    log_ = self.odometry_yaws.setdefault(robot, deque(maxlen=_YAW_LOG))
+                    log_.append((t, self.tracks[robot].pose_at(t)[2]))
+        for pair in gsf.layout.bias_pairs:
+            biases[pair] = gsf.bias(pair)
+        if self.scale_estimated:
+            for robot in self.layout.robots:
+                scales[robot] = gsf.scale(robot)
+        est = Estimate(
+            t, self.method, self.layout.reference, positions, covs, gsf.ess(), headings, biases, scales
+        )
+        self.last_estimate = est
+        return est
 
     def _model(self, batch: list[Measurement], outliers: bool = True) -> StackedMeasurement | None:
         """The stacked measurement of a batch; ``outliers=False`` drops the robust floor (the
@@ -406,7 +556,15 @@ class ParticleFilterLocalizer(Localizer):
             positions[robot] = (float(fe.mean[k, 0]), float(fe.mean[k, 1]))
             c = fe.cov[k]
             covs[robot] = ((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1])))
-        est = Estimate(t, self.method, self.layout.reference, positions, covs, fe.ess)
+        biases: dict[str, tuple[float, float]] = {}
+        if self.online_bias:
+            w = np.exp(self.pf.logw)
+            for pair in self.layout.bias_pairs:
+                c, _ = self.layout.bias_columns(pair)
+                mu, var = self.pf.particles[:, c], self.pf.particles[:, c + 1]
+                mean = float(w @ mu)
+                biases[pair] = (mean, math.sqrt(max(float(w @ (var + (mu - mean) ** 2)), 0.0)))
+        est = Estimate(t, self.method, self.layout.reference, positions, covs, fe.ess, biases=biases)
         self.last_estimate = est
         return est
 

@@ -39,13 +39,24 @@ class RunOptions:
     out: Path | None = None
     json_path: Path | None = None
     progress: bool = True
+    heading: str | None = None
+    """Self-calibration modes (``None``: the config's): ``compass|estimate``."""
+    bias: str | None = None
+    """``calibrated|online``."""
+    odom_scale: str | None = None
+    """``fixed|online``."""
+    reference: str | None = None
+    """Another reference robot than the config's."""
 
 
 def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Console | None = None) -> ScenarioReport:
     """Run every method of ``opts`` over ``bag`` and report APE against motion capture."""
     console = console or make_console()
+    config = config.with_modes(
+        heading=opts.heading, bias=opts.bias, odom_scale=opts.odom_scale, reference=opts.reference
+    )
     if opts.particles:
-        config = config.with_filter(particles=opts.particles)
+        config = config.with_filter(particles=opts.particles, selfcal_particles=opts.particles)
     source = RosbagSource(bag, config)
     name = recording_name(bag)
     pipelines = [build_pipeline(m, config, seed=opts.seed, models=opts.models) for m in opts.methods]
@@ -65,7 +76,8 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
             bar.update(task, completed=min(t - source.start_time, source.duration))
 
         engine.run(source, progress)
-    report = evaluate(engine, name, opts.warmup)
+    bias_truth = _bag_bias_truth(bag, config) if config.filter.bias_mode == "online" else None
+    report = evaluate(engine, name, opts.warmup, bias_truth=bias_truth)
     print_table(report, console)
     rejected = {k: v for k, v in source.stats.rejected.items() if v}
     if rejected:
@@ -80,6 +92,18 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
         opts.json_path.write_text(json.dumps(payload, indent=2))
         console.print(f"figures written to {opts.json_path}")
     return report
+
+
+def _bag_bias_truth(bag: Path, config: TeamConfig) -> dict[str, float] | None:
+    """Each node pair's range bias measured against motion capture in ``bag`` itself, to score
+    online bias estimates (evaluation only; the filter never sees it). None without mocap."""
+    from relloc import calibration
+
+    try:
+        pairs = calibration.pair_biases_from_bag(bag, config)
+    except Exception:  # no mocap or no matched pair: nothing to score against
+        return None
+    return {k: v.bias for k, v in pairs.items()}
 
 
 def write_outputs(report: ScenarioReport, engine: Engine, out: Path) -> None:

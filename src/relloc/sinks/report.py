@@ -15,11 +15,27 @@ import sys
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+from numpy.typing import NDArray
 from rich.console import Console
 from rich.table import Table
 
 from relloc.engine import Engine
-from relloc.sinks.metrics import ApeStats, Paired, after, align, associate, ate, convergence_time
+from relloc.sinks.metrics import (
+    ApeStats,
+    HeadingPaired,
+    Paired,
+    after,
+    align,
+    associate,
+    associate_headings,
+    ate,
+    bias_errors,
+    convergence_time,
+    odometry_frame_rotation,
+)
+
+FloatArray = NDArray[np.float64]
 
 
 @dataclass
@@ -31,32 +47,79 @@ class MethodReport:
     stats: dict[str, int] = field(default_factory=dict)
     compute_s: float = 0.0
     n_estimates: int = 0
+    headings: dict[str, HeadingPaired] = field(default_factory=dict, repr=False)
+    """Heading-estimate mode: published relative headings against the truth, after the warm-up."""
+    bias_errors: dict[str, FloatArray] = field(default_factory=dict, repr=False)
+    """Online bias: ``|estimate - truth|`` per node pair after the warm-up (where a truth is known)."""
+    final_biases: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """Online bias: the last published (mean, std) per node pair."""
+    bias_truth: dict[str, float] = field(default_factory=dict)
+    final_scales: dict[str, tuple[float, float]] = field(default_factory=dict)
+    frame_rotation_deg: float | None = None
+    """Heading-estimate mode: rotation of the reference's odometry frame in the mocap frame (its
+    mocap yaw minus odometry yaw at its first odometry message), by which the ground truth is
+    turned for evaluation (evaluation only)."""
 
     @property
     def mean_ape_median(self) -> float:
         vals = [s.median for s in self.robots.values() if s.n]
         return float(sum(vals) / len(vals)) if vals else math.nan
 
+    def heading_median_deg(self, robot: str) -> float:
+        h = self.headings.get(robot)
+        return math.degrees(float(np.median(h.errors))) if h is not None and len(h.t) else math.nan
+
+    def heading_spread_deg(self, robot: str) -> float:
+        """Median published heading spread (circular std) after the warm-up (deg)."""
+        h = self.headings.get(robot)
+        return math.degrees(float(np.median(h.spread))) if h is not None and len(h.t) else math.nan
+
+    def bias_error_median(self, pair: str) -> float:
+        e = self.bias_errors.get(pair)
+        return float(np.median(e)) if e is not None and e.size else math.nan
+
     def to_json(self) -> dict[str, Any]:
-        return {
-            "robots": {
-                r: {
-                    "ape_median": _num(s.median),
-                    "ape_rmse": _num(s.rmse),
-                    "ape_mean": _num(s.mean),
-                    "ape_std": _num(s.std),
-                    "ape_max": _num(s.max),
-                    "ate_rmse": _num(self.ate.get(r, math.nan)),
-                    "n": s.n,
-                }
-                for r, s in self.robots.items()
-            },
+        robots: dict[str, dict[str, Any]] = {
+            r: {
+                "ape_median": _num(s.median),
+                "ape_rmse": _num(s.rmse),
+                "ape_mean": _num(s.mean),
+                "ape_std": _num(s.std),
+                "ape_max": _num(s.max),
+                "ate_rmse": _num(self.ate.get(r, math.nan)),
+                "n": s.n,
+            }
+            for r, s in self.robots.items()
+        }
+        for r in self.headings:
+            entry = robots.setdefault(r, {})
+            entry["heading_median_deg"] = _num(self.heading_median_deg(r))
+            entry["heading_spread_deg"] = _num(self.heading_spread_deg(r))
+        for r, (mean, std) in self.final_scales.items():
+            entry = robots.setdefault(r, {})
+            entry["odom_scale"] = _num(mean)
+            entry["odom_scale_std"] = _num(std)
+        out: dict[str, Any] = {
+            "robots": robots,
             "mean_ape_median": _num(self.mean_ape_median),
             "convergence_s": _num(self.convergence_s),
             "n_estimates": self.n_estimates,
             "compute_s": round(self.compute_s, 4),
             "stats": dict(self.stats),
         }
+        if self.final_biases:
+            out["pairs"] = {
+                pair: {
+                    "bias": _num(mean),
+                    "bias_std": _num(std),
+                    "bias_true": _num(self.bias_truth.get(pair, math.nan)),
+                    "bias_error_median": _num(self.bias_error_median(pair)),
+                }
+                for pair, (mean, std) in self.final_biases.items()
+            }
+        if self.frame_rotation_deg is not None:
+            out["frame_rotation_deg"] = _num(self.frame_rotation_deg)
+        return out
 
 
 @dataclass
@@ -80,14 +143,49 @@ def _num(x: float) -> float | None:
     return None if x is None or not math.isfinite(x) else round(float(x), 5)
 
 
-def evaluate(engine: Engine, name: str, warmup: float, robots: list[str] | None = None) -> ScenarioReport:
-    """APE/ATE/convergence of every pipeline of ``engine`` after ``warmup`` seconds."""
+def evaluate(
+    engine: Engine,
+    name: str,
+    warmup: float,
+    robots: list[str] | None = None,
+    bias_truth: dict[str, float] | None = None,
+) -> ScenarioReport:
+    """APE/ATE/convergence of every pipeline of ``engine`` after ``warmup`` seconds.
+
+    In heading-estimate mode the estimates are in the reference robot's odometry frame: the
+    ground truth is turned into it by the reference's motion-capture yaw at its first odometry
+    message (evaluation only), and the published relative headings are scored. Published
+    online biases are scored against ``bias_truth`` (per node pair) where given.
+    """
     t0 = engine.t_first or 0.0
     duration = (engine.t_last or t0) - t0
     methods: dict[str, MethodReport] = {}
     for p in engine.pipelines:
         names = robots or list(p.localizer.layout.others)
-        paired = associate(p.estimates, engine.ground_truth, names)
+        loc = p.localizer
+        rotation = 0.0
+        frame_deg = None
+        heading_pairs: dict[str, HeadingPaired] = {}
+        if getattr(loc, "heading_estimated", False):
+            ref = loc.layout.reference
+            first = loc.first_odometry.get(ref)
+            found = None if first is None else odometry_frame_rotation(engine.ground_truth, ref, first)
+            if found is not None:
+                rotation, frame_deg = found, math.degrees(found)
+                yaws = getattr(loc, "odometry_yaws", {})
+                heading_pairs = associate_headings(p.estimates, engine.ground_truth, yaws, rotation)
+        paired = associate(p.estimates, engine.ground_truth, names, rotation)
+        last = p.estimates[-1] if p.estimates else None
+        calibration: dict[str, Any] = {
+            "headings": {
+                r: _after_heading(h, t0 + warmup) for r, h in heading_pairs.items()
+            },
+            "bias_errors": bias_errors(p.estimates, bias_truth or {}, t0 + warmup),
+            "final_biases": dict(last.biases) if last is not None else {},
+            "bias_truth": {k: v for k, v in (bias_truth or {}).items() if last is not None and k in last.biases},
+            "final_scales": dict(last.scales) if last is not None else {},
+            "frame_rotation_deg": frame_deg,
+        }
         variants = [(p.name, "none")]
         if p.name.startswith("multilateration"):
             variants = [(p.name, "run"), (p.name + "_oracle", "step")]
@@ -103,8 +201,14 @@ def evaluate(engine: Engine, name: str, warmup: float, robots: list[str] | None 
                 stats=p.stats(),
                 compute_s=p.compute_s,
                 n_estimates=len(p.estimates),
+                **calibration,
             )
     return ScenarioReport(name, warmup, duration, methods, t0)
+
+
+def _after_heading(h: HeadingPaired, t_start: float) -> HeadingPaired:
+    keep = h.t >= t_start
+    return HeadingPaired(h.t[keep], h.mean[keep], h.spread[keep], h.truth[keep])
 
 
 def make_console() -> Console:
@@ -127,3 +231,50 @@ def print_table(report: ScenarioReport, console: Console | None = None) -> None:
                 cells = [f"{s.median:.3f}", f"{s.rmse:.3f}", f"{s.max:.3f}", f"{m.ate.get(robot, math.nan):.3f}", str(s.n)]
             table.add_row(method if k == 0 else "", robot, *cells, conv if k == 0 else "", end_section=k == len(m.robots) - 1)
     console.print(table)
+    print_calibration_table(report, console)
+
+
+UNOBSERVABLE_SPREAD_DEG = 45.0
+"""A published heading spread above this says: not observable yet (the robot has not moved)."""
+
+
+def print_calibration_table(report: ScenarioReport, console: Console | None = None) -> None:
+    """Self-calibration figures, where a method estimated any: per robot the relative heading
+    (final mean and spread, median error after the warm-up) and odometry scale, per node pair
+    the online bias (final mean and std, truth, median error after the warm-up)."""
+    console = console or make_console()
+    for method, m in report.methods.items():
+        if m.headings or m.final_scales:
+            table = Table(title=f"{report.name} / {method}: headings (reference's odometry frame) and odometry scales")
+            for col in ("robot", "heading", "spread", "heading error (median)", "scale"):
+                table.add_column(col, justify="left" if col == "robot" else "right")
+            robots = sorted(set(m.headings) | set(m.final_scales))
+            for robot in robots:
+                h = m.headings.get(robot)
+                cells = ["", "", ""]
+                if h is not None and len(h.t):
+                    spread = math.degrees(float(h.spread[-1]))
+                    note = " (unobservable)" if spread > UNOBSERVABLE_SPREAD_DEG else ""
+                    cells = [
+                        f"{math.degrees(float(h.mean[-1])):.1f} deg",
+                        f"{spread:.1f} deg{note}",
+                        f"{m.heading_median_deg(robot):.2f} deg",
+                    ]
+                scale = m.final_scales.get(robot)
+                cells.append("" if scale is None or not math.isfinite(scale[0]) else f"{scale[0]:.3f} +- {scale[1]:.3f}")
+                table.add_row(robot, *cells)
+            console.print(table)
+        if m.final_biases:
+            table = Table(title=f"{report.name} / {method}: online range biases (m)")
+            for col in ("pair", "bias", "std", "true", "error (median)"):
+                table.add_column(col, justify="left" if col == "pair" else "right")
+            for pair, (mean, std) in sorted(m.final_biases.items()):
+                true = m.bias_truth.get(pair)
+                table.add_row(
+                    pair,
+                    f"{mean:.3f}",
+                    f"{std:.3f}",
+                    "" if true is None else f"{true:.3f}",
+                    "" if true is None else f"{m.bias_error_median(pair):.3f}",
+                )
+            console.print(table)

@@ -1,0 +1,637 @@
+"""A Gaussian-sum particle filter for self-calibration: headings, odometry scales, range biases.
+
+Why not just more particle dimensions
+-------------------------------------
+Self-calibration adds, per robot, the rotation of its odometry frame relative to the
+reference robot's (uniform on the circle a priori) and an odometry scale, and, per UWB pair,
+a range bias. Sampling them as particle coordinates multiplies the dimension: five robots give
+4 headings + 5 scales + 10 biases on top of 8 positions, and a uniform heading prior per robot
+alone needs ``(360 / 10)^4 ~ 10^6`` particles to put one near the truth. Worse, the evidence
+about a heading arrives a little at every step (odometry increments compared with range
+changes); a particle that carries one sampled trajectory cannot integrate it, it can only be
+selected, so brute force stays hopeless at any affordable count.
+
+The structure that avoids it
+----------------------------
+Given a robot's odometry displacement ``d`` (in its own odometry frame, over one step), its
+position in the reference robot's odometry frame moves by ``s R(theta) d``. Write the unknown
+rotation and scale as one 2-vector ``u = s (cos theta, sin theta)``; then::
+
+    s R(theta) d = A(d) u,      A(d) = [[d_x, -d_y], [d_y, d_x]]
+
+is **linear** in ``u``. Likewise the reference robot's own displacement enters every relative
+position linearly in its scale, and a range is linear in its pair's bias. Conditioned on the
+discrete choices a particle filter is good at (which rotation/reflection of the formation, the
+rough shape), the rest is a nearly linear-Gaussian system. So each particle here carries a
+**Gaussian** over the continuous state::
+
+    x = [positions of the non-reference robots (2(N-1)),
+         u of every robot, the reference's last (2 each; heading mode)
+           or  s of every robot, the reference's last (1 each; compass heading, online scale),
+         bias of every UWB node pair (online bias)]
+
+The reference robot's own ``u`` starts at ``(1, 0)`` with no angular uncertainty (its odometry
+frame is the shared frame) but follows the same slow random walk as the others: its odometry
+heading drifts too, and that drift turns its displacements in the frame it defines.
+
+with mean ``(M, D)`` and covariance ``(M, D, D)`` arrays, and a log-weight. Prediction is
+exact (linear): ``x' = (I + G) x + c``, ``P' = (I + G) P (I + G)^T + Q``. Each range is a
+scalar extended-Kalman update of every particle at once (linearised at that particle's
+predicted mean), and the particle's weight is multiplied by the predictive density of the
+range. This is a Gaussian-sum particle filter (a bank of EKFs with particle weights, also
+called a mixture Kalman filter): the particles supply the multi-modality (formation rotations
+and mirror images, shapes ranges cannot yet tell apart), the per-particle Kalman filter
+integrates the evidence about the calibration step by step. A heading that no motion has yet
+revealed is simply a Gaussian ``u ~ N(0, sigma_u^2 I)``, whose angle is uniform: no grid, no
+sampled angle, and no particle is spent on it.
+
+Robust ranges and pseudo-measurements
+-------------------------------------
+Ranges use the same Gaussian-plus-uniform likelihood as :mod:`relloc.filter.models`; the
+Kalman gain is scaled by the probability that the range is an inlier, so an NLOS spike barely
+moves the state. The prior on the *magnitude* of ``u`` (the odometry scale, ``1 +- 0.15`` when
+estimated online, the configured scale otherwise) is not Gaussian in ``u``; it is applied once
+per particle and robot, as a pseudo-measurement ``|u| = s0``, as soon as that particle's angle
+of ``u`` is determined well enough (angular std below ``~15 deg``) for the linearisation to be
+valid.
+
+Observability is visible in the state: a robot that has not moved has ``A(d) = 0`` at every
+step, so its ``u`` keeps its prior and its published heading spread stays wide, while its
+position (which does not depend on ``u``) converges as the ranges allow. A pair whose distance
+never changes leaves its bias and its distance confounded; the bias variance stays at its prior.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.special import i0e, i1e
+
+from relloc.filter.resampling import ess, log_normalize, systematic_resample
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+def _rotation_jacobian(d: FloatArray) -> FloatArray:
+    """``A(d)`` with ``A(d) u = s R(theta) d`` for ``u = s (cos theta, sin theta)``."""
+    dx, dy = float(d[0]), float(d[1])
+    return np.array([[dx, -dy], [dy, dx]])
+
+
+@dataclass(frozen=True)
+class CalibrationLayout:
+    """Robots, reference, which calibration blocks are estimated, and their state columns."""
+
+    robots: tuple[str, ...]
+    reference: str
+    heading: bool = False
+    """Estimate each non-reference robot's odometry-frame rotation (with its scale, as ``u``)."""
+    scale: bool = False
+    """Estimate odometry scales online (as ``|u|`` in heading mode, else as one scale column
+    per robot)."""
+    bias_pairs: tuple[str, ...] = ()
+    """Node pairs whose range bias is estimated online, in column order."""
+
+    def __post_init__(self) -> None:
+        if self.reference not in self.robots:
+            raise ValueError(f"reference {self.reference!r} is not one of {self.robots}")
+        if len(self.robots) < 2:
+            raise ValueError("a team needs at least two robots")
+
+    @property
+    def others(self) -> tuple[str, ...]:
+        return tuple(r for r in self.robots if r != self.reference)
+
+    @property
+    def n_others(self) -> int:
+        return len(self.robots) - 1
+
+    @property
+    def dim(self) -> int:
+        """Position columns."""
+        return 2 * self.n_others
+
+    @property
+    def u_start(self) -> int:
+        return self.dim
+
+    @property
+    def scale_start(self) -> int:
+        """First column after the heading vectors (one ``u`` per robot, the reference's last)."""
+        return self.dim + (2 * len(self.robots) if self.heading else 0)
+
+    @property
+    def ref_scale_column(self) -> int:
+        """Column of the reference robot's scale in compass mode with online scale (-1
+        otherwise: fixed scales, or heading mode where it is ``|u_ref|``)."""
+        if not self.scale or self.heading:
+            return -1
+        return self.scale_start + self.n_others
+
+    @property
+    def bias_start(self) -> int:
+        n = self.scale_start
+        if self.scale and not self.heading:
+            n += 1 + self.n_others
+        return n
+
+    @property
+    def width(self) -> int:
+        return self.bias_start + len(self.bias_pairs)
+
+    def index(self, robot: str) -> int:
+        try:
+            return self.robots.index(robot)
+        except ValueError:
+            raise KeyError(f"unknown robot {robot!r}") from None
+
+    def slot(self, robot: str) -> int:
+        """Position of ``robot`` among the non-reference robots (-1 for the reference)."""
+        return -1 if robot == self.reference else self.others.index(robot)
+
+    def u_columns(self, robot: str) -> tuple[int, int]:
+        """Columns of ``robot``'s heading vector ``u`` (heading mode). The reference has one
+        too: its prior is ``(1, 0)`` (its odometry frame *is* the shared frame), and its
+        random walk follows the drift of its own odometry heading."""
+        k = self.n_others if robot == self.reference else self.others.index(robot)
+        return self.u_start + 2 * k, self.u_start + 2 * k + 1
+
+    def scale_column(self, robot: str) -> int:
+        """Column of ``robot``'s own scale in compass mode with online scale (-1 otherwise)."""
+        if not self.scale or self.heading:
+            return -1
+        if robot == self.reference:
+            return self.ref_scale_column
+        return self.scale_start + self.others.index(robot)
+
+    def bias_column(self, pair: str) -> int:
+        return self.bias_start + self.bias_pairs.index(pair)
+
+
+@dataclass(frozen=True)
+class CalibrationNoise:
+    """Per-step noise and prior parameters of the calibration blocks."""
+
+    heading_walk: float = 0.01
+    """Random walk of each relative heading (rad per sqrt(s)): gyro drift."""
+    reference_heading_walk: float = 0.003
+    """Random walk of the reference robot's own odometry heading in the frame it defines (rad
+    per sqrt(s)). Only the reference's motion against the ranges tells its drift, and only
+    weakly: a smaller walk than the others' keeps the frame from wandering more than the
+    odometry does."""
+    scale_walk: float = 0.001
+    """Random walk of each odometry scale (per sqrt(s))."""
+    bias_walk: float = 0.01
+    """Random walk of each online range bias (m per sqrt(s))."""
+    u_prior_sigma: float = math.sqrt(0.5)
+    """Per-axis standard deviation of the heading vector ``u`` before any motion (its angle is
+    then uniform, ``E|u|^2 = 1``)."""
+    scale_prior_sigma: float = 0.15
+    """Prior standard deviation of an odometry scale when estimated online."""
+    scale_fixed_sigma: float = 0.02
+    """How tightly ``|u|`` is held to the configured scale when scales are fixed."""
+    magnitude_gate: float = 0.25
+    """Apply the ``|u|`` pseudo-measurement once the angular std of ``u`` is below this (rad)."""
+
+
+class GaussianSumFilter:
+    """``M`` weighted Gaussians over positions and calibration parameters (see module doc)."""
+
+    def __init__(
+        self,
+        layout: CalibrationLayout,
+        n_particles: int,
+        area: tuple[float, float, float, float],
+        *,
+        rng: np.random.Generator,
+        noise: CalibrationNoise | None = None,
+        bias_prior: tuple[FloatArray, FloatArray] | None = None,
+        position_sigma: float = 0.2,
+        process_noise: float = 0.03,
+        ess_threshold: float = 0.5,
+        reinject_fraction: float = 0.01,
+        heading_prior: dict[str, tuple[float, float]] | None = None,
+    ) -> None:
+        if n_particles < 1:
+            raise ValueError("n_particles must be positive")
+        if not 0.0 <= reinject_fraction < 1.0:
+            raise ValueError("reinject_fraction must be in [0, 1)")
+        self.layout = layout
+        self.n = n_particles
+        self.rng = rng
+        self.noise = noise or CalibrationNoise()
+        self.position_sigma = position_sigma
+        self.process_noise = process_noise
+        self.ess_threshold = ess_threshold
+        self.reinject_fraction = reinject_fraction
+        xmin, xmax, ymin, ymax = area
+        self.half_extent = np.array([xmax - xmin, ymax - ymin], dtype=float)
+        nb = len(layout.bias_pairs)
+        if bias_prior is None:
+            bias_prior = (np.zeros(nb), np.full(nb, 0.25**2))
+        self.bias_prior_mean = np.asarray(bias_prior[0], float)
+        self.bias_prior_var = np.asarray(bias_prior[1], float)
+        if self.bias_prior_mean.shape != (nb,) or self.bias_prior_var.shape != (nb,):
+            raise ValueError(f"bias_prior needs {nb} means and variances")
+        self.heading_prior = heading_prior or {}
+        self.prior_mean, self.prior_cov = self._calibration_prior()
+        self.mean = np.zeros((n_particles, layout.width))
+        self.cov = np.zeros((n_particles, layout.width, layout.width))
+        self.magnitude_done = np.zeros((n_particles, layout.n_others), dtype=bool)
+        self.logw = np.full(n_particles, -math.log(n_particles))
+        self.resample_count = 0
+        self.initialize(self.sample_positions(n_particles))
+
+    # ---------------------------------------------------------------- prior
+    def _calibration_prior(self) -> tuple[FloatArray, FloatArray]:
+        """Mean and covariance of the non-position columns (block diagonal)."""
+        lay, nz = self.layout, self.noise
+        d = lay.width - lay.dim
+        mean, cov = np.zeros(d), np.zeros((d, d))
+        off = lay.dim
+        if lay.heading:
+            c0, c1 = (c - off for c in lay.u_columns(lay.reference))
+            mean[c0] = 1.0
+            cov[c0, c0] = (nz.scale_prior_sigma if lay.scale else nz.scale_fixed_sigma) ** 2
+            cov[c1, c1] = 1e-12  # the reference's odometry frame defines the shared frame
+            for robot in lay.others:
+                c0, c1 = (c - off for c in lay.u_columns(robot))
+                if robot in self.heading_prior:
+                    angle, sigma = self.heading_prior[robot]
+                    mean[c0], mean[c1] = math.cos(angle), math.sin(angle)
+                    # angular sigma tangentially, the scale prior radially
+                    radial = nz.scale_prior_sigma
+                    t = np.array([-math.sin(angle), math.cos(angle)])
+                    r = np.array([math.cos(angle), math.sin(angle)])
+                    block = sigma**2 * np.outer(t, t) + radial**2 * np.outer(r, r)
+                    cov[c0 : c1 + 1, c0 : c1 + 1] = block
+                else:
+                    cov[c0, c0] = cov[c1, c1] = nz.u_prior_sigma**2
+        if lay.scale:
+            for robot in lay.robots:
+                c = lay.scale_column(robot)
+                if c >= 0:
+                    mean[c - off] = 1.0
+                    cov[c - off, c - off] = nz.scale_prior_sigma**2
+        for k in range(len(lay.bias_pairs)):
+            c = lay.bias_start + k - off
+            mean[c] = self.bias_prior_mean[k]
+            cov[c, c] = self.bias_prior_var[k]
+        return mean, cov
+
+    def sample_positions(self, m: int) -> FloatArray:
+        """``m`` relative formations uniform over the prior box, shape ``(m, 2(N-1))``."""
+        k = self.layout.n_others
+        u = self.rng.uniform(-1.0, 1.0, size=(m, k, 2)) * self.half_extent
+        return u.reshape(m, 2 * k)
+
+    def initialize(self, positions: FloatArray) -> None:
+        """Start every Gaussian at one formation hypothesis (``positions``: ``(M, 2(N-1))``),
+        with isotropic position uncertainty ``position_sigma`` and the calibration prior."""
+        self._set_prior_rows(np.arange(self.n), positions)
+        self.logw = np.full(self.n, -math.log(self.n))
+
+    def _set_prior_rows(self, rows: IntArray, positions: FloatArray) -> None:
+        lay = self.layout
+        self.mean[rows, : lay.dim] = positions
+        self.mean[rows, lay.dim :] = self.prior_mean
+        self.cov[rows] = 0.0
+        idx = np.arange(lay.dim)
+        self.cov[np.ix_(rows, idx, idx)] = np.eye(lay.dim) * self.position_sigma**2
+        self.cov[rows, lay.dim :, lay.dim :] = self.prior_cov
+        self.magnitude_done[rows] = False
+
+    # ---------------------------------------------------------------- prediction
+    def predict(self, disp: FloatArray, sigma: FloatArray, dt: float) -> None:
+        """Move every Gaussian by the robots' odometry over one step.
+
+        ``disp`` (N, 2): each robot's displacement (fixed scales already applied), in its own
+        odometry frame in heading mode, else in the shared frame; ``sigma`` (N,): its standard
+        deviation per axis.
+        """
+        lay, nz = self.layout, self.noise
+        ref = lay.index(lay.reference)
+        others = [lay.index(r) for r in lay.others]
+        d_ref = disp[ref]
+        width = lay.width
+        g = np.zeros((width, width))
+        shift = np.zeros(width)
+        s_ref = lay.ref_scale_column
+        for k, i in enumerate(others):
+            rows = slice(2 * k, 2 * k + 2)
+            if lay.heading:
+                c0, _ = lay.u_columns(lay.reference)
+                g[rows, c0 : c0 + 2] = -_rotation_jacobian(d_ref)
+            elif s_ref >= 0:
+                g[rows, s_ref] = -d_ref
+            else:
+                shift[rows] = -d_ref
+            if lay.heading:
+                c0, _ = lay.u_columns(lay.robots[i])
+                g[rows, c0 : c0 + 2] = _rotation_jacobian(disp[i])
+            elif lay.scale:
+                g[rows, lay.scale_column(lay.robots[i])] = disp[i]
+            else:
+                shift[rows] += disp[i]
+        # Process noise: each robot's own odometry noise and a random walk; the reference's
+        # noise is common to every relative position.
+        q = np.zeros((width, width))
+        own = sigma[others] ** 2 + self.process_noise**2 * max(dt, 0.0)
+        for k in range(lay.n_others):
+            q[2 * k, 2 * k] = q[2 * k + 1, 2 * k + 1] = own[k]
+        if sigma[ref] > 0.0:
+            for a in range(lay.n_others):
+                for b in range(lay.n_others):
+                    q[2 * a, 2 * b] += sigma[ref] ** 2
+                    q[2 * a + 1, 2 * b + 1] += sigma[ref] ** 2
+        if dt > 0.0:
+            if lay.scale:
+                for r in lay.robots:
+                    c = lay.scale_column(r)
+                    if c >= 0:
+                        q[c, c] += nz.scale_walk**2 * dt
+            for k in range(len(lay.bias_pairs)):
+                c = lay.bias_start + k
+                q[c, c] += nz.bias_walk**2 * dt
+        rows_g = np.flatnonzero(np.any(g != 0.0, axis=1))
+        if rows_g.size:
+            gr = g[rows_g]  # (r, D)
+            self.mean[:, rows_g] += self.mean @ gr.T
+            # P' = (I + G) P (I + G)^T with G nonzero only in rows_g
+            self.cov[:, rows_g, :] += np.einsum("rd,mde->mre", gr, self.cov)  # now (I+G) P
+            self.cov[:, :, rows_g] += self.cov @ gr.T  # + (I+G) P G^T
+        self.mean += shift
+        self.cov += q
+        if lay.heading and dt > 0.0:
+            self._heading_walk(dt)
+
+    def _heading_walk(self, dt: float) -> None:
+        """Random walk of each ``u``: ``heading_walk`` along the circle (turning ``u``, scaled by
+        its length) and ``scale_walk`` along its length, per particle. A ``u`` still unknown
+        (short mean) gets the isotropic turn noise of a unit vector."""
+        nz = self.noise
+        for robot in self.layout.robots:
+            c0, c1 = self.layout.u_columns(robot)
+            mu = self.mean[:, c0 : c1 + 1]
+            norm = np.sqrt(np.sum(mu * mu, axis=1))
+            r = np.where(norm[:, None] > 1e-9, mu / np.maximum(norm, 1e-9)[:, None], [1.0, 0.0])
+            t = np.stack([-r[:, 1], r[:, 0]], axis=1)
+            known = np.clip(norm, 0.0, 1.0)  # |u| once known, ~1; 0 while unknown
+            walk = nz.reference_heading_walk if robot == self.layout.reference else nz.heading_walk
+            q_t = walk**2 * dt * np.maximum(norm, 1.0) ** 2
+            q_r = (nz.scale_walk**2 * dt if self.layout.scale else 0.0) * known + q_t * (1.0 - known)
+            block = q_t[:, None, None] * t[:, :, None] * t[:, None, :]
+            block += q_r[:, None, None] * r[:, :, None] * r[:, None, :]
+            self.cov[:, c0 : c1 + 1, c0 : c1 + 1] += block
+
+    # ---------------------------------------------------------------- updates
+    def update_range(
+        self,
+        index_a: int,
+        index_b: int,
+        distance: float,
+        sigma: float,
+        bias: float = 0.0,
+        bias_column: int = -1,
+        outlier_fraction: float = 0.1,
+        support: float = 15.0,
+    ) -> FloatArray:
+        """Fuse one range between robots ``index_a`` and ``index_b`` (team indices) into every
+        Gaussian; returns and adds the per-particle log predictive density."""
+        lay = self.layout
+        sa = lay.slot(lay.robots[index_a])
+        sb = lay.slot(lay.robots[index_b])
+        m = self.mean
+        pa = m[:, 2 * sa : 2 * sa + 2] if sa >= 0 else np.zeros((self.n, 2))
+        pb = m[:, 2 * sb : 2 * sb + 2] if sb >= 0 else np.zeros((self.n, 2))
+        diff = pa - pb
+        dist = np.sqrt(np.sum(diff * diff, axis=1))
+        e = diff / np.maximum(dist, 1e-6)[:, None]
+        cols: list[int] = []
+        coefs: list[FloatArray] = []
+        if sa >= 0:
+            cols += [2 * sa, 2 * sa + 1]
+            coefs += [e[:, 0], e[:, 1]]
+        if sb >= 0:
+            cols += [2 * sb, 2 * sb + 1]
+            coefs += [-e[:, 0], -e[:, 1]]
+        predicted = dist + bias
+        if bias_column >= 0:
+            cols.append(bias_column)
+            coefs.append(np.ones(self.n))
+            predicted = predicted + m[:, bias_column]
+        h = np.stack(coefs, axis=1)  # (M, c)
+        residual = distance - predicted
+        return self._scalar_update(np.array(cols), h, residual, sigma**2, outlier_fraction, support)
+
+    def update_vector(
+        self,
+        observer: int,
+        target: int,
+        vector: FloatArray,
+        sigma: float,
+        outlier_fraction: float = 0.02,
+        support: float = 100.0,
+    ) -> FloatArray:
+        """Fuse a measured ``p_target - p_observer`` (shared frame) as two scalar updates."""
+        lay = self.layout
+        so = lay.slot(lay.robots[observer])
+        st = lay.slot(lay.robots[target])
+        total = np.zeros(self.n)
+        for axis in range(2):
+            cols, coefs = [], []
+            pred = np.zeros(self.n)
+            if st >= 0:
+                cols.append(2 * st + axis)
+                coefs.append(np.ones(self.n))
+                pred = pred + self.mean[:, 2 * st + axis]
+            if so >= 0:
+                cols.append(2 * so + axis)
+                coefs.append(-np.ones(self.n))
+                pred = pred - self.mean[:, 2 * so + axis]
+            if not cols:
+                continue
+            total += self._scalar_update(
+                np.array(cols), np.stack(coefs, axis=1), vector[axis] - pred, sigma**2,
+                outlier_fraction, math.sqrt(support),
+            )
+        return total
+
+    def apply_magnitude_priors(self, nominal: FloatArray) -> int:
+        """Heading mode: apply the prior on ``|u|`` (``nominal[k]`` +- the scale sigma) once,
+        to every particle whose angle of ``u`` is now determined. Returns how many."""
+        lay, nz = self.layout, self.noise
+        if not lay.heading:
+            return 0
+        sigma = nz.scale_prior_sigma if lay.scale else nz.scale_fixed_sigma
+        applied = 0
+        for k, robot in enumerate(lay.others):
+            c0, c1 = lay.u_columns(robot)
+            mu = self.mean[:, c0 : c1 + 1]
+            norm = np.sqrt(np.sum(mu * mu, axis=1))
+            block = self.cov[:, c0 : c1 + 1, c0 : c1 + 1]
+            lam = 0.5 * (block[:, 0, 0] + block[:, 1, 1]) + np.sqrt(
+                0.25 * (block[:, 0, 0] - block[:, 1, 1]) ** 2 + block[:, 0, 1] ** 2
+            )
+            ready = ~self.magnitude_done[:, k] & (np.sqrt(lam) < nz.magnitude_gate * norm)
+            if not np.any(ready):
+                continue
+            rows = np.flatnonzero(ready)
+            h = mu[rows] / norm[rows, None]
+            self._scalar_update(
+                np.array([c0, c1]), h, nominal[k] - norm[rows], sigma**2, 0.0, 1.0, rows=rows
+            )
+            self.magnitude_done[rows, k] = True
+            applied += rows.size
+        return applied
+
+    def _scalar_update(
+        self,
+        cols: IntArray,
+        h: FloatArray,
+        residual: FloatArray,
+        r_var: float,
+        eps: float,
+        support: float,
+        rows: IntArray | None = None,
+    ) -> FloatArray:
+        """Robust scalar EKF update of ``rows`` (default all) with measurement Jacobian ``h``
+        (``(m, len(cols))``, nonzero only in ``cols``) and innovation ``residual``."""
+        if rows is None:
+            mean, cov = self.mean, self.cov
+        else:
+            mean, cov = self.mean[rows], self.cov[rows]
+        pht = np.einsum("mdc,mc->md", cov[:, :, cols], h)  # (m, D)
+        s = np.einsum("mc,mc->m", pht[:, cols], h) + r_var
+        s = np.maximum(s, 1e-12)
+        z2 = residual * residual / s
+        gauss = np.exp(-0.5 * z2) / np.sqrt(2.0 * np.pi * s)
+        if eps > 0.0:
+            dens = (1.0 - eps) * gauss + eps / support
+            inlier = (1.0 - eps) * gauss / dens
+            ll = np.log(dens)
+        else:
+            inlier = np.ones_like(s)
+            ll = -0.5 * z2 - 0.5 * np.log(s) - _LOG_SQRT_2PI
+        gain = pht * (inlier / s)[:, None]
+        mean += gain * residual[:, None]
+        cov -= gain[:, :, None] * pht[:, None, :]
+        if rows is None:
+            self.logw = self.logw + ll
+        else:
+            self.mean[rows], self.cov[rows] = mean, cov
+            self.logw[rows] += ll
+        return ll
+
+    def normalize(self) -> bool:
+        """Normalise the log-weights; False (weights kept) if no particle has support."""
+        if not np.any(np.isfinite(self.logw)):
+            return False
+        self.logw = log_normalize(np.where(np.isfinite(self.logw), self.logw, -np.inf))
+        return True
+
+    def symmetrize(self) -> None:
+        self.cov = 0.5 * (self.cov + self.cov.transpose(0, 2, 1))
+
+    # ---------------------------------------------------------------- resampling
+    def ess(self) -> float:
+        return ess(self.logw)
+
+    def maybe_resample(self) -> bool:
+        if self.ess() >= self.ess_threshold * self.n:
+            return False
+        self.resample()
+        return True
+
+    def resample(self) -> None:
+        idx = systematic_resample(np.exp(self.logw), self.rng)
+        self.mean = self.mean[idx]
+        self.cov = self.cov[idx]
+        self.magnitude_done = self.magnitude_done[idx]
+        k = round(self.reinject_fraction * self.n)
+        if k > 0:
+            slots = self.rng.choice(self.n, size=k, replace=False)
+            self._set_prior_rows(slots, self.sample_positions(k))
+        self.logw = np.full(self.n, -math.log(self.n))
+        self.resample_count += 1
+
+    # ---------------------------------------------------------------- estimates
+    def weights(self) -> FloatArray:
+        return np.exp(self.logw)
+
+    def position_moments(self) -> tuple[FloatArray, FloatArray]:
+        """Mixture mean ``(N-1, 2)`` and covariance ``(N-1, 2, 2)`` of the relative positions."""
+        w = self.weights()
+        k = self.layout.n_others
+        mu = self.mean[:, : 2 * k].reshape(self.n, k, 2)
+        mean = np.einsum("m,mkd->kd", w, mu)
+        c = mu - mean
+        cov = np.empty((k, 2, 2))
+        for j in range(k):
+            block = self.cov[:, 2 * j : 2 * j + 2, 2 * j : 2 * j + 2]
+            cov[j] = np.einsum("m,mab->ab", w, block) + np.einsum("m,ma,mb->ab", w, c[:, j], c[:, j])
+        return mean, cov
+
+    def heading(self, robot: str) -> tuple[float, float]:
+        """Circular mean and circular standard deviation (rad) of ``robot``'s relative heading.
+
+        Each particle's ``u ~ N(mu, P)`` has an angle whose mean resultant length is that of a
+        Rice phase with signal ``|mu|`` and the tangential noise of ``P`` (1 when well
+        determined, 0 when ``u`` is still at its prior); the mixture's resultant is their
+        weighted vector sum. The spread is ``sqrt(-2 ln R)``, capped at pi (no information).
+        """
+        c0, c1 = self.layout.u_columns(robot)
+        mu = self.mean[:, c0 : c1 + 1]
+        a = np.sqrt(np.sum(mu * mu, axis=1))
+        t = np.stack([-mu[:, 1], mu[:, 0]], axis=1) / np.maximum(a, 1e-12)[:, None]
+        block = self.cov[:, c0 : c1 + 1, c0 : c1 + 1]
+        var_t = np.einsum("ma,mab,mb->m", t, block, t)
+        nu2 = a * a / np.maximum(var_t, 1e-18)
+        x = nu2 / 4.0
+        rho = np.sqrt(np.pi / 8.0) * np.sqrt(nu2) * (i0e(x) + i1e(x))
+        rho = np.clip(rho, 0.0, 1.0)
+        w = self.weights()
+        angle = np.arctan2(mu[:, 1], mu[:, 0])
+        cx = float(np.sum(w * rho * np.cos(angle)))
+        cy = float(np.sum(w * rho * np.sin(angle)))
+        r = math.hypot(cx, cy)
+        mean = math.atan2(cy, cx)
+        spread = math.pi if r <= math.exp(-0.5 * math.pi**2) else math.sqrt(-2.0 * math.log(r))
+        return mean, min(spread, math.pi)
+
+    def scale(self, robot: str) -> tuple[float, float]:
+        """Mean and std of ``robot``'s odometry scale (``|u|`` in heading mode)."""
+        lay = self.layout
+        w = self.weights()
+        c = lay.scale_column(robot)
+        if c >= 0:
+            mu, var = self.mean[:, c], self.cov[:, c, c]
+        elif lay.heading:
+            c0, c1 = lay.u_columns(robot)
+            u = self.mean[:, c0 : c1 + 1]
+            mu = np.sqrt(np.sum(u * u, axis=1))
+            r = u / np.maximum(mu, 1e-12)[:, None]
+            var = np.einsum("ma,mab,mb->m", r, self.cov[:, c0 : c1 + 1, c0 : c1 + 1], r)
+            if robot != lay.reference:
+                # where the angle of u is still unknown, |u| says nothing yet: the prior stands
+                prior = ~self.magnitude_done[:, lay.others.index(robot)]
+                mu = np.where(prior, 1.0, mu)
+                var = np.where(prior, self.noise.scale_prior_sigma**2, var)
+        else:
+            return math.nan, math.nan
+        mean = float(w @ mu)
+        return mean, math.sqrt(max(float(w @ (var + (mu - mean) ** 2)), 0.0))
+
+    def bias(self, pair: str) -> tuple[float, float]:
+        """Mean and std of ``pair``'s online range bias."""
+        c = self.layout.bias_column(pair)
+        w = self.weights()
+        mu, var = self.mean[:, c], self.cov[:, c, c]
+        mean = float(w @ mu)
+        return mean, math.sqrt(max(float(w @ (var + (mu - mean) ** 2)), 0.0))
