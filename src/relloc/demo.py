@@ -17,11 +17,12 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
+from rich.progress import BarColumn, Progress, TextColumn
 
 from relloc.config import TeamConfig
 from relloc.engine import Engine
 from relloc.methods import build_pipeline
+from relloc.progress import run_with_progress
 from relloc.sinks.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.sinks.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.sources.simulator import Simulation, multi_scenario, single_scenario
@@ -98,24 +99,9 @@ def run_scenario(name: str, opts: DemoOptions, console: Console) -> ScenarioRepo
         )
     pipelines = [build_pipeline(m, config, seed=opts.seed) for m in opts.methods]
     engine = Engine(pipelines, config.reference)
-    with Progress(
-        TextColumn(f"[bold]{name}[/]"),
-        BarColumn(),
-        TextColumn("{task.completed:.0f}/{task.total:.0f} s simulated"),
-        TimeRemainingColumn(),
-        console=console,
-        disable=not opts.progress,
-        transient=True,
-    ) as bar:
-        task = bar.add_task(name, total=sim.duration)
-        t_start: list[float] = []
-
-        def progress(t: float) -> None:
-            if not t_start:
-                t_start.append(t)
-            bar.update(task, completed=t - t_start[0])
-
-        engine.run(sim.events(), progress)
+    run_with_progress(
+        engine, sim.events(), label=name, duration=sim.duration, console=console, enabled=opts.progress
+    )
     return evaluate(engine, name, opts.warmup, bias_truth=bias_truth)
 
 

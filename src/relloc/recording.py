@@ -18,11 +18,11 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 
 from relloc.config import PairCalibration, TeamConfig
 from relloc.engine import Engine
 from relloc.methods import build_pipeline
+from relloc.progress import run_with_progress
 from relloc.sinks.metrics import write_tum
 from relloc.sinks.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.sinks.report import ScenarioReport, evaluate, make_console, print_table
@@ -61,21 +61,15 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
     name = recording_name(bag)
     pipelines = [build_pipeline(m, config, seed=opts.seed, models=opts.models) for m in opts.methods]
     engine = Engine(pipelines, config.reference)
-    with Progress(
-        TextColumn(f"[bold]{name}[/]"),
-        BarColumn(),
-        TextColumn("{task.completed:.1f}/{task.total:.1f} s"),
-        TimeRemainingColumn(),
+    run_with_progress(
+        engine,
+        source,
+        label=name,
+        duration=source.duration,
         console=console,
-        disable=not opts.progress,
-        transient=True,
-    ) as bar:
-        task = bar.add_task(name, total=max(source.duration, 1e-3))
-
-        def progress(t: float) -> None:
-            bar.update(task, completed=min(t - source.start_time, source.duration))
-
-        engine.run(source, progress)
+        enabled=opts.progress,
+        start=source.start_time,
+    )
     bias_truth = _bag_bias_truth(bag, config) if config.filter.bias_mode == "online" else None
     report = evaluate(engine, name, opts.warmup, bias_truth=bias_truth)
     print_table(report, console)
