@@ -178,22 +178,12 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _is_user_error(exc: Exception) -> bool:
+    from relloc.calibration import CalibrationError
     from relloc.config import ConfigError
     from relloc.methods import MethodError
+    from relloc.sources.rosbag import BagError
 
-    known: tuple[type[Exception], ...] = (UserError, ConfigError, MethodError, FileNotFoundError)
-    try:
-        from relloc.calibration import CalibrationError
-
-        known += (CalibrationError,)
-    except ImportError:
-        pass
-    try:
-        from relloc.sources.rosbag import BagError
-
-        known += (BagError,)
-    except ImportError:
-        pass
+    known = (UserError, ConfigError, MethodError, BagError, CalibrationError, FileNotFoundError)
     return isinstance(exc, known)
 
 

@@ -1,7 +1,8 @@
-"""Registry of the sub-commands that live beside the core CLI (ranging, run, calibrate, ...).
+"""Registry of the sub-commands that live beside the core CLI, each in its own module.
 
-Each module exposes ``register(subparsers)``; a module whose optional dependencies are missing
-is skipped, so the core CLI always works.
+Each module exposes ``register(subparsers)``. None of them imports an optional dependency at
+module level (the training commands import torch only when they run), so every command is
+always listed; a module that fails to import is a bug and raises.
 """
 
 from __future__ import annotations
@@ -14,8 +15,4 @@ _MODULES = ("relloc.ranging.cli", "relloc.live", "relloc.navigation.cli")
 
 def register_all(sub: argparse._SubParsersAction) -> None:
     for name in _MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ImportError:
-            continue
-        module.register(sub)
+        importlib.import_module(name).register(sub)
