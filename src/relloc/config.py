@@ -380,6 +380,19 @@ class TeamConfig:
 
 
 # ---------------------------------------------------------------------------- helpers
+def with_numeric_overrides(obj: Any, overrides: dict[str, Any], where: str) -> Any:
+    """A copy of the dataclass ``obj`` with some numeric fields changed, as read from a file's
+    table named ``where``: unknown keys and non-numbers are :class:`ConfigError`."""
+    known = {f.name for f in fields(obj)}
+    unknown = set(overrides) - known
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; known: {sorted(known)}")
+    for key, value in overrides.items():
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ConfigError(f"{where}.{key}: expected a number, got {value!r}")
+    return replace(obj, **{k: float(v) for k, v in overrides.items()})
+
+
 def _build(cls: type, raw: dict[str, Any], where: str) -> Any:
     known = {f.name for f in fields(cls)}
     unknown = set(raw) - known

@@ -35,12 +35,12 @@ estimate, Ctrl-C) is :mod:`relloc.navigation.navigator` and :mod:`relloc.navigat
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
 
-from relloc.config import ConfigError
+from relloc.config import ConfigError, with_numeric_overrides
 from relloc.navigation.path import FloatArray, WaypointPath
 
 __all__ = ["Command", "ControllerConfig", "PathFollower"]
@@ -100,14 +100,7 @@ class ControllerConfig:
 
     def updated(self, overrides: dict[str, Any], where: str = "controller") -> ControllerConfig:
         """A copy with the keys of ``overrides`` changed (unknown keys are errors)."""
-        known = {f.name for f in fields(self)}
-        unknown = set(overrides) - known
-        if unknown:
-            raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; known: {sorted(known)}")
-        for key, value in overrides.items():
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise ConfigError(f"{where}.{key}: expected a number, got {value!r}")
-        return replace(self, **{k: float(v) for k, v in overrides.items()})
+        return with_numeric_overrides(self, overrides, where)
 
 
 @dataclass(frozen=True)

@@ -29,10 +29,10 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from typing import Any
 
-from relloc.config import ConfigError
+from relloc.config import ConfigError, with_numeric_overrides
 from relloc.localizer import Estimate
 
 __all__ = ["SafetyConfig", "SafetyGate", "StopRecord"]
@@ -63,14 +63,7 @@ class SafetyConfig:
 
     def updated(self, overrides: dict[str, Any], where: str = "safety") -> SafetyConfig:
         """A copy with the keys of ``overrides`` changed (unknown keys are errors)."""
-        known = {f.name for f in fields(self)}
-        unknown = set(overrides) - known
-        if unknown:
-            raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; known: {sorted(known)}")
-        for key, value in overrides.items():
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise ConfigError(f"{where}.{key}: expected a number, got {value!r}")
-        return replace(self, **{k: float(v) for k, v in overrides.items()})
+        return with_numeric_overrides(self, overrides, where)
 
 
 @dataclass(frozen=True)
