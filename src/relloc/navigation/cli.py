@@ -21,7 +21,7 @@ __all__ = ["register"]
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``navigate`` and ``sim-robots`` to the ``relloc`` command line."""
-    from relloc.live import _add_zenoh_args
+    from relloc.live import add_zenoh_args
 
     nav = sub.add_parser(
         "navigate",
@@ -111,7 +111,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--duration", type=float, default=None, metavar="S", help="stop (zero velocity) after S s"
     )
     nav.add_argument("--json", default=None, metavar="FILE", help="write the summary as JSON")
-    _add_zenoh_args(nav)
+    add_zenoh_args(nav)
     nav.set_defaults(handler=_cmd_navigate)
 
     sim = sub.add_parser(
@@ -169,7 +169,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     sim.add_argument(
         "--json", default=None, metavar="FILE", help="write the summary and true trajectories"
     )
-    _add_zenoh_args(sim)
+    add_zenoh_args(sim)
     sim.set_defaults(handler=_cmd_sim_robots)
 
 
@@ -196,7 +196,7 @@ def _overrides(args: argparse.Namespace, names: dict[str, str]) -> dict[str, Any
 def _cmd_navigate(args: argparse.Namespace) -> int:
     from relloc.cli import UserError
     from relloc.config import TeamConfig
-    from relloc.live import _zenoh_options, open_session
+    from relloc.live import open_session, zenoh_options_from_args
     from relloc.methods import parse_methods
     from relloc.navigation.controller import ControllerConfig
     from relloc.navigation.live import LiveNavigation, NavigateOptions
@@ -258,7 +258,7 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
         duration=args.duration,
     )
     try:
-        session = open_session(_zenoh_options(args))
+        session = open_session(zenoh_options_from_args(args))
     except Exception as exc:
         raise UserError(f"cannot open a Zenoh session: {exc}") from None
     try:
@@ -301,7 +301,7 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
 def _cmd_sim_robots(args: argparse.Namespace) -> int:
     from relloc.cli import UserError
     from relloc.config import TeamConfig
-    from relloc.live import _zenoh_options, open_session
+    from relloc.live import open_session, zenoh_options_from_args
     from relloc.navigation.live import SimRobots, SimRobotsOptions, save_json, sim_team_config
     from relloc.sources.simulator import multi_scenario, nav_scenario, single_scenario
 
@@ -338,7 +338,7 @@ def _cmd_sim_robots(args: argparse.Namespace) -> int:
         wait=args.wait,
     )
     try:
-        session = open_session(_zenoh_options(args))
+        session = open_session(zenoh_options_from_args(args))
     except Exception as exc:
         raise UserError(f"cannot open a Zenoh session: {exc}") from None
     try:

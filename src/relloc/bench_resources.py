@@ -1,0 +1,339 @@
+"""``relloc bench resources``: CPU, peak memory and end-to-end latency of ``relloc serve``.
+
+Runs the server as a subprocess (so that its CPU time and peak RSS can be read from ``/proc``),
+feeds it over Zenoh on loopback (five simulated robots, the paper's team, and/or the TIERS
+shortbag replayed), and measures the latency from a message's publication to the publication
+of the estimate it triggered (the server's ``--trace`` key carries the trigger's send time).
+The paper's Table II reports the same figures (2.8 % of an i9 core, 69 MB at 400 particles).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import signal
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from relloc.config import TeamConfig
+from relloc.live import (
+    SHORTBAG,
+    SIM_TIME_BASE,
+    EstimateCollector,
+    ReplayOptions,
+    ZenohOptions,
+    ape_against_bag,
+    check_positive,
+    free_tcp_port,
+    open_session,
+    publish_events,
+    replay_bag,
+    simulated_team,
+)
+from relloc.localizer import Estimate
+
+
+@dataclass(frozen=True)
+class BenchOptions:
+    """``relloc bench resources``: which cases to run and how."""
+
+    particles: tuple[int, ...] = (400, 4000)
+    scenarios: tuple[str, ...] = ("sim5", "shortbag")
+    sim_duration: float = 30.0
+    rate: float = 1.0
+    reorder_window: float = 0.0
+    seed: int = 0
+    bag: Path | None = None
+    bag_config: Path | None = None
+    json_path: Path | None = None
+
+
+def _proc_cpu_seconds(pid: int) -> float:
+    """User + system CPU time of a process (s), from ``/proc/<pid>/stat``."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _proc_memory_mb(pid: int) -> dict[str, float]:
+    """``VmHWM`` (peak RSS) and ``VmRSS`` of a process in MB, from ``/proc/<pid>/status``."""
+    out: dict[str, float] = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        name, _, value = line.partition(":")
+        if name in ("VmHWM", "VmRSS"):
+            out[name] = int(value.split()[0]) / 1024.0
+    return out
+
+
+def _percentiles(values: list[float]) -> dict[str, float | int | None]:
+    if not values:
+        return {"p50_ms": None, "p95_ms": None, "max_ms": None, "n": 0}
+    v = sorted(values)
+
+    def q(f: float) -> float:
+        return v[min(len(v) - 1, max(0, math.ceil(f * len(v)) - 1))]
+
+    return {
+        "p50_ms": round(1e3 * statistics.median(v), 3),
+        "p95_ms": round(1e3 * q(0.95), 3),
+        "max_ms": round(1e3 * v[-1], 3),
+        "n": len(v),
+    }
+
+
+def _bench_case(
+    scenario: str, particles: int, opts: BenchOptions, workdir: Path, say: Callable[[str], None]
+) -> dict[str, Any]:
+    """One serve subprocess fed over loopback; the server's figures while it was fed."""
+    if scenario == "sim5":
+        sim, config = simulated_team(opts.seed, opts.sim_duration)
+        config_path = workdir / "sim5.toml"
+        config.save(config_path)
+        robots = len(config.robots)
+    elif scenario == "shortbag":
+        if opts.bag is None or opts.bag_config is None:
+            raise FileNotFoundError("the shortbag case needs --bag and --bag-config")
+        config_path = opts.bag_config
+        config = TeamConfig.load(config_path)
+        robots = len(config.robots)
+    else:
+        raise ValueError(f"unknown scenario {scenario!r}: choose sim5 or shortbag")
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    summary_path = workdir / f"serve_{scenario}_{particles}.json"
+    log_path = workdir / f"serve_{scenario}_{particles}.log"
+    cmd = [
+        sys.executable, "-m", "relloc.cli", "serve",
+        "--config", str(config_path),
+        "--particles", str(particles),
+        "--seed", str(opts.seed),
+        "--listen", endpoint,
+        "--no-multicast",
+        "--trace",
+        "--reorder-window", str(opts.reorder_window),
+        "--clock-rate", str(opts.rate),
+        "--json", str(summary_path),
+        "--duration", "600",
+    ]  # fmt: skip
+    say(f"[{scenario}, {particles} particles] serve: {' '.join(cmd[2:])}")
+    with log_path.open("w") as log_fh:
+        proc = subprocess.Popen(cmd, stdout=log_fh, stderr=subprocess.STDOUT)
+    session = open_session(ZenohOptions(connect=(endpoint,), multicast=False))
+    collector = EstimateCollector(session, config)
+    result: dict[str, Any] = {"scenario": scenario, "robots": robots, "particles": particles}
+    try:
+        t_spawn = time.time()
+        cpu: dict[str, float] = {}
+
+        def on_start() -> None:
+            cpu["start"] = _proc_cpu_seconds(proc.pid)
+            cpu["wall_start"] = time.time()
+
+        def server_died() -> bool:
+            return proc.poll() is not None
+
+        base = SIM_TIME_BASE
+        if scenario == "sim5":
+            stats = publish_events(
+                sim.events(), config, session, rate=opts.rate, time_base=base,
+                wait=60.0, stop=server_died, on_start=on_start,
+            )  # fmt: skip
+        else:
+            assert opts.bag is not None
+            stats = replay_bag(
+                opts.bag, config, session, ReplayOptions(rate=opts.rate, wait=60.0),
+                stop=server_died, on_start=on_start,
+            )  # fmt: skip
+        if stats.unmatched or "start" not in cpu:
+            raise RuntimeError(f"the server never subscribed ({stats.unmatched}); see {log_path}")
+        time.sleep(0.5)  # the tail of the stream reaches the server
+        if proc.poll() is not None:
+            raise RuntimeError(f"serve exited early (status {proc.returncode}); see {log_path}")
+        wall = time.time() - cpu["wall_start"]
+        cpu_s = _proc_cpu_seconds(proc.pid) - cpu["start"]
+        mem = _proc_memory_mb(proc.pid)
+        result.update(
+            {
+                "startup_s": round(cpu["wall_start"] - t_spawn, 2),
+                "startup_cpu_s": round(cpu["start"], 2),
+                "fed_s": round(wall, 2),
+                "messages": stats.messages,
+                "message_rate_hz": round(stats.messages / max(wall, 1e-9), 1),
+                "publisher_max_behind_ms": round(1e3 * stats.max_behind_s, 2),
+                "cpu_percent": round(100.0 * cpu_s / wall, 2),
+                "peak_rss_mb": round(mem.get("VmHWM", math.nan), 1),
+                "rss_mb": round(mem.get("VmRSS", math.nan), 1),
+            }
+        )
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        result["serve_exit"] = proc.returncode
+        time.sleep(0.2)
+        traces = [r for r in collector.traces() if r.get("trigger_sent") is not None]
+        result["latency_publish"] = _percentiles(
+            [r["published"] - r["trigger_sent"] for r in traces]
+        )
+        result["latency_receive"] = _percentiles(
+            [r["received"] - r["trigger_sent"] for r in traces]
+        )
+        result["latency_compute"] = _percentiles(
+            [r["published"] - r["trigger_received"] for r in traces]
+        )
+        estimates = collector.estimates()
+        result["estimates"] = len(estimates)
+        if summary_path.exists():
+            summary = json.loads(summary_path.read_text())
+            pf = summary.get("methods", {}).get("pf", {})
+            result["localizer_rejected"] = pf.get("rejected", {})
+            result["source_rejected"] = summary.get("source", {}).get("rejected", {})
+            result["engine_compute_s"] = pf.get("compute_s")
+            result["engine_thread_cpu_s"] = summary.get("engine_thread_cpu_s")
+            result["serve_uptime_s"] = summary.get("uptime_s")
+        if scenario == "shortbag" and opts.bag is not None:
+            ape = ape_against_bag(estimates, opts.bag, config)
+            result["ape_mean_median_m"] = _round(ape["mean_median"])
+        else:
+            result["ape_mean_median_m"] = _round(
+                _sim_ape(sim, config, estimates, base, warmup=10.0)
+            )
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        collector.close()
+        session.close()
+    return result
+
+
+def _round(x: float, nd: int = 3) -> float | None:
+    return None if x is None or not math.isfinite(x) else round(float(x), nd)
+
+
+def _sim_ape(
+    sim: Any, config: TeamConfig, estimates: list[Estimate], base: float, warmup: float
+) -> float:
+    """Mean over robots of the median APE of served estimates of a simulation (after warm-up);
+    ``base`` is the time added to the simulator's stamps when they were published."""
+    import numpy as np
+
+    medians = []
+    for robot in config.others:
+        errs = []
+        for est in estimates:
+            t = est.t - base
+            if t < warmup or robot not in est.positions or t > sim.duration:
+                continue
+            p = sim.true_pose(robot, t)
+            q = sim.true_pose(config.reference, t)
+            ex, ey = est.positions[robot]
+            errs.append(math.hypot(ex - (p[0] - q[0]), ey - (p[1] - q[1])))
+        if errs:
+            medians.append(float(np.median(errs)))
+    return statistics.fmean(medians) if medians else math.nan
+
+
+def bench_resources(opts: BenchOptions, say: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run every (scenario, particles) case; returns ``{"cases": [...], ...}`` (and writes JSON)."""
+    cases = []
+    with tempfile.TemporaryDirectory(prefix="relloc-bench-") as tmp:
+        for scenario in opts.scenarios:
+            for n in opts.particles:
+                case = _bench_case(scenario, n, opts, Path(tmp), say)
+                say(_case_line(case))
+                cases.append(case)
+    result = {
+        "host": {"cpus": os.cpu_count(), "python": sys.version.split()[0]},
+        "rate": opts.rate,
+        "reorder_window_s": opts.reorder_window,
+        "seed": opts.seed,
+        "cases": cases,
+    }
+    if opts.json_path is not None:
+        opts.json_path.parent.mkdir(parents=True, exist_ok=True)
+        opts.json_path.write_text(json.dumps(result, indent=2))
+    return result
+
+
+def _case_line(c: dict[str, Any]) -> str:
+    lat = c["latency_publish"]
+    return (
+        f"{c['scenario']:>8} {c['robots']} robots {c['particles']:>6} particles: "
+        f"CPU {c['cpu_percent']:.1f} % of a core, peak RSS {c['peak_rss_mb']:.0f} MB, "
+        f"latency p50 {lat['p50_ms']} ms p95 {lat['p95_ms']} ms (n={lat['n']}), "
+        f"{c['message_rate_hz']} msg/s, APE {c['ape_mean_median_m']} m"
+    )
+
+
+def _cmd_bench_resources(args: argparse.Namespace) -> int:
+    from relloc.cli import UserError
+
+    root = Path(__file__).resolve().parents[2]
+    bag = Path(args.bag) if args.bag else root.parent / "shared" / "data" / "tiers" / SHORTBAG
+    bag_config = (
+        Path(args.bag_config)
+        if args.bag_config
+        else root / "configs" / "tiers" / f"{SHORTBAG}.toml"
+    )
+    scenarios = tuple(s.strip() for s in args.scenarios.split(",") if s.strip())
+    if "shortbag" in scenarios and not bag.exists():
+        if args.bag:
+            raise UserError(f"bag not found: {bag}")
+        print(f"skipping the shortbag case: {bag} not found")
+        scenarios = tuple(s for s in scenarios if s != "shortbag")
+    check_positive(rate=args.rate, duration=args.duration)
+    try:
+        particles = tuple(int(p) for p in args.particles.split(","))
+    except ValueError:
+        raise UserError(
+            f"--particles must be numbers like 400,4000, got {args.particles!r}"
+        ) from None
+    opts = BenchOptions(
+        particles=particles,
+        scenarios=scenarios,
+        sim_duration=args.duration,
+        rate=args.rate,
+        reorder_window=args.reorder_window,
+        seed=args.seed,
+        bag=bag,
+        bag_config=bag_config,
+        json_path=Path(args.json) if args.json else None,
+    )
+    bench_resources(opts)
+    if opts.json_path:
+        print(f"figures written to {opts.json_path}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``bench resources`` to the ``relloc`` command line."""
+    bench = sub.add_parser("bench", help="benchmarks of the live engine")
+    bench_sub = bench.add_subparsers(dest="bench_command", required=True)
+    res = bench_sub.add_parser(
+        "resources", help="CPU, peak RSS and latency of relloc serve on loopback"
+    )
+    res.add_argument("--particles", default="400,4000")
+    res.add_argument(
+        "--scenarios",
+        default="sim5,shortbag",
+        help="sim5 (5 simulated robots), shortbag (4 robots, TIERS)",
+    )
+    res.add_argument("--duration", type=float, default=30.0, help="length of the simulated run (s)")
+    res.add_argument("--rate", type=float, default=1.0)
+    res.add_argument("--reorder-window", type=float, default=0.0, metavar="S")
+    res.add_argument("--seed", type=int, default=0)
+    res.add_argument("--bag", default=None, help=f"default ../shared/data/tiers/{SHORTBAG}")
+    res.add_argument("--bag-config", default=None)
+    res.add_argument("--json", default=None, metavar="FILE")
+    res.set_defaults(handler=_cmd_bench_resources)
