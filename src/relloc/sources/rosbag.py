@@ -487,6 +487,19 @@ class RosbagSource:
         seq = 0
         last_t = -math.inf
         last_range: dict[str, float] = {}
+
+        def release(horizon: float) -> Iterator[Event]:
+            """Events of the heap stamped up to ``horizon``, in order; later ones wait."""
+            nonlocal last_t
+            while heap and heap[0][0] <= horizon:
+                t, _, ev = heapq.heappop(heap)
+                if t < last_t:
+                    stats.rejected["late"] += 1
+                    continue
+                last_t = t
+                stats.events[_kind_of(ev)] += 1
+                yield ev
+
         typestore()  # build the type store before the first message
         with _open_reader(self.path) as reader:
             conns = [c for c in reader.connections if c.topic in self._routes]
@@ -499,23 +512,8 @@ class RosbagSource:
                 if event is not None:
                     heapq.heappush(heap, (event.t, seq, event))
                     seq += 1
-                horizon = recv + self.clock_offset - self.max_lag
-                while heap and heap[0][0] <= horizon:
-                    t, _, ev = heapq.heappop(heap)
-                    if t < last_t:
-                        stats.rejected["late"] += 1
-                        continue
-                    last_t = t
-                    stats.events[_kind_of(ev)] += 1
-                    yield ev
-        while heap:
-            t, _, ev = heapq.heappop(heap)
-            if t < last_t:
-                stats.rejected["late"] += 1
-                continue
-            last_t = t
-            stats.events[_kind_of(ev)] += 1
-            yield ev
+                yield from release(recv + self.clock_offset - self.max_lag)
+        yield from release(math.inf)
 
     def _convert(
         self,
