@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import logging
 import math
+import statistics
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
@@ -266,7 +267,7 @@ class Localizer:
                 if not uwb.is_calibrated(node_a, node_b):
                     s = math.hypot(s, uwb.default_bias_sigma)
             pairs.append(key)
-            dist.append(float(np.median(values)))
+            dist.append(float(statistics.median(values)))  # a few values: no NumPy call
             bias.append(b)
             sigma.append(s)
             keys.append(node_pair)

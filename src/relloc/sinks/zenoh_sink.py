@@ -34,7 +34,7 @@ import numpy as np
 
 from relloc.config import TeamConfig
 from relloc.localizer import Estimate
-from relloc.ros_messages import encode, pose_with_covariance_msg
+from relloc.ros_cdr import encode_pose_with_covariance_stamped
 from relloc.sources.zenoh_source import Arrival
 
 __all__ = ["UNKNOWN_VARIANCE", "ZenohSink", "pose_key"]
@@ -93,13 +93,15 @@ class ZenohSink:
 
     def __call__(self, estimate: Estimate) -> None:
         for robot, (x, y) in estimate.positions.items():
-            cov = np.zeros((3, 3))
+            cov = [0.0] * 36  # row-major 6x6 over (x, y, z, roll, pitch, yaw)
             c = estimate.covariances.get(robot)
             if c is not None:
-                cov[:2, :2] = c
-            cov[2, 2] = UNKNOWN_VARIANCE
-            msg = pose_with_covariance_msg(estimate.t, x, y, cov=cov, frame_id=self.frame_id)
-            self._put(self.key(robot, estimate.method), encode(msg))
+                (cov[0], cov[1]), (cov[6], cov[7]) = np.asarray(c, dtype=float).tolist()
+            cov[35] = UNKNOWN_VARIANCE
+            payload = encode_pose_with_covariance_stamped(
+                estimate.t, float(x), float(y), 0.0, cov, self.frame_id
+            )
+            self._put(self.key(robot, estimate.method), payload)
         self.published[estimate.method] += 1
         self.last[estimate.method] = estimate
         if self.trace:

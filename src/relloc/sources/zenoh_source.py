@@ -70,7 +70,8 @@ from itertools import combinations
 from typing import Any, Literal
 
 from relloc.config import CameraConfig, ConfigError, TeamConfig
-from relloc.events import Event
+from relloc.events import Event, OdometryEvent, RangeEvent
+from relloc.ros_cdr import decode_odometry, decode_range
 from relloc.ros_messages import (
     ODOMETRY,
     POSE_ARRAY,
@@ -81,7 +82,6 @@ from relloc.ros_messages import (
     detections_to_event,
     odometry_to_event,
     range_rejection,
-    range_to_event,
     stamp_to_sec,
     typestore,
 )
@@ -545,17 +545,21 @@ class ZenohSource:
 
     # ------------------------------------------------------------------ conversion
     def _convert(self, route: Route, payload: bytes, received: float) -> Event | None:
+        fast = self._fast_fields(route, payload)
         msg = None
-        for msgtype in route.msgtypes:
-            try:
-                msg = decode(payload, msgtype)
-                break
-            except MessageDecodeError as exc:
-                error = exc
-        if msg is None:
-            self._reject("decode_error", route.key, str(error))
-            return None
-        stamp = stamp_to_sec(msg.header.stamp)
+        if fast is None:
+            for msgtype in route.msgtypes:
+                try:
+                    msg = decode(payload, msgtype)
+                    break
+                except MessageDecodeError as exc:
+                    error = exc
+            if msg is None:
+                self._reject("decode_error", route.key, str(error))
+                return None
+            stamp = stamp_to_sec(msg.header.stamp)
+        else:
+            stamp = fast[0]
         if route.zero_stamps or stamp == 0.0:
             # Arrival order is the topic's order: keep the restamped times increasing even while
             # the clock estimate moves.
@@ -566,20 +570,39 @@ class ZenohSource:
         else:
             self.clock.observe(route.kind, stamp, received)
         if route.kind == "odometry":
+            if fast is not None:
+                _, x, y, yaw, v, w = fast
+                return OdometryEvent(t=stamp, robot=route.robot, x=x, y=y, yaw=yaw, v=v, w=w)
             return odometry_to_event(msg, route.robot, t=stamp)
         if route.kind == "range":
-            reason = range_rejection(float(msg.range))
+            distance = fast[1] if fast is not None else float(msg.range)
+            reason = range_rejection(distance)
             if reason is not None:
                 self._reject(f"range_{reason}", route.key)
                 return None
-            return range_to_event(
-                msg, route.robot, route.robot_b, node_a=route.node_a, node_b=route.node_b, t=stamp
+            return RangeEvent(
+                t=stamp,
+                robot_a=route.robot,
+                robot_b=route.robot_b,
+                distance=distance,
+                node_a=route.node_a,
+                node_b=route.node_b,
             )
         assert route.camera is not None
         det, rejected = detections_to_event(msg, route.robot, route.camera, t=stamp)
         for reason, n in rejected.items():
             self.stats.rejected[f"detection_{reason}"] += n
         return det
+
+    @staticmethod
+    def _fast_fields(route: Route, payload: bytes) -> tuple[float, ...] | None:
+        """The hot messages' fields straight from the bytes (:mod:`relloc.ros_cdr`), or
+        ``None``: then the full ``rosbags`` decoder decodes the payload or says why not."""
+        if route.kind == "odometry" and route.msgtypes[0] == ODOMETRY:
+            return decode_odometry(payload)
+        if route.kind == "range" and route.msgtypes[0] == RANGE:
+            return decode_range(payload)
+        return None
 
     def _reject(self, reason: str, key: str, detail: str = "") -> None:
         self.stats.rejected[reason] += 1
