@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 
-_MODULES = ("relloc.ranging.cli", "relloc.live", "relloc.bench_resources", "relloc.navigation.cli")
+_MODULES = ("relloc.ranging.cli", "relloc.live.cli", "relloc.bench_resources", "relloc.navigation.cli")
 
 
 def register_all(sub: argparse._SubParsersAction) -> None:

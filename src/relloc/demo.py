@@ -21,7 +21,7 @@ from rich.progress import BarColumn, Progress, TextColumn
 
 from relloc.config import TeamConfig
 from relloc.engine import Engine
-from relloc.methods import build_pipeline
+from relloc.methods import DETECTION_METHODS, build_pipeline
 from relloc.progress import run_with_progress
 from relloc.sinks.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.sinks.report import ScenarioReport, evaluate, make_console, print_table
@@ -47,10 +47,6 @@ class DemoOptions:
 
 
 SCENARIOS: dict[str, Callable[..., Simulation]] = {"multi": multi_scenario, "single": single_scenario}
-
-DETECTION_METHODS: frozenset[str] = frozenset({"pf_uv", "pf_ulv"})
-"""Methods that fuse cooperative detections: the simulator then also simulates objects and
-cameras (otherwise it leaves them out, which keeps the other methods' runs as they were)."""
 
 
 MOVING_REFERENCE: dict[str, str] = {"multi": "r1", "single": "r1"}

@@ -19,6 +19,10 @@ from relloc.localizer import MultilaterationLocalizer, ParticleFilterLocalizer
 
 METHODS = ("pf", "pf_ul", "pf_uv", "pf_ulv", "multilateration")
 
+DETECTION_METHODS: frozenset[str] = frozenset({"pf_uv", "pf_ulv"})
+"""Methods that fuse cooperative detections: only for them do sources read (and simulators
+simulate) cameras and objects."""
+
 
 class MethodError(ValueError):
     """A method name is unknown or its requirements (e.g. a models directory) are missing."""

@@ -21,7 +21,7 @@ __all__ = ["register"]
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``navigate`` and ``sim-robots`` to the ``relloc`` command line."""
-    from relloc.live import add_zenoh_args
+    from relloc.live.session import add_zenoh_args
 
     nav = sub.add_parser(
         "navigate",
@@ -196,7 +196,7 @@ def _overrides(args: argparse.Namespace, names: dict[str, str]) -> dict[str, Any
 def _cmd_navigate(args: argparse.Namespace) -> int:
     from relloc.cli import UserError
     from relloc.config import TeamConfig
-    from relloc.live import open_session, zenoh_options_from_args
+    from relloc.live.session import open_session, zenoh_options_from_args
     from relloc.methods import parse_methods
     from relloc.navigation.controller import ControllerConfig
     from relloc.navigation.live import LiveNavigation, NavigateOptions
@@ -301,7 +301,7 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
 def _cmd_sim_robots(args: argparse.Namespace) -> int:
     from relloc.cli import UserError
     from relloc.config import TeamConfig
-    from relloc.live import open_session, zenoh_options_from_args
+    from relloc.live.session import open_session, zenoh_options_from_args
     from relloc.navigation.live import SimRobots, SimRobotsOptions, save_json, sim_team_config
     from relloc.sources.simulator import multi_scenario, nav_scenario, single_scenario
 

@@ -1,0 +1,186 @@
+"""``relloc serve`` and ``relloc replay``: the command-line faces of the live engine."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+from pathlib import Path
+from typing import Any
+
+from relloc.config import TeamConfig
+from relloc.live.publish import ReplayOptions, replay_bag
+from relloc.live.server import LiveServer, ServeOptions
+from relloc.live.session import add_zenoh_args, check_positive, open_cli_session
+
+__all__ = ["register"]
+
+
+def _cmd_serve(args: argparse.Namespace) -> int:
+    from relloc.cli import UserError
+    from relloc.methods import parse_methods
+
+    check_positive(clock_rate=args.clock_rate, status_period=args.status_period)
+    if args.reorder_window < 0:
+        raise UserError(f"--reorder-window must be >= 0, got {args.reorder_window}")
+    config = TeamConfig.load(args.config)
+    opts = ServeOptions(
+        methods=tuple(parse_methods(args.methods)),
+        seed=args.seed,
+        particles=args.particles,
+        models=Path(args.models) if args.models else None,
+        prefix=args.prefix,
+        out_prefix=args.out_prefix,
+        reorder_window=args.reorder_window,
+        clock_rate=args.clock_rate,
+        status_period=args.status_period,
+        trace=args.trace,
+        subscribe_all=args.subscribe_all,
+    )
+    session = open_cli_session(args)
+    try:
+        server = LiveServer(config, session, opts)
+    except Exception:
+        session.close()
+        raise
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in previous:
+        signal.signal(sig, lambda *_: server.stop())
+    try:
+        server.start()
+        print(
+            f"relloc serve: {config.name}, {', '.join(opts.methods)}, "
+            f"{server.config.filter.particles} particles; {len(server.source.keys)} keys in, "
+            f"estimates on {server.sink.key('<robot>', opts.methods[0])}",
+            flush=True,
+        )
+        summary = server.run(args.duration)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        server.close()
+        session.close()
+    _print_summary(summary)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(summary, indent=2))
+    return 0
+
+
+def _print_summary(s: dict[str, Any]) -> None:
+    src = s["source"]
+    print(f"stopped after {s['uptime_s']:.1f} s: {src['messages']} messages, {s['events']} events")
+    print(f"  source rejected: {src['rejected'] or 'nothing'}; out of order: {src['out_of_order']}")
+    for name, m in s["methods"].items():
+        print(
+            f"  {name}: {m['estimates']} estimates, last at t={m['last_estimate_t']}, ESS {m['ess']}, "
+            f"compute {m['compute_s']:.2f} s, rejected {m['rejected'] or 'nothing'}"
+        )
+    if s["engine_errors"]:
+        print(f"  engine errors: {s['engine_errors']} (see the log)")
+
+
+def _cmd_replay(args: argparse.Namespace) -> int:
+    check_positive(rate=args.rate)
+    config = TeamConfig.load(args.config)
+    opts = ReplayOptions(
+        rate=args.rate,
+        prefix=args.prefix,
+        team_only=args.team_only,
+        ground_truth=args.ground_truth,
+        wait=args.wait,
+        start=args.start,
+        duration=args.duration,
+    )
+    session = open_cli_session(args)
+    stopping = False
+
+    def request_stop(*_: Any) -> None:
+        nonlocal stopping
+        stopping = True
+
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in previous:
+        signal.signal(sig, request_stop)
+    try:
+        stats = replay_bag(Path(args.bag), config, session, opts, stop=lambda: stopping)
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+        session.close()
+    d = stats.as_dict()
+    print(
+        f"replayed {d['messages']} messages on {d['keys']} keys in {d['wall_s']:.1f} s "
+        f"(rate {opts.rate:g}, at worst {1e3 * stats.max_behind_s:.1f} ms behind schedule)"
+    )
+    if stats.unmatched:
+        print(f"  no subscriber when it started: {', '.join(stats.unmatched)}")
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    """Add ``serve`` and ``replay`` to the ``relloc`` command line."""
+    serve = sub.add_parser(
+        "serve", help="run the localizer live on Zenoh (ROS 2 topics via a bridge)"
+    )
+    serve.add_argument("--config", required=True, help="team config (TOML)")
+    serve.add_argument(
+        "--methods",
+        default="pf",
+        help="comma-separated; the first one is published on relloc/<robot>/pose",
+    )
+    serve.add_argument("--seed", type=int, default=0)
+    serve.add_argument(
+        "--particles", type=int, default=None, help="override the config's particle count"
+    )
+    serve.add_argument("--models", default=None, help="trained range-error models (for pf_ul)")
+    serve.add_argument(
+        "--out-prefix", default="relloc", help="key prefix of the estimates and status"
+    )
+    serve.add_argument("--reorder-window", type=float, default=0.0, metavar="S",
+                       help="hold events up to S s of header time to put them in order (adds S s of latency)")  # fmt: skip
+    serve.add_argument("--clock-rate", type=float, default=1.0,
+                       help="header seconds per wall second (match relloc replay --rate)")  # fmt: skip
+    serve.add_argument("--status-period", type=float, default=1.0, metavar="S")
+    serve.add_argument(
+        "--trace",
+        action="store_true",
+        help="publish a latency trace per estimate on <out-prefix>/trace",
+    )
+    serve.add_argument(
+        "--subscribe-all",
+        action="store_true",
+        help="subscribe to <prefix>/** (unknown keys are counted)",
+    )
+    serve.add_argument(
+        "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
+    )
+    serve.add_argument(
+        "--json", default=None, metavar="FILE", help="write the final figures as JSON"
+    )
+    add_zenoh_args(serve)
+    serve.set_defaults(handler=_cmd_serve)
+
+    replay = sub.add_parser(
+        "replay", help="publish a rosbag2 recording on Zenoh as the robots would"
+    )
+    replay.add_argument("bag", help="bag folder (metadata.yaml) or .db3/.mcap file")
+    replay.add_argument(
+        "--config", required=True, help="team config (TOML): keys of the team's topics"
+    )
+    replay.add_argument("--rate", type=float, default=1.0, help="speed factor (2: twice as fast)")
+    replay.add_argument("--team-only", action="store_true", help="publish only the team's topics")
+    replay.add_argument(
+        "--ground-truth", action="store_true", help="also publish motion capture (mocap_topic)"
+    )
+    replay.add_argument(
+        "--wait",
+        type=float,
+        default=10.0,
+        metavar="S",
+        help="wait up to S s for the server's subscribers",
+    )
+    replay.add_argument("--start", type=float, default=0.0, metavar="S", help="skip S s of the bag")
+    replay.add_argument("--duration", type=float, default=None, metavar="S")
+    add_zenoh_args(replay)
+    replay.set_defaults(handler=_cmd_replay)

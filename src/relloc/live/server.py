@@ -1,0 +1,253 @@
+"""``LiveServer``: the engine fed by a Zenoh source, publishing through a Zenoh sink.
+
+It runs the *same* :class:`~relloc.engine.Engine` and method pipelines as ``relloc run`` and
+the demo. Zenoh's callbacks only enqueue (:class:`~relloc.sources.zenoh_source.ZenohSource`);
+one thread, the caller of :meth:`LiveServer.run`, decodes, feeds the engine and publishes
+(:class:`~relloc.sinks.zenoh_sink.ZenohSink`), so filter state is never shared between threads.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from relloc.config import TeamConfig
+from relloc.engine import Engine, Pipeline
+from relloc.methods import DETECTION_METHODS
+from relloc.sinks.zenoh_sink import ZenohSink
+from relloc.sources.zenoh_source import Arrival, ZenohSource, ZenohSourceOptions
+
+__all__ = ["LiveServer", "ServeOptions"]
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class ServeOptions:
+    """What ``relloc serve`` runs and how it talks."""
+
+    methods: tuple[str, ...] = ("pf",)
+    seed: int = 0
+    particles: int | None = None
+    models: Path | None = None
+    prefix: str = ""
+    """Key prefix of the robots' topics (the bridge's namespace)."""
+    out_prefix: str = "relloc"
+    """Key prefix of what the server publishes."""
+    reorder_window: float = 0.0
+    """Reorder-buffer window (s of header time); 0: lowest latency (see ``docs/live.md``)."""
+    clock_rate: float = 1.0
+    """Header seconds per wall second: pair with ``relloc replay --rate``."""
+    status_period: float = 1.0
+    trace: bool = False
+    subscribe_all: bool = False
+    quiet_after: float = 2.0
+    """A robot silent this long (s) is reported as quiet in the status."""
+    keep_estimates: int = 2000
+    """Estimates kept per pipeline in memory (the engine keeps all; a server runs for hours)."""
+
+
+class LiveServer:
+    """The engine, fed by a Zenoh source, publishing through a Zenoh sink.
+
+    ``start`` declares the subscribers; ``run`` is the engine loop (on the calling thread) until
+    :meth:`stop` or ``duration``; ``close`` undeclares everything. The session belongs to the
+    caller. Any exception of the engine on one event is logged and counted
+    (``engine_errors``), never allowed to stop the server.
+    """
+
+    def __init__(
+        self, config: TeamConfig, session: Any, options: ServeOptions | None = None
+    ) -> None:
+        from relloc.methods import build_pipeline
+
+        self.options = opts = options or ServeOptions()
+        if not opts.methods:
+            raise ValueError("serve needs at least one method")
+        if opts.particles:
+            config = config.with_filter(particles=opts.particles)
+        self.config = config
+        self.session = session
+        self.pipelines: list[Pipeline] = [
+            build_pipeline(m, config, seed=opts.seed, models=opts.models) for m in opts.methods
+        ]
+        self.source = ZenohSource(
+            config,
+            ZenohSourceOptions(
+                prefix=opts.prefix,
+                reorder_window=opts.reorder_window,
+                clock_rate=opts.clock_rate,
+                detections=any(m in DETECTION_METHODS for m in opts.methods),
+                subscribe_all=opts.subscribe_all,
+            ),
+        )
+        self.sink = ZenohSink(
+            session,
+            config,
+            prefix=opts.out_prefix,
+            primary_method=opts.methods[0],
+            trace=opts.trace,
+        )
+        self.engine = Engine(
+            self.pipelines, config.reference, [self.sink], keep_estimates=opts.keep_estimates
+        )
+        self.engine_errors = 0
+        self.engine_thread_cpu_s = 0.0
+        """CPU time of the thread that ran :meth:`run` (the rest is Zenoh's threads)."""
+        self.started = time.time()
+        self._stopping = False
+        self._quiet: set[str] = set()
+        self._last_counts: tuple[float, dict[str, int]] = (self.started, {})
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> None:
+        """Subscribe to the team's keys."""
+        self.source.attach(self.session)
+        self.started = time.time()
+        self._last_counts = (self.started, self._counts())
+
+    def stop(self) -> None:
+        """Ask :meth:`run` to finish (safe from any thread and from a signal handler)."""
+        self._stopping = True  # a plain store: no lock a signal handler could deadlock on
+        self.source.wake()  # SimpleQueue.put is reentrant: fine in a signal handler
+
+    def close(self) -> None:
+        """Undeclare subscribers and publishers (the session stays open)."""
+        self.source.detach()
+        self.sink.close()
+
+    def run(self, duration: float | None = None) -> dict[str, Any]:
+        """Process messages until :meth:`stop` or ``duration`` seconds; returns :meth:`summary`.
+
+        At the end, what is queued or held is processed, the pending batch is fused (one last
+        estimate) and a final status is published.
+        """
+        cpu_start = time.thread_time()
+        now = time.time()
+        deadline = math.inf if duration is None else now + duration
+        period = self.options.status_period
+        next_status = now + period
+        while not self._stopping:
+            now = time.time()
+            if now >= deadline:
+                break
+            timeout = max(0.0, min(0.2, next_status - now, deadline - now))
+            self.feed(self.source.poll(timeout))
+            now = time.time()
+            if now >= next_status:
+                self._publish_status(now)
+                next_status = max(next_status + period, now + 0.5 * period)
+        self.feed(self.source.drain())
+        try:
+            self.engine.finish()
+        except Exception:
+            self.engine_errors += 1
+            log.exception("the engine failed while finishing")
+        self._publish_status(time.time())
+        self.engine_thread_cpu_s += time.thread_time() - cpu_start
+        return self.summary()
+
+    def feed(self, arrivals: Iterable[Arrival]) -> None:
+        """Run the engine on released events (what :meth:`run` does with each poll)."""
+        for arrival in arrivals:
+            self.sink.set_trigger(arrival)
+            try:
+                self.engine.feed(arrival.event)
+            except Exception:
+                self.engine_errors += 1
+                log.exception("the engine failed on %r; skipped", arrival.event)
+        self.sink.set_trigger(None)
+
+    # ------------------------------------------------------------------ status
+    def _counts(self) -> dict[str, int]:
+        st = self.source.stats
+        counts = {"messages": sum(st.received.values())}
+        counts.update({f"event.{k}": v for k, v in st.events.items()})
+        counts.update({f"estimate.{p.name}": self.sink.published[p.name] for p in self.pipelines})
+        return counts
+
+    def _publish_status(self, now: float) -> None:
+        status = self.status(now)
+        try:
+            self.sink.publish_status(status)
+        except Exception as exc:  # a closed session at shutdown: the status is not vital
+            log.warning("could not publish the status: %s", exc)
+
+    def status(self, now: float | None = None) -> dict[str, Any]:
+        """The status published on ``<prefix>/status`` (rates since the previous call)."""
+        now = time.time() if now is None else now
+        then, before = self._last_counts
+        counts = self._counts()
+        dt = max(now - then, 1e-9)
+        self._last_counts = (now, counts)
+
+        def rate(name: str) -> float:
+            return round((counts.get(name, 0) - before.get(name, 0)) / dt, 2)
+
+        st = self.source.stats
+        robots: dict[str, Any] = {}
+        for r in self.config.robot_names:
+            last = st.last_received.get(r)
+            age = None if last is None else round(now - last, 3)
+            quiet = age is None or age > self.options.quiet_after
+            if quiet and last is not None and r not in self._quiet:
+                log.warning("%s has been quiet for %.1f s", r, age)
+            if not quiet and r in self._quiet:
+                log.warning("%s publishes again", r)
+            if quiet and last is not None:
+                self._quiet.add(r)
+            else:
+                self._quiet.discard(r)
+            robots[r] = {"last_message_age_s": age, "quiet": quiet}
+        methods: dict[str, Any] = {}
+        for p in self.pipelines:
+            last_est = self.sink.last.get(p.name)
+            methods[p.name] = {
+                "estimates": self.sink.published[p.name],
+                "rate_hz": rate(f"estimate.{p.name}"),
+                "last_estimate_t": None if last_est is None else last_est.t,
+                "ess": None if last_est is None or last_est.ess is None else round(last_est.ess, 1),
+                "rejected": dict(p.localizer.rejected),
+                "compute_s": round(p.compute_s, 4),
+                "stats": {k: v for k, v in p.stats().items() if not k.startswith("rejected_")},
+            }
+        return {
+            "time": now,
+            "uptime_s": round(now - self.started, 3),
+            "team": self.config.name,
+            "reference": self.config.reference,
+            "particles": self.config.filter.particles,
+            "methods": methods,
+            "source": {
+                "messages": counts["messages"],
+                "rate_hz": rate("messages"),
+                "events_rate_hz": {
+                    k: rate(f"event.{k}") for k in ("odometry", "range", "detection")
+                },
+                "rejected": dict(st.rejected),
+                "out_of_order": st.out_of_order,
+                "restamped": sum(st.restamped.values()),
+                "queue_depth": self.source.queue_depth,
+                "buffer_depth": len(self.source.buffer),
+            },
+            "robots": robots,
+            "engine_errors": self.engine_errors,
+        }
+
+    def summary(self) -> dict[str, Any]:
+        """Final figures: the status plus the totals of the run."""
+        status = self.status()
+        status["source"]["stats"] = self.source.stats.as_dict()
+        status["events"] = self.engine.events
+        status["engine_thread_cpu_s"] = round(self.engine_thread_cpu_s, 3)
+        status["header_time_span_s"] = (
+            None
+            if self.engine.t_first is None or self.engine.t_last is None
+            else round(self.engine.t_last - self.engine.t_first, 3)
+        )
+        return status
