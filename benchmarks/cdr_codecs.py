@@ -1,0 +1,94 @@
+"""Time relloc's fast CDR codecs against ``rosbags`` on the live engine's hot messages.
+
+Usage::
+
+    python benchmarks/cdr_codecs.py [--n 20000] [--rounds 5] [--json FILE]
+
+For each message the live engine handles per sample (decoding a ``nav_msgs/Odometry`` or a
+``sensor_msgs/Range`` into the fields relloc uses; encoding a ``PoseWithCovarianceStamped``
+estimate) it times ``relloc.ros_cdr`` and the ``rosbags`` path it replaces (deserialise or
+build + serialise the message object) on the same payloads, alternating the two in every round,
+and prints the median time per message and the ratio. Both produce the same values (asserted
+once before timing). This is a warm tight loop: in the server, which sleeps between messages,
+both cost more, and the rosbags path more so (see ``docs/live.md``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from relloc import ros_cdr
+from relloc import ros_messages as rm
+from relloc.events import OdometryEvent, RangeEvent
+
+
+def _cases() -> dict[str, tuple[Callable[[], Any], Callable[[], Any]]]:
+    odom = rm.encode(
+        rm.odometry_msg(OdometryEvent(t=1.7e9, robot="a", x=1.0, y=2.0, yaw=0.3, v=0.2, w=0.1))
+    )
+    rng = rm.encode(rm.range_msg(RangeEvent(t=1.7e9, robot_a="a", robot_b="b", distance=3.2)))
+    cov = [0.0] * 36  # row-major 6x6: an x/y block, zero elsewhere
+    cov[0], cov[7] = 0.04, 0.09
+
+    def odom_rosbags() -> Any:
+        msg = rm.decode(odom, rm.ODOMETRY)
+        ev = rm.odometry_to_event(msg, "a")
+        return rm.stamp_to_sec(msg.header.stamp), ev.x, ev.y, ev.yaw, ev.v, ev.w
+
+    def range_rosbags() -> Any:
+        msg = rm.decode(rng, rm.RANGE)
+        return rm.stamp_to_sec(msg.header.stamp), msg.range
+
+    def pose_rosbags() -> bytes:
+        return rm.encode(
+            rm.pose_with_covariance_msg(1.7e9, 1.0, 2.0, cov=[cov[0:2], cov[6:8]], frame_id="ref")
+        )
+
+    def pose_fast() -> bytes:
+        return ros_cdr.encode_pose_with_covariance_stamped(1.7e9, 1.0, 2.0, 0.0, cov, "ref")
+
+    return {
+        "decode Odometry": (lambda: ros_cdr.decode_odometry(odom), odom_rosbags),
+        "decode Range": (lambda: ros_cdr.decode_range(rng), range_rosbags),
+        "encode PoseWithCovarianceStamped": (pose_fast, pose_rosbags),
+    }
+
+
+def _time(fn: Callable[[], Any], n: int) -> float:
+    t0 = time.perf_counter()
+    for _ in range(n):
+        fn()
+    return (time.perf_counter() - t0) / n
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--n", type=int, default=20000, help="messages per timed batch")
+    p.add_argument("--rounds", type=int, default=5, help="alternating batches per codec")
+    p.add_argument("--json", default=None, metavar="FILE")
+    args = p.parse_args(argv)
+    results = {}
+    for name, (fast, ref) in _cases().items():
+        assert fast() == ref(), name  # same values (bytes) before anything is timed
+        t_fast, t_ref = [], []
+        for r in range(args.rounds):
+            order = (fast, ref) if r % 2 == 0 else (ref, fast)
+            for fn in order:
+                (t_fast if fn is fast else t_ref).append(_time(fn, args.n))
+        f, rb = statistics.median(t_fast), statistics.median(t_ref)
+        results[name] = {"relloc_us": f * 1e6, "rosbags_us": rb * 1e6, "speedup": rb / f}
+        print(f"{name:34s} relloc {f * 1e6:6.2f} us   rosbags {rb * 1e6:6.2f} us   {rb / f:5.1f}x")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(results, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
