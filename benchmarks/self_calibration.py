@@ -5,7 +5,9 @@ positions, headings, scales and biases in every particle, so its cost per partic
 the square of the state (5 robots, online biases: 28 columns) while the number of particles it
 needs stays small. This script measures both, on the simulator:
 
-Pass ``--bias calibrated`` to tell the filter the true pair biases (headings only).
+Pass ``--bias calibrated`` to tell the filter the true pair biases (headings only), and
+``--range-error white`` to leave out the pairs' time-correlated range-error states (the filter
+before they were added: white range noise beside each online bias).
 
 * ``two``: two robots that both move (``a`` drives 0.8 m squares, ``b`` 1 m circles), one
   range, heading of ``b`` estimated in ``a``'s odometry frame, the pair bias online, odometry
@@ -32,6 +34,7 @@ from a 2-core machine shared with other jobs; read them as orders of magnitude).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import sys
@@ -42,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+import relloc.localizer
 from relloc.config import TeamConfig
 from relloc.demo import DemoOptions, scenario_setup
 from relloc.engine import Engine
@@ -123,8 +127,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, nargs="*", default=[0])
     parser.add_argument("--warmup", type=float, default=20.0)
     parser.add_argument("--bias", choices=("online", "calibrated"), default="online", help="pair biases estimated or told")
+    parser.add_argument(
+        "--range-error", choices=("colored", "white"), default="colored",
+        help="online pairs: a time-correlated range-error state beside each bias (default), or white noise only",
+    )
     parser.add_argument("--json", default=None, metavar="FILE")
     args = parser.parse_args(argv)
+    if args.range_error == "white":  # not a config key: the layout the localizer builds
+        relloc.localizer.CalibrationLayout = functools.partial(  # type: ignore[misc]
+            relloc.localizer.CalibrationLayout, colored_bias=False
+        )
     teams = ("two", "single", "five") if args.team == "all" else (args.team,)
     rows = []
     header = f"{'team':5} {'M':>5} {'seed':>4} {'ms/update':>9} {'p90':>6} {'APE worst':>9} {'hdg worst':>9} {'bias worst':>10} {'bias med':>8}"

@@ -28,7 +28,8 @@ rough shape), the rest is a nearly linear-Gaussian system. So each particle here
     x = [positions of the non-reference robots (2(N-1)),
          u of every robot, the reference's last (2 each; heading mode)
            or  s of every robot, the reference's last (1 each; compass heading, online scale),
-         bias of every UWB node pair (online bias)]
+         bias of every UWB node pair (online bias),
+         time-correlated range error of every pair (online bias, ``colored_bias``)]
 
 The reference robot's own ``u`` starts at ``(1, 0)`` with no angular uncertainty (its odometry
 frame is the shared frame) but follows the same slow random walk as the others: its odometry
@@ -45,6 +46,19 @@ integrates the evidence about the calibration step by step. A heading that no mo
 revealed is simply a Gaussian ``u ~ N(0, sigma_u^2 I)``, whose angle is uniform: no grid, no
 sampled angle, and no particle is spent on it.
 
+Range bias and heading-dependent range error
+--------------------------------------------
+A UWB range is ``distance + bias + e(t) + noise``, where ``e`` depends on the headings of the
+two ends relative to the bearing between them (antenna pattern, the body in the way): it is
+zero-mean over headings, changes as the robots turn or pass each other, and is strongly
+correlated over seconds. White range noise cannot represent it: the Kalman filter would read
+its slow swings as evidence about the positions, the headings or the bias, and the bias's
+random walk would follow it. So each online pair also carries ``e`` as a first-order
+Gauss-Markov state (stationary std ``colored_sigma``, correlation time ``colored_time``); the
+range sees ``bias + e`` and the published bias is the constant part. A static robot's end
+contributes a constant ``e`` (its heading relative to the bearing barely changes), which no
+estimator can tell from the bias: docs/self-calibration.md, "Observability".
+
 Robust ranges and pseudo-measurements
 -------------------------------------
 Ranges use the same Gaussian-plus-uniform likelihood as :mod:`relloc.filter.models`; the
@@ -54,6 +68,11 @@ estimated online, the configured scale otherwise) is not Gaussian in ``u``; it i
 per particle and robot, as a pseudo-measurement ``|u| = s0``, as soon as that particle's angle
 of ``u`` is determined well enough (angular std below ``~15 deg``) for the linearisation to be
 valid.
+
+Each range's covariance update ``P -= gain (P h)^T`` is deferred: the next range needs only
+``P h``, which the pending updates give cheaply, and the ranges of a batch are applied to the
+covariance together, as one batched product, when it is next read (:meth:`GaussianSumFilter.cov`).
+The result is exactly that of the sequential updates.
 
 Observability is visible in the state: a robot that has not moved has ``A(d) = 0`` at every
 step, so its ``u`` keeps its prior and its published heading spread stays wide, while its
@@ -97,6 +116,13 @@ class CalibrationLayout:
     per robot)."""
     bias_pairs: tuple[str, ...] = ()
     """Node pairs whose range bias is estimated online, in column order."""
+    colored_bias: bool = True
+    """Beside each online pair's constant bias, a zero-mean, time-correlated range error (a
+    first-order Gauss-Markov process, :class:`CalibrationNoise` ``colored_sigma`` and
+    ``colored_time``): one more column per pair, after the biases. It takes up the
+    heading-dependent part of the UWB error (antenna pattern, body occlusion), which a white
+    range noise cannot: without it that error moves the bias estimate (through its random
+    walk) or the positions. The published bias is the constant part."""
 
     def __post_init__(self) -> None:
         if self.reference not in self.robots:
@@ -142,8 +168,13 @@ class CalibrationLayout:
         return n
 
     @property
-    def width(self) -> int:
+    def colored_start(self) -> int:
+        """First column of the time-correlated range errors (``colored_bias``)."""
         return self.bias_start + len(self.bias_pairs)
+
+    @property
+    def width(self) -> int:
+        return self.colored_start + (len(self.bias_pairs) if self.colored_bias else 0)
 
     def index(self, robot: str) -> int:
         try:
@@ -173,6 +204,10 @@ class CalibrationLayout:
     def bias_column(self, pair: str) -> int:
         return self.bias_start + self.bias_pairs.index(pair)
 
+    def colored_column(self, pair: str) -> int:
+        """Column of ``pair``'s time-correlated range error (-1 without ``colored_bias``)."""
+        return self.colored_start + self.bias_pairs.index(pair) if self.colored_bias else -1
+
 
 @dataclass(frozen=True)
 class CalibrationNoise:
@@ -189,6 +224,12 @@ class CalibrationNoise:
     """Random walk of each odometry scale (per sqrt(s))."""
     bias_walk: float = 0.01
     """Random walk of each online range bias (m per sqrt(s))."""
+    colored_sigma: float = 0.05
+    """Stationary standard deviation of a pair's time-correlated range error (m; layout
+    ``colored_bias``): the simulator's heading-dependent error has 0.03-0.06 m."""
+    colored_time: float = 10.0
+    """Correlation time of that error (s): how long the headings of the two ends relative to
+    the bearing between them take to change (a turn in place, a pass by the other robot)."""
     u_prior_sigma: float = math.sqrt(0.5)
     """Per-axis standard deviation of the heading vector ``u`` before any motion (its angle is
     then uniform, ``E|u|^2 = 1``)."""
@@ -241,12 +282,34 @@ class GaussianSumFilter:
             raise ValueError(f"bias_prior needs {nb} means and variances")
         self.heading_prior = heading_prior or {}
         self.prior_mean, self.prior_cov = self._calibration_prior()
+        self._pending: list[tuple[FloatArray, FloatArray]] = []
         self.mean = np.zeros((n_particles, layout.width))
         self.cov = np.zeros((n_particles, layout.width, layout.width))
         self.magnitude_done = np.zeros((n_particles, layout.n_others), dtype=bool)
         self.logw = np.full(n_particles, -math.log(n_particles))
         self.resample_count = 0
         self.initialize(self.sample_positions(n_particles))
+
+    # ---------------------------------------------------------------- covariance
+    @property
+    def cov(self) -> FloatArray:
+        """``(M, D, D)`` covariances, with every range update so far applied."""
+        if self._pending:
+            self._flush()
+        return self._cov
+
+    @cov.setter
+    def cov(self, value: FloatArray) -> None:
+        self._pending.clear()
+        self._cov = value
+
+    def _flush(self) -> None:
+        """Apply the pending rank-one updates ``P -= gain pht^T`` of the scalar updates since
+        the covariance was last read, as one batched product (see :meth:`_scalar_update`)."""
+        gains = np.stack([g for g, _ in self._pending], axis=2)  # (M, D, k)
+        phts = np.stack([p for _, p in self._pending], axis=1)  # (M, k, D)
+        self._pending.clear()
+        self._cov -= gains @ phts
 
     # ---------------------------------------------------------------- prior
     def _calibration_prior(self) -> tuple[FloatArray, FloatArray]:
@@ -283,6 +346,9 @@ class GaussianSumFilter:
             c = lay.bias_start + k - off
             mean[c] = self.bias_prior_mean[k]
             cov[c, c] = self.bias_prior_var[k]
+            if lay.colored_bias:
+                c = lay.colored_start + k - off
+                cov[c, c] = nz.colored_sigma**2  # zero mean, stationary
         return mean, cov
 
     def sample_positions(self, m: int) -> FloatArray:
@@ -359,13 +425,25 @@ class GaussianSumFilter:
             for k in range(len(lay.bias_pairs)):
                 c = lay.bias_start + k
                 q[c, c] += nz.bias_walk**2 * dt
+            if lay.colored_bias:
+                idx = np.arange(lay.colored_start, width)
+                q[idx, idx] += nz.colored_sigma**2 * (1.0 - math.exp(-2.0 * dt / nz.colored_time))
         rows_g = np.flatnonzero(np.any(g != 0.0, axis=1))
         if rows_g.size:
-            gr = g[rows_g]  # (r, D)
-            self.mean[:, rows_g] += self.mean @ gr.T
-            # P' = (I + G) P (I + G)^T with G nonzero only in rows_g
-            self.cov[:, rows_g, :] += np.einsum("rd,mde->mre", gr, self.cov)  # now (I+G) P
-            self.cov[:, :, rows_g] += self.cov @ gr.T  # + (I+G) P G^T
+            cols_g = np.flatnonzero(np.any(g != 0.0, axis=0))
+            gr = g[np.ix_(rows_g, cols_g)]  # (r, k): G is nonzero only there
+            self.mean[:, rows_g] += self.mean[:, cols_g] @ gr.T
+            # P' = (I + G) P (I + G)^T
+            self.cov[:, rows_g, :] += np.einsum("rk,mke->mre", gr, self.cov[:, cols_g, :])  # (I+G) P
+            self.cov[:, :, rows_g] += self.cov[:, :, cols_g] @ gr.T  # + (I+G) P G^T
+        if lay.colored_bias and dt > 0.0:
+            # first-order Gauss-Markov: c' = rho c + w, stationary variance colored_sigma^2
+            # (its columns are outside G's rows and columns: the two steps commute)
+            rho = math.exp(-dt / nz.colored_time)
+            cs = slice(lay.colored_start, width)
+            self.mean[:, cs] *= rho
+            self.cov[:, cs, :] *= rho
+            self.cov[:, :, cs] *= rho
         self.mean += shift
         self.cov += q
         if lay.heading and dt > 0.0:
@@ -426,6 +504,11 @@ class GaussianSumFilter:
             cols.append(bias_column)
             coefs.append(np.ones(self.n))
             predicted = predicted + m[:, bias_column]
+            if lay.colored_bias:  # the range sees the constant bias plus the correlated error
+                c = lay.colored_start + (bias_column - lay.bias_start)
+                cols.append(c)
+                coefs.append(np.ones(self.n))
+                predicted = predicted + m[:, c]
         h = np.stack(coefs, axis=1)  # (M, c)
         residual = distance - predicted
         return self._scalar_update(np.array(cols), h, residual, sigma**2, outlier_fraction, support)
@@ -502,12 +585,21 @@ class GaussianSumFilter:
         rows: IntArray | None = None,
     ) -> FloatArray:
         """Robust scalar EKF update of ``rows`` (default all) with measurement Jacobian ``h``
-        (``(m, len(cols))``, nonzero only in ``cols``) and innovation ``residual``."""
+        (``(m, len(cols))``, nonzero only in ``cols``) and innovation ``residual``.
+
+        Updating all rows, the covariance update ``P -= gain pht^T`` is deferred: the next
+        update needs only ``P h``, which the pending updates give at ``O(M D)`` each
+        (``P h = P0 h - sum_i gain_i (pht_i . h)``), and the whole batch of ranges is applied
+        at once when the covariance is next read. Exactly the sequential updates, at a fraction
+        of the memory traffic of one ``(M, D, D)`` pass per range."""
         if rows is None:
-            mean, cov = self.mean, self.cov
+            mean = self.mean
+            pht = np.einsum("mdc,mc->md", self._cov[:, :, cols], h)  # P0 h, (m, D)
+            for g_i, p_i in self._pending:
+                pht -= g_i * np.einsum("mc,mc->m", p_i[:, cols], h)[:, None]
         else:
             mean, cov = self.mean[rows], self.cov[rows]
-        pht = np.einsum("mdc,mc->md", cov[:, :, cols], h)  # (m, D)
+            pht = np.einsum("mdc,mc->md", cov[:, :, cols], h)  # (m, D)
         s = np.einsum("mc,mc->m", pht[:, cols], h) + r_var
         s = np.maximum(s, 1e-12)
         z2 = residual * residual / s
@@ -521,10 +613,11 @@ class GaussianSumFilter:
             ll = -0.5 * z2 - 0.5 * np.log(s) - _LOG_SQRT_2PI
         gain = pht * (inlier / s)[:, None]
         mean += gain * residual[:, None]
-        cov -= gain[:, :, None] * pht[:, None, :]
         if rows is None:
+            self._pending.append((gain, pht))
             self.logw = self.logw + ll
         else:
+            cov -= gain[:, :, None] * pht[:, None, :]
             self.mean[rows], self.cov[rows] = mean, cov
             self.logw[rows] += ll
         return ll
