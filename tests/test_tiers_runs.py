@@ -40,16 +40,27 @@ def test_shortbag_default_seed_meets_bounds(shared_data: Path) -> None:
     fair, oracle = report.methods["multilateration"], report.methods["multilateration_oracle"]
     assert fair.robots["turtle01"].n > 80
     assert fair.mean_ape_median <= oracle.mean_ape_median + 0.05
+    # Issue 8: the PF's mean over robots is no worse than multilateration's (one alignment per
+    # run). Seed 0 gives 0.099 against 0.107; over seeds 0-19 the PF's mean lies in 0.08-0.16
+    # (median 0.10): the formation's orientation about the reference is what varies (docs/results.md).
+    assert pf.mean_ape_median <= fair.mean_ape_median, (pf.mean_ape_median, fair.mean_ape_median)
 
 
 @pytest.mark.slow
 def test_shortbag_median_over_seeds_meets_bound(shared_data: Path) -> None:
-    medians = []
+    medians, means = [], []
+    fair = None
     for seed in range(5):
-        pf = _run(shared_data, "multi4_shortbag_20221011", seed=seed, warmup=5.0, methods=("pf",)).methods["pf"]
+        methods = ("pf", "multilateration") if seed == 0 else ("pf",)
+        report = _run(shared_data, "multi4_shortbag_20221011", seed=seed, warmup=5.0, methods=methods)
+        if seed == 0:
+            fair = report.methods["multilateration"].mean_ape_median
+        pf = report.methods["pf"]
         medians.append([pf.robots[r].median for r in sorted(pf.robots)])
+        means.append(pf.mean_ape_median)
     per_robot = np.median(np.array(medians), axis=0)
     assert np.all(per_robot <= 0.20), per_robot
+    assert fair is not None and np.median(means) <= fair, (means, fair)
 
 
 def test_single_range_bag_meets_bound_and_multilateration_has_no_estimate(shared_data: Path) -> None:

@@ -133,10 +133,27 @@ class FilterConfig:
     """Particle-filter parameters. The defaults are the ones used on every shared recording."""
 
     particles: int = 50000
+    range_model: Literal["nlos", "symmetric"] = "nlos"
+    """Range likelihood of the particle filter (``relloc.filter.models``). ``nlos``: Gaussian
+    line-of-sight noise ``los_sigma``, a one-sided non-line-of-sight part (ranges too long by a
+    half-normal excess of scale ``nlos_sigma``, weight ``nlos_fraction``) and a uniform floor
+    ``gross_fraction``; ``symmetric``: Gaussian ``sigma_uwb`` plus uniform ``outlier_fraction``.
+    The symmetric model is always used for ranges corrected by a learned model (the correction
+    has predicted the skewed part), with online biases (an unknown bias and the one-sided excess
+    are confounded) and by the self-calibrating filter."""
+    los_sigma: float = 0.1
+    """NLOS-aware model: line-of-sight range noise (m). The training table's residuals give
+    0.077 m; widened for the pair biases moving by up to 0.06 m between sessions."""
+    nlos_fraction: float = 0.1
+    """NLOS-aware model: weight of the non-line-of-sight part (training table: 0.09)."""
+    nlos_sigma: float = 0.3
+    """NLOS-aware model: scale of the excess delay of a blocked path (m; training table: 0.28)."""
+    gross_fraction: float = 0.02
+    """NLOS-aware model: weight of the uniform part (gross errors of any sign)."""
     sigma_uwb: float = 0.15
-    """Standard deviation of the Gaussian part of the range likelihood (m)."""
+    """Symmetric model: standard deviation of the Gaussian part of the range likelihood (m)."""
     outlier_fraction: float = 0.1
-    """Weight of the uniform (NLOS/outlier) part of the range likelihood."""
+    """Symmetric model: weight of the uniform (NLOS/outlier) part of the range likelihood."""
     max_range: float = 15.0
     """Support of the uniform outlier density (m)."""
     sigma_det: float = 0.15
@@ -149,7 +166,15 @@ class FilterConfig:
     """Random-walk noise of every relative position (m per sqrt(s)); keeps static robots alive."""
     rotation_noise: float = 0.0
     """Random turn of the whole formation about the reference (rad per sqrt(s)): the drift of
-    the shared heading, and the only diversity along the direction ranges cannot see."""
+    the shared heading (a model of the compass, unlike ``rotation_kernel``)."""
+    rotation_kernel: float = 0.1
+    """After each resampling, the fraction of the variance of the formation's orientation
+    about the reference that is re-drawn by a Liu-West kernel (mean and variance kept): restores
+    the diversity that resampling loses along the one direction ranges cannot see
+    (``relloc.filter.pf``). Only for a formation (three robots or more). 0 disables it."""
+    rotation_kernel_max_spread: float = 0.25
+    """The kernel acts only when the orientations form one mode with a robust standard
+    deviation below this (rad), never while rotations or mirror images compete."""
     bias_mode: Literal["calibrated", "online"] = "calibrated"
     """``calibrated``: each pair's bias is the config's (or ``uwb.default_bias``);
     ``online``: every particle carries a Kalman belief about each pair's bias (Rao-Blackwellised),

@@ -336,7 +336,15 @@ class ParticleFilterLocalizer(Localizer):
             ess_threshold=fc.ess_threshold,
             reinject_fraction=fc.reinject_fraction,
             extra_prior=np.array(extra),
+            rotation_kernel=fc.rotation_kernel,
+            rotation_kernel_max_spread=fc.rotation_kernel_max_spread,
         )
+        # The self-calibrating filter has its own (symmetric) range update; its annealed start
+        # uses the same model. With online biases an unknown bias and a one-sided NLOS excess
+        # are confounded (a positive offset reads as either), and the inlier-weighted Kalman
+        # update of the bias came out about 1 cm low in simulation: those modes keep the
+        # symmetric model.
+        self.range_model = fc.range_model if self.gsf is None and not self.online_bias else "symmetric"
         self.initialized = False
         self.t = math.nan
         self._anchor: dict[str, tuple[float, float, float]] = {}
@@ -401,20 +409,33 @@ class ParticleFilterLocalizer(Localizer):
         est = self._estimate(t)
         if self.pf.maybe_resample():
             self.stats["resampled"] += 1
+        self.stats["rotation_kernel"] = self.pf.rotation_kernel_count
         return est
 
     def _initialize(self, t: float) -> Estimate | None:
         batch, self._init_batch = self._init_batch, []
-        model = self._model(batch)
-        guide = self._model(batch, outliers=False)
+        fc = self.config.filter
+        vectors = [m for m in batch if isinstance(m, RelativeObservation)]
+        ranges = [m for m in batch if not isinstance(m, RelativeObservation)]
+        # Ranges are invariant under rotations and reflections about the reference, vectors are
+        # not: anneal on the ranges, spread over those symmetries (exact), then weight by the
+        # vectors. Annealing on both and skipping the spread left the mirror image about the
+        # line of a single vector to chance (a sharp range likelihood picked one side).
+        spread = fc.spread_rotations and bool(ranges) and (self.gsf is None or not vectors)
+        anneal_on = ranges if spread else batch
+        model = self._model(anneal_on)
+        guide = self._model(anneal_on, outliers=False)
         if model is None or guide is None:
             return None
-        fc = self.config.filter
         stages = self.pf.initialize_annealed(model.log_likelihood, guide.log_likelihood, mcmc_steps=fc.mcmc_steps)
         self.stats["anneal_stages"] = stages
-        has_vectors = any(isinstance(m, RelativeObservation) for m in batch)
-        if fc.spread_rotations and not has_vectors:
+        if spread:
             self.pf.spread_symmetries()
+            vector_model = self._model(vectors) if vectors else None
+            if vector_model is not None:
+                self.pf.update(vector_model.log_likelihood)
+                if self.pf.maybe_resample():
+                    self.stats["resampled"] += 1
         self.initialized = True
         self.t = t
         self._anchor = {r: self._odometry_pose(r, t) for r in self.layout.robots}
@@ -528,7 +549,6 @@ class ParticleFilterLocalizer(Localizer):
         """The stacked measurement of a batch; ``outliers=False`` drops the robust floor (the
         plain Gaussian that guides the annealed start)."""
         fc = self.config.filter
-        eps = fc.outlier_fraction if outliers else 0.0
         pairs, dist, bias, sigma, keys = self._pair_ranges(batch, self.online_bias)
         parts: list[RangeBatch | RelativePositionBatch] = []
         if pairs:
@@ -536,7 +556,23 @@ class ParticleFilterLocalizer(Localizer):
             columns = None
             if self.online_bias:
                 columns = np.array([self.layout.bias_columns(k)[0] if k else -1 for k in keys], dtype=np.intp)
-            parts.append(RangeBatch(idx[:, 0], idx[:, 1], dist, bias, sigma, None, eps, fc.max_range, columns))
+            # Raw ranges get the NLOS-aware model (fitted to raw UWB errors); ranges corrected
+            # upstream by a learned model (key "") keep the symmetric one: the correction has
+            # already predicted the skewed part of their error.
+            raw = np.array([bool(k) for k in keys]) if self.range_model == "nlos" else np.zeros(len(keys), bool)
+            for sel, nlos in ((raw, True), (~raw, False)):
+                if not np.any(sel):
+                    continue
+                s = self._los_sigmas(keys)[sel] if nlos else sigma[sel]
+                eps = (fc.gross_fraction if nlos else fc.outlier_fraction) if outliers else 0.0
+                parts.append(
+                    RangeBatch(
+                        idx[sel, 0], idx[sel, 1], dist[sel], bias[sel], s, None, eps, fc.max_range,
+                        None if columns is None else columns[sel],
+                        nlos_fraction=fc.nlos_fraction if nlos and outliers else 0.0,
+                        nlos_sigma=fc.nlos_sigma,
+                    )
+                )
         vectors = [m for m in batch if isinstance(m, RelativeObservation)]
         if vectors:
             parts.append(
@@ -549,6 +585,24 @@ class ParticleFilterLocalizer(Localizer):
                 )
             )
         return StackedMeasurement(tuple(parts)) if parts else None
+
+    def _los_sigmas(self, keys: list[str]) -> FloatArray:
+        """Line-of-sight noise of each pair for the NLOS-aware model: a pair's own calibrated
+        sigma if the config gives one, else ``los_sigma`` (widened by ``uwb.default_bias_sigma``
+        for a pair without calibration), as ``_pair_ranges`` does with ``sigma_uwb``."""
+        fc, uwb = self.config.filter, self.config.uwb
+        out = np.full(len(keys), fc.los_sigma)
+        if self.online_bias:
+            return out  # the bias (and its uncertainty) is in the particles
+        for i, key in enumerate(keys):
+            if not key:  # corrected upstream (the caller gives these the symmetric model)
+                continue
+            cal = uwb.pairs.get(key)
+            if cal is None:
+                out[i] = math.hypot(fc.los_sigma, uwb.default_bias_sigma)
+            elif cal.sigma is not None:
+                out[i] = cal.sigma
+        return out
 
     def _estimate(self, t: float) -> Estimate:
         fe = self.pf.estimate()

@@ -11,16 +11,35 @@ editing the filter.
 Range likelihood
 ----------------
 UWB ranges are biased (0.2-0.5 m per transceiver pair), noisy, and occasionally wildly wrong
-(non-line-of-sight spikes). Each range contributes a Gaussian-plus-uniform mixture::
+(non-line-of-sight spikes). With ``r = z - b - ||p_a - p_b||`` the residual of a range after the
+pair's bias ``b``, the *symmetric* model is a Gaussian-plus-uniform mixture::
 
-    p(z | x) = (1 - eps) N(z - b; ||p_a - p_b||, sigma^2) + eps / R
+    p(r) = (1 - eps) N(r; 0, sigma^2) + eps / R
 
-with ``b`` the pair's bias, ``eps`` the outlier fraction and ``R`` the support of the
-outliers. The uniform floor bounds the damage one spike can do to a good particle. When the
-bias is estimated online, each particle holds a Gaussian belief ``N(mu, v)`` about it and the
+with ``eps`` the outlier fraction and ``R`` the support of the outliers. The uniform floor
+bounds the damage one spike can do to a good particle.
+
+A time-of-flight range can only be *too long* when the direct path is blocked: the signal that
+arrives first took a detour. The *NLOS-aware* model (``nlos_fraction > 0``) adds that one-sided
+component: a line-of-sight range has Gaussian noise; a non-line-of-sight one has, on top, a
+positive excess delay ``e ~ |N(0, sigma_n^2)|`` (half-normal), so its residual is skew-normal::
+
+    p(r) = (1 - eps_n - eps) N(r; 0, sigma^2) + eps_n SN(r; sigma, sigma_n) + eps / R
+    SN(r; sigma, sigma_n) = 2/w phi(r/w) Phi(alpha r/w),  w^2 = sigma^2 + sigma_n^2,
+                                                           alpha = sigma_n / sigma
+
+(``Phi`` by its logistic approximation ``1 / (1 + exp(-1.702 x))``, within 0.01). Fitted by
+maximum likelihood to the 7 238 distinct rows of the TIERS training table (per-pair median
+removed), the residuals give sigma 0.077 m, sigma_n 0.28 m, eps_n 0.09 and no need of a
+uniform part, 700 nats better than the best symmetric mixture (Gaussian 0.088 m + 2 % uniform):
+the errors are skewed (1st percentile -0.22 m, 99th +0.50 m). A run of long ranges is thus
+explained as a blocked path rather than pulling the particles 0.3 m apart, while a range that
+is too *short* stays as informative as the line-of-sight noise says.
+
+When the bias is estimated online, each particle holds a Gaussian belief ``N(mu, v)`` about it and the
 range likelihood marginalises it: ``N(z - mu; ||p_a - p_b||, sigma^2 + v)``; after the weights
 are updated, ``RangeBatch.kalman_update`` updates ``mu, v`` (a scalar Kalman filter per
-particle and pair).
+particle and pair), weighting each range by the probability that it is line-of-sight.
 """
 
 from __future__ import annotations
@@ -55,6 +74,29 @@ def _robust_gaussian_loglik(residual: FloatArray, sigma: FloatArray, eps: float,
     return z
 
 
+_LOGISTIC_PROBIT = 1.702
+"""``Phi(x) ~ 1 / (1 + exp(-1.702 x))``: the logistic approximation of the normal CDF."""
+
+
+def _range_mixture(
+    residual: FloatArray, sigma: FloatArray, eps: float, support: float, nlos_fraction: float, nlos_sigma: float
+) -> tuple[FloatArray, FloatArray]:
+    """Line-of-sight density and total density of the NLOS-aware mixture (module docstring),
+    elementwise; ``sigma`` broadcasts against ``residual``."""
+    z = residual / sigma
+    los = np.exp(-0.5 * z * z)
+    los *= (1.0 - nlos_fraction - eps) / (sigma * np.sqrt(2.0 * np.pi))
+    w = np.sqrt(sigma * sigma + nlos_sigma * nlos_sigma)
+    u = residual / w
+    nlos = np.exp(-0.5 * u * u)
+    # (2 / w) phi(u) Phi(alpha u), Phi by the logistic approximation
+    nlos *= 2.0 * nlos_fraction / (w * np.sqrt(2.0 * np.pi))
+    nlos /= 1.0 + np.exp(-_LOGISTIC_PROBIT * (nlos_sigma / sigma) * u)
+    total = los + nlos
+    total += eps / support
+    return los, total
+
+
 @dataclass(frozen=True)
 class RangeBatch:
     """``K`` ranges between robots ``index_a[k]`` and ``index_b[k]`` (indices into the team).
@@ -74,6 +116,11 @@ class RangeBatch:
     bias_columns: IntArray | None = None
     """Per range, the state column of the particle's bias mean (the variance is the next
     column), or -1 where the bias is the fixed ``bias``; ``None``: all fixed."""
+    nlos_fraction: float = 0.0
+    """Weight of the non-line-of-sight (one-sided, too long) component; 0: the symmetric
+    Gaussian-plus-uniform model. ``sigma`` is then the line-of-sight noise."""
+    nlos_sigma: float = 0.3
+    """Scale of the NLOS excess delay (half-normal, m)."""
 
     def __len__(self) -> int:
         return len(self.distance)
@@ -106,8 +153,12 @@ class RangeBatch:
         r, s = residual[online], sigma[online]
         cols = self.bias_columns[online]
         var = particles[:, cols + 1].T  # (K', M)
-        gauss = (1.0 - self.outlier_fraction) * np.exp(-0.5 * (r / s) ** 2) / (s * np.sqrt(2.0 * np.pi))
-        inlier = gauss / (gauss + self.outlier_fraction / self.max_range)
+        if self.nlos_fraction > 0.0:
+            los, total = _range_mixture(r, s, self.outlier_fraction, self.max_range, self.nlos_fraction, self.nlos_sigma)
+            inlier = los / total
+        else:
+            gauss = (1.0 - self.outlier_fraction) * np.exp(-0.5 * (r / s) ** 2) / (s * np.sqrt(2.0 * np.pi))
+            inlier = gauss / (gauss + self.outlier_fraction / self.max_range)
         gain = inlier * var / (s * s)
         particles[:, cols] += (gain * r).T
         particles[:, cols + 1] = ((1.0 - gain) * var).T
@@ -120,6 +171,11 @@ class RangeBatch:
 
     def log_likelihood(self, positions: FloatArray, particles: FloatArray | None = None) -> FloatArray:
         residual, sigma = self._residual_and_sigma(positions, particles)
+        if self.nlos_fraction > 0.0:
+            _, total = _range_mixture(
+                residual, sigma, self.outlier_fraction, self.max_range, self.nlos_fraction, self.nlos_sigma
+            )
+            return np.log(total).sum(axis=0)
         ll = _robust_gaussian_loglik(residual, sigma, self.outlier_fraction, self.max_range)
         return ll.sum(axis=0)
 
