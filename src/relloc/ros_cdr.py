@@ -22,7 +22,13 @@ from __future__ import annotations
 import math
 import struct
 
-__all__ = ["decode_odometry", "decode_range", "encode_pose_with_covariance_stamped"]
+__all__ = [
+    "decode_odometry",
+    "decode_range",
+    "encode_pose_with_covariance_stamped",
+    "split_stamp",
+    "yaw_from_xyzw",
+]
 
 _ENCAPSULATION = {b"\x00\x01": "<", b"\x00\x00": ">"}  # CDR_LE, CDR_BE
 
@@ -34,6 +40,21 @@ _ODOM_BODY = {e: struct.Struct(e + "85d") for e in "<>"}
 # sensor_msgs/Range after the header: radiation_type (uint8), then, aligned to 4,
 # field_of_view, min_range, max_range, range (float32).
 _RANGE_FLOATS = {e: struct.Struct(e + "4f") for e in "<>"}
+
+
+def split_stamp(t: float) -> tuple[int, int]:
+    """Float seconds as a ROS ``(sec, nanosec)`` stamp: nanoseconds rounded, carried."""
+    sec = math.floor(t)
+    nanosec = round((t - sec) * 1e9)
+    if nanosec >= 1_000_000_000:
+        sec, nanosec = sec + 1, nanosec - 1_000_000_000
+    return int(sec), int(nanosec)
+
+
+def yaw_from_xyzw(x: float, y: float, z: float, w: float) -> float:
+    """Yaw (rad, z-y-x Euler convention) of the quaternion ``(x, y, z, w)``: small roll and
+    pitch of a robot on uneven floor do not leak into it."""
+    return math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
 
 
 def _string_end(raw: bytes, pos: int, endian: str) -> int | None:
@@ -82,9 +103,7 @@ def decode_odometry(raw: bytes) -> tuple[float, float, float, float, float, floa
     if pos + body.size != len(raw):
         return None
     f = body.unpack_from(raw, pos)
-    qx, qy, qz, qw = f[3:7]
-    yaw = math.atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz))
-    return stamp, f[0], f[1], yaw, f[43], f[48]
+    return stamp, f[0], f[1], yaw_from_xyzw(*f[3:7]), f[43], f[48]
 
 
 def decode_range(raw: bytes) -> tuple[float, float] | None:
@@ -106,17 +125,13 @@ def encode_pose_with_covariance_stamped(
 ) -> bytes:
     """``geometry_msgs/PoseWithCovarianceStamped`` as little-endian CDR.
 
-    ``covariance`` is the row-major 6x6 (36 values). The stamp is ``t`` split into whole
-    seconds and rounded nanoseconds, as :func:`relloc.ros_messages.time_msg` does.
+    ``covariance`` is the row-major 6x6 (36 values); the stamp is :func:`split_stamp` of ``t``.
     """
     if len(covariance) != 36:
         raise ValueError(f"covariance needs 36 values, got {len(covariance)}")
-    sec = math.floor(t)
-    nanosec = round((t - sec) * 1e9)
-    if nanosec >= 1_000_000_000:
-        sec, nanosec = sec + 1, nanosec - 1_000_000_000
+    sec, nanosec = split_stamp(t)
     name = frame_id.encode() + b"\x00"
-    head = b"\x00\x01\x00\x00" + struct.pack("<iII", int(sec), int(nanosec), len(name)) + name
+    head = b"\x00\x01\x00\x00" + struct.pack("<iII", sec, nanosec, len(name)) + name
     head += bytes(-(len(head) - 4) % 8)
     half = yaw / 2.0
     pose = struct.pack("<7d", x, y, 0.0, 0.0, 0.0, math.sin(half), math.cos(half))

@@ -47,6 +47,7 @@ from relloc.events import (
     OdometryEvent,
     RangeEvent,
 )
+from relloc.ros_cdr import split_stamp, yaw_from_xyzw
 
 __all__ = [
     "MSG_DIR",
@@ -165,11 +166,8 @@ def stamp_to_sec(stamp: Any) -> float:
 
 def time_msg(t: float) -> Any:
     """Float seconds as a ``builtin_interfaces/msg/Time`` (nanoseconds rounded, carried)."""
-    sec = math.floor(t)
-    nanosec = round((t - sec) * 1e9)
-    if nanosec >= 1_000_000_000:
-        sec, nanosec = sec + 1, nanosec - 1_000_000_000
-    return typestore().types["builtin_interfaces/msg/Time"](sec=int(sec), nanosec=int(nanosec))
+    sec, nanosec = split_stamp(t)
+    return typestore().types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
 
 
 def _header(t: float, frame_id: str) -> Any:
@@ -182,7 +180,7 @@ def yaw_from_quaternion(q: Any) -> float:
     Uses the z-y-x Euler convention, so small roll/pitch of a robot on uneven floor does not
     leak into the heading.
     """
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+    return yaw_from_xyzw(q.x, q.y, q.z, q.w)
 
 
 def quaternion_from_yaw(yaw: float) -> Any:
