@@ -90,6 +90,7 @@ from numpy.typing import NDArray
 from scipy.special import i0e, i1e
 
 from relloc.filter.resampling import ess, log_normalize, systematic_resample
+from relloc.filter.state import TeamLayout
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -104,11 +105,9 @@ def _rotation_jacobian(d: FloatArray) -> FloatArray:
 
 
 @dataclass(frozen=True)
-class CalibrationLayout:
-    """Robots, reference, which calibration blocks are estimated, and their state columns."""
+class CalibrationLayout(TeamLayout):
+    """Which calibration blocks are estimated, and their state columns."""
 
-    robots: tuple[str, ...]
-    reference: str
     heading: bool = False
     """Estimate each non-reference robot's odometry-frame rotation (with its scale, as ``u``)."""
     scale: bool = False
@@ -123,20 +122,6 @@ class CalibrationLayout:
     heading-dependent part of the UWB error (antenna pattern, body occlusion), which a white
     range noise cannot: without it that error moves the bias estimate (through its random
     walk) or the positions. The published bias is the constant part."""
-
-    def __post_init__(self) -> None:
-        if self.reference not in self.robots:
-            raise ValueError(f"reference {self.reference!r} is not one of {self.robots}")
-        if len(self.robots) < 2:
-            raise ValueError("a team needs at least two robots")
-
-    @property
-    def others(self) -> tuple[str, ...]:
-        return tuple(r for r in self.robots if r != self.reference)
-
-    @property
-    def n_others(self) -> int:
-        return len(self.robots) - 1
 
     @property
     def dim(self) -> int:
@@ -175,12 +160,6 @@ class CalibrationLayout:
     @property
     def width(self) -> int:
         return self.colored_start + (len(self.bias_pairs) if self.colored_bias else 0)
-
-    def index(self, robot: str) -> int:
-        try:
-            return self.robots.index(robot)
-        except ValueError:
-            raise KeyError(f"unknown robot {robot!r}") from None
 
     def slot(self, robot: str) -> int:
         """Position of ``robot`` among the non-reference robots (-1 for the reference)."""

@@ -28,13 +28,11 @@ FloatArray = NDArray[np.float64]
 
 
 @dataclass(frozen=True)
-class StateLayout:
-    """Robots of the team, the reference robot, and the column blocks of the particle state."""
+class TeamLayout:
+    """Robots of the team and the reference robot: what every filter's state layout shares."""
 
     robots: tuple[str, ...]
     reference: str
-    bias_pairs: tuple[str, ...] = ()
-    """Node pairs (``"n_3-n_7"``) whose range bias is estimated online, in column order."""
 
     def __post_init__(self) -> None:
         if self.reference not in self.robots:
@@ -44,8 +42,27 @@ class StateLayout:
 
     @property
     def others(self) -> tuple[str, ...]:
-        """The robots whose positions are in the state, in state order."""
+        """The non-reference robots, whose positions are in the state, in state order."""
         return tuple(r for r in self.robots if r != self.reference)
+
+    @property
+    def n_others(self) -> int:
+        return len(self.robots) - 1
+
+    def index(self, robot: str) -> int:
+        """Index of ``robot`` in :attr:`robots` (the reference included)."""
+        try:
+            return self.robots.index(robot)
+        except ValueError:
+            raise KeyError(f"unknown robot {robot!r}") from None
+
+
+@dataclass(frozen=True)
+class StateLayout(TeamLayout):
+    """The column blocks of the sampled filter's particle state."""
+
+    bias_pairs: tuple[str, ...] = ()
+    """Node pairs (``"n_3-n_7"``) whose range bias is estimated online, in column order."""
 
     @property
     def dim(self) -> int:
@@ -60,13 +77,6 @@ class StateLayout:
         """Columns (mean, variance) of ``pair``'s online bias belief."""
         k = self.bias_pairs.index(pair)
         return self.dim + 2 * k, self.dim + 2 * k + 1
-
-    def index(self, robot: str) -> int:
-        """Index of ``robot`` in :attr:`robots` (the reference included)."""
-        try:
-            return self.robots.index(robot)
-        except ValueError:
-            raise KeyError(f"unknown robot {robot!r}") from None
 
     def columns(self, robot: str) -> slice:
         """Columns of ``robot``'s relative position (the reference has none)."""
