@@ -95,56 +95,67 @@ def write_team(tmp: Path, particles: int = 4000) -> Path:
     return team
 
 
+def start_sim_robots(tmp: Path, team: Path, port: int) -> subprocess.Popen[bytes]:
+    """``relloc sim-robots`` for the nav scenario at twice real time, listening on ``port``,
+    writing its truth to ``tmp/sim.json``."""
+    return relloc(
+        "sim-robots",
+        "--scenario",
+        "nav",
+        "--config",
+        str(team),
+        "--rate",
+        "2",
+        "--duration",
+        "120",
+        "--json",
+        str(tmp / "sim.json"),
+        *zenoh_args(listen=port),
+        log=tmp / "sim.log",
+    )
+
+
+def start_navigate(tmp: Path, team: Path, port: int, *extra: str) -> subprocess.Popen[bytes]:
+    """``relloc navigate`` of r2 along the small rectangle for 50 s at twice real time,
+    connecting to ``port``, writing its summary to ``tmp/nav.json``."""
+    return relloc(
+        "navigate",
+        "--config",
+        str(team),
+        "--robot",
+        "r2",
+        "--path",
+        str(SMALL),
+        *extra,
+        "--clock-rate",
+        "2",
+        "--duration",
+        "50",
+        "--json",
+        str(tmp / "nav.json"),
+        *zenoh_args(connect=port),
+        log=tmp / "nav.log",
+    )
+
+
 @pytest.mark.slow
 def test_sim_robots_serve_and_navigate_drive_a_small_rectangle_over_zenoh(tmp_path: Path) -> None:
     team = write_team(tmp_path)
     port = free_tcp_port()
-    rate = "2"
     procs = []
     try:
-        sim = relloc(
-            "sim-robots",
-            "--scenario",
-            "nav",
-            "--config",
-            str(team),
-            "--rate",
-            rate,
-            "--duration",
-            "120",
-            "--json",
-            str(tmp_path / "sim.json"),
-            *zenoh_args(listen=port),
-            log=tmp_path / "sim.log",
-        )
-        procs.append(sim)
+        procs.append(start_sim_robots(tmp_path, team, port))
         serve = relloc(
             "serve",
             "--config",
             str(team),
             "--clock-rate",
-            rate,
+            "2",
             *zenoh_args(connect=port),
             log=tmp_path / "serve.log",
         )
         procs.append(serve)
-        nav = relloc(
-            "navigate",
-            "--config",
-            str(team),
-            "--robot",
-            "r2",
-            "--path",
-            str(SMALL),
-            "--clock-rate",
-            rate,
-            "--duration",
-            "50",
-            "--json",
-            str(tmp_path / "nav.json"),
-            *zenoh_args(connect=port),
-            log=tmp_path / "nav.log",
-        )
+        nav = start_navigate(tmp_path, team, port)
         procs.append(nav)
         try:
             code = nav.wait(timeout=75)
@@ -264,40 +275,8 @@ def test_navigate_in_process_without_serve(tmp_path: Path) -> None:
     port = free_tcp_port()
     procs = []
     try:
-        sim = relloc(
-            "sim-robots",
-            "--scenario",
-            "nav",
-            "--config",
-            str(team),
-            "--rate",
-            "2",
-            "--duration",
-            "120",
-            "--json",
-            str(tmp_path / "sim.json"),
-            *zenoh_args(listen=port),
-            log=tmp_path / "sim.log",
-        )
-        procs.append(sim)
-        nav = relloc(
-            "navigate",
-            "--config",
-            str(team),
-            "--robot",
-            "r2",
-            "--path",
-            str(SMALL),
-            "--in-process",
-            "--clock-rate",
-            "2",
-            "--duration",
-            "50",
-            "--json",
-            str(tmp_path / "nav.json"),
-            *zenoh_args(connect=port),
-            log=tmp_path / "nav.log",
-        )
+        procs.append(start_sim_robots(tmp_path, team, port))
+        nav = start_navigate(tmp_path, team, port, "--in-process")
         procs.append(nav)
         code = nav.wait(timeout=75)
         assert code == 0, (tmp_path / "nav.log").read_text() + (tmp_path / "sim.log").read_text()
