@@ -56,3 +56,21 @@ def test_demo_is_reproducible(tmp_path: Path) -> None:
               "--out", str(tmp_path / f"o{k}"), "--no-progress"])
         figures.append(json.loads(path.read_text())["scenarios"]["single"]["methods"]["pf"])
     assert figures[0]["robots"] == figures[1]["robots"]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["demo", "--seed", "-1"], "--seed: must be >= 0"),
+        (["demo", "--particles", "0"], "--particles: must be >= 1"),
+        (["demo", "--scenarios", "multi,bogus"], "unknown scenario 'bogus'"),
+        (["serve", "--config", "x.toml", "--duration", "nan"], "--duration: must be a finite number"),
+    ],
+)
+def test_bad_arguments_are_one_line_errors(args: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
+    try:
+        code = main(args)
+    except SystemExit as exc:  # argparse's usage error
+        code = exc.code
+    assert code == 2
+    assert message in capsys.readouterr().err

@@ -122,3 +122,106 @@ def test_multilateration_rejects_the_same_bad_input() -> None:
     loc = MultilaterationLocalizer(sim.config)
     loc.process(RangeEvent(1.0, "r0", "r1", math.nan))
     assert loc.rejected == {"invalid_range": 1}
+
+
+def _feed(loc, events):
+    out = []
+    for ev in events:
+        if not isinstance(ev, GroundTruthEvent):
+            out += loc.process(ev)
+    return out
+
+
+def test_one_far_future_stamp_is_rejected_and_does_not_freeze_the_filter() -> None:
+    """A corrupted stamp (a range or an odometry message 1e6 s ahead) is rejected as a time
+    jump; the filter goes on emitting estimates and every robot keeps its odometry."""
+    sim, loc = _team_localizer()
+    events = [e for e in sim.events() if not isinstance(e, GroundTruthEvent)]
+    half = len(events) // 2
+    before = _feed(loc, events[:half])
+    t = events[half].t
+    assert loc.process(RangeEvent(t + 1e6, "r0", "r1", 2.0, "n_0", "n_1")) == []
+    assert loc.process(OdometryEvent(t + 1e6, "r1", 0.0, 0.0, 0.0)) == []
+    after = _feed(loc, events[half:])
+    assert loc.rejected.get("time_jump") == 2
+    assert len(after) >= 0.8 * len(before) * (len(events) - half) / half
+    assert max(e.t for e in after) < t + 10.0
+    assert "out_of_order_odometry" not in loc.rejected
+
+
+def test_a_real_gap_costs_two_events_then_the_clock_jumps() -> None:
+    _, loc = _team_localizer()
+    loc.process(OdometryEvent(1.0, "r0", 0.0, 0.0, 0.0))
+    loc.process(OdometryEvent(100.0, "r0", 0.0, 0.0, 0.0))
+    loc.process(OdometryEvent(100.1, "r1", 0.0, 0.0, 0.0))
+    assert loc.rejected == {"time_jump": 2}
+    loc.process(OdometryEvent(100.2, "r0", 0.0, 0.0, 0.0))
+    loc.process(OdometryEvent(100.3, "r1", 0.0, 0.0, 0.0))
+    assert loc.rejected == {"time_jump": 2}
+    assert loc.stats["odometry"] == 3
+
+
+def test_a_measurement_older_than_the_fused_batch_is_late_and_time_never_goes_back() -> None:
+    sim, loc = _team_localizer()
+    _feed(loc, sim.events())
+    loc.flush()
+    t = loc.t
+    assert loc.process(RangeEvent(t - 0.01, "r0", "r1", 2.0, "n_0", "n_1")) == []
+    loc.flush()
+    assert loc.rejected.get("late_measurement") == 1
+    assert loc.t == t and loc.last_estimate is not None and loc.last_estimate.t <= t
+
+
+def test_an_estimate_per_batch_despite_jittered_batch_times() -> None:
+    """Three pairs ranging at 10 Hz with 10 ms of jitter: batches on the 0.1 s grid, stamped
+    with their newest range, give an estimate every 0.1 s on average (not about 7 Hz), never
+    two within half a period."""
+    from relloc.config import RobotConfig, TeamConfig
+
+    config = TeamConfig(tuple(RobotConfig(r, uwb_node=f"n{i}") for i, r in enumerate("abc")), "a")
+    loc = MultilaterationLocalizer(config)
+    where = {"a": (0.0, 0.0), "b": (3.0, 0.0), "c": (0.0, 2.0)}
+    rng = np.random.default_rng(0)
+    events = []
+    for x, y in (("a", "b"), ("a", "c"), ("b", "c")):
+        for t in np.arange(rng.uniform(0.0, 0.1), 20.0, 0.1) + rng.normal(0.0, 0.01, 200):
+            events.append(RangeEvent(float(t), x, y, math.dist(where[x], where[y]) + rng.normal(0.0, 0.01)))
+    estimates = _feed(loc, sorted(events, key=lambda e: e.t))
+    times = np.array([e.t for e in estimates])
+    assert len(times) >= 0.97 * 200
+    assert np.min(np.diff(times)) >= 0.05 - 1e-9
+
+
+def test_online_bias_rejects_a_node_pair_it_has_no_state_for() -> None:
+    sim = single_scenario(seed=0, duration=5.0)
+    config = sim.config.with_filter(particles=500, bias_mode="online")
+    loc = ParticleFilterLocalizer(config, seed=0)
+    _feed(loc, sim.events())
+    assert loc.process(RangeEvent(loc.t + 0.5, "r0", "r1", 3.3, "n_9", "n_1")) == []
+    assert loc.rejected.get("unknown_node_pair") == 1
+    loc.flush()
+
+
+def test_self_observations_and_non_numbers_are_rejected() -> None:
+    _, loc = _team_localizer()
+    loc.process(RelativeObservation(1.0, "r0", "r0", 1.0, 0.0, 0.1))
+    loc.process(RangeEvent(1.0, "r0", "r1", "2.0", "n_0", "n_1"))  # type: ignore[arg-type]
+    loc.process(RangeEvent(1.0, "r0", "r1", 0.0, "n_0", "n_1"))
+    loc.process("hello")  # type: ignore[arg-type]
+    assert loc.rejected == {"self_observation": 1, "invalid_range": 2, "unknown_event_type": 1}
+
+
+def test_a_calibrated_range_scale_is_applied_to_range_bias_and_sigma() -> None:
+    """``measured = scale * true + bias``: every consumer sees ``(measured - bias) / scale``."""
+    from dataclasses import replace
+
+    from relloc.config import PairCalibration
+
+    sim = single_scenario(seed=0, duration=5.0)
+    uwb = replace(sim.config.uwb, pairs={"n_0-n_1": PairCalibration(bias=0.3, scale=1.1, sigma=0.11)})
+    loc = ParticleFilterLocalizer(replace(sim.config, uwb=uwb).with_filter(particles=500), seed=0)
+    _, dist, bias, sigma, keys = loc._pair_ranges([RangeEvent(1.0, "r0", "r1", 5.8, "n_0", "n_1")])
+    true = (dist - bias)[0]
+    assert true == pytest.approx((5.8 - 0.3) / 1.1)
+    assert sigma[0] == pytest.approx(0.11 / 1.1)
+    assert loc._los_sigmas(keys)[0] == pytest.approx(0.11 / 1.1)

@@ -337,3 +337,43 @@ def test_model_dir_errors(tmp_path: Path) -> None:
     (d / "n_3-n_7.onnx").unlink()
     with pytest.raises(ModelDirError, match="missing"):
         read_manifest(d)
+
+
+def test_corrector_passes_the_raw_range_when_the_model_answers_nan_or_inf(tmp_path: Path) -> None:
+    from relloc.stages.range_correction import RangeCorrector
+
+    d = known_model_dir(tmp_path / "m", n_steps=1)
+    (d / "n_3-n_7.onnx").write_bytes(known_onnx(1, scale=math.inf))  # inf * yaw: inf, or NaN at 0
+    c = RangeCorrector.from_dir(d, yaw_provider=lambda robot, t: 3.0)
+    out = c.correct(rng_ev(0.0, 4.0))
+    assert not out.corrected and out.distance == 4.0
+    assert c.stats["model_nonfinite"] == 1
+
+
+@pytest.mark.parametrize(
+    ("change", "message"),
+    [
+        ({"error_min": 1.0, "error_max": -1.0}, "error_min 1.0 must be below error_max -1.0"),
+        ({"n_steps": 5}, r"not \(B, 5, 3\)"),
+        ({"n_steps": "ten"}, "malformed manifest"),
+        ({"pairs": []}, "must map each node pair"),
+        ({"pairs": {}}, "lists no pair"),
+        ({"garbage": True}, "onnxruntime cannot load it"),
+    ],
+)
+def test_a_model_directory_that_cannot_serve_is_one_clear_error(
+    tmp_path: Path, change: dict, message: str
+) -> None:
+    from relloc.ranging.inference import ModelSet
+
+    d = known_model_dir(tmp_path / "m", n_steps=3)
+    manifest = json.loads((d / "manifest.json").read_text())
+    if change.pop("garbage", False):
+        (d / "n_3-n_7.onnx").write_bytes(b"not a model")
+    for key in ("error_min", "error_max"):
+        if key in change:
+            manifest["pairs"]["n_3-n_7"][key] = change.pop(key)
+    manifest.update(change)
+    (d / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(ModelDirError, match=message):
+        ModelSet.load(d)

@@ -386,3 +386,18 @@ def test_configured_offsets_are_only_an_optional_prior() -> None:
     # ... while without the prior the same config's offsets are not read at all
     untold = sim.config.with_modes(heading="estimate").with_filter(selfcal_particles=300, selfcal_init_particles=5000)
     assert _run(sim, untold, seed=4).pipelines[0].estimates[0].headings["b"][1] > math.radians(90.0)
+
+
+def test_a_heading_prior_holds_the_scale_once() -> None:
+    """A configured heading offset as prior already carries the scale prior radially: the
+    ``|u|`` pseudo-measurement is not applied a second time (it would shrink the radial std
+    from 0.15 to 0.11 with no data)."""
+    layout = CalibrationLayout(("a", "b"), "a", heading=True, scale=True)
+    gsf = GaussianSumFilter(
+        layout, 4, (-4, 4, -4, 4), rng=np.random.default_rng(0), heading_prior={"b": (0.3, 0.05)}
+    )
+    assert gsf.magnitude_done.all()
+    assert gsf.apply_magnitude_priors(np.ones(1)) == 0
+    c0, c1 = layout.u_columns("b")
+    r = np.array([math.cos(0.3), math.sin(0.3)])
+    assert math.sqrt(r @ gsf.cov[0, c0 : c1 + 1, c0 : c1 + 1] @ r) == pytest.approx(0.15)

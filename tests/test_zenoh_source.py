@@ -107,9 +107,11 @@ def test_malformed_payloads_are_rejected_counted_and_do_not_stop_the_source() ->
     src.handle("a/odom", b"", T0)
     assert src.stats.rejected["decode_error"] == 4
     src.handle("a/odom", good, T0 + 0.1)
+    src.handle("a/odom", memoryview(odom_payload("a", T0 + 0.2)), T0 + 0.2)  # other transports
+    src.handle("a/odom", bytearray(odom_payload("a", T0 + 0.3)), T0 + 0.3)
     out = src.flush()
-    assert [type(a.event) for a in out] == [OdometryEvent]
-    assert src.stats.events == {"odometry": 1}
+    assert [type(a.event) for a in out] == [OdometryEvent] * 3
+    assert src.stats.events == {"odometry": 3}
 
 
 def test_unknown_keys_and_bad_values_are_counted() -> None:

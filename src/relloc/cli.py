@@ -13,7 +13,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from relloc import __version__
+from relloc import __version__, argtypes
 
 
 class UserError(Exception):
@@ -21,9 +21,13 @@ class UserError(Exception):
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from relloc.demo import DemoOptions, run_demo
+    from relloc.demo import SCENARIOS, DemoOptions, run_demo
     from relloc.methods import parse_methods
 
+    known = [*SCENARIOS, "nav"]
+    for name in args.scenarios.split(","):
+        if name not in known:
+            raise UserError(f"unknown scenario {name!r}; known: {', '.join(known)}")
     opts = DemoOptions(
         seed=args.seed,
         warmup=args.warmup,
@@ -96,9 +100,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     demo = sub.add_parser("demo", help="run the simulated scenarios with every method")
-    demo.add_argument("--seed", type=int, default=0)
+    demo.add_argument("--seed", type=argtypes.seed, default=0)
     demo.add_argument("--warmup", type=float, default=10.0, help="seconds excluded from APE")
-    demo.add_argument("--particles", type=int, default=None, help="override the particle count")
+    demo.add_argument("--particles", type=argtypes.count, default=None, help="override the particle count")
     demo.add_argument("--methods", default="pf,multilateration")
     demo.add_argument("--scenarios", default="multi,single,nav")
     demo.add_argument("--out", default="out/demo", help="folder for plots")
@@ -111,9 +115,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("bag", help="bag folder (metadata.yaml) or .db3/.mcap file")
     run.add_argument("--config", required=True, help="team config (TOML), e.g. configs/tiers/...")
     run.add_argument("--methods", default="pf,multilateration")
-    run.add_argument("--seed", type=int, default=0)
+    run.add_argument("--seed", type=argtypes.seed, default=0)
     run.add_argument("--warmup", type=float, default=5.0, help="seconds excluded from APE")
-    run.add_argument("--particles", type=int, default=None)
+    run.add_argument("--particles", type=argtypes.count, default=None)
     run.add_argument("--models", default=None, help="trained range-error models (for pf_ul)")
     run.add_argument("--out", default=None, help="folder for plots and TUM trajectories")
     run.add_argument("--json", default=None, metavar="FILE")
@@ -181,9 +185,10 @@ def _is_user_error(exc: Exception) -> bool:
     from relloc.calibration import CalibrationError
     from relloc.config import ConfigError
     from relloc.methods import MethodError
+    from relloc.ranging.manifest import ModelDirError
     from relloc.sources.rosbag import BagError
 
-    known = (UserError, ConfigError, MethodError, BagError, CalibrationError, FileNotFoundError)
+    known = (UserError, ConfigError, MethodError, BagError, CalibrationError, ModelDirError, FileNotFoundError)
     return isinstance(exc, known)
 
 

@@ -34,7 +34,8 @@ import math
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
-from typing import Any, Literal
+from types import UnionType
+from typing import Any, Literal, get_args, get_origin, get_type_hints
 
 from relloc.events import pair_key
 
@@ -98,6 +99,12 @@ class PairCalibration:
     """Range noise for this pair; ``None`` uses the filter's ``sigma_uwb``."""
     source: str = ""
     """Which recording this calibration was estimated from."""
+
+    def __post_init__(self) -> None:
+        if not self.scale > 0.0:
+            raise ConfigError(f"a pair's range scale must be > 0, got {self.scale}")
+        if self.sigma is not None and not self.sigma > 0.0:
+            raise ConfigError(f"a pair's sigma must be > 0, got {self.sigma}")
 
 
 @dataclass(frozen=True)
@@ -197,13 +204,16 @@ class FilterConfig:
     """Estimates are emitted at this period (s)."""
     init_window: float = 0.5
     """Collect ranges for this long before the first (annealed) update (s)."""
-    anneal_steps: int = 12
     mcmc_steps: int = 3
     spread_rotations: bool = True
     """After the annealed start, spread particles over rotations/reflections about the reference
     (exact while only ranges have been seen); odometry motion then selects the right one."""
     max_odom_extrapolation: float = 0.5
     """How far past a robot's last odometry message its motion is extrapolated (s)."""
+    max_time_jump: float = 5.0
+    """An event stamped more than this (s) after the newest accepted one is rejected
+    (``time_jump``) unless three events in a row agree on the new time: one corrupted stamp
+    must not drag the filter's clock away; a real gap in a recording costs two events."""
     # Cooperative detections (relloc.stages.association, methods pf_uv / pf_ulv).
     detection_window: float = 0.1
     """Detections of two robots are paired when their capture times differ by at most this (s)."""
@@ -256,6 +266,41 @@ class FilterConfig:
     selfcal_position_sigma: float = 0.2
     """Initial position standard deviation of each Gaussian after the annealed start (m)."""
 
+    def __post_init__(self) -> None:
+        """Reject values no filter can run with (a typo must not become a silent NaN)."""
+        for name in ("particles", "selfcal_particles", "selfcal_init_particles"):
+            if getattr(self, name) < 1:
+                raise ConfigError(f"filter.{name} must be >= 1, got {getattr(self, name)}")
+        positive = (
+            "los_sigma", "nlos_sigma", "sigma_uwb", "sigma_det", "max_range", "update_period",
+            "estimate_period", "selfcal_position_sigma", "scale_prior_sigma",
+        )
+        for name in positive:
+            if not getattr(self, name) > 0.0:
+                raise ConfigError(f"filter.{name} must be > 0, got {getattr(self, name)}")
+        non_negative = (
+            "odom_noise_per_m", "odom_noise_per_rad", "process_noise", "rotation_noise",
+            "rotation_kernel_max_spread", "bias_prior_sigma", "bias_prior_sigma_uncalibrated",
+            "bias_walk", "init_window", "mcmc_steps", "max_odom_extrapolation", "detection_window",
+            "max_time_jump",
+            "d_th", "det_sigma_per_m", "det_converged_std", "det_gate_sigmas", "det_range_gate",
+            "det_range_max_age", "det_heading_drift", "heading_walk", "reference_heading_walk",
+            "heading_prior_sigma_deg", "scale_walk",
+        )
+        for name in non_negative:
+            if not getattr(self, name) >= 0.0:
+                raise ConfigError(f"filter.{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("nlos_fraction", "gross_fraction", "outlier_fraction", "reinject_fraction"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ConfigError(f"filter.{name} must be in [0, 1), got {getattr(self, name)}")
+        for name in ("ess_threshold", "rotation_kernel"):
+            if not 0.0 <= getattr(self, name) <= 1.0:
+                raise ConfigError(f"filter.{name} must be in [0, 1], got {getattr(self, name)}")
+        if self.nlos_fraction + self.gross_fraction >= 1.0:
+            raise ConfigError(
+                f"filter.nlos_fraction + gross_fraction must be < 1, got {self.nlos_fraction} + "
+                f"{self.gross_fraction}"
+            )
 
 @dataclass(frozen=True)
 class TeamConfig:
@@ -281,7 +326,7 @@ class TeamConfig:
         if self.reference not in names:
             raise ConfigError(f"reference robot {self.reference!r} is not one of {names}")
         xmin, xmax, ymin, ymax = self.area
-        if not (xmin < xmax and ymin < ymax):
+        if not all(map(math.isfinite, self.area)) or not (xmin < xmax and ymin < ymax):
             raise ConfigError(f"area must be [xmin, xmax, ymin, ymax] with min < max: {self.area}")
         nodes = [r.uwb_node for r in self.robots if r.uwb_node]
         if len(set(nodes)) != len(nodes):
@@ -383,12 +428,16 @@ class TeamConfig:
                 data = tomllib.load(fh)
         except FileNotFoundError:
             raise ConfigError(f"config file not found: {path}") from None
+        except OSError as exc:
+            raise ConfigError(f"cannot read config {path}: {exc}") from None
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{path}: not valid TOML: {exc}") from None
         try:
             return cls.from_dict(data)
         except ConfigError as exc:
             raise ConfigError(f"{path}: {exc}") from None
+        except (TypeError, ValueError, AttributeError) as exc:  # a table where a value belongs, ...
+            raise ConfigError(f"{path}: malformed config ({type(exc).__name__}: {exc})") from None
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -419,21 +468,36 @@ def with_numeric_overrides(obj: Any, overrides: dict[str, Any], where: str) -> A
 
 
 def _build(cls: type, raw: dict[str, Any], where: str) -> Any:
+    """``cls(**raw)`` with every value checked against its annotation first (numbers finite,
+    integers integral, booleans real booleans, ``Literal`` choices spelled right), so that a
+    typo is a :class:`ConfigError` naming the key, never a silent default."""
     known = {f.name for f in fields(cls)}
     unknown = set(raw) - known
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; known: {sorted(known)}")
+    hints = get_type_hints(cls)
+    for name, value in raw.items():
+        _check_value(hints[name], value, f"{where}.{name}")
     try:
-        obj = cls(**raw)
+        return cls(**raw)
     except TypeError as exc:
         raise ConfigError(f"{where}: {exc}") from None
-    for f in fields(cls):
-        value = getattr(obj, f.name)
-        if f.type in ("float", "int") and not isinstance(value, int | float):
-            raise ConfigError(f"{where}.{f.name}: expected a number, got {value!r}")
-        if f.type == "str" and not isinstance(value, str):
-            raise ConfigError(f"{where}.{f.name}: expected a string, got {value!r}")
-    return obj
+
+
+def _check_value(hint: Any, value: Any, where: str) -> None:
+    if hint is bool and not isinstance(value, bool):
+        raise ConfigError(f"{where}: expected true or false, got {value!r}")
+    numeric = hint in (float, int) or (
+        get_origin(hint) is UnionType and float in get_args(hint) and value is not None
+    )
+    if numeric and (isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value)):
+        raise ConfigError(f"{where}: expected a finite number, got {value!r}")
+    if hint is int and not isinstance(value, int):
+        raise ConfigError(f"{where}: expected an integer, got {value!r}")
+    if hint is str and not isinstance(value, str):
+        raise ConfigError(f"{where}: expected a string, got {value!r}")
+    if get_origin(hint) is Literal and value not in get_args(hint):
+        raise ConfigError(f"{where}: expected one of {list(get_args(hint))}, got {value!r}")
 
 
 def _split_pair(key: str) -> tuple[str, str]:

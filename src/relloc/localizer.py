@@ -8,9 +8,11 @@ own rates and lags. The localizer
   never allowed to crash the engine or to corrupt the estimate;
 * keeps each robot's odometry in an :class:`~relloc.odometry.OdometryTrack` (shared heading
   frame), so that it can predict to any instant;
-* gathers the measurements that arrive within ``update_period`` into one batch, predicts with
-  every robot's odometry up to the batch time, and fuses the batch in one update (the stacked
-  measurement vector of the paper);
+* gathers the measurements stamped within one cell of a fixed ``update_period`` grid into one
+  batch, predicts with every robot's odometry up to the batch time (its newest stamp), and
+  fuses the batch in one update (the stacked measurement vector of the paper). A grid, not a
+  window opened by the first measurement: a pair ranging at the update rate with some jitter
+  then gives one range per batch, not now one, now two;
 * emits an :class:`Estimate` (each robot's position relative to the reference, with covariance)
   at ``estimate_period``.
 
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import math
+import numbers
 import statistics
 from collections import Counter, deque
 from dataclasses import dataclass, field
@@ -53,6 +56,13 @@ FloatArray = NDArray[np.float64]
 Measurement = RangeEvent | RelativeObservation
 
 _TIME_TOLERANCE = 1e-9
+_JUMP_VOTES = 3
+"""Events in a row that must agree on a time far ahead before the clock follows them."""
+
+
+def _is_number(x: object) -> bool:
+    """A real number (not a bool, a string or an array): what every event field must be."""
+    return isinstance(x, numbers.Real) and not isinstance(x, bool)
 _YAW_LOG = 200_000
 """Odometry yaws kept per robot for evaluation (heading-estimate mode): 5.5 h at 10 Hz."""
 
@@ -121,6 +131,9 @@ class Localizer:
         self._closed_until = -math.inf  # measurements older than this come too late
         self._last_range: dict[tuple[str, str], float] = {}
         self._last_emit = -math.inf
+        self._clock = -math.inf  # newest accepted stamp
+        self._jump_candidate = math.nan  # stamp of the last event rejected as a time jump
+        self._jump_votes = 0  # consecutive rejected events that agree with it
 
     # ---------------------------------------------------------------- public API
     def process(self, event: Event) -> list[Estimate]:
@@ -129,6 +142,8 @@ class Localizer:
         if reason is not None:
             self._reject(reason, event)
             return []
+        if isinstance(event, OdometryEvent | RangeEvent | RelativeObservation):
+            self._clock = max(self._clock, event.t)
         if isinstance(event, OdometryEvent):
             track = self.tracks[event.robot]
             first = track.empty
@@ -139,7 +154,7 @@ class Localizer:
             return self._advance(event.t)
         if isinstance(event, RangeEvent | RelativeObservation):
             out: list[Estimate] = []
-            if self._pending and event.t >= self._batch_start + self.update_period:
+            if self._pending and self._cell(event.t) > self._cell(self._batch_start):
                 out += self._run_batch()
             if not self._pending:
                 self._batch_start = event.t
@@ -157,13 +172,18 @@ class Localizer:
     def _rejection(self, event: Event) -> str | None:
         if isinstance(event, GroundTruthEvent | DetectionEvent):
             return None
-        if not math.isfinite(event.t):
+        if not isinstance(event, OdometryEvent | RangeEvent | RelativeObservation):
+            return "unknown_event_type"
+        if not _is_number(event.t) or not math.isfinite(event.t):
             return "invalid_time"
+        if self._time_jump(event.t):
+            return "time_jump"
         names = self.layout.robots
         if isinstance(event, OdometryEvent):
             if event.robot not in names:
                 return "unknown_robot"
-            if not all(map(math.isfinite, (event.x, event.y, event.yaw, event.v, event.w))):
+            values = (event.x, event.y, event.yaw, event.v, event.w)
+            if not all(map(_is_number, values)) or not all(map(math.isfinite, values)):
                 return "invalid_odometry"
             if event.t <= self.tracks[event.robot].last_time + _TIME_TOLERANCE:
                 return "out_of_order_odometry"
@@ -174,11 +194,13 @@ class Localizer:
             if event.robot_a == event.robot_b:
                 return "self_range"
             d = event.distance
-            if not math.isfinite(d) or d < 0.0 or d > self.config.filter.max_range:
+            if not _is_number(d) or not math.isfinite(d) or d <= 0.0 or d > self.config.filter.max_range:
                 return "invalid_range"
             if event.t < self._closed_until:
                 return "late_measurement"
-            key = (event.robot_a, event.robot_b)
+            if self.layout.bias_pairs and not event.corrected and self._event_node_pair(event) not in self.layout.bias_pairs:
+                return "unknown_node_pair"  # online biases: the state has a column per configured pair only
+            key = (event.robot_a, event.robot_b) if event.robot_a < event.robot_b else (event.robot_b, event.robot_a)
             if self._last_range.get(key) == d:
                 return "repeated_range"  # a stale sample re-published, not a new measurement
             self._last_range[key] = d
@@ -186,12 +208,34 @@ class Localizer:
         if isinstance(event, RelativeObservation):
             if event.observer not in names or event.target not in names:
                 return "unknown_robot"
-            if not all(map(math.isfinite, (event.dx, event.dy, event.sigma))) or event.sigma <= 0:
+            if event.observer == event.target:
+                return "self_observation"
+            values = (event.dx, event.dy, event.sigma)
+            if not all(map(_is_number, values)) or not all(map(math.isfinite, values)) or event.sigma <= 0:
                 return "invalid_relative_observation"
             if event.t < self._closed_until:
                 return "late_measurement"
             return None
         return "unknown_event_type"
+
+    def _cell(self, t: float) -> int:
+        """Index of the batching grid cell that holds time ``t``."""
+        return math.floor(t / self.update_period)
+
+    def _time_jump(self, t: float) -> bool:
+        """Whether ``t`` jumps ahead of the clock by more than ``max_time_jump`` without
+        ``_JUMP_VOTES`` events in a row agreeing on the new time (see
+        :class:`relloc.config.FilterConfig`)."""
+        limit = self.config.filter.max_time_jump
+        if self._clock == -math.inf or t <= self._clock + limit:
+            return False  # the first event sets the clock
+        agrees = abs(t - self._jump_candidate) <= limit
+        self._jump_votes = self._jump_votes + 1 if agrees else 1
+        self._jump_candidate = t
+        if self._jump_votes < _JUMP_VOTES:
+            return True
+        self._jump_votes, self._jump_candidate = 0, math.nan
+        return False
 
     def _reject(self, reason: str, event: Event) -> None:
         self.stats["rejected_" + reason] += 1
@@ -206,18 +250,21 @@ class Localizer:
     # ---------------------------------------------------------------- batching
     def _advance(self, now: float) -> list[Estimate]:
         """Odometry moved the clock: fuse a batch that is complete by now."""
-        if self._pending and now >= self._batch_start + 2 * self.update_period:
+        if self._pending and now >= (self._cell(self._batch_start) + 2) * self.update_period:
             return self._run_batch()
         return []
 
     def _run_batch(self) -> list[Estimate]:
         batch, self._pending = self._pending, []
         t = max(m.t for m in batch)
-        self._closed_until = max(self._closed_until, self._batch_start)
+        # The filter is now at t: a measurement stamped before it can no longer be fused.
+        self._closed_until = max(self._closed_until, t)
         est = self._step(t, batch)
         if est is None:
             return []
-        if est.t - self._last_emit >= self.estimate_period - 1e-6:
+        # A batch is stamped with its newest measurement, so batch times jitter within a window:
+        # half a window of tolerance keeps one estimate per estimate_period.
+        if est.t - self._last_emit >= self.estimate_period - 0.5 * self.update_period:
             self._last_emit = est.t
             return [est]
         return []
@@ -232,6 +279,16 @@ class Localizer:
         b = self.config.robot(robot_b).uwb_node or robot_b
         return pair_key(a, b)
 
+    def _event_nodes(self, event: RangeEvent) -> tuple[str, str]:
+        """The transceivers of a range: the event's node ids, else the config's, else the robots."""
+        node_a = event.node_a or self.config.robot(event.robot_a).uwb_node or event.robot_a
+        node_b = event.node_b or self.config.robot(event.robot_b).uwb_node or event.robot_b
+        return node_a, node_b
+
+    def _event_node_pair(self, event: RangeEvent) -> str:
+        """Key of the transceiver pair of a range (see :meth:`_event_nodes`)."""
+        return pair_key(*self._event_nodes(event))
+
     def _pair_ranges(
         self, batch: list[Measurement], online_bias: bool = False
     ) -> tuple[list[tuple[int, int]], FloatArray, FloatArray, FloatArray, list[str]]:
@@ -239,7 +296,9 @@ class Localizer:
         where the range was corrected upstream and carries no bias).
 
         With ``online_bias`` the bias is left to the particles (returned as 0) and the sigma
-        is the plain range noise.
+        is the plain range noise. A calibrated pair's scale (``measured = scale * true +
+        bias``) is applied here, to range, bias and sigma alike, so every consumer sees
+        ``range = true + bias + noise``.
 
         Several ranges of one pair in a batch are not independent evidence (their errors are
         strongly correlated over a tenth of a second): the median stands for them.
@@ -252,22 +311,21 @@ class Localizer:
         pairs, dist, bias, sigma, keys = [], [], [], [], []
         fc, uwb = self.config.filter, self.config.uwb
         for key, events in groups.items():
-            e = events[0]
-            node_a = e.node_a or self.config.robot(e.robot_a).uwb_node or e.robot_a
-            node_b = e.node_b or self.config.robot(e.robot_b).uwb_node or e.robot_b
-            values = [ev.distance for ev in events]
-            node_pair = pair_key(node_a, node_b)
+            nodes = self._event_nodes(events[0])
+            node_pair = pair_key(*nodes)
+            d = float(statistics.median(ev.distance for ev in events))  # a few values: no NumPy
             if all(ev.corrected for ev in events):
                 b, s, node_pair = 0.0, fc.sigma_uwb, ""
             elif online_bias:
                 b, s = 0.0, fc.sigma_uwb
             else:
-                b, _, pair_sigma = uwb.calibration(node_a, node_b)
+                b, scale, pair_sigma = uwb.calibration(*nodes)
                 s = pair_sigma if pair_sigma is not None else fc.sigma_uwb
-                if not uwb.is_calibrated(node_a, node_b):
+                if not uwb.is_calibrated(*nodes):
                     s = math.hypot(s, uwb.default_bias_sigma)
+                d, b, s = d / scale, b / scale, s / scale
             pairs.append(key)
-            dist.append(float(statistics.median(values)))  # a few values: no NumPy call
+            dist.append(d)
             bias.append(b)
             sigma.append(s)
             keys.append(node_pair)
@@ -415,14 +473,15 @@ class ParticleFilterLocalizer(Localizer):
     def _initialize(self, t: float) -> Estimate | None:
         batch, self._init_batch = self._init_batch, []
         fc = self.config.filter
-        vectors = [m for m in batch if isinstance(m, RelativeObservation)]
+        # Heading-estimate mode has no compass frame for the detection vectors: ranges only.
+        vectors = [] if self.heading_estimated else [m for m in batch if isinstance(m, RelativeObservation)]
         ranges = [m for m in batch if not isinstance(m, RelativeObservation)]
         # Ranges are invariant under rotations and reflections about the reference, vectors are
         # not: anneal on the ranges, spread over those symmetries (exact), then weight by the
         # vectors. Annealing on both and skipping the spread left the mirror image about the
         # line of a single vector to chance (a sharp range likelihood picked one side).
-        spread = fc.spread_rotations and bool(ranges) and (self.gsf is None or not vectors)
-        anneal_on = ranges if spread else batch
+        spread = fc.spread_rotations and bool(ranges)
+        anneal_on = ranges if spread else ranges + vectors
         model = self._model(anneal_on)
         guide = self._model(anneal_on, outliers=False)
         if model is None or guide is None:
@@ -482,8 +541,9 @@ class ParticleFilterLocalizer(Localizer):
         """Hand the annealed particles to the Gaussian-sum filter (one Gaussian per particle)."""
         assert self.gsf is not None
         gsf, particles = self.gsf, self.pf.particles
-        if particles.shape[0] != gsf.n:
-            idx = systematic_resample(np.full(particles.shape[0], 1.0 / particles.shape[0]), self.rng, gsf.n)
+        weights = np.exp(self.pf.logw - np.max(self.pf.logw))
+        if particles.shape[0] != gsf.n or np.ptp(self.pf.logw) > 0.0:  # (the vectors' weights)
+            idx = systematic_resample(weights / weights.sum(), self.rng, gsf.n)
             particles = particles[idx]
         gsf.initialize(particles[:, : self.layout.dim])
         # the sampled filter is no longer needed: keep a one-particle stub, free the memory
@@ -567,7 +627,7 @@ class ParticleFilterLocalizer(Localizer):
                 eps = (fc.gross_fraction if nlos else fc.outlier_fraction) if outliers else 0.0
                 parts.append(
                     RangeBatch(
-                        idx[sel, 0], idx[sel, 1], dist[sel], bias[sel], s, None, eps, fc.max_range,
+                        idx[sel, 0], idx[sel, 1], dist[sel], bias[sel], s, eps, fc.max_range,
                         None if columns is None else columns[sel],
                         nlos_fraction=fc.nlos_fraction if nlos and outliers else 0.0,
                         nlos_sigma=fc.nlos_sigma,
@@ -589,19 +649,18 @@ class ParticleFilterLocalizer(Localizer):
     def _los_sigmas(self, keys: list[str]) -> FloatArray:
         """Line-of-sight noise of each pair for the NLOS-aware model: a pair's own calibrated
         sigma if the config gives one, else ``los_sigma`` (widened by ``uwb.default_bias_sigma``
-        for a pair without calibration), as ``_pair_ranges`` does with ``sigma_uwb``."""
+        for a pair without calibration), as ``_pair_ranges`` does with ``sigma_uwb``.
+        (Online biases use the symmetric model, so never come here.) Scaled like the ranges."""
         fc, uwb = self.config.filter, self.config.uwb
         out = np.full(len(keys), fc.los_sigma)
-        if self.online_bias:
-            return out  # the bias (and its uncertainty) is in the particles
         for i, key in enumerate(keys):
             if not key:  # corrected upstream (the caller gives these the symmetric model)
                 continue
             cal = uwb.pairs.get(key)
             if cal is None:
                 out[i] = math.hypot(fc.los_sigma, uwb.default_bias_sigma)
-            elif cal.sigma is not None:
-                out[i] = cal.sigma
+            else:
+                out[i] = (cal.sigma if cal.sigma is not None else fc.los_sigma) / cal.scale
         return out
 
     def _estimate(self, t: float) -> Estimate:

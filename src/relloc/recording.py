@@ -73,9 +73,14 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
     bias_truth = _bag_bias_truth(bag, config) if config.filter.bias_mode == "online" else None
     report = evaluate(engine, name, opts.warmup, bias_truth=bias_truth)
     print_table(report, console)
+    for warning in source.warnings:
+        console.print(f"[yellow]warning:[/] {warning}")
     rejected = {k: v for k, v in source.stats.rejected.items() if v}
     if rejected:
         console.print(f"source rejected: {rejected}")
+    for p in engine.pipelines:
+        if p.localizer.rejected:
+            console.print(f"{p.name} rejected: {p.localizer.rejected}")
     if opts.out is not None:
         write_outputs(report, engine, opts.out)
         console.print(f"plots and TUM trajectories written to {opts.out}/")

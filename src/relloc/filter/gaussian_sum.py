@@ -307,8 +307,9 @@ class GaussianSumFilter:
                 if robot in self.heading_prior:
                     angle, sigma = self.heading_prior[robot]
                     mean[c0], mean[c1] = math.cos(angle), math.sin(angle)
-                    # angular sigma tangentially, the scale prior radially
-                    radial = nz.scale_prior_sigma
+                    # angular sigma tangentially, the scale prior radially (so the |u|
+                    # pseudo-measurement is not applied again: see _set_prior_rows)
+                    radial = nz.scale_prior_sigma if lay.scale else nz.scale_fixed_sigma
                     t = np.array([-math.sin(angle), math.cos(angle)])
                     r = np.array([math.cos(angle), math.sin(angle)])
                     block = sigma**2 * np.outer(t, t) + radial**2 * np.outer(r, r)
@@ -350,7 +351,8 @@ class GaussianSumFilter:
         idx = np.arange(lay.dim)
         self.cov[np.ix_(rows, idx, idx)] = np.eye(lay.dim) * self.position_sigma**2
         self.cov[rows, lay.dim :, lay.dim :] = self.prior_cov
-        self.magnitude_done[rows] = False
+        # a heading prior already holds |u| to its scale prior
+        self.magnitude_done[rows] = np.array([r in self.heading_prior for r in lay.others], dtype=bool)
 
     # ---------------------------------------------------------------- prediction
     def predict(self, disp: FloatArray, sigma: FloatArray, dt: float) -> None:
@@ -635,7 +637,13 @@ class GaussianSumFilter:
 
     # ---------------------------------------------------------------- estimates
     def weights(self) -> FloatArray:
-        return np.exp(self.logw)
+        """Normalised weights (the log-weights themselves are normalised only by
+        :meth:`normalize`)."""
+        top = np.max(self.logw)
+        if not np.isfinite(top):
+            return np.full(self.n, 1.0 / self.n)
+        w = np.exp(self.logw - top)
+        return w / np.sum(w)
 
     def position_moments(self) -> tuple[FloatArray, FloatArray]:
         """Mixture mean ``(N-1, 2)`` and covariance ``(N-1, 2, 2)`` of the relative positions."""

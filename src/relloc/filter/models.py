@@ -101,8 +101,8 @@ def _range_mixture(
 class RangeBatch:
     """``K`` ranges between robots ``index_a[k]`` and ``index_b[k]`` (indices into the team).
 
-    ``distance`` is the measured range, ``bias`` and ``scale`` the pair's calibration
-    (``measured = scale * true + bias``) and ``sigma`` its noise.
+    ``distance`` is the measured range, ``bias`` the pair's bias (``measured = true + bias``;
+    a calibrated range scale is divided out by the caller) and ``sigma`` its noise.
     """
 
     index_a: IntArray
@@ -110,7 +110,6 @@ class RangeBatch:
     distance: FloatArray
     bias: FloatArray
     sigma: FloatArray
-    scale: FloatArray | None = None
     outlier_fraction: float = 0.1
     max_range: float = 15.0
     bias_columns: IntArray | None = None
@@ -127,8 +126,6 @@ class RangeBatch:
 
     def _residual_and_sigma(self, positions: FloatArray, particles: FloatArray | None) -> tuple[FloatArray, FloatArray]:
         d = self.predicted(positions)
-        if self.scale is not None:
-            d = d * self.scale[:, None]
         residual = (self.distance - self.bias)[:, None] - d
         sigma = self.sigma[:, None]  # (K, 1): broadcasts against (K, M)
         if self.bias_columns is not None and particles is not None:

@@ -295,9 +295,12 @@ class ParticleFilter:
             idx = systematic_resample(np.exp(log_normalize(logw)), self.rng)
             self.particles, ll = self.particles[idx], ll[idx]
             ll = self._metropolis(guide, ll, beta, mcmc_steps)
-        if guide is not loglik:
-            target = self.log_likelihood(loglik, self.particles)
-            logw = np.where(np.isfinite(target), target, -1e300) - ll
+        if guide is not loglik or beta < 1.0:
+            # The particles follow prior * guide^beta: weigh them to prior * loglik (also when
+            # max_stages stopped the tempering short of beta = 1).
+            target = self.log_likelihood(loglik, self.particles) if guide is not loglik else ll
+            ok = np.isfinite(target) & np.isfinite(ll)
+            logw = np.where(ok, target - beta * np.where(ok, ll, 0.0), -1e300)
             idx = systematic_resample(np.exp(log_normalize(logw)), self.rng)
             self.particles = self.particles[idx]
             self._metropolis(loglik, target[idx], 1.0, mcmc_steps)

@@ -6,7 +6,7 @@ with the log-sum-exp trick; ``ess`` is the effective sample size ``1 / sum(w^2)`
 
 Systematic resampling draws one uniform ``u ~ U[0, 1/M)`` and takes the particles at the
 points ``u + k/M``: it is unbiased (each particle is copied ``M w_i`` times in expectation) and
-has the lowest variance of the classic schemes for the cost of one sort-free ``searchsorted``.
+has the lowest variance of the classic schemes for the cost of one cumulative sum (no search).
 """
 
 from __future__ import annotations

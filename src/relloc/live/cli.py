@@ -8,6 +8,7 @@ import signal
 from pathlib import Path
 from typing import Any
 
+from relloc import argtypes
 from relloc.config import TeamConfig
 from relloc.live.publish import ReplayOptions, replay_bag
 from relloc.live.server import LiveServer, ServeOptions
@@ -129,9 +130,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="pf",
         help="comma-separated; the first one is published on relloc/<robot>/pose",
     )
-    serve.add_argument("--seed", type=int, default=0)
+    serve.add_argument("--seed", type=argtypes.seed, default=0)
     serve.add_argument(
-        "--particles", type=int, default=None, help="override the config's particle count"
+        "--particles", type=argtypes.count, default=None, help="override the config's particle count"
     )
     serve.add_argument("--models", default=None, help="trained range-error models (for pf_ul)")
     serve.add_argument(
@@ -153,7 +154,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="subscribe to <prefix>/** (unknown keys are counted)",
     )
     serve.add_argument(
-        "--duration", type=float, default=None, metavar="S", help="stop after S seconds"
+        "--duration", type=argtypes.seconds, default=None, metavar="S", help="stop after S seconds"
     )
     serve.add_argument(
         "--json", default=None, metavar="FILE", help="write the final figures as JSON"
@@ -181,6 +182,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="wait up to S s for the server's subscribers",
     )
     replay.add_argument("--start", type=float, default=0.0, metavar="S", help="skip S s of the bag")
-    replay.add_argument("--duration", type=float, default=None, metavar="S")
+    replay.add_argument("--duration", type=argtypes.seconds, default=None, metavar="S")
     add_zenoh_args(replay)
     replay.set_defaults(handler=_cmd_replay)

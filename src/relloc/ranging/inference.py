@@ -48,6 +48,10 @@ class PairModel:
         error_max: float = np.inf,
         threads: int = 1,
     ) -> None:
+        if n_steps < 1:
+            raise ValueError(f"{pair}: n_steps must be >= 1, got {n_steps}")
+        if not error_min < error_max:
+            raise ValueError(f"{pair}: error_min {error_min} must be below error_max {error_max}")
         self.pair = pair
         self.nodes = nodes
         self.n_steps = n_steps
@@ -57,7 +61,20 @@ class PairModel:
         self.session = ort.InferenceSession(
             source, session_options(threads), providers=["CPUExecutionProvider"]
         )
-        self._input = self.session.get_inputs()[0].name
+        inputs = self.session.get_inputs()
+        shape = list(inputs[0].shape) if len(inputs) == 1 else []
+        fixed = [d if isinstance(d, int) else None for d in shape]
+        if len(shape) != 3 or fixed[1:] not in ([n_steps, 3], [None, 3], [n_steps, None], [None, None]):
+            raise ValueError(f"{pair}: the model takes {[i.shape for i in inputs]}, not (B, {n_steps}, 3)")
+        if inputs[0].type != "tensor(float)":
+            raise ValueError(f"{pair}: the model takes {inputs[0].type}, not float32 windows")
+        self._input = inputs[0].name
+        try:  # one window in, one error out: a model that answers otherwise is not ours
+            probe = self.session.run(None, {self._input: np.zeros((1, n_steps, 3), np.float32)})[0]
+        except Exception as exc:
+            raise ValueError(f"{pair}: the model cannot run on a (1, {n_steps}, 3) window: {exc}") from None
+        if np.size(probe) != 1:
+            raise ValueError(f"{pair}: the model answers {np.shape(probe)} for one window, not one error")
 
     def predict_raw(self, windows: np.ndarray) -> np.ndarray:
         """Unclipped predicted errors ``(B,)`` for windows ``(B, n_steps, 3)`` (m)."""
@@ -87,10 +104,22 @@ class ModelSet(Mapping[str, PairModel]):
         """Load every pair of the directory; raises :class:`ModelDirError` if it is not one."""
         path = Path(path)
         manifest = read_manifest(path)
-        n_steps = int(manifest["n_steps"])
         models: dict[str, PairModel] = {}
-        for pair, entry in manifest["pairs"].items():
-            nodes = tuple(entry["nodes"])
+        try:
+            n_steps = int(manifest["n_steps"])
+            entries = dict(manifest["pairs"].items())
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            raise ModelDirError(f"{path}: malformed manifest ({type(exc).__name__}: {exc})") from None
+        if not entries:
+            raise ModelDirError(f"{path}: the manifest lists no pair")
+        for pair, entry in entries.items():
+            try:
+                nodes = tuple(entry["nodes"])
+                onnx_file = path / entry["onnx"]
+                error_min = float(entry.get("error_min", -np.inf))
+                error_max = float(entry.get("error_max", np.inf))
+            except (KeyError, TypeError, ValueError, AttributeError) as exc:
+                raise ModelDirError(f"{path}: pair {pair!r}: malformed entry ({type(exc).__name__}: {exc})") from None
             if len(nodes) != 2:
                 raise ModelDirError(f"{path}: pair {pair!r} must name two nodes, got {nodes}")
             try:
@@ -98,15 +127,15 @@ class ModelSet(Mapping[str, PairModel]):
                     pair,
                     (str(nodes[0]), str(nodes[1])),
                     n_steps,
-                    path / entry["onnx"],
-                    error_min=float(entry.get("error_min", -np.inf)),
-                    error_max=float(entry.get("error_max", np.inf)),
+                    onnx_file,
+                    error_min=error_min,
+                    error_max=error_max,
                     threads=threads,
                 )
-            except (ort.capi.onnxruntime_pybind11_state.Fail, RuntimeError) as exc:  # type: ignore[attr-defined]
-                raise ModelDirError(
-                    f"{path / entry['onnx']}: onnxruntime cannot load it: {exc}"
-                ) from None
+            except ValueError as exc:
+                raise ModelDirError(f"{path}: {exc}") from None
+            except Exception as exc:  # onnxruntime's own exception types vary by failure
+                raise ModelDirError(f"{onnx_file}: onnxruntime cannot load it: {exc}") from None
         return cls(path, manifest, models)
 
     @property

@@ -64,11 +64,15 @@ def read_manifest(path: str | Path) -> dict[str, Any]:
         ) from None
     except json.JSONDecodeError as exc:
         raise ModelDirError(f"{file}: not valid JSON: {exc}") from None
+    if not isinstance(data, dict):
+        raise ModelDirError(f"{file}: expected a JSON object, got {type(data).__name__}")
     if data.get("format") != FORMAT:
         raise ModelDirError(f"{file}: format {data.get('format')!r}, expected {FORMAT!r}")
     for key in ("variant", "n_steps", "pairs"):
         if key not in data:
             raise ModelDirError(f"{file}: missing key {key!r}")
+    if not isinstance(data["pairs"], dict) or not all(isinstance(e, dict) for e in data["pairs"].values()):
+        raise ModelDirError(f"{file}: 'pairs' must map each node pair to an object")
     for pair, entry in data["pairs"].items():
         for key in ("nodes", "onnx"):
             if key not in entry:

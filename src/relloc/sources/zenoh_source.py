@@ -514,8 +514,12 @@ class ZenohSource:
         self._sync_queue_full()
         return self.buffer.flush()
 
-    def handle(self, key: str, payload: bytes, received: float, sent: float | None = None) -> None:
+    def handle(
+        self, key: str, payload: bytes | bytearray | memoryview, received: float, sent: float | None = None
+    ) -> None:
         """Decode one message and put its event in the reorder buffer (or count why not)."""
+        if not isinstance(payload, bytes):
+            payload = bytes(payload)  # the decoders hash and slice it
         route = self.routes.get(key)
         if route is None:
             self._reject("unknown_key", key)

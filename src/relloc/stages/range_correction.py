@@ -220,6 +220,9 @@ class RangeCorrector:
             return self._pass(event, "window_not_full")
         window = np.asarray(state.frames, dtype=np.float32)[None]
         raw = float(model.predict_raw(window)[0])
+        if not math.isfinite(raw):
+            state.last_error = None
+            return self._pass(event, "model_nonfinite")  # the raw range is better than none
         error = min(max(raw, model.error_min), model.error_max)
         if error != raw:
             self.stats["clipped"] += 1

@@ -1,0 +1,39 @@
+"""``argparse`` types for the flags every command shares: a bad value is argparse's one-line
+usage error (exit 2), never a traceback from NumPy later or a value silently ignored."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+
+def seed(text: str) -> int:
+    """A random seed: an integer >= 0 (NumPy's generators take no negative seed)."""
+    value = int(_parse(int, text))
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be >= 0, got {value}")
+    return value
+
+
+def count(text: str) -> int:
+    """A count of things (particles): an integer >= 1."""
+    value = int(_parse(int, text))
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def seconds(text: str) -> float:
+    """A duration: a finite number of seconds > 0."""
+    value = float(_parse(float, text))
+    if not (math.isfinite(value) and value > 0.0):
+        raise argparse.ArgumentTypeError(f"must be a finite number of seconds > 0, got {text}")
+    return value
+
+
+def _parse(kind: type[int] | type[float], text: str) -> int | float:
+    try:
+        return kind(text)
+    except ValueError:
+        what = "an integer" if kind is int else "a number"
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
