@@ -59,12 +59,13 @@ _TIME_TOLERANCE = 1e-9
 _JUMP_VOTES = 3
 """Events in a row that must agree on a time far ahead before the clock follows them."""
 
+_YAW_LOG = 200_000
+"""Odometry yaws kept per robot for evaluation (heading-estimate mode): 5.5 h at 10 Hz."""
+
 
 def _is_number(x: object) -> bool:
     """A real number (not a bool, a string or an array): what every event field must be."""
     return isinstance(x, numbers.Real) and not isinstance(x, bool)
-_YAW_LOG = 200_000
-"""Odometry yaws kept per robot for evaluation (heading-estimate mode): 5.5 h at 10 Hz."""
 
 
 @dataclass(frozen=True)
