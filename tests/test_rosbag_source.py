@@ -398,3 +398,11 @@ def test_real_bag_missing_topic_lists_topics(shared_data: Path) -> None:
         RosbagSource(shared_data / "tiers" / "pair_chair_moving_20220923", cfg)
     assert "/cali/turtle01/odom" in str(info.value)
     assert "/uwb/tof/n_7/n_3/distance  [sensor_msgs/msg/Range, 252 msgs]" in str(info.value)
+
+
+def test_replay_start_outside_the_bag_is_a_clear_error(synthetic_bag: Path) -> None:
+    """``relloc replay --start`` past the end would replay nothing and exit 0: refused."""
+    from relloc.live.publish import ReplayOptions, replay_bag
+
+    with pytest.raises(BagError, match="outside"):
+        replay_bag(synthetic_bag, synthetic_team(), None, ReplayOptions(start=1e9, wait=0.0))

@@ -217,6 +217,11 @@ def replay_bag(
         ]
         if not conns:
             raise BagError(f"nothing to replay in {bag} (team topics: {sorted(team_topics)})")
+        if not 0.0 <= opts.start < (reader.end_time - reader.start_time) * 1e-9:
+            raise BagError(
+                f"--start {opts.start:g} s is outside {bag}, which lasts "
+                f"{(reader.end_time - reader.start_time) * 1e-9:.1f} s"
+            )
         keys = _topic_keys(config, opts.prefix, {c.topic for c in conns})
         required = _required_keys(config, opts.prefix, keys)
         t_wait = time.time()
