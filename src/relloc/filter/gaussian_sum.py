@@ -31,11 +31,10 @@ rough shape), the rest is a nearly linear-Gaussian system. So each particle here
          bias of every UWB node pair (online bias),
          time-correlated range error of every pair (online bias, ``colored_bias``)]
 
-The reference robot's own ``u`` starts at ``(1, 0)`` with no angular uncertainty (its odometry
-frame is the shared frame) but follows the same slow random walk as the others: its odometry
-heading drifts too, and that drift turns its displacements in the frame it defines.
-
-with mean ``(M, D)`` and covariance ``(M, D, D)`` arrays, and a log-weight. Prediction is
+with mean ``(M, D)`` and covariance ``(M, D, D)`` arrays, and a log-weight. The reference
+robot's own ``u`` starts at ``(1, 0)`` with no angular uncertainty (its odometry frame is the
+shared frame) but follows the same slow random walk as the others: its odometry heading drifts
+too, and that drift turns its displacements in the frame it defines. Prediction is
 exact (linear): ``x' = (I + G) x + c``, ``P' = (I + G) P (I + G)^T + Q``. Each range is a
 scalar extended-Kalman update of every particle at once (linearised at that particle's
 predicted mean), and the particle's weight is multiplied by the predictive density of the

@@ -230,7 +230,8 @@ class OdometryMotion:
         dt: float,
         rng: np.random.Generator,
     ) -> None:
-        """Move ``particles`` (``(M, 2(N-1))``, in place); ``others`` indexes disp/sigma rows."""
+        """Move the position columns of ``particles`` (``(M, D)``, ``D >= 2(N-1)``: online-bias
+        columns may follow; in place); ``others`` indexes disp/sigma rows."""
         m = particles.shape[0]
         n_others = len(others)
         rel = particles[:, : 2 * n_others].reshape(m, n_others, 2)

@@ -8,7 +8,7 @@ two robots gives a distance, not a relative position). ``solve`` therefore
    least two ranges, and the rigidity matrix at the solution of rank ``2N - 3``), and reports
    *no estimate* otherwise;
 2. starts from the previous solution when there is one, else from classical
-   multidimensional scaling when all pairs are present, else from a few random starts;
+   multidimensional scaling when all pairs are present plus a few random starts;
 3. minimises the squared range residuals with SciPy's ``least_squares``;
 4. turns the result about the reference onto the previous solution, so the arbitrary
    rotation stays continuous from step to step (without ground truth).
