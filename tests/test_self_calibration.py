@@ -155,6 +155,23 @@ def test_five_robots_all_online_short_run() -> None:
     assert len(errors) == 10 and np.median(errors) < 0.05
 
 
+@pytest.mark.slow
+def test_the_acceptance_run_of_the_self_calibration_issue() -> None:
+    """``relloc demo --seed 0 --heading estimate --bias online --warmup 20 --scenarios multi``:
+    every robot's APE <= 0.20 m, every moving robot's heading <= 5 deg, every pair's bias
+    error <= 0.05 m. The last holds narrowly (n_0-n_2 0.047 m): pairs with the static r0 are at
+    the edge of what the simulated data determine (docs/self-calibration.md), and other seeds
+    have pairs over 0.05 m."""
+    opts = DemoOptions(seed=0, heading="estimate", bias="online", scenarios=("multi",), methods=("pf",))
+    sim, config, truth = scenario_setup("multi", opts)
+    report = evaluate(_run(sim, config, seed=0), "multi", warmup=20.0, bias_truth=truth)
+    pf = report.methods["pf"]
+    assert max(stats.median for stats in pf.robots.values()) <= 0.20
+    assert max(pf.heading_median_deg(r) for r in ("r2", "r3", "r4")) <= 5.0
+    errors = {p: pf.bias_error_median(p) for p in pf.final_biases}
+    assert len(errors) == 10 and max(errors.values()) <= 0.05, errors
+
+
 # ---------------------------------------------------------------------------- pieces
 def test_wrapping_at_180_degrees_in_the_mean_and_in_the_error() -> None:
     assert math.degrees(abs(float(wrap_angle(math.radians(179.0) - math.radians(-179.0))))) == pytest.approx(2.0)
