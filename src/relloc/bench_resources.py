@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from relloc import argtypes
 from relloc.config import TeamConfig
 from relloc.live import (
     SHORTBAG,
@@ -292,7 +293,7 @@ def _cmd_bench_resources(args: argparse.Namespace) -> int:
             raise UserError(f"bag not found: {bag}")
         print(f"skipping the shortbag case: {bag} not found")
         scenarios = tuple(s for s in scenarios if s != "shortbag")
-    check_positive(rate=args.rate, duration=args.duration)
+    check_positive(rate=args.rate)
     try:
         particles = tuple(int(p) for p in args.particles.split(","))
     except ValueError:
@@ -329,10 +330,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="sim5,shortbag",
         help="sim5 (5 simulated robots), shortbag (4 robots, TIERS)",
     )
-    res.add_argument("--duration", type=float, default=30.0, help="length of the simulated run (s)")
+    res.add_argument("--duration", type=argtypes.seconds, default=30.0, help="length of the simulated run (s)")
     res.add_argument("--rate", type=float, default=1.0)
     res.add_argument("--reorder-window", type=float, default=0.0, metavar="S")
-    res.add_argument("--seed", type=int, default=0)
+    res.add_argument("--seed", type=argtypes.seed, default=0)
     res.add_argument("--bag", default=None, help=f"default ../shared/data/tiers/{SHORTBAG}")
     res.add_argument("--bag-config", default=None)
     res.add_argument("--json", default=None, metavar="FILE")

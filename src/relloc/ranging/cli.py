@@ -24,6 +24,7 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
+from relloc import argtypes
 from relloc.ranging.dataset import (
     DEFAULT_NODE_MAP,
     DEFAULT_SPLIT,
@@ -300,7 +301,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--batch-size", type=int, default=32)
     train.add_argument("--lr", type=float, default=1e-3)
     train.add_argument("--weight-decay", type=float, default=1e-4)
-    train.add_argument("--seed", type=int, default=0)
+    train.add_argument("--seed", type=argtypes.seed, default=0)
     train.add_argument(
         "--split",
         type=_floats,
