@@ -59,3 +59,15 @@ def test_bad_values_are_config_errors(tmp_path: Path, extra: str, message: str) 
 def test_a_folder_is_not_a_config(tmp_path: Path) -> None:
     with pytest.raises(ConfigError, match="cannot read config"):
         TeamConfig.load(tmp_path)
+
+
+def test_configs_made_in_code_are_checked_too() -> None:
+    """A config made in code (``FilterConfig(...)``, ``with_filter``, ``with_modes``) goes
+    through the same checks as one read from a file."""
+    with pytest.raises(ConfigError, match="range_model: expected one of"):
+        FilterConfig(range_model="nlso")  # type: ignore[arg-type]
+    config = TeamConfig.from_dict({"reference": "a", "robots": [{"name": "a"}, {"name": "b"}]})
+    with pytest.raises(ConfigError, match="spread_rotations: expected true or false"):
+        config.with_filter(spread_rotations="false")
+    with pytest.raises(ConfigError, match="heading_mode: expected one of"):
+        config.with_modes(heading="magnetometer")

@@ -30,7 +30,9 @@ fall back to a default). ``TeamConfig.to_toml`` writes the file back, which is h
 
 from __future__ import annotations
 
+import functools
 import math
+import numbers
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
@@ -44,8 +46,23 @@ class ConfigError(ValueError):
     """The team configuration is invalid; the message says which key and why."""
 
 
+class _FieldError(ConfigError):
+    """A field's value does not fit its annotation (:func:`_build` adds where it was read)."""
+
+
+class _Checked:
+    """Base of the config dataclasses: every field is checked against its annotation whenever
+    one is made, from a file, by :func:`dataclasses.replace` or in code (:func:`_check_value`),
+    so that a typo is a :class:`ConfigError` naming the key, never a silent default."""
+
+    def __post_init__(self) -> None:
+        hints = _type_hints(type(self))
+        for f in fields(self):  # type: ignore[arg-type]
+            _check_value(hints[f.name], getattr(self, f.name), f.name)
+
+
 @dataclass(frozen=True)
-class CameraConfig:
+class CameraConfig(_Checked):
     """Pose of the camera optical frame on the robot (x right, y down, z forward in the image).
 
     ``x, y, z`` is the optical centre in the robot body frame (m); ``yaw_deg`` and ``pitch_deg``
@@ -62,7 +79,7 @@ class CameraConfig:
 
 
 @dataclass(frozen=True)
-class RobotConfig:
+class RobotConfig(_Checked):
     """One robot of the team and where its data comes from."""
 
     name: str
@@ -90,7 +107,7 @@ class RobotConfig:
 
 
 @dataclass(frozen=True)
-class PairCalibration:
+class PairCalibration(_Checked):
     """Range calibration of one UWB transceiver pair: ``measured = scale * true + bias``."""
 
     bias: float = 0.0
@@ -101,6 +118,7 @@ class PairCalibration:
     """Which recording this calibration was estimated from."""
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         if not self.scale > 0.0:
             raise ConfigError(f"a pair's range scale must be > 0, got {self.scale}")
         if self.sigma is not None and not self.sigma > 0.0:
@@ -108,7 +126,7 @@ class PairCalibration:
 
 
 @dataclass(frozen=True)
-class UwbConfig:
+class UwbConfig(_Checked):
     """UWB topics and per-transceiver-pair calibration."""
 
     range_topic: str = "/uwb/tof/{a}/{b}/distance"
@@ -136,7 +154,7 @@ class UwbConfig:
 
 
 @dataclass(frozen=True)
-class FilterConfig:
+class FilterConfig(_Checked):
     """Particle-filter parameters. The defaults are the ones used on every shared recording."""
 
     particles: int = 50000
@@ -268,6 +286,7 @@ class FilterConfig:
 
     def __post_init__(self) -> None:
         """Reject values no filter can run with (a typo must not become a silent NaN)."""
+        super().__post_init__()
         for name in ("particles", "selfcal_particles", "selfcal_init_particles"):
             if getattr(self, name) < 1:
                 raise ConfigError(f"filter.{name} must be >= 1, got {getattr(self, name)}")
@@ -303,7 +322,7 @@ class FilterConfig:
             )
 
 @dataclass(frozen=True)
-class TeamConfig:
+class TeamConfig(_Checked):
     """Everything the engine needs to know about a team."""
 
     robots: tuple[RobotConfig, ...]
@@ -318,6 +337,7 @@ class TeamConfig:
     """Header stamp minus receive time (s) for topics with zero stamps; ``None``: estimate it."""
 
     def __post_init__(self) -> None:
+        super().__post_init__()
         names = [r.name for r in self.robots]
         if len(names) < 2:
             raise ConfigError("a team needs at least two robots")
@@ -367,14 +387,8 @@ class TeamConfig:
     ) -> TeamConfig:
         """A copy with the self-calibration modes set (``None`` keeps the config's): ``heading``
         ``compass|estimate``, ``bias`` ``calibrated|online``, ``odom_scale`` ``fixed|online``;
-        ``reference`` makes another robot the reference."""
-        for value, allowed, what in (
-            (heading, ("compass", "estimate"), "heading"),
-            (bias, ("calibrated", "online"), "bias"),
-            (odom_scale, ("fixed", "online"), "odom-scale"),
-        ):
-            if value is not None and value not in allowed:
-                raise ConfigError(f"{what} mode must be one of {', '.join(allowed)}, got {value!r}")
+        ``reference`` makes another robot the reference. A mode outside its ``Literal`` is a
+        :class:`ConfigError` (from :class:`FilterConfig` itself)."""
         changes: dict[str, Any] = {}
         if heading is not None:
             changes["heading_mode"] = heading
@@ -457,47 +471,52 @@ class TeamConfig:
 def with_numeric_overrides(obj: Any, overrides: dict[str, Any], where: str) -> Any:
     """A copy of the dataclass ``obj`` with some numeric fields changed, as read from a file's
     table named ``where``: unknown keys and non-numbers are :class:`ConfigError`."""
-    known = {f.name for f in fields(obj)}
-    unknown = set(overrides) - known
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; known: {sorted(known)}")
+    _check_known(type(obj), overrides, where)
     for key, value in overrides.items():
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ConfigError(f"{where}.{key}: expected a number, got {value!r}")
+        _check_value(float, value, f"{where}.{key}")
     return replace(obj, **{k: float(v) for k, v in overrides.items()})
 
 
-def _build(cls: type, raw: dict[str, Any], where: str) -> Any:
-    """``cls(**raw)`` with every value checked against its annotation first (numbers finite,
-    integers integral, booleans real booleans, ``Literal`` choices spelled right), so that a
-    typo is a :class:`ConfigError` naming the key, never a silent default."""
+def _check_known(cls: type, raw: dict[str, Any], where: str) -> None:
     known = {f.name for f in fields(cls)}
     unknown = set(raw) - known
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {sorted(unknown)}; known: {sorted(known)}")
-    hints = get_type_hints(cls)
-    for name, value in raw.items():
-        _check_value(hints[name], value, f"{where}.{name}")
+
+
+def _build(cls: type, raw: dict[str, Any], where: str) -> Any:
+    """``cls(**raw)`` from a file's table named ``where``: unknown keys and values that do not
+    fit their annotations are a :class:`ConfigError` naming the key."""
+    _check_known(cls, raw, where)
     try:
         return cls(**raw)
+    except _FieldError as exc:
+        raise ConfigError(f"{where}.{exc}") from None
     except TypeError as exc:
         raise ConfigError(f"{where}: {exc}") from None
 
 
+@functools.cache
+def _type_hints(cls: type) -> dict[str, Any]:
+    return get_type_hints(cls)
+
+
 def _check_value(hint: Any, value: Any, where: str) -> None:
+    """``value`` fits ``hint``: numbers finite (not booleans), integers integral, booleans
+    real booleans, strings strings, ``Literal`` choices spelled right; other hints unchecked."""
     if hint is bool and not isinstance(value, bool):
-        raise ConfigError(f"{where}: expected true or false, got {value!r}")
+        raise _FieldError(f"{where}: expected true or false, got {value!r}")
     numeric = hint in (float, int) or (
         get_origin(hint) is UnionType and float in get_args(hint) and value is not None
     )
-    if numeric and (isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value)):
-        raise ConfigError(f"{where}: expected a finite number, got {value!r}")
-    if hint is int and not isinstance(value, int):
-        raise ConfigError(f"{where}: expected an integer, got {value!r}")
+    if numeric and (isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value)):
+        raise _FieldError(f"{where}: expected a finite number, got {value!r}")
+    if hint is int and not isinstance(value, numbers.Integral):
+        raise _FieldError(f"{where}: expected an integer, got {value!r}")
     if hint is str and not isinstance(value, str):
-        raise ConfigError(f"{where}: expected a string, got {value!r}")
+        raise _FieldError(f"{where}: expected a string, got {value!r}")
     if get_origin(hint) is Literal and value not in get_args(hint):
-        raise ConfigError(f"{where}: expected one of {list(get_args(hint))}, got {value!r}")
+        raise _FieldError(f"{where}: expected one of {list(get_args(hint))}, got {value!r}")
 
 
 def _split_pair(key: str) -> tuple[str, str]:
