@@ -46,7 +46,7 @@ from relloc.filter import multilateration
 from relloc.filter.gaussian_sum import CalibrationLayout, CalibrationNoise, GaussianSumFilter
 from relloc.filter.models import OdometryMotion, RangeBatch, RelativePositionBatch
 from relloc.filter.pf import ParticleFilter
-from relloc.filter.resampling import systematic_resample
+from relloc.filter.resampling import mixture_moments, normalize, systematic_resample
 from relloc.filter.state import StateLayout
 from relloc.odometry import OdometryTrack
 
@@ -63,9 +63,9 @@ _YAW_LOG = 200_000
 """Odometry yaws kept per robot for evaluation (heading-estimate mode): 5.5 h at 10 Hz."""
 
 
-def _is_number(x: object) -> bool:
-    """A real number (not a bool, a string or an array): what every event field must be."""
-    return isinstance(x, numbers.Real) and not isinstance(x, bool)
+def _finite(x: object) -> bool:
+    """A finite real number (not a bool, a string or an array): what every event field must be."""
+    return isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x)
 
 
 @dataclass(frozen=True)
@@ -175,7 +175,7 @@ class Localizer:
             return None
         if not isinstance(event, OdometryEvent | RangeEvent | RelativeObservation):
             return "unknown_event_type"
-        if not _is_number(event.t) or not math.isfinite(event.t):
+        if not _finite(event.t):
             return "invalid_time"
         if self._time_jump(event.t):
             return "time_jump"
@@ -183,8 +183,7 @@ class Localizer:
         if isinstance(event, OdometryEvent):
             if event.robot not in names:
                 return "unknown_robot"
-            values = (event.x, event.y, event.yaw, event.v, event.w)
-            if not all(map(_is_number, values)) or not all(map(math.isfinite, values)):
+            if not all(map(_finite, (event.x, event.y, event.yaw, event.v, event.w))):
                 return "invalid_odometry"
             if event.t <= self.tracks[event.robot].last_time + _TIME_TOLERANCE:
                 return "out_of_order_odometry"
@@ -195,7 +194,7 @@ class Localizer:
             if event.robot_a == event.robot_b:
                 return "self_range"
             d = event.distance
-            if not _is_number(d) or not math.isfinite(d) or d <= 0.0 or d > self.config.filter.max_range:
+            if not _finite(d) or d <= 0.0 or d > self.config.filter.max_range:
                 return "invalid_range"
             if event.t < self._closed_until:
                 return "late_measurement"
@@ -211,18 +210,16 @@ class Localizer:
                 return "repeated_range"
             self._last_range[key] = d
             return None
-        if isinstance(event, RelativeObservation):
-            if event.observer not in names or event.target not in names:
-                return "unknown_robot"
-            if event.observer == event.target:
-                return "self_observation"
-            values = (event.dx, event.dy, event.sigma)
-            if not all(map(_is_number, values)) or not all(map(math.isfinite, values)) or event.sigma <= 0:
-                return "invalid_relative_observation"
-            if event.t < self._closed_until:
-                return "late_measurement"
-            return None
-        return "unknown_event_type"
+        # a RelativeObservation
+        if event.observer not in names or event.target not in names:
+            return "unknown_robot"
+        if event.observer == event.target:
+            return "self_observation"
+        if not all(map(_finite, (event.dx, event.dy, event.sigma))) or event.sigma <= 0:
+            return "invalid_relative_observation"
+        if event.t < self._closed_until:
+            return "late_measurement"
+        return None
 
     def _cell(self, t: float) -> int:
         """Index of the batching grid cell that holds time ``t``."""
@@ -295,6 +292,16 @@ class Localizer:
         """Key of the transceiver pair of a range (see :meth:`_event_nodes`)."""
         return pair_key(*self._event_nodes(event))
 
+    def _pair_sigma(self, node_pair: str, base: float) -> float:
+        """Noise of a raw range of ``node_pair`` (after its scale is divided out): the pair's
+        calibrated sigma, else ``base``, over its scale; an uncalibrated pair's ``base``
+        widened by ``uwb.default_bias_sigma`` (its bias is only the default)."""
+        uwb = self.config.uwb
+        cal = uwb.pairs.get(node_pair)
+        if cal is None:
+            return math.hypot(base, uwb.default_bias_sigma)
+        return (cal.sigma if cal.sigma is not None else base) / cal.scale
+
     def _pair_ranges(
         self, batch: list[Measurement], online_bias: bool = False
     ) -> tuple[list[tuple[int, int]], FloatArray, FloatArray, FloatArray, list[str]]:
@@ -325,11 +332,8 @@ class Localizer:
             elif online_bias:
                 b, s = 0.0, fc.sigma_uwb
             else:
-                b, scale, pair_sigma = uwb.calibration(*nodes)
-                s = pair_sigma if pair_sigma is not None else fc.sigma_uwb
-                if not uwb.is_calibrated(*nodes):
-                    s = math.hypot(s, uwb.default_bias_sigma)
-                d, b, s = d / scale, b / scale, s / scale
+                b, scale, _ = uwb.calibration(*nodes)
+                d, b, s = d / scale, b / scale, self._pair_sigma(node_pair, fc.sigma_uwb)
             pairs.append(key)
             dist.append(d)
             bias.append(b)
@@ -547,9 +551,8 @@ class ParticleFilterLocalizer(Localizer):
         """Hand the annealed particles to the Gaussian-sum filter (one Gaussian per particle)."""
         assert self.gsf is not None
         gsf, particles = self.gsf, self.pf.particles
-        weights = np.exp(self.pf.logw - np.max(self.pf.logw))
         if particles.shape[0] != gsf.n or np.ptp(self.pf.logw) > 0.0:  # (the vectors' weights)
-            idx = systematic_resample(weights / weights.sum(), self.rng, gsf.n)
+            idx = systematic_resample(normalize(self.pf.logw), self.rng, gsf.n)
             particles = particles[idx]
         gsf.initialize(particles[:, : self.layout.dim])
         # the sampled filter is no longer needed: keep a one-particle stub, free the memory
@@ -586,17 +589,11 @@ class ParticleFilterLocalizer(Localizer):
     def _estimate_gaussian_sum(self, t: float) -> Estimate:
         assert self.gsf is not None
         gsf = self.gsf
-        mean, cov = gsf.position_moments()
-        positions, covs = {}, {}
-        for k, robot in enumerate(self.layout.others):
-            positions[robot] = (float(mean[k, 0]), float(mean[k, 1]))
-            c = cov[k]
-            covs[robot] = ((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1])))
+        positions, covs = self._positions(*gsf.position_moments())
         headings, biases, scales = {}, {}, {}
         if self.heading_estimated:
             for robot in self.layout.robots:  # the reference's: the drift of its own heading
                 headings[robot] = gsf.heading(robot)
-            for robot in self.layout.robots:
                 if not self.tracks[robot].empty:
                     log_ = self.odometry_yaws.setdefault(robot, deque(maxlen=_YAW_LOG))
                     log_.append((t, self.tracks[robot].pose_at(t)[2]))
@@ -653,37 +650,33 @@ class ParticleFilterLocalizer(Localizer):
         return StackedMeasurement(tuple(parts)) if parts else None
 
     def _los_sigmas(self, keys: list[str]) -> FloatArray:
-        """Line-of-sight noise of each pair for the NLOS-aware model: a pair's own calibrated
-        sigma if the config gives one, else ``los_sigma`` (widened by ``uwb.default_bias_sigma``
-        for a pair without calibration), as ``_pair_ranges`` does with ``sigma_uwb``.
-        (Online biases use the symmetric model, so never come here.) Scaled like the ranges."""
-        fc, uwb = self.config.filter, self.config.uwb
-        out = np.full(len(keys), fc.los_sigma)
-        for i, key in enumerate(keys):
-            if not key:  # corrected upstream (the caller gives these the symmetric model)
-                continue
-            cal = uwb.pairs.get(key)
-            if cal is None:
-                out[i] = math.hypot(fc.los_sigma, uwb.default_bias_sigma)
-            else:
-                out[i] = (cal.sigma if cal.sigma is not None else fc.los_sigma) / cal.scale
-        return out
+        """Line-of-sight noise of each pair for the NLOS-aware model: :meth:`_pair_sigma` on
+        ``los_sigma`` (``_pair_ranges`` uses ``sigma_uwb``). Keys ``""`` (corrected upstream)
+        get the symmetric model from the caller; online biases never come here."""
+        los = self.config.filter.los_sigma
+        return np.array([self._pair_sigma(key, los) if key else los for key in keys])
+
+    def _positions(
+        self, mean: FloatArray, cov: FloatArray
+    ) -> tuple[dict[str, tuple[float, float]], dict[str, tuple[tuple[float, float], tuple[float, float]]]]:
+        """Per non-reference robot, its mean ``(x, y)`` and covariance as nested tuples, from
+        ``(N-1, 2)`` means and ``(N-1, 2, 2)`` covariances."""
+        positions, covs = {}, {}
+        for k, robot in enumerate(self.layout.others):
+            positions[robot] = (float(mean[k, 0]), float(mean[k, 1]))
+            c = cov[k]
+            covs[robot] = ((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1])))
+        return positions, covs
 
     def _estimate(self, t: float) -> Estimate:
         fe = self.pf.estimate()
-        positions, covs = {}, {}
-        for k, robot in enumerate(self.layout.others):
-            positions[robot] = (float(fe.mean[k, 0]), float(fe.mean[k, 1]))
-            c = fe.cov[k]
-            covs[robot] = ((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1])))
+        positions, covs = self._positions(fe.mean, fe.cov)
         biases: dict[str, tuple[float, float]] = {}
         if self.online_bias:
             w = np.exp(self.pf.logw)
             for pair in self.layout.bias_pairs:
                 c, _ = self.layout.bias_columns(pair)
-                mu, var = self.pf.particles[:, c], self.pf.particles[:, c + 1]
-                mean = float(w @ mu)
-                biases[pair] = (mean, math.sqrt(max(float(w @ (var + (mu - mean) ** 2)), 0.0)))
+                biases[pair] = mixture_moments(w, self.pf.particles[:, c], self.pf.particles[:, c + 1])
         est = Estimate(t, self.method, self.layout.reference, positions, covs, fe.ess, biases=biases)
         self.last_estimate = est
         return est

@@ -88,7 +88,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import i0e, i1e
 
-from relloc.filter.resampling import ess, log_normalize, systematic_resample
+from relloc.filter.resampling import ess, log_normalize, mixture_moments, systematic_resample
 from relloc.filter.state import TeamLayout
 
 FloatArray = NDArray[np.float64]
@@ -704,13 +704,9 @@ class GaussianSumFilter:
                 var = np.where(prior, self.noise.scale_prior_sigma**2, var)
         else:
             return math.nan, math.nan
-        mean = float(w @ mu)
-        return mean, math.sqrt(max(float(w @ (var + (mu - mean) ** 2)), 0.0))
+        return mixture_moments(w, mu, var)
 
     def bias(self, pair: str) -> tuple[float, float]:
         """Mean and std of ``pair``'s online range bias."""
         c = self.layout.bias_column(pair)
-        w = self.weights()
-        mu, var = self.mean[:, c], self.cov[:, c, c]
-        mean = float(w @ mu)
-        return mean, math.sqrt(max(float(w @ (var + (mu - mean) ** 2)), 0.0))
+        return mixture_moments(self.weights(), self.mean[:, c], self.cov[:, c, c])

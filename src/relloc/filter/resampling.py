@@ -11,6 +11,8 @@ has the lowest variance of the classic schemes for the cost of one cumulative su
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -34,6 +36,13 @@ def ess(logw: FloatArray) -> float:
     """Effective sample size of (unnormalised) log-weights, between 1 and ``len(logw)``."""
     w = normalize(logw)
     return float(1.0 / np.sum(w * w))
+
+
+def mixture_moments(w: FloatArray, mu: FloatArray, var: FloatArray) -> tuple[float, float]:
+    """Mean and standard deviation of a mixture with normalised weights ``w``, component means
+    ``mu`` and component variances ``var`` (each ``(M,)``): the law of total variance."""
+    mean = float(w @ mu)
+    return mean, math.sqrt(max(float(w @ (var + (mu - mean) ** 2)), 0.0))
 
 
 def systematic_resample(weights: FloatArray, rng: np.random.Generator, n: int | None = None) -> NDArray[np.intp]:
