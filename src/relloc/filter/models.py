@@ -81,11 +81,14 @@ _LOGISTIC_PROBIT = 1.702
 def _range_mixture(
     residual: FloatArray, sigma: FloatArray, eps: float, support: float, nlos_fraction: float, nlos_sigma: float
 ) -> tuple[FloatArray, FloatArray]:
-    """Line-of-sight density and total density of the NLOS-aware mixture (module docstring),
-    elementwise; ``sigma`` broadcasts against ``residual``."""
+    """Line-of-sight density and total density of the range mixture (module docstring),
+    elementwise; ``sigma`` broadcasts against ``residual``. ``nlos_fraction`` 0 is the
+    symmetric Gaussian-plus-uniform model."""
     z = residual / sigma
     los = np.exp(-0.5 * z * z)
     los *= (1.0 - nlos_fraction - eps) / (sigma * np.sqrt(2.0 * np.pi))
+    if nlos_fraction <= 0.0:
+        return los, los + eps / support
     w = np.sqrt(sigma * sigma + nlos_sigma * nlos_sigma)
     u = residual / w
     nlos = np.exp(-0.5 * u * u)
@@ -150,12 +153,8 @@ class RangeBatch:
         r, s = residual[online], sigma[online]
         cols = self.bias_columns[online]
         var = particles[:, cols + 1].T  # (K', M)
-        if self.nlos_fraction > 0.0:
-            los, total = _range_mixture(r, s, self.outlier_fraction, self.max_range, self.nlos_fraction, self.nlos_sigma)
-            inlier = los / total
-        else:
-            gauss = (1.0 - self.outlier_fraction) * np.exp(-0.5 * (r / s) ** 2) / (s * np.sqrt(2.0 * np.pi))
-            inlier = gauss / (gauss + self.outlier_fraction / self.max_range)
+        los, total = _range_mixture(r, s, self.outlier_fraction, self.max_range, self.nlos_fraction, self.nlos_sigma)
+        inlier = los / total
         gain = inlier * var / (s * s)
         particles[:, cols] += (gain * r).T
         particles[:, cols + 1] = ((1.0 - gain) * var).T
