@@ -141,16 +141,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _add_mode_flags(parser: argparse.ArgumentParser) -> None:
     """Self-calibration modes (docs/self-calibration.md); the default is the config's."""
+    from relloc.config import FilterConfig
+
     parser.add_argument(
-        "--heading", choices=("compass", "estimate"), default=None,
+        "--heading", choices=FilterConfig.choices("heading_mode"), default=None,
         help="compass: heading offsets from the config; estimate: estimated online",
     )
     parser.add_argument(
-        "--bias", choices=("calibrated", "online"), default=None,
+        "--bias", choices=FilterConfig.choices("bias_mode"), default=None,
         help="UWB pair biases from the config (calibrated) or estimated online",
     )
     parser.add_argument(
-        "--odom-scale", choices=("fixed", "online"), default=None,
+        "--odom-scale", choices=FilterConfig.choices("odom_scale_mode"), default=None,
         help="odometry scales from the config (fixed) or estimated online",
     )
 

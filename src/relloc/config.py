@@ -284,6 +284,11 @@ class FilterConfig(_Checked):
     selfcal_position_sigma: float = 0.2
     """Initial position standard deviation of each Gaussian after the annealed start (m)."""
 
+    @classmethod
+    def choices(cls, name: str) -> tuple[str, ...]:
+        """The allowed values of the ``Literal`` field ``name`` (e.g. for a CLI flag)."""
+        return get_args(_type_hints(cls)[name])
+
     def __post_init__(self) -> None:
         """Reject values no filter can run with (a typo must not become a silent NaN)."""
         super().__post_init__()
