@@ -21,7 +21,15 @@ import bisect
 import math
 from dataclasses import dataclass
 
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
 from relloc.events import OdometryEvent
+
+
+def wrap_angle(a: ArrayLike) -> NDArray[np.float64]:
+    """Angles wrapped to ``[-pi, pi)``: the error of 179 deg against -179 deg is 2 deg."""
+    return (np.asarray(a, dtype=float) + math.pi) % (2.0 * math.pi) - math.pi
 
 
 @dataclass

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from relloc.events import GroundTruthEvent
 from relloc.localizer import Estimate
+from relloc.odometry import wrap_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -134,14 +135,13 @@ def associate(
     estimates: Sequence[Estimate],
     gt: GroundTruth,
     robots: Iterable[str],
-    rotation: float | Mapping[float, float] = 0.0,
+    rotation: float = 0.0,
 ) -> dict[str, Paired]:
     """Pair every estimate of every robot with interpolated relative ground truth.
 
     ``rotation`` (rad): the estimates' frame is the world frame turned by this angle (the
-    reference robot's odometry frame in heading-estimate mode), one for the run or one per
-    estimate time; the ground truth is turned by ``-rotation`` into it. Estimates at a time
-    the mapping lacks are left out.
+    reference robot's odometry frame in heading-estimate mode); the ground truth is turned by
+    ``-rotation`` into it.
     """
     out: dict[str, Paired] = {}
     for robot in robots:
@@ -152,11 +152,8 @@ def associate(
             truth = gt.relative_at(robot, est.t)
             if truth is None:
                 continue
-            angle = rotation.get(est.t) if isinstance(rotation, Mapping) else rotation
-            if angle is None:
-                continue
-            if angle != 0.0:
-                c, s_ = math.cos(angle), math.sin(angle)
+            if rotation != 0.0:
+                c, s_ = math.cos(rotation), math.sin(rotation)
                 truth = (c * truth[0] + s_ * truth[1], -s_ * truth[0] + c * truth[1])
             t.append(est.t)
             e.append(est.positions[robot])
@@ -253,11 +250,6 @@ def write_tum(path: Path, times: FloatArray, xy: FloatArray) -> None:
 
 
 # ---------------------------------------------------------------------------- self-calibration
-def wrap_angle(a: FloatArray | float) -> FloatArray:
-    """Angles wrapped to ``[-pi, pi)``: the error of 179 deg against -179 deg is 2 deg."""
-    return (np.asarray(a, dtype=float) + math.pi) % (2.0 * math.pi) - math.pi
-
-
 def nearest_pose(gt: GroundTruth, robot: str, t: float, max_gap: float = 0.5) -> tuple[float, float, float] | None:
     """The motion-capture pose at ``t`` (interpolated), else the nearest sample within ``max_gap``."""
     pose = gt.pose_at(robot, t)

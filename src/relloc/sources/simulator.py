@@ -73,6 +73,7 @@ from relloc.events import (
     RangeEvent,
     pair_key,
 )
+from relloc.odometry import wrap_angle
 
 __all__ = [
     "ARENA",
@@ -305,11 +306,6 @@ def _accumulate(start: float, steps: FloatArray) -> FloatArray:
     return np.cumsum(np.concatenate(([start], steps)))[1:]
 
 
-def _wrap(a: ArrayLike) -> FloatArray:
-    """Angles wrapped to [-pi, pi)."""
-    return (np.asarray(a, dtype=float) + math.pi) % TWO_PI - math.pi
-
-
 def _stream(seed: int, *names: str) -> np.random.Generator:
     """An independent random stream for ``names`` (e.g. ``("uwb-noise", "n_1-n_3")``)."""
     key = tuple(zlib.crc32(n.encode()) for n in names)
@@ -388,7 +384,7 @@ class Simulation:
                 traj.extend(d, v, w)
             self._base_traj[m.name] = traj
         self.true_heading_offsets: dict[str, float] = {
-            m.name: float(_wrap(m.yaw)) for m in self.motions
+            m.name: float(wrap_angle(m.yaw)) for m in self.motions
         }
 
         self._build_odometry()
@@ -571,7 +567,7 @@ class Simulation:
                 f"{robot!r} is commanded and simulated only up to t={self._runner.t_sim:.3f}s"
             )
         x, y, yaw, _ = self._runner.traj[robot].evaluate(t)
-        return np.column_stack([x, y, _wrap(yaw)])
+        return np.column_stack([x, y, wrap_angle(yaw)])
 
     def range_error(self, robot_a: str, robot_b: str, t: ArrayLike) -> FloatArray:
         """Deterministic part of the UWB error (bias + orientation term) at times ``t``.
@@ -684,7 +680,7 @@ class _Runner:
             return
         for name in self.sim.robots:
             x, y, yaw, _ = self.traj[name].evaluate(times)
-            yaw = _wrap(yaw)
+            yaw = wrap_angle(yaw)
             out.extend(
                 GroundTruthEvent(t, name, xi, yi, th)
                 for t, xi, yi, th in zip(
@@ -719,7 +715,7 @@ class _Runner:
                     times.tolist(),
                     xs.tolist(),
                     ys.tolist(),
-                    _wrap(yaw_end).tolist(),
+                    wrap_angle(yaw_end).tolist(),
                     v_m.tolist(),
                     w_m.tolist(),
                     strict=True,
@@ -816,7 +812,7 @@ def _camera_view(
     rx = obj_xyz[None, :, 0] - cx[:, None]
     ry = obj_xyz[None, :, 1] - cy[:, None]
     d = np.hypot(rx, ry)
-    bearing = _wrap(np.arctan2(ry, rx) - (yaw + math.radians(cam.yaw_deg))[:, None])
+    bearing = wrap_angle(np.arctan2(ry, rx) - (yaw + math.radians(cam.yaw_deg))[:, None])
     return d, bearing
 
 
@@ -869,7 +865,7 @@ def _polygon_loop(
     segments: list[tuple[float, float, float]] = []
     for i in range(n):
         segments.append((float(np.hypot(*edges[i])) / speed, speed, 0.0))
-        turn = float(_wrap(headings[(i + 1) % n] - headings[i]))
+        turn = float(wrap_angle(headings[(i + 1) % n] - headings[i]))
         if abs(turn) > 1e-9:
             segments.append((abs(turn) / turn_rate, 0.0, math.copysign(turn_rate, turn)))
     return (float(P[0, 0]), float(P[0, 1]), float(headings[0])), segments
@@ -915,7 +911,7 @@ def _looped_motion(
     first = (float(ends[k] - phase), float(full[k, 1]), float(full[k, 2]))
     segments = [first, *(tuple(map(float, r)) for r in full[k + 1 :])]
     if initial_yaw is not None:
-        turn = float(_wrap(yaw - initial_yaw))
+        turn = float(wrap_angle(yaw - initial_yaw))
         if abs(turn) > 1e-9:
             segments.insert(0, (abs(turn) / turn_rate, 0.0, math.copysign(turn_rate, turn)))
         yaw = initial_yaw
@@ -924,7 +920,7 @@ def _looped_motion(
         node=node,
         x=x,
         y=y,
-        yaw=float(_wrap(yaw)),
+        yaw=float(wrap_angle(yaw)),
         segments=tuple(segments),  # type: ignore[arg-type]
         commanded=commanded,
         pattern=pattern,
