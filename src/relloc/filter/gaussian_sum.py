@@ -88,7 +88,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.special import i0e, i1e
 
-from relloc.filter.resampling import ess, log_normalize, mixture_moments, systematic_resample
+from relloc.filter.resampling import ess, log_normalize, mixture_moments, resample_with_reinjection
 from relloc.filter.state import TeamLayout
 
 FloatArray = NDArray[np.float64]
@@ -623,14 +623,12 @@ class GaussianSumFilter:
         return True
 
     def resample(self) -> None:
-        idx = systematic_resample(np.exp(self.logw), self.rng)
+        idx, slots = resample_with_reinjection(self.logw, self.rng, self.reinject_fraction)
         self.mean = self.mean[idx]
         self.cov = self.cov[idx]
         self.magnitude_done = self.magnitude_done[idx]
-        k = round(self.reinject_fraction * self.n)
-        if k > 0:
-            slots = self.rng.choice(self.n, size=k, replace=False)
-            self._set_prior_rows(slots, self.sample_positions(k))
+        if slots.size:
+            self._set_prior_rows(slots, self.sample_positions(slots.size))
         self.logw = np.full(self.n, -math.log(self.n))
         self.resample_count += 1
 

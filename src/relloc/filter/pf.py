@@ -54,7 +54,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from relloc.filter.models import OdometryMotion
-from relloc.filter.resampling import ess, log_normalize, systematic_resample
+from relloc.filter.resampling import (
+    ess,
+    log_normalize,
+    resample_with_reinjection,
+    systematic_resample,
+)
 from relloc.filter.state import StateLayout
 
 FloatArray = NDArray[np.float64]
@@ -193,12 +198,10 @@ class ParticleFilter:
     def resample(self) -> None:
         """Systematic resampling, re-injection of a fraction of particles from the prior, and
         the orientation kernel (module docstring)."""
-        idx = systematic_resample(np.exp(self.logw), self.rng)
+        idx, slots = resample_with_reinjection(self.logw, self.rng, self.reinject_fraction)
         self.particles = self.particles[idx]
-        k = round(self.reinject_fraction * self.n)
-        if k > 0:
-            slots = self.rng.choice(self.n, size=k, replace=False)
-            self.particles[slots] = self.sample_prior(k)
+        if slots.size:
+            self.particles[slots] = self.sample_prior(slots.size)
         self.logw = np.full(self.n, -np.log(self.n))
         self.resample_count += 1
         if self.rotation_kernel > 0.0 and self.rejuvenate_rotation(self.rotation_kernel):
