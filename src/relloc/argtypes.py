@@ -23,11 +23,19 @@ def count(text: str) -> int:
     return value
 
 
-def seconds(text: str) -> float:
-    """A duration: a finite number of seconds > 0."""
+def positive(text: str) -> float:
+    """A duration, a rate, a period: a finite number > 0."""
     value = float(_parse(float, text))
     if not (math.isfinite(value) and value > 0.0):
-        raise argparse.ArgumentTypeError(f"must be a finite number of seconds > 0, got {text}")
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text}")
+    return value
+
+
+def non_negative(text: str) -> float:
+    """A finite number >= 0 (a window that may be zero)."""
+    value = float(_parse(float, text))
+    if not (math.isfinite(value) and value >= 0.0):
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text}")
     return value
 
 

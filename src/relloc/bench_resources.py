@@ -33,7 +33,6 @@ from relloc.live import (
     ReplayOptions,
     ZenohOptions,
     ape_against_bag,
-    check_positive,
     free_tcp_port,
     open_session,
     publish_events,
@@ -293,7 +292,6 @@ def _cmd_bench_resources(args: argparse.Namespace) -> int:
             raise UserError(f"bag not found: {bag}")
         print(f"skipping the shortbag case: {bag} not found")
         scenarios = tuple(s for s in scenarios if s != "shortbag")
-    check_positive(rate=args.rate)
     try:
         particles = tuple(int(p) for p in args.particles.split(","))
     except ValueError:
@@ -330,9 +328,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="sim5,shortbag",
         help="sim5 (5 simulated robots), shortbag (4 robots, TIERS)",
     )
-    res.add_argument("--duration", type=argtypes.seconds, default=30.0, help="length of the simulated run (s)")
-    res.add_argument("--rate", type=float, default=1.0)
-    res.add_argument("--reorder-window", type=float, default=0.0, metavar="S")
+    res.add_argument("--duration", type=argtypes.positive, default=30.0, help="length of the simulated run (s)")
+    res.add_argument("--rate", type=argtypes.positive, default=1.0)
+    res.add_argument("--reorder-window", type=argtypes.non_negative, default=0.0, metavar="S")
     res.add_argument("--seed", type=argtypes.seed, default=0)
     res.add_argument("--bag", default=None, help=f"default ../shared/data/tiers/{SHORTBAG}")
     res.add_argument("--bag-config", default=None)

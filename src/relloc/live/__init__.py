@@ -39,7 +39,6 @@ from relloc.live.server import LiveServer, ServeOptions
 from relloc.live.session import (
     ZenohOptions,
     add_zenoh_args,
-    check_positive,
     free_tcp_port,
     open_cli_session,
     open_session,
@@ -57,7 +56,6 @@ __all__ = [
     "ZenohOptions",
     "add_zenoh_args",
     "ape_against_bag",
-    "check_positive",
     "event_messages",
     "free_tcp_port",
     "open_cli_session",

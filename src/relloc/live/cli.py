@@ -12,18 +12,14 @@ from relloc import argtypes
 from relloc.config import TeamConfig
 from relloc.live.publish import ReplayOptions, replay_bag
 from relloc.live.server import LiveServer, ServeOptions
-from relloc.live.session import add_zenoh_args, check_positive, open_cli_session
+from relloc.live.session import add_zenoh_args, open_cli_session
 
 __all__ = ["register"]
 
 
 def _cmd_serve(args: argparse.Namespace) -> int:
-    from relloc.cli import UserError
     from relloc.methods import parse_methods
 
-    check_positive(clock_rate=args.clock_rate, status_period=args.status_period)
-    if args.reorder_window < 0:
-        raise UserError(f"--reorder-window must be >= 0, got {args.reorder_window}")
     config = TeamConfig.load(args.config)
     opts = ServeOptions(
         methods=tuple(parse_methods(args.methods)),
@@ -82,7 +78,6 @@ def _print_summary(s: dict[str, Any]) -> None:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
-    check_positive(rate=args.rate)
     config = TeamConfig.load(args.config)
     opts = ReplayOptions(
         rate=args.rate,
@@ -138,11 +133,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.add_argument(
         "--out-prefix", default="relloc", help="key prefix of the estimates and status"
     )
-    serve.add_argument("--reorder-window", type=float, default=0.0, metavar="S",
+    serve.add_argument("--reorder-window", type=argtypes.non_negative, default=0.0, metavar="S",
                        help="hold events up to S s of header time to put them in order (adds S s of latency)")  # fmt: skip
-    serve.add_argument("--clock-rate", type=float, default=1.0,
+    serve.add_argument("--clock-rate", type=argtypes.positive, default=1.0,
                        help="header seconds per wall second (match relloc replay --rate)")  # fmt: skip
-    serve.add_argument("--status-period", type=float, default=1.0, metavar="S")
+    serve.add_argument("--status-period", type=argtypes.positive, default=1.0, metavar="S")
     serve.add_argument(
         "--trace",
         action="store_true",
@@ -154,7 +149,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="subscribe to <prefix>/** (unknown keys are counted)",
     )
     serve.add_argument(
-        "--duration", type=argtypes.seconds, default=None, metavar="S", help="stop after S seconds"
+        "--duration", type=argtypes.positive, default=None, metavar="S", help="stop after S seconds"
     )
     serve.add_argument(
         "--json", default=None, metavar="FILE", help="write the final figures as JSON"
@@ -169,7 +164,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     replay.add_argument(
         "--config", required=True, help="team config (TOML): keys of the team's topics"
     )
-    replay.add_argument("--rate", type=float, default=1.0, help="speed factor (2: twice as fast)")
+    replay.add_argument("--rate", type=argtypes.positive, default=1.0, help="speed factor (2: twice as fast)")
     replay.add_argument("--team-only", action="store_true", help="publish only the team's topics")
     replay.add_argument(
         "--ground-truth", action="store_true", help="also publish motion capture (mocap_topic)"
@@ -182,6 +177,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="wait up to S s for the server's subscribers",
     )
     replay.add_argument("--start", type=float, default=0.0, metavar="S", help="skip S s of the bag")
-    replay.add_argument("--duration", type=argtypes.seconds, default=None, metavar="S")
+    replay.add_argument("--duration", type=argtypes.positive, default=None, metavar="S")
     add_zenoh_args(replay)
     replay.set_defaults(handler=_cmd_replay)

@@ -17,7 +17,6 @@ from typing import Any, Literal
 __all__ = [
     "ZenohOptions",
     "add_zenoh_args",
-    "check_positive",
     "free_tcp_port",
     "open_cli_session",
     "open_session",
@@ -117,12 +116,3 @@ def open_cli_session(args: argparse.Namespace) -> Any:
         return open_session(zenoh_options_from_args(args))
     except Exception as exc:  # zenoh.ZError and config errors
         raise UserError(f"cannot open a Zenoh session: {exc}") from None
-
-
-def check_positive(**values: float) -> None:
-    """A one-line error for the first flag whose value is not positive."""
-    from relloc.cli import UserError
-
-    for name, value in values.items():
-        if not value > 0:
-            raise UserError(f"--{name.replace('_', '-')} must be positive, got {value}")

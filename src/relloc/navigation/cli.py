@@ -100,7 +100,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     e.add_argument("--seed", type=argtypes.seed, default=0, help="with --in-process")
     e.add_argument(
         "--clock-rate",
-        type=float,
+        type=argtypes.positive,
         default=1.0,
         help="data seconds per wall second (sim-robots --rate)",
     )
@@ -110,7 +110,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="use the estimate as is, not moved forward by odometry to the control time",
     )
     nav.add_argument(
-        "--duration", type=argtypes.seconds, default=None, metavar="S", help="stop (zero velocity) after S s"
+        "--duration", type=argtypes.positive, default=None, metavar="S", help="stop (zero velocity) after S s"
     )
     nav.add_argument("--json", default=None, metavar="FILE", help="write the summary as JSON")
     add_zenoh_args(nav)
@@ -141,8 +141,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--robot", default=None, help="the commanded robot (nav: r2; other scenarios: none)"
     )
     sim.add_argument("--seed", type=argtypes.seed, default=0)
-    sim.add_argument("--rate", type=float, default=1.0, help="simulated seconds per wall second")
-    sim.add_argument("--duration", type=argtypes.seconds, default=600.0, metavar="S", help="simulated seconds")
+    sim.add_argument("--rate", type=argtypes.positive, default=1.0, help="simulated seconds per wall second")
+    sim.add_argument("--duration", type=argtypes.positive, default=600.0, metavar="S", help="simulated seconds")
     sim.add_argument(
         "--write-config",
         default=None,
@@ -242,8 +242,6 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
         ),
         "options",
     )
-    if not args.clock_rate > 0:
-        raise UserError(f"--clock-rate must be positive, got {args.clock_rate}")
     opts = NavigateOptions(
         robot=args.robot,
         path=path,
@@ -309,8 +307,6 @@ def _cmd_sim_robots(args: argparse.Namespace) -> int:
 
     robot = args.robot or ("r2" if args.scenario == "nav" else None)
     commanded = (robot,) if robot else ()
-    if not args.rate > 0:
-        raise UserError("--rate must be positive")
     try:
         if args.scenario == "nav":
             sim = nav_scenario(args.seed, robot=robot or "r2", duration=args.duration)
