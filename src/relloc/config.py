@@ -39,7 +39,7 @@ from pathlib import Path
 from types import UnionType
 from typing import Any, Literal, get_args, get_origin, get_type_hints
 
-from relloc.events import pair_key
+from relloc.events import RangeEvent, pair_key
 
 
 class ConfigError(ValueError):
@@ -371,6 +371,13 @@ class TeamConfig(_Checked):
             if r.name == name:
                 return r
         raise KeyError(f"unknown robot {name!r}; the team is {list(self.robot_names)}")
+
+    def range_nodes(self, event: RangeEvent) -> tuple[str, str]:
+        """The transceivers of a range: the event's node ids, else the robots' configured ones,
+        else the robot names."""
+        node_a = event.node_a or self.robot(event.robot_a).uwb_node or event.robot_a
+        node_b = event.node_b or self.robot(event.robot_b).uwb_node or event.robot_b
+        return node_a, node_b
 
     def robot_of_node(self, node: str) -> str | None:
         for r in self.robots:

@@ -282,15 +282,9 @@ class Localizer:
         b = self.config.robot(robot_b).uwb_node or robot_b
         return pair_key(a, b)
 
-    def _event_nodes(self, event: RangeEvent) -> tuple[str, str]:
-        """The transceivers of a range: the event's node ids, else the config's, else the robots."""
-        node_a = event.node_a or self.config.robot(event.robot_a).uwb_node or event.robot_a
-        node_b = event.node_b or self.config.robot(event.robot_b).uwb_node or event.robot_b
-        return node_a, node_b
-
     def _event_node_pair(self, event: RangeEvent) -> str:
-        """Key of the transceiver pair of a range (see :meth:`_event_nodes`)."""
-        return pair_key(*self._event_nodes(event))
+        """Key of the transceiver pair of a range (:meth:`TeamConfig.range_nodes`)."""
+        return pair_key(*self.config.range_nodes(event))
 
     def _pair_sigma(self, node_pair: str, base: float) -> float:
         """Noise of a raw range of ``node_pair`` (after its scale is divided out): the pair's
@@ -324,7 +318,7 @@ class Localizer:
         pairs, dist, bias, sigma, keys = [], [], [], [], []
         fc, uwb = self.config.filter, self.config.uwb
         for key, events in groups.items():
-            nodes = self._event_nodes(events[0])
+            nodes = self.config.range_nodes(events[0])
             node_pair = pair_key(*nodes)
             d = float(statistics.median(ev.distance for ev in events))  # a few values: no NumPy
             if all(ev.corrected for ev in events):

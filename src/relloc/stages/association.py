@@ -225,9 +225,7 @@ class DetectionAssociator:
         if ev.corrected:
             distance = ev.distance
         else:
-            node_a = ev.node_a or self.config.robot(ev.robot_a).uwb_node or ev.robot_a
-            node_b = ev.node_b or self.config.robot(ev.robot_b).uwb_node or ev.robot_b
-            bias, scale, _ = self.config.uwb.calibration(node_a, node_b)
+            bias, scale, _ = self.config.uwb.calibration(*self.config.range_nodes(ev))
             distance = (ev.distance - bias) / scale
         key = frozenset((ev.robot_a, ev.robot_b))
         previous = self._ranges.get(key)
