@@ -14,6 +14,7 @@ import pytest
 
 from relloc.config import PairCalibration, RobotConfig, TeamConfig, UwbConfig
 from relloc.engine import Engine
+from relloc.estimate import Estimate
 from relloc.events import (
     DetectionEvent,
     Event,
@@ -23,7 +24,6 @@ from relloc.events import (
     RangeEvent,
     RelativeObservation,
 )
-from relloc.localizer import Estimate
 from relloc.methods import build_pipeline
 from relloc.sinks.report import evaluate
 from relloc.sources.simulator import multi_scenario, single_scenario

@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from relloc.config import RobotConfig
+from relloc.estimate import Estimate
 from relloc.events import OdometryEvent
-from relloc.localizer import Estimate
 from relloc.navigation.controller import Command, ControllerConfig, PathFollower
 from relloc.navigation.live import (
     DataClock,

@@ -26,6 +26,7 @@ from typing import Any
 
 from relloc import argtypes
 from relloc.config import TeamConfig
+from relloc.estimate import Estimate
 from relloc.live import (
     SHORTBAG,
     SIM_TIME_BASE,
@@ -39,7 +40,6 @@ from relloc.live import (
     replay_bag,
     simulated_team,
 )
-from relloc.localizer import Estimate
 
 
 @dataclass(frozen=True)

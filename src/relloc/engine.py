@@ -16,8 +16,9 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Protocol
 
+from relloc.estimate import Estimate
 from relloc.events import Event, GroundTruthEvent
-from relloc.localizer import Estimate, Localizer
+from relloc.localizer import Localizer
 from relloc.sinks.metrics import GroundTruth
 
 

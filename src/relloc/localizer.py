@@ -27,12 +27,13 @@ import math
 import numbers
 import statistics
 from collections import Counter, deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
+from relloc.estimate import Estimate
 from relloc.events import (
     DetectionEvent,
     Event,
@@ -66,38 +67,6 @@ _YAW_LOG = 200_000
 def _finite(x: object) -> bool:
     """A finite real number (not a bool, a string or an array): what every event field must be."""
     return isinstance(x, numbers.Real) and not isinstance(x, bool) and math.isfinite(x)
-
-
-@dataclass(frozen=True)
-class Estimate:
-    """Positions of every non-reference robot relative to the reference, in the shared heading
-    frame (heading-estimate mode: the reference robot's odometry frame)."""
-
-    t: float
-    method: str
-    reference: str
-    positions: dict[str, tuple[float, float]]
-    covariances: dict[str, tuple[tuple[float, float], tuple[float, float]]] = field(
-        default_factory=dict
-    )
-    ess: float | None = None
-    headings: dict[str, tuple[float, float]] = field(default_factory=dict)
-    """Heading-estimate mode: per robot, the rotation that takes its odometry displacements
-    into the reference robot's odometry frame, as (circular mean, circular std) in rad. A
-    spread near pi says the heading is unobservable so far (the robot has not moved). The
-    reference's own entry starts at 0 (by definition) and follows its odometry's drift."""
-    biases: dict[str, tuple[float, float]] = field(default_factory=dict)
-    """Online-bias mode: per UWB node pair, the range bias (mean, std) in m. A std still at its
-    prior says the bias is unobservable so far (the pair's distance has not changed)."""
-    scales: dict[str, tuple[float, float]] = field(default_factory=dict)
-    """Online-scale mode: per robot, the odometry scale (mean, std)."""
-
-    def std(self, robot: str) -> float:
-        """Position standard deviation of ``robot``: sqrt of the covariance's largest eigenvalue."""
-        cov = self.covariances.get(robot)
-        if cov is None:
-            return math.nan
-        return float(np.sqrt(np.max(np.linalg.eigvalsh(np.array(cov)))))
 
 
 class Localizer:

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from relloc.config import TeamConfig
-from relloc.localizer import Estimate
+from relloc.estimate import Estimate
 from relloc.sinks.zenoh_sink import pose_key
 
 __all__ = ["SHORTBAG", "EstimateCollector", "ape_against_bag"]

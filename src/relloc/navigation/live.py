@@ -51,8 +51,8 @@ from pathlib import Path
 from typing import Any
 
 from relloc.config import RobotConfig, TeamConfig
+from relloc.estimate import Estimate
 from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent
-from relloc.localizer import Estimate
 from relloc.navigation.controller import Command, ControllerConfig
 from relloc.navigation.navigator import Navigator
 from relloc.navigation.path import WaypointPath

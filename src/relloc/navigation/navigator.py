@@ -29,8 +29,8 @@ import math
 from dataclasses import dataclass
 
 from relloc.config import RobotConfig
+from relloc.estimate import Estimate
 from relloc.events import OdometryEvent
-from relloc.localizer import Estimate
 from relloc.navigation.controller import Command, ControllerConfig, PathFollower
 from relloc.navigation.path import WaypointPath
 from relloc.navigation.safety import SafetyConfig, SafetyGate

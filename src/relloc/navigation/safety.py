@@ -33,7 +33,7 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 from relloc.config import ConfigError, with_numeric_overrides
-from relloc.localizer import Estimate
+from relloc.estimate import Estimate
 
 __all__ = ["SafetyConfig", "SafetyGate", "StopRecord"]
 

@@ -28,8 +28,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from relloc.estimate import Estimate
 from relloc.events import GroundTruthEvent
-from relloc.localizer import Estimate
 from relloc.odometry import wrap_angle
 
 FloatArray = NDArray[np.float64]

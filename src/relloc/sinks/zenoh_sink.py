@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 
 from relloc.config import TeamConfig
-from relloc.localizer import Estimate
+from relloc.estimate import Estimate
 from relloc.ros_cdr import encode_pose_with_covariance_stamped
 from relloc.sources.zenoh_source import Arrival
 
@@ -54,7 +54,7 @@ def pose_key(prefix: str, robot: str, method: str | None = None) -> str:
 class ZenohSink:
     """Engine sink publishing estimates (and status, and optionally traces) on a session.
 
-    Call it with each :class:`~relloc.localizer.Estimate` (the engine does); call
+    Call it with each :class:`~relloc.estimate.Estimate` (the engine does); call
     :meth:`set_trigger` before feeding an event so that traces can name it, and
     :meth:`publish_status` about once a second. :meth:`close` undeclares the publishers (the
     session belongs to the caller).

@@ -85,6 +85,7 @@ from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 
 from relloc.config import TeamConfig
+from relloc.estimate import Estimate
 from relloc.events import (
     DetectionEvent,
     Event,
@@ -93,7 +94,6 @@ from relloc.events import (
     RangeEvent,
     RelativeObservation,
 )
-from relloc.localizer import Estimate
 from relloc.odometry import OdometryTrack
 
 FloatArray = NDArray[np.float64]
