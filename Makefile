@@ -1,23 +1,44 @@
 # Two entry points a new user needs: `make demo` and `make test`. Each creates .venv and installs.
+# `make demo` installs relloc alone (no PyTorch); `make test` adds the dev tools and the training
+# extra (PyTorch), because the test suite trains small models.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test lint bench clean
+.PHONY: setup setup-test demo test lint bench clean
 
-$(BIN)/relloc: pyproject.toml
-	$(PYTHON) -m venv $(VENV)
+# A .venv made by another Python cannot be reused (pip refuses relloc with "requires a different
+# Python", and `python -m venv` keeps the old interpreter): say so and rebuild it.
+define fresh_venv
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info >= (3, 11) else "relloc needs Python 3.11 or newer; this is " + sys.version.split()[0] + " (set PYTHON=python3.11)")'
+	@want=$$($(PYTHON) -c 'import sys; print(sys.version.split()[0])'); \
+	have=$$($(BIN)/python -c 'import sys; print(sys.version.split()[0])' 2>/dev/null || true); \
+	if [ -d $(VENV) ] && [ "$$have" != "$$want" ]; then \
+		echo "$(VENV) was made with Python $${have:-unknown}, not $$want: rebuilding it"; rm -rf $(VENV); \
+	fi
+	@[ -x $(BIN)/python ] || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -e '.[dev,train]'
-	touch $(BIN)/relloc
+endef
 
-setup: $(BIN)/relloc
+$(VENV)/.installed-core: pyproject.toml
+	$(fresh_venv)
+	$(BIN)/python -m pip install -q -e .
+	touch $@
+
+$(VENV)/.installed-test: pyproject.toml
+	$(fresh_venv)
+	$(BIN)/python -m pip install -q -e '.[dev,train]'
+	touch $@ $(VENV)/.installed-core
+
+setup: $(VENV)/.installed-core
+
+setup-test: $(VENV)/.installed-test
 
 demo: setup
 	$(BIN)/relloc demo --seed 0 --out out/demo --json out/demo/demo.json
 
-test: setup
-	$(BIN)/ruff check src tests benchmarks examples
+test: setup-test
+	$(BIN)/ruff check src tests benchmarks examples scripts
 	$(BIN)/python -m pytest -q
 
 # The benchmark has an environment of its own: relloc plus the pfilter reference (not a dependency).
@@ -34,4 +55,4 @@ bench: $(BENCH_VENV)/.installed
 	$(BENCH_VENV)/bin/python benchmarks/filter_vs_pfilter.py $(BENCH_ARGS)
 
 clean:
-	rm -rf $(VENV) out build *.egg-info
+	rm -rf $(VENV) $(BENCH_VENV) out build *.egg-info
