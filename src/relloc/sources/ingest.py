@@ -29,15 +29,15 @@ different topics arrive out of header order. Receive time is used only where no 
 receive``, where the offset of a kind of message is the median, over the topics of that kind,
 of each topic's median of ``stamp - rate * receive`` (kinds are kept apart so that a restamped
 odometry message keeps odometry's lag; a kind never seen stamped uses the median over all
-topics; with nothing seen at all the offset is 0, which live is right: ROS stamps wall time).
+topics; with nothing seen at all the offset is 0, which is right live: ROS stamps wall time).
 ``rate`` is header seconds per receive second (a recording replayed twice as fast: 2).
 
 The two clocks need not be close. A recording that was re-recorded from a replay has receive
 times from the day of the replay and header stamps from the day of the experiment (the
-shortbag's differ by 48 days), but the offset between them is constant over the recording. A
-bag source can therefore estimate it once, from the header stamps at the start of the bag, and
-:meth:`HeaderClock.freeze` it; a live source cannot look ahead and learns it as messages come
-(a running median over each topic's last ``window`` stamped messages).
+shortbag's differ by weeks: ``docs/results.md``), but the offset between them is constant over
+the recording. A bag source can therefore estimate it once, from the header stamps at the start
+of the bag, and :meth:`HeaderClock.freeze` it; a live source cannot look ahead and learns it as
+messages come (a running median over each topic's last ``window`` stamped messages).
 ``TeamConfig.clock_offset`` fixes the offset instead of estimating it.
 
 Zero stamps
@@ -65,8 +65,8 @@ Reorder window
 :class:`ReorderBuffer` restores header order within a bounded window: it holds events in a heap
 and releases, in stamp order, those ``window`` seconds of header time behind the newest time the
 source knows has arrived (live: the newest stamp; a bag: the newest receive time put on the
-header clock, which no later message can undercut by more than the lag), or that have waited
-``hold`` seconds (live, so that a quiet team is not held back). Memory stays bounded by a
+header clock, since a message received later is stamped earlier only by its lag), or that have
+waited ``hold`` seconds (live, so that a quiet team is not held back). Memory stays bounded by a
 window's worth of messages. An event older than one already released cannot be put in order
 any more: it is counted (``late``) and either passed on at once (live: the localizer judges
 whether it is too late) or dropped (a bag: an offline run sees strictly ordered events). The
@@ -274,7 +274,7 @@ class IngestStats:
 
     def emitted(self, event: Event) -> None:
         """Count an event leaving the source."""
-        self.events[event_kind(event)] += 1
+        self.events[_KIND_OF_TYPE.get(type(event)) or type(event).__name__] += 1
 
     def as_dict(self) -> dict[str, Any]:
         """Plain-dict view for ``--json`` output and the live status."""
@@ -324,7 +324,7 @@ class HeaderClock:
         self.frozen = False
         self._window = window
         self._samples: dict[str, deque[float]] = {}
-        self._kind: dict[str, str] = {}
+        self._of_kind: dict[str, list[str]] = {}
         self._zeros: Counter[str] = Counter()
         self._medians: dict[str, float] = {}
         self._stale: set[str] = set()
@@ -339,7 +339,7 @@ class HeaderClock:
         samples = self._samples.get(stream)
         if samples is None:
             samples = self._samples[stream] = deque(maxlen=self._window)
-            self._kind[stream] = kind
+            self._of_kind.setdefault(kind, []).append(stream)
         samples.append(stamp - self.rate * received)
         self._stale.add(stream)
 
@@ -365,20 +365,16 @@ class HeaderClock:
     def stream_offsets(self) -> dict[str, float]:
         """Median ``stamp - rate * receive`` per stream, in the order the streams were first
         observed stamped."""
-        for stream in self._stale:
-            self._medians[stream] = statistics.median(self._samples[stream])
-        self._stale.clear()
-        return {s: self._medians[s] for s in self._samples}
+        return {s: self._median(s) for s in self._samples}
 
     def offset(self, kind: str) -> float:
         """Current estimate of ``header - rate * receive`` for messages of ``kind``."""
         if self.fixed_offset is not None:
             return self.fixed_offset
-        medians = self.stream_offsets()
-        own = [m for s, m in medians.items() if self._kind[s] == kind]
+        own = self._of_kind.get(kind)
         if own:
-            return statistics.median(own)
-        return statistics.median(medians.values()) if medians else 0.0
+            return statistics.median([self._median(s) for s in own])
+        return self.overall
 
     @property
     def overall(self) -> float:
@@ -391,6 +387,13 @@ class HeaderClock:
     def stamp(self, kind: str, received: float) -> float:
         """Header-clock time of a message of ``kind`` received at ``received``."""
         return self.offset(kind) + self.rate * received
+
+    def _median(self, stream: str) -> float:
+        """The stream's median offset, recomputed only after new observations."""
+        if stream in self._stale:
+            self._medians[stream] = statistics.median(self._samples[stream])
+            self._stale.discard(stream)
+        return self._medians[stream]
 
 
 # ---------------------------------------------------------------------------- reorder buffer

@@ -281,6 +281,7 @@ class ZenohSource:
                 item = self._queue.get_nowait()
             except queue.Empty:
                 item = None
+        self._sync_queue_full()
         return self.release(time.time())
 
     def drain(self) -> list[Arrival]:
@@ -292,6 +293,7 @@ class ZenohSource:
                 break
             if item is not _WAKE:
                 self.handle(*item)
+        self._sync_queue_full()
         self.stats.clock_offset = self.clock.overall
         return self.flush()
 
@@ -321,8 +323,10 @@ class ZenohSource:
         for arrival in arrivals:
             stats.emitted(arrival.event)
         stats.out_of_order = self.buffer.late
+        return arrivals
+
+    def _sync_queue_full(self) -> None:
         with self._lock:
             n = self._queue_full
         if n:
-            stats.rejected["queue_full"] = n
-        return arrivals
+            self.stats.rejected["queue_full"] = n
