@@ -157,8 +157,6 @@ def read_messages(path: str | Path, topics: Collection[str]) -> Iterator[tuple[s
             yield conn.topic, recv_ns * 1e-9, msg
 
 
-
-
 class RosbagSource:
     """Iterable of the relloc events of one team in a rosbag2 recording, in header-time order.
 
