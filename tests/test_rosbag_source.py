@@ -6,6 +6,7 @@ recordings check it on the real data and its quirks (48-day clock offset, zero s
 
 from __future__ import annotations
 
+import hashlib
 import math
 import shutil
 import sqlite3
@@ -406,3 +407,35 @@ def test_replay_start_outside_the_bag_is_a_clear_error(synthetic_bag: Path) -> N
 
     with pytest.raises(BagError, match="outside"):
         replay_bag(synthetic_bag, synthetic_team(), None, ReplayOptions(start=1e9, wait=0.0))
+
+
+def _fingerprint(events: list[Event]) -> tuple[dict[str, int], str]:
+    """Events per type and a SHA-256 (first 16 hex digits) of the sequence of (type, robot,
+    stamp) as Python writes them: any change of order, stamp or routing changes it."""
+    digest = hashlib.sha256()
+    for e in events:
+        who = f"{e.robot_a}-{e.robot_b}" if isinstance(e, RangeEvent) else e.robot  # type: ignore[union-attr]
+        digest.update(f"{type(e).__name__}|{who}|{e.t!r};".encode())
+    return dict(Counter(type(e).__name__ for e in events)), digest.hexdigest()[:16]
+
+
+@pytest.mark.shared_data
+def test_shortbag_event_sequence_is_the_reference(
+    shortbag: tuple[RosbagSource, list[Event]],
+) -> None:
+    """The shortbag's events, their order and their stamps, recorded before the sources shared
+    one ingestion layer (commit 96b88d6): the refactor must give exactly these."""
+    src, events = shortbag
+    counts, digest = _fingerprint(events)
+    assert counts == {
+        "GroundTruthEvent": 4122,
+        "OdometryEvent": 1194,
+        "RangeEvent": 880,
+        "DetectionEvent": 1370,
+    }
+    assert digest == "5cbf2c800fcd40ef"
+    assert math.fsum(e.distance for e in events if isinstance(e, RangeEvent)) == pytest.approx(
+        4192.4300129413605, abs=1e-9
+    )
+    assert src.stats.repeated_ranges == 111
+    assert src.stats.rejected == {"detection_zero_position": 80}

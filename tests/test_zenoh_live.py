@@ -198,7 +198,7 @@ def test_serve_command_shuts_down_cleanly_on_sigterm(
     assert proc.returncode == 0, out
     assert "stopped after" in out and "decode_error" in out
     summary = json.loads(summary_path.read_text())
-    assert summary["source"]["stats"]["received"] == {"r1/odom": 6}
+    assert summary["source"]["stats"]["messages"] == {"r1/odom": 6}
     assert summary["source"]["rejected"] == {"decode_error": 1}
     assert summary["methods"]["pf"]["stats"]["odometry"] == 5
 
@@ -232,7 +232,7 @@ def test_replayed_shortbag_matches_relloc_run(shared_data: Path, sessions: tuple
         stats = replay_bag(bag, config, client, ReplayOptions(rate=rate, wait=5.0))
         assert stats.unmatched == []
         expected = sum(n for k, n in stats.per_key.items() if k in live.source.routes)
-        assert wait_until(lambda: sum(live.source.stats.received.values()) >= expected)
+        assert wait_until(lambda: sum(live.source.stats.messages.values()) >= expected)
     estimates = collector.estimates()
     collector.close()
 

@@ -166,7 +166,7 @@ class LiveServer:
     # ------------------------------------------------------------------ status
     def _counts(self) -> dict[str, int]:
         st = self.source.stats
-        counts = {"messages": sum(st.received.values())}
+        counts = {"messages": sum(st.messages.values())}
         counts.update({f"event.{k}": v for k, v in st.events.items()})
         counts.update({f"estimate.{p.name}": self.sink.published[p.name] for p in self.pipelines})
         return counts

@@ -10,7 +10,12 @@ One row per UWB message between two mapped nodes: its header stamp, the nodes (a
 which the loader accepts without a node map), the range, the motion-capture distance and yaws
 interpolated at that stamp (header stamps on both sides: one clock), and
 ``error = uwb_range - mocap_range``. Messages outside the motion-capture time span are dropped
-(no extrapolation). Uses ``rosbags`` only (no ROS installation).
+(no extrapolation).
+
+The bag is read by :class:`~relloc.sources.rosbag.RosbagSource`, for a team made of the nodes
+(each node a robot carrying it, with its motion-capture body), so the ranges and poses are the
+events every other command sees: the same routes, stamps (zero stamps restamped), header order
+and rejections (non-finite and non-positive ranges are dropped; ``rosbags`` only, no ROS).
 """
 
 from __future__ import annotations
@@ -21,12 +26,12 @@ from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
-from rosbags.rosbag2 import Reader
-from rosbags.typesys import Stores, get_typestore
 
+from relloc.config import ConfigError, RobotConfig, TeamConfig
+from relloc.events import GroundTruthEvent, RangeEvent
 from relloc.ranging.dataset import CSV_COLUMNS, RangingDataError
+from relloc.sources.rosbag import BagError, RosbagSource
 
-RANGE_PREFIX = "/uwb/tof/"
 MOCAP_TOPIC = "/vrpn_client_node/{body}/pose"
 
 
@@ -41,43 +46,33 @@ def parse_bodies(text: str) -> dict[str, str]:
     return out
 
 
-def _stamp(msg: object) -> float:
-    stamp = msg.header.stamp  # type: ignore[attr-defined]
-    return float(stamp.sec) + 1e-9 * float(stamp.nanosec)
+def _node_team(bodies: Mapping[str, str], mocap_topic: str) -> TeamConfig:
+    """A team of one robot per UWB node, named after the node and tracked by its body."""
+    if len(bodies) < 2:
+        raise RangingDataError(f"bodies {dict(bodies)} name fewer than two UWB nodes")
+    robots = tuple(RobotConfig(name=node, uwb_node=node, mocap_body=b) for node, b in bodies.items())
+    try:
+        return TeamConfig(robots=robots, reference=robots[0].name, mocap_topic=mocap_topic)
+    except ConfigError as exc:
+        raise RangingDataError(f"bodies {dict(bodies)}: {exc}") from None
 
 
 def bag_rows(
     bag: str | Path, bodies: Mapping[str, str], mocap_topic: str = MOCAP_TOPIC
 ) -> list[tuple[float, str, str, float, float, float, float, float]]:
     """Rows of the ranging CSV for every UWB range between two nodes of ``bodies``."""
-    typestore = get_typestore(Stores.ROS2_HUMBLE)
-    topic_body = {mocap_topic.format(body=b): b for b in bodies.values()}
+    team = _node_team(bodies, mocap_topic)
     ranges: list[tuple[float, str, str, float]] = []
     poses: dict[str, list[tuple[float, float, float, float]]] = {b: [] for b in bodies.values()}
     try:
-        reader = Reader(Path(bag))
-    except Exception as exc:  # rosbags raises several types for a missing or bad bag
-        raise RangingDataError(f"{bag}: cannot open as a rosbag2 recording: {exc}") from None
-    with reader:
-        wanted = []
-        for conn in reader.connections:
-            if conn.topic.startswith(RANGE_PREFIX):
-                parts = conn.topic[len(RANGE_PREFIX) :].split("/")
-                if len(parts) >= 2 and parts[0] in bodies and parts[1] in bodies:
-                    wanted.append(conn)
-            elif conn.topic in topic_body:
-                wanted.append(conn)
-        for conn, _, raw in reader.messages(connections=wanted):
-            msg = typestore.deserialize_cdr(raw, conn.msgtype)
-            if conn.topic in topic_body:
-                q = msg.pose.orientation
-                yaw = math.atan2(2 * (q.w * q.z + q.x * q.y), 1 - 2 * (q.y * q.y + q.z * q.z))
-                poses[topic_body[conn.topic]].append(
-                    (_stamp(msg), msg.pose.position.x, msg.pose.position.y, yaw)
-                )
-            else:
-                a, b = conn.topic[len(RANGE_PREFIX) :].split("/")[:2]
-                ranges.append((_stamp(msg), a, b, float(msg.range)))
+        source = RosbagSource(bag, team, detections=False, odometry=False)
+        for event in source:
+            if isinstance(event, GroundTruthEvent):
+                poses[bodies[event.robot]].append((event.t, event.x, event.y, event.yaw))
+            elif isinstance(event, RangeEvent):
+                ranges.append((event.t, event.node_a, event.node_b, event.distance))
+    except BagError as exc:
+        raise RangingDataError(str(exc)) from None
     missing = [b for b, p in poses.items() if not p]
     if missing:
         raise RangingDataError(f"{bag}: no motion capture for {missing} on {mocap_topic}")
@@ -98,7 +93,7 @@ def bag_rows(
     rows = []
     for t, a, b, rng in sorted(ranges):
         pa, pb = at(bodies[a], t), at(bodies[b], t)
-        if pa is None or pb is None or not math.isfinite(rng):
+        if pa is None or pb is None:
             continue
         dist = math.hypot(pa[0] - pb[0], pa[1] - pb[1])
         rows.append((t, a, b, rng, dist, pa[2], pb[2], rng - dist))
