@@ -9,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from relloc import ros_messages as rm
 from relloc.calibration import (
     CalibrationError,
     calibrate_pair,
@@ -21,6 +20,7 @@ from relloc.calibration import (
 )
 from relloc.config import RobotConfig, TeamConfig
 from relloc.events import OdometryEvent, RangeEvent
+from relloc.ros import messages as rm
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "tiers"
 TRAIN_NODES = {1: "n_7", 3: "n_3", 4: "n_4", 5: "n_5"}

@@ -28,7 +28,7 @@ from relloc.navigation.live import (
 from relloc.navigation.navigator import Navigator
 from relloc.navigation.path import PathError, WaypointPath, distance_to_polyline, load_path
 from relloc.navigation.safety import SafetyConfig, SafetyGate
-from relloc.ros_messages import encode, twist_msg
+from relloc.ros.messages import encode, twist_msg
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -36,7 +36,7 @@ from relloc.live import (
     replay_bag,
     simulated_team,
 )
-from relloc.ros_messages import encode, odometry_msg
+from relloc.ros.messages import encode, odometry_msg
 from relloc.sources.zenoh_source import ZenohSource, ZenohSourceOptions
 
 REPO = Path(__file__).resolve().parents[1]

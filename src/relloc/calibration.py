@@ -43,7 +43,7 @@ import numpy as np
 from relloc.config import PairCalibration, TeamConfig
 from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent, pair_key
 from relloc.ranging.dataset import CSV_COLUMNS
-from relloc.ros_messages import stamp_to_sec
+from relloc.ros.messages import stamp_to_sec
 from relloc.sources.rosbag import RosbagSource, recording_name
 
 __all__ = [

@@ -58,7 +58,7 @@ class EstimateCollector:
         ]
 
     def _on_pose(self, sample: Any) -> None:
-        from relloc.ros_messages import POSE_WITH_COVARIANCE_STAMPED, decode
+        from relloc.ros.messages import POSE_WITH_COVARIANCE_STAMPED, decode
 
         robot = str(sample.key_expr).split("/")[-2]
         msg = decode(sample.payload.to_bytes(), POSE_WITH_COVARIANCE_STAMPED)

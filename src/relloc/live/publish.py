@@ -272,7 +272,7 @@ def event_messages(
     are skipped. ``time_base`` is added to every header stamp (the simulator starts at 0, and a
     zero stamp means "no stamp" on the wire); ``t`` stays the event's own time.
     """
-    from relloc.ros_messages import encode, odometry_msg, range_msg
+    from relloc.ros.messages import encode, odometry_msg, range_msg
 
     routes = build_routes(config, prefix=prefix, detections=False)
     odom_keys = {r.robot: k for k, r in routes.items() if r.kind == "odometry"}

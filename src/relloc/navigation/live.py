@@ -57,7 +57,7 @@ from relloc.navigation.controller import Command, ControllerConfig
 from relloc.navigation.navigator import Navigator
 from relloc.navigation.path import WaypointPath
 from relloc.navigation.safety import SafetyConfig
-from relloc.ros_messages import (
+from relloc.ros.messages import (
     ODOMETRY,
     POSE_STAMPED,
     POSE_WITH_COVARIANCE_STAMPED,

@@ -64,7 +64,7 @@ from rosbags.rosbag2 import Reader
 
 from relloc.config import CameraConfig, TeamConfig
 from relloc.events import DetectionEvent, Event, GroundTruthEvent, OdometryEvent, RangeEvent
-from relloc.ros_messages import (
+from relloc.ros.messages import (
     ODOMETRY,
     POSE_ARRAY,
     POSE_STAMPED,

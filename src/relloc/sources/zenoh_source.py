@@ -71,8 +71,8 @@ from typing import Any, Literal
 
 from relloc.config import CameraConfig, ConfigError, TeamConfig
 from relloc.events import Event, OdometryEvent, RangeEvent
-from relloc.ros_cdr import decode_odometry, decode_range
-from relloc.ros_messages import (
+from relloc.ros.cdr import decode_odometry, decode_range
+from relloc.ros.messages import (
     ODOMETRY,
     POSE_ARRAY,
     RANGE,
@@ -600,7 +600,7 @@ class ZenohSource:
 
     @staticmethod
     def _fast_fields(route: Route, payload: bytes) -> tuple[float, ...] | None:
-        """The hot messages' fields straight from the bytes (:mod:`relloc.ros_cdr`), or
+        """The hot messages' fields straight from the bytes (:mod:`relloc.ros.cdr`), or
         ``None``: then the full ``rosbags`` decoder decodes the payload or says why not."""
         if route.kind == "odometry" and route.msgtypes[0] == ODOMETRY:
             return decode_odometry(payload)

@@ -8,7 +8,7 @@ engine and the simulator that publishes over Zenoh all share it. It has three pa
 * **Type store.** :func:`typestore` is the ``rosbags`` ROS 2 Humble store plus the custom
   detection types of the TIERS robots (``depthai_ros_msgs/msg/SpatialDetectionArray`` and the
   ``vision_msgs`` types it uses, in the Humble-era layout), parsed from the ``.msg`` files
-  shipped in ``relloc/msg``. Bags recorded by these robots do not store the definitions.
+  shipped in ``relloc/ros/msg``. Bags recorded by these robots do not store the definitions.
 * **CDR.** :func:`decode` / :func:`encode` wrap ``deserialize_cdr`` / ``serialize_cdr``. A
   malformed payload raises :class:`MessageDecodeError` (a ``ValueError``) with the type name and
   the reason, never an ``IndexError`` from deep inside the deserialiser: a live engine must be
@@ -47,7 +47,7 @@ from relloc.events import (
     OdometryEvent,
     RangeEvent,
 )
-from relloc.ros_cdr import split_stamp, yaw_from_xyzw
+from relloc.ros.cdr import split_stamp, yaw_from_xyzw
 
 __all__ = [
     "MSG_DIR",
