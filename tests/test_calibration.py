@@ -9,7 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from relloc.calibration import (
+from relloc.config import RobotConfig, TeamConfig
+from relloc.evaluation.calibration import (
     CalibrationError,
     calibrate_pair,
     heading_offsets_from_bag,
@@ -18,7 +19,6 @@ from relloc.calibration import (
     pair_biases_from_csv,
     rank_node_assignments,
 )
-from relloc.config import RobotConfig, TeamConfig
 from relloc.events import OdometryEvent, RangeEvent
 from relloc.ros import messages as rm
 

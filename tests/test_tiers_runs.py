@@ -16,8 +16,8 @@ import pytest
 
 from relloc.cli import main
 from relloc.config import TeamConfig
+from relloc.evaluation.report import ScenarioReport
 from relloc.recording import RunOptions, run_recording
-from relloc.sinks.report import ScenarioReport
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "tiers"
 

@@ -184,8 +184,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _is_user_error(exc: Exception) -> bool:
-    from relloc.calibration import CalibrationError
     from relloc.config import ConfigError
+    from relloc.evaluation.calibration import CalibrationError
     from relloc.methods import MethodError
     from relloc.ranging.manifest import ModelDirError
     from relloc.sources.rosbag import BagError

@@ -129,8 +129,8 @@ def ape_against_bag(
     ``t0`` is the start of the warm-up window (default: the bag's first motion-capture stamp).
     Returns per robot ``{"median", "rmse", "max", "n"}`` and ``"mean_median"``.
     """
+    from relloc.evaluation.metrics import ApeStats, GroundTruth, after, associate
     from relloc.events import GroundTruthEvent
-    from relloc.sinks.metrics import ApeStats, GroundTruth, after, associate
     from relloc.sources.rosbag import RosbagSource
 
     gt = GroundTruth(config.reference)
