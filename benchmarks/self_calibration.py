@@ -46,8 +46,8 @@ from typing import Any
 import numpy as np
 
 import relloc.localizer
+from relloc.cli.demo import DemoOptions, scenario_setup
 from relloc.config import TeamConfig
-from relloc.demo import DemoOptions, scenario_setup
 from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate

@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from relloc.cli import build_parser
+from relloc.cli.demo import DemoOptions, scenario_setup
+from relloc.cli.recording import RunOptions, run_recording
 from relloc.config import ConfigError, TeamConfig
-from relloc.demo import DemoOptions, scenario_setup
 from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth, HeadingPaired, wrap_angle
 from relloc.evaluation.report import evaluate
@@ -24,7 +25,6 @@ from relloc.events import OdometryEvent
 from relloc.filter.gaussian_sum import CalibrationLayout, CalibrationNoise, GaussianSumFilter
 from relloc.localizer import ParticleFilterLocalizer
 from relloc.methods import build_pipeline
-from relloc.recording import RunOptions, run_recording
 from relloc.sources.simulator import (
     RobotMotion,
     Simulation,

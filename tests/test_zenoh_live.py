@@ -211,7 +211,7 @@ def test_replayed_shortbag_matches_relloc_run(shared_data: Path, sessions: tuple
     Same particles, same seed; the reorder window (0.2 s of header time) restores the header
     order the rosbag source produces, so the filter sees the same event sequence.
     """
-    from relloc.recording import RunOptions, run_recording
+    from relloc.cli.recording import RunOptions, run_recording
 
     bag = shared_data / "tiers" / SHORTBAG
     config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")

@@ -19,13 +19,13 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
+from relloc.cli.progress import run_with_progress
 from relloc.config import TeamConfig
 from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.methods import DETECTION_METHODS, build_pipeline
-from relloc.progress import run_with_progress
 from relloc.sources.simulator import Simulation, multi_scenario, single_scenario
 
 
