@@ -52,7 +52,7 @@ from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
 from relloc.methods import build_pipeline
-from relloc.sources.simulator import RobotMotion, Simulation
+from relloc.simulator import RobotMotion, Simulation
 
 TEAMS = {"two": "pair", "single": "single", "five": "multi"}
 DEFAULT_PARTICLES = {"two": (100, 300, 1000), "single": (100, 300, 1000), "five": (250, 500, 1000, 2000)}

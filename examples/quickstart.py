@@ -13,7 +13,7 @@ from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate, print_table
 from relloc.methods import build_pipeline
-from relloc.sources.simulator import single_scenario
+from relloc.simulator import single_scenario
 
 
 def main(particles: int = 5000) -> float:

@@ -27,7 +27,7 @@ from relloc.events import (
     RelativeObservation,
 )
 from relloc.methods import build_pipeline
-from relloc.sources.simulator import multi_scenario, single_scenario
+from relloc.simulator import multi_scenario, single_scenario
 from relloc.stages.association import REJECTIONS, DetectionAssociator
 
 BIAS = 0.25

@@ -13,7 +13,7 @@ from relloc.evaluation.report import evaluate
 from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent, RelativeObservation
 from relloc.localizer import MultilaterationLocalizer, ParticleFilterLocalizer
 from relloc.methods import build_pipeline
-from relloc.sources.simulator import multi_scenario, single_scenario
+from relloc.simulator import multi_scenario, single_scenario
 
 
 def _run(sim, methods, particles, seed=0):

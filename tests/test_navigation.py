@@ -17,14 +17,9 @@ import pytest
 from relloc.config import RobotConfig
 from relloc.estimate import Estimate
 from relloc.events import OdometryEvent
+from relloc.live.sim_robots import SimRobots, SimRobotsOptions, sim_team_config
 from relloc.navigation.controller import Command, ControllerConfig, PathFollower
-from relloc.navigation.live import (
-    DataClock,
-    NavigationLoop,
-    SimRobots,
-    SimRobotsOptions,
-    sim_team_config,
-)
+from relloc.navigation.live import DataClock, NavigationLoop
 from relloc.navigation.navigator import Navigator
 from relloc.navigation.path import PathError, WaypointPath, distance_to_polyline, load_path
 from relloc.navigation.safety import SafetyConfig, SafetyGate
@@ -169,7 +164,7 @@ def test_navigate_refuses_the_reference_robot_and_a_foreign_path(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     from relloc.cli import main
-    from relloc.sources.simulator import nav_scenario
+    from relloc.simulator import nav_scenario
 
     team = tmp_path / "team.toml"
     sim_team_config(nav_scenario(0, duration=5.0)).save(team)
@@ -432,7 +427,7 @@ def test_data_clock_follows_the_robots_clock() -> None:
 
 # ============================================================================ simulated robots
 def test_sim_robots_obey_cmd_vel_and_stop_without_it() -> None:
-    from relloc.sources.simulator import nav_scenario
+    from relloc.simulator import nav_scenario
 
     sim = nav_scenario(0, duration=10.0)
     config = sim_team_config(sim, particles=500)

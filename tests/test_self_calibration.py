@@ -25,7 +25,7 @@ from relloc.events import OdometryEvent
 from relloc.filter.gaussian_sum import CalibrationLayout, CalibrationNoise, GaussianSumFilter
 from relloc.localizer import ParticleFilterLocalizer
 from relloc.methods import build_pipeline
-from relloc.sources.simulator import (
+from relloc.simulator import (
     RobotMotion,
     Simulation,
     UwbErrorModel,

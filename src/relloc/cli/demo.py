@@ -26,7 +26,7 @@ from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.methods import DETECTION_METHODS, build_pipeline
-from relloc.sources.simulator import Simulation, multi_scenario, single_scenario
+from relloc.simulator import Simulation, multi_scenario, single_scenario
 
 
 @dataclass(frozen=True)

@@ -279,8 +279,8 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
 
 def _cmd_sim_robots(args: argparse.Namespace) -> int:
     from relloc.config import TeamConfig
-    from relloc.navigation.live import SimRobots, SimRobotsOptions, save_json, sim_team_config
-    from relloc.sources.simulator import multi_scenario, nav_scenario, single_scenario
+    from relloc.live.sim_robots import SimRobots, SimRobotsOptions, sim_team_config
+    from relloc.simulator import multi_scenario, nav_scenario, single_scenario
 
     robot = args.robot or ("r2" if args.scenario == "nav" else None)
     commanded = (robot,) if robot else ()
@@ -328,5 +328,6 @@ def _cmd_sim_robots(args: argparse.Namespace) -> int:
         f"published, {summary['commands_received']} commands received"
     )
     if args.json:
-        save_json(Path(args.json), summary)
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(summary, indent=1))
     return 0

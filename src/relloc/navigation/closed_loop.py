@@ -50,7 +50,7 @@ from relloc.navigation.controller import ControllerConfig
 from relloc.navigation.navigator import Navigator
 from relloc.navigation.path import FloatArray, PathError, WaypointPath, load_path
 from relloc.navigation.safety import SafetyConfig, StopRecord
-from relloc.sources.simulator import UwbErrorModel, nav_scenario
+from relloc.simulator import UwbErrorModel, nav_scenario
 
 __all__ = [
     "DEFAULT_PATH",

@@ -68,6 +68,7 @@ __all__ = [
     "header_stamp_from_cdr",
     "odometry_msg",
     "odometry_to_event",
+    "pose_stamped_msg",
     "pose_to_ground_truth",
     "pose_with_covariance_msg",
     "quaternion_from_yaw",
@@ -431,3 +432,9 @@ def range_msg(event: RangeEvent, *, frame_id: str = "") -> Any:
         max_range=0.0,
         range=float(event.distance),
     )
+
+
+def pose_stamped_msg(event: GroundTruthEvent, *, frame_id: str = "world") -> Any:
+    """A :class:`GroundTruthEvent` as ``geometry_msgs/PoseStamped`` (what a motion-capture
+    bridge publishes; the inverse of :func:`pose_to_ground_truth`)."""
+    return typestore().types[POSE_STAMPED](header=_header(event.t, frame_id), pose=_pose(event.x, event.y, event.yaw))
