@@ -4,7 +4,7 @@ Runs the server as a subprocess (so that its CPU time and peak RSS can be read f
 feeds it over Zenoh on loopback (five simulated robots, the paper's team, and/or the TIERS
 shortbag replayed), and measures the latency from a message's publication to the publication
 of the estimate it triggered (the server's ``--trace`` key carries the trigger's send time).
-The paper's Table II reports the same figures (2.8 % of an i9 core, 69 MB at 400 particles).
+The paper's Table II reports the same quantities; docs/live.md sets ours beside them.
 """
 
 from __future__ import annotations

@@ -36,8 +36,8 @@ class UwbErrorModel:
     per-pair, per-end amplitude and ``g(a) = -cos(a) + 0.3 cos(2a)``: zero on average over
     headings (so ``bias_pair`` is the pair's bias), largest when the other robot is behind (the
     signal crosses the body). Over one run the headings are not uniform, so a pair's median
-    error can differ from its bias by a few centimetres (up to about 0.08 m at the default
-    amplitude, most for pairs with the static robot): what a learned correction can remove.
+    error can differ from its bias, most for pairs with the static robot: what a learned
+    correction can remove.
     """
 
     bias_range: tuple[float, float] = (0.1, 0.5)

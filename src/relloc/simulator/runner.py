@@ -175,9 +175,9 @@ class Simulation:
                 }
             ),
             # Every robot but the reference moves in the simulated scenarios, so the rotation
-            # ambiguity of the uniform start resolves within a second: 20 000 particles do as
-            # well as the 50 000 the mostly static TIERS shortbag needs (seeds 0-3 agree within
-            # the seed-to-seed spread), at less than half the cost.
+            # ambiguity of the uniform start resolves quickly and fewer particles than the
+            # mostly static recordings need will do (docs/results.md, "Measurements moved
+            # from the code").
             filter=FilterConfig(particles=SIM_PARTICLES),
         )
         self._runner = _Runner(self)

@@ -65,8 +65,8 @@ MULTI_OBJECTS: tuple[SimObject, ...] = (
 """Nominal objects of the multi scenario (each moved by up to 0.15 m per seed).
 
 Placed (by a small search over layouts, at least 0.45 m from every path) so that pairs of
-robots see a common object at the same time for much of the run: with ideal cameras at least
-one pair does about 90 % of the time, and about two pairs on average (see :func:`covisibility`).
+robots see a common object at the same time for much of the run (:func:`covisibility`
+measures how much; the figures are in docs/results.md).
 """
 
 
