@@ -29,6 +29,7 @@ __all__ = [
     "SIM_TIME_BASE",
     "EventEncoder",
     "PublishStats",
+    "Publishers",
     "ReplayOptions",
     "cmd_vel_key",
     "event_messages",
@@ -69,7 +70,7 @@ class PublishStats:
         }
 
 
-class _Publishers:
+class Publishers:
     """Publishers declared on demand, each put carrying its send time as an attachment."""
 
     def __init__(self, session: Any) -> None:
@@ -124,7 +125,7 @@ def _topic_keys(config: TeamConfig, prefix: str, topics: Iterable[str]) -> dict[
 
 def _run_schedule(
     items: Iterable[tuple[float, str, bytes]],
-    pubs: _Publishers,
+    pubs: Publishers,
     rate: float,
     stop: Callable[[], bool],
     stats: PublishStats,
@@ -204,7 +205,7 @@ def replay_bag(
     except Exception as exc:
         raise BagError(f"cannot open bag {bag}: {exc}") from exc
     stats = PublishStats()
-    pubs = _Publishers(session)
+    pubs = Publishers(session)
     try:
         routes = build_routes(config, prefix=opts.prefix)
         team_topics = {r.topic for r in routes.values()}
@@ -339,7 +340,7 @@ def publish_events(
     """Publish relloc events (e.g. from the simulator) on a team's keys in real time (times
     ``rate``), as :func:`event_messages` encodes them, after waiting up to ``wait`` s for
     subscribers of every key."""
-    pubs = _Publishers(session)
+    pubs = Publishers(session)
     stats = PublishStats()
     routes = build_routes(config, prefix=prefix, detections=False)
     keys = sorted(

@@ -24,7 +24,7 @@ from typing import Any
 
 from relloc.config import TeamConfig
 from relloc.events import GroundTruthEvent
-from relloc.live.publish import EventEncoder, cmd_vel_key
+from relloc.live.publish import EventEncoder, Publishers, cmd_vel_key
 from relloc.ros.messages import TWIST, MessageDecodeError, decode
 
 __all__ = ["SimRobots", "SimRobotsOptions", "sim_team_config"]
@@ -108,7 +108,7 @@ class SimRobots:
         self.cmd_keys = {
             name: cmd_vel_key(config.robot(name), opts.prefix) for name in sim.commanded
         }
-        self._pubs: dict[str, Any] = {}
+        self._pubs = Publishers(session)
         self._subs: list[Any] = []
         self._lock = threading.Lock()
         self._commands: dict[str, tuple[float, float, float]] = {}  # robot -> (v, w, sim time)
@@ -128,12 +128,13 @@ class SimRobots:
             )
 
     def close(self) -> None:
-        for ent in [*self._subs, *self._pubs.values()]:
+        for sub in self._subs:
             try:
-                ent.undeclare()
+                sub.undeclare()
             except Exception as exc:
                 log.debug("undeclaring failed: %s", exc)
-        self._subs, self._pubs = [], {}
+        self._subs = []
+        self._pubs.close()
 
     def _on_cmd(self, robot: str, sample: Any) -> None:
         try:
@@ -149,31 +150,13 @@ class SimRobots:
             self._commands[robot] = (v, w, self.t_sim)
             self.commands_received += 1
 
-    def _put(self, key: str, payload: bytes) -> None:
-        pub = self._pubs.get(key)
-        if pub is None:
-            pub = self._pubs[key] = self.session.declare_publisher(key)
-        pub.put(payload)
-
-    def _wait_for_subscribers(self, stop: threading.Event) -> None:
-        keys = [*self.odom_keys.values(), *set(self.range_keys.values())]
-        end = time.time() + self.options.wait
-        pending = keys
-        while pending and time.time() < end and not stop.is_set():
-            for k in pending:
-                if k not in self._pubs:
-                    self._pubs[k] = self.session.declare_publisher(k)
-            pending = [k for k in pending if not self._pubs[k].matching_status.matching]
-            if pending:
-                stop.wait(0.05)
-        if pending:
-            log.warning("no subscriber yet for %d key(s), publishing anyway", len(pending))
-
     def run(self, stop: threading.Event | None = None) -> dict[str, Any]:
         """Simulate and publish until ``stop``, ``duration`` or the end of the simulation."""
         stop = stop or threading.Event()
         opts = self.options
-        self._wait_for_subscribers(stop)
+        keys = [*self.odom_keys.values(), *self.range_keys.values()]
+        if self._pubs.wait_matching(keys, opts.wait, stop.is_set):
+            log.warning("no subscriber yet for some of the team's keys, publishing anyway")
         end = min(self.sim.duration, opts.duration or math.inf)
         wall0 = time.time()
         self.time_base = wall0 if opts.time_base is None else opts.time_base
@@ -211,7 +194,7 @@ class SimRobots:
             self.truth[ev.robot].append((ev.t + self.time_base, ev.x, ev.y, ev.yaw))
         out = self.encoder.encode(ev, self.time_base)
         if out is not None:
-            self._put(*out)
+            self._pubs.put(*out)
             self.published += 1
 
     def summary(self) -> dict[str, Any]:
