@@ -6,7 +6,7 @@ Usage::
 
 For each message the live engine handles per sample (decoding a ``nav_msgs/Odometry`` or a
 ``sensor_msgs/Range`` into the fields relloc uses; encoding a ``PoseWithCovarianceStamped``
-estimate) it times ``relloc.ros_cdr`` and the ``rosbags`` path it replaces (deserialise or
+estimate) it times ``relloc.ros.cdr`` and the ``rosbags`` path it replaces (deserialise or
 build + serialise the message object) on the same payloads, alternating the two in every round,
 and prints the median time per message and the ratio. Both produce the same values (asserted
 once before timing). This is a warm tight loop: in the server, which sleeps between messages,
@@ -23,9 +23,9 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from relloc import ros_cdr
-from relloc import ros_messages as rm
 from relloc.events import OdometryEvent, RangeEvent
+from relloc.ros import cdr as ros_cdr
+from relloc.ros import messages as rm
 
 
 def _cases() -> dict[str, tuple[Callable[[], Any], Callable[[], Any]]]:

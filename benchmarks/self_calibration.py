@@ -46,12 +46,13 @@ from typing import Any
 import numpy as np
 
 import relloc.localizer
+from relloc.cli.demo import DemoOptions, scenario_setup
 from relloc.config import TeamConfig
-from relloc.demo import DemoOptions, scenario_setup
 from relloc.engine import Engine
+from relloc.evaluation.metrics import GroundTruth
+from relloc.evaluation.report import evaluate
 from relloc.methods import build_pipeline
-from relloc.sinks.report import evaluate
-from relloc.sources.simulator import RobotMotion, Simulation
+from relloc.simulator import RobotMotion, Simulation
 
 TEAMS = {"two": "pair", "single": "single", "five": "multi"}
 DEFAULT_PARTICLES = {"two": (100, 300, 1000), "single": (100, 300, 1000), "five": (250, 500, 1000, 2000)}
@@ -96,9 +97,10 @@ def run_one(team: str, particles: int, seed: int, warmup: float, bias: str = "on
         return out
 
     loc._step = timed  # type: ignore[method-assign]
-    engine = Engine([pipeline], config.reference)
+    gt = GroundTruth(config.reference)
+    engine = Engine([pipeline], truth_sinks=[gt.add])
     engine.run(sim.events())
-    report = evaluate(engine, scenario, warmup, bias_truth=truth)
+    report = evaluate(engine, gt, scenario, warmup, bias_truth=truth)
     pf = report.methods["pf"]
     # robots that move (not the reference, whose heading is the frame's): r0 never does
     moving = [r for r in pf.headings if r not in ("r0", config.reference)]

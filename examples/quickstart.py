@@ -10,17 +10,19 @@ every example, so this file cannot silently rot.
 from __future__ import annotations
 
 from relloc.engine import Engine
+from relloc.evaluation.metrics import GroundTruth
+from relloc.evaluation.report import evaluate, print_table
 from relloc.methods import build_pipeline
-from relloc.sinks.report import evaluate, print_table
-from relloc.sources.simulator import single_scenario
+from relloc.simulator import single_scenario
 
 
 def main(particles: int = 5000) -> float:
     sim = single_scenario(seed=1, duration=30.0)
     config = sim.config.with_filter(particles=particles)
-    engine = Engine([build_pipeline("pf", config, seed=1)], config.reference)
+    gt = GroundTruth(config.reference)
+    engine = Engine([build_pipeline("pf", config, seed=1)], truth_sinks=[gt.add])
     engine.run(sim.events())
-    report = evaluate(engine, "quickstart", warmup=10.0)
+    report = evaluate(engine, gt, "quickstart", warmup=10.0)
     print_table(report)
     last = engine.pipelines[0].estimates[-1]
     x, y = last.positions["r1"]

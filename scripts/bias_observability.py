@@ -24,7 +24,7 @@ import argparse
 import numpy as np
 
 from relloc.events import RangeEvent
-from relloc.sources.simulator import multi_scenario
+from relloc.simulator import multi_scenario
 
 BOUND = 0.05
 RIDGE_SIGMA = (0.075, 0.075, 0.025, 0.025)

@@ -37,7 +37,7 @@ def bag_writer() -> Callable[..., Path]:
     """
     from rosbags.rosbag2 import StoragePlugin, Writer
 
-    from relloc.ros_messages import encode, typestore
+    from relloc.ros.messages import encode, typestore
 
     def write(path: Path, messages: Iterable[BagMessage], *, storage: str = "sqlite3") -> Path:
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3

@@ -15,6 +15,8 @@ import pytest
 from relloc.config import PairCalibration, RobotConfig, TeamConfig, UwbConfig
 from relloc.engine import Engine
 from relloc.estimate import Estimate
+from relloc.evaluation.metrics import GroundTruth
+from relloc.evaluation.report import evaluate
 from relloc.events import (
     DetectionEvent,
     Event,
@@ -25,8 +27,7 @@ from relloc.events import (
     RelativeObservation,
 )
 from relloc.methods import build_pipeline
-from relloc.sinks.report import evaluate
-from relloc.sources.simulator import multi_scenario, single_scenario
+from relloc.simulator import multi_scenario, single_scenario
 from relloc.stages.association import REJECTIONS, DetectionAssociator
 
 BIAS = 0.25
@@ -314,9 +315,10 @@ def test_pf_uv_fuses_detections_in_the_filter() -> None:
     """Single range, static reference: detections give the bearing the range does not."""
     sim = single_scenario(seed=0, duration=25.0, detections=True)
     config = sim.config.with_filter(particles=3000)
-    engine = Engine([build_pipeline(m, config, seed=0) for m in ("pf", "pf_uv")], "r0")
+    gt = GroundTruth("r0")
+    engine = Engine([build_pipeline(m, config, seed=0) for m in ("pf", "pf_uv")], truth_sinks=[gt.add])
     engine.run(sim.events())
-    report = evaluate(engine, "single", warmup=10.0)
+    report = evaluate(engine, gt, "single", warmup=10.0)
     stats = engine.pipelines[1].stats()
     assert stats["DetectionAssociator.accepted"] > 10
     assert stats["relative"] == stats["DetectionAssociator.accepted"]  # all fused, none late

@@ -9,8 +9,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from relloc import ros_messages as rm
-from relloc.calibration import (
+from relloc.config import RobotConfig, TeamConfig
+from relloc.evaluation.calibration import (
     CalibrationError,
     calibrate_pair,
     heading_offsets_from_bag,
@@ -19,8 +19,8 @@ from relloc.calibration import (
     pair_biases_from_csv,
     rank_node_assignments,
 )
-from relloc.config import RobotConfig, TeamConfig
 from relloc.events import OdometryEvent, RangeEvent
+from relloc.ros import messages as rm
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "tiers"
 TRAIN_NODES = {1: "n_7", 3: "n_3", 4: "n_4", 5: "n_5"}

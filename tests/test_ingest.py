@@ -14,7 +14,7 @@ import pytest
 
 from relloc.config import CameraConfig, ConfigError, RobotConfig, TeamConfig, UwbConfig
 from relloc.events import DetectionEvent, GroundTruthEvent, OdometryEvent, RangeEvent
-from relloc.ros_messages import (
+from relloc.ros.messages import (
     ODOMETRY,
     POSE_ARRAY,
     POSE_STAMPED,

@@ -8,24 +8,26 @@ import numpy as np
 import pytest
 
 from relloc.engine import Engine
+from relloc.evaluation.metrics import GroundTruth
+from relloc.evaluation.report import evaluate
 from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent, RelativeObservation
 from relloc.localizer import MultilaterationLocalizer, ParticleFilterLocalizer
 from relloc.methods import build_pipeline
-from relloc.sinks.report import evaluate
-from relloc.sources.simulator import multi_scenario, single_scenario
+from relloc.simulator import multi_scenario, single_scenario
 
 
 def _run(sim, methods, particles, seed=0):
     config = sim.config.with_filter(particles=particles)
-    engine = Engine([build_pipeline(m, config, seed=seed) for m in methods], config.reference)
+    gt = GroundTruth(config.reference)
+    engine = Engine([build_pipeline(m, config, seed=seed) for m in methods], truth_sinks=[gt.add])
     engine.run(sim.events())
-    return engine
+    return engine, gt
 
 
 def test_pf_converges_on_simulated_multi_robot_run() -> None:
     sim = multi_scenario(seed=1, duration=30.0)
-    engine = _run(sim, ["pf", "multilateration"], particles=8000, seed=1)
-    report = evaluate(engine, "multi", warmup=10.0)
+    engine, gt = _run(sim, ["pf", "multilateration"], particles=8000, seed=1)
+    report = evaluate(engine, gt, "multi", warmup=10.0)
     pf = report.methods["pf"]
     for robot, stats in pf.robots.items():
         assert stats.n > 150, robot
@@ -37,8 +39,8 @@ def test_pf_converges_on_simulated_multi_robot_run() -> None:
 
 def test_pf_converges_with_a_single_range() -> None:
     sim = single_scenario(seed=2, duration=30.0)
-    engine = _run(sim, ["pf", "multilateration"], particles=5000, seed=2)
-    report = evaluate(engine, "single", warmup=10.0)
+    engine, gt = _run(sim, ["pf", "multilateration"], particles=5000, seed=2)
+    report = evaluate(engine, gt, "single", warmup=10.0)
     assert report.methods["pf"].robots["r1"].median < 0.25
     # multilateration honestly has no estimate from one range
     assert report.methods["multilateration"].robots["r1"].n == 0

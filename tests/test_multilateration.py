@@ -6,8 +6,8 @@ import itertools
 
 import numpy as np
 
+from relloc.evaluation.metrics import orthogonal_procrustes
 from relloc.filter import multilateration
-from relloc.sinks.metrics import orthogonal_procrustes
 
 
 def _ranges(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -17,18 +17,13 @@ import pytest
 from relloc.config import RobotConfig
 from relloc.estimate import Estimate
 from relloc.events import OdometryEvent
+from relloc.live.sim_robots import SimRobots, SimRobotsOptions, sim_team_config
 from relloc.navigation.controller import Command, ControllerConfig, PathFollower
-from relloc.navigation.live import (
-    DataClock,
-    NavigationLoop,
-    SimRobots,
-    SimRobotsOptions,
-    sim_team_config,
-)
+from relloc.navigation.live import DataClock, NavigationLoop
 from relloc.navigation.navigator import Navigator
 from relloc.navigation.path import PathError, WaypointPath, distance_to_polyline, load_path
 from relloc.navigation.safety import SafetyConfig, SafetyGate
-from relloc.ros_messages import encode, twist_msg
+from relloc.ros.messages import encode, twist_msg
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -169,7 +164,7 @@ def test_navigate_refuses_the_reference_robot_and_a_foreign_path(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     from relloc.cli import main
-    from relloc.sources.simulator import nav_scenario
+    from relloc.simulator import nav_scenario
 
     team = tmp_path / "team.toml"
     sim_team_config(nav_scenario(0, duration=5.0)).save(team)
@@ -432,7 +427,7 @@ def test_data_clock_follows_the_robots_clock() -> None:
 
 # ============================================================================ simulated robots
 def test_sim_robots_obey_cmd_vel_and_stop_without_it() -> None:
-    from relloc.sources.simulator import nav_scenario
+    from relloc.simulator import nav_scenario
 
     sim = nav_scenario(0, duration=10.0)
     config = sim_team_config(sim, particles=500)
@@ -476,8 +471,8 @@ def test_closed_loop_in_the_simulator_drives_a_small_rectangle() -> None:
 
 
 def test_demo_reports_the_nav_scenario(tmp_path: Path) -> None:
-    from relloc.demo import DemoOptions, run_demo
-    from relloc.sinks.report import make_console
+    from relloc.cli.demo import DemoOptions, run_demo
+    from relloc.evaluation.report import make_console
 
     opts = DemoOptions(
         seed=0,

@@ -25,7 +25,7 @@ import pytest
 
 from relloc.live import ZenohOptions, free_tcp_port, open_session
 from relloc.navigation.path import load_path
-from relloc.ros_messages import (
+from relloc.ros.messages import (
     TWIST,
     decode,
     encode,

@@ -278,7 +278,7 @@ def test_corrector_uses_team_heading_offsets(tmp_path: Path) -> None:
 def test_runtime_imports_no_torch() -> None:
     code = (
         "import sys; import relloc.stages.range_correction, relloc.ranging.evaluate, "
-        "relloc.ranging.cli; assert 'torch' not in sys.modules, 'torch imported'"
+        "relloc.cli.ranging; assert 'torch' not in sys.modules, 'torch imported'"
     )
     subprocess.run([sys.executable, "-c", code], check=True)
 
@@ -313,7 +313,7 @@ def test_evaluate_scores_models_and_baselines(tmp_path: Path) -> None:
 
 
 def test_eval_cli_writes_json_and_reports_bad_input(tmp_path: Path) -> None:
-    from relloc.ranging.cli import main
+    from relloc.cli.ranging import main
 
     known_model_dir(tmp_path / "m", n_steps=3)
     csv = known_csv(tmp_path / "k.csv")

@@ -104,7 +104,7 @@ def test_export_checkpoint_roundtrip(tmp_path: Path) -> None:
 
 def test_cli_train_eval_export_and_correct(tmp_path: Path) -> None:
     """The whole pipeline on a small synthetic CSV with three robots (three pairs)."""
-    from relloc.ranging.cli import main
+    from relloc.cli.ranging import main
     from relloc.stages.range_correction import RangeCorrector
 
     csv = write_synthetic_csv(tmp_path / "s.csv", robots=("1", "3", "4"), n_samples=160, seed=5)
@@ -153,7 +153,7 @@ def test_cli_train_eval_export_and_correct(tmp_path: Path) -> None:
 
 
 def test_train_rejects_too_little_data(tmp_path: Path) -> None:
-    from relloc.ranging.cli import main
+    from relloc.cli.ranging import main
 
     csv = write_synthetic_csv(tmp_path / "s.csv", n_samples=8, seed=0)
     args = ["ranging", "train", str(csv), "--out", str(tmp_path / "m"), "--no-progress"]

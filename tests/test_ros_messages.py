@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from relloc import ros_messages as rm
 from relloc.config import CameraConfig
 from relloc.events import OdometryEvent, RangeEvent
+from relloc.ros import messages as rm
 
 
 def _types():

@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
-from relloc import ros_messages as rm
 from relloc.config import CameraConfig, RobotConfig, TeamConfig
 from relloc.events import DetectionEvent, Event, GroundTruthEvent, OdometryEvent, RangeEvent
+from relloc.ros import messages as rm
 from relloc.sources.rosbag import BagError, RosbagSource
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "tiers"

@@ -19,7 +19,7 @@ from relloc.events import (
     OdometryEvent,
     RangeEvent,
 )
-from relloc.sources.simulator import (
+from relloc.simulator import (
     Simulation,
     UwbErrorModel,
     covisibility,

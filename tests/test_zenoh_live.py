@@ -36,7 +36,7 @@ from relloc.live import (
     replay_bag,
     simulated_team,
 )
-from relloc.ros_messages import encode, odometry_msg
+from relloc.ros.messages import encode, odometry_msg
 from relloc.sources.zenoh_source import ZenohSource, ZenohSourceOptions
 
 REPO = Path(__file__).resolve().parents[1]
@@ -211,7 +211,7 @@ def test_replayed_shortbag_matches_relloc_run(shared_data: Path, sessions: tuple
     Same particles, same seed; the reorder window (0.2 s of header time) restores the header
     order the rosbag source produces, so the filter sees the same event sequence.
     """
-    from relloc.recording import RunOptions, run_recording
+    from relloc.cli.recording import RunOptions, run_recording
 
     bag = shared_data / "tiers" / SHORTBAG
     config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")

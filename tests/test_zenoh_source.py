@@ -17,7 +17,7 @@ import pytest
 from relloc.config import ConfigError, RobotConfig, TeamConfig
 from relloc.events import OdometryEvent, RangeEvent
 from relloc.live import LiveServer, ServeOptions, event_messages, simulated_team
-from relloc.ros_messages import encode, odometry_msg, range_msg
+from relloc.ros.messages import encode, odometry_msg, range_msg
 from relloc.sources.zenoh_source import (
     ZenohSource,
     ZenohSourceOptions,
@@ -123,14 +123,14 @@ def test_unknown_keys_and_bad_values_are_counted() -> None:
 
 
 def test_detections_decode_in_the_body_frame() -> None:
-    from relloc.ros_messages import typestore
+    from relloc.ros.messages import typestore
 
     types = typestore().types
     pose = types["geometry_msgs/msg/Pose"](
         position=types["geometry_msgs/msg/Point"](x=0.0, y=0.0, z=2.0),
         orientation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
     )
-    from relloc.ros_messages import time_msg
+    from relloc.ros.messages import time_msg
 
     header = types["std_msgs/msg/Header"](stamp=time_msg(T0), frame_id="cam")
     msg = types["geometry_msgs/msg/PoseArray"](header=header, poses=[pose])

@@ -2,8 +2,10 @@
 
 A *pipeline* is one method: a chain of stages (range correction, detection association) in
 front of one localizer. The engine hands every event of the source, in order, to every
-pipeline, keeps the ground truth aside for evaluation (the localizers ignore it), and passes
-each estimate to the sinks and back to the pipeline's stages (association gates on it).
+pipeline, sets the ground truth aside (the localizers never see it: it goes to the *truth
+sinks*, which evaluation supplies, e.g. ``relloc.evaluation.metrics.GroundTruth.add``), and passes
+each estimate to the sinks and back to the pipeline's stages (association gates on it). The
+engine knows no metric: evaluation sits above it.
 
 Sources are iterables of events (simulator, rosbag2 file) or callbacks (Zenoh): ``Engine.feed``
 takes one event, ``Engine.run`` a whole iterable.
@@ -19,7 +21,6 @@ from typing import Protocol
 from relloc.estimate import Estimate
 from relloc.events import Event, GroundTruthEvent
 from relloc.localizer import Localizer
-from relloc.sinks.metrics import GroundTruth
 
 
 class Stage(Protocol):
@@ -33,6 +34,7 @@ class Stage(Protocol):
 
 
 Sink = Callable[[Estimate], None]
+TruthSink = Callable[[GroundTruthEvent], None]
 
 
 @dataclass
@@ -66,22 +68,23 @@ class Pipeline:
 
 
 class Engine:
-    """Feeds events to pipelines, collects estimates and ground truth, calls sinks."""
+    """Feeds events to pipelines, collects estimates, calls sinks; ground truth to truth sinks."""
 
     def __init__(
         self,
         pipelines: list[Pipeline],
-        reference: str,
         sinks: list[Sink] | None = None,
         *,
+        truth_sinks: list[TruthSink] | None = None,
         keep_estimates: int | None = None,
     ) -> None:
-        """``keep_estimates`` bounds how many estimates each pipeline keeps (a live server
-        runs for hours; offline evaluation keeps all, ``None``)."""
+        """``truth_sinks`` receive every ground-truth event (none: it is dropped, as live).
+        ``keep_estimates`` bounds how many estimates each pipeline keeps (a live server runs for
+        hours; offline evaluation keeps all, ``None``)."""
         self.pipelines = pipelines
         self.sinks = sinks or []
+        self.truth_sinks = truth_sinks or []
         self.keep_estimates = keep_estimates
-        self.ground_truth = GroundTruth(reference)
         self.events = 0
         self.t_first: float | None = None
         self.t_last: float | None = None
@@ -92,7 +95,8 @@ class Engine:
             self.t_first = event.t
         self.t_last = event.t
         if isinstance(event, GroundTruthEvent):
-            self.ground_truth.add(event)
+            for truth_sink in self.truth_sinks:
+                truth_sink(event)
             return []
         produced: list[Estimate] = []
         for p in self.pipelines:

@@ -1,4 +1,4 @@
-"""The live engine over Eclipse Zenoh: ``relloc serve``, ``relloc replay``.
+"""The live engine over Eclipse Zenoh (the ``relloc serve`` and ``replay`` commands: :mod:`relloc.cli.live`).
 
 ``serve`` runs the *same* :class:`~relloc.engine.Engine` and method pipelines as ``relloc run``
 and the demo, fed by :class:`~relloc.sources.zenoh_source.ZenohSource` (the robots' ROS 2
@@ -6,7 +6,7 @@ topics as bridged by zenoh-bridge-ros2dds) and publishing through
 :class:`~relloc.sinks.zenoh_sink.ZenohSink`. One thread runs the engine; Zenoh's callbacks only
 enqueue. ``replay`` publishes a rosbag2 recording's raw CDR messages on the bridge's keys at
 the recorded pace (times ``--rate``), so a recording stands in for the robots;
-``relloc bench resources`` (:mod:`relloc.bench_resources`) runs both on loopback and measures the server process (CPU, peak RSS,
+``relloc bench resources`` (:mod:`relloc.cli.bench_resources`) runs both on loopback and measures the server process (CPU, peak RSS,
 end-to-end latency). ``docs/live.md`` tells the whole story and gives the measured figures.
 
 Latency is traced, not guessed: the replay attaches its send wall time to every message
@@ -16,15 +16,13 @@ send/receive times) and the estimate's publication time on ``relloc/trace``. Bot
 host's wall clock on loopback.
 
 =======================  ==================================================================
-:mod:`.session`          Zenoh session options and the live commands' ``--mode/--connect/...``
+:mod:`.session`          Zenoh session options and opening
 :mod:`.server`           :class:`LiveServer` (the engine loop) and :class:`ServeOptions`
 :mod:`.publish`          :func:`replay_bag`, :func:`publish_events`: data into Zenoh
 :mod:`.collect`          :class:`EstimateCollector`, :func:`ape_against_bag` (tests, benchmarks)
-:mod:`.cli`              the ``serve`` and ``replay`` commands
 =======================  ==================================================================
 """
 
-from relloc.live.cli import register
 from relloc.live.collect import SHORTBAG, EstimateCollector, ape_against_bag
 from relloc.live.publish import (
     SIM_TIME_BASE,
@@ -38,11 +36,8 @@ from relloc.live.publish import (
 from relloc.live.server import LiveServer, ServeOptions
 from relloc.live.session import (
     ZenohOptions,
-    add_zenoh_args,
     free_tcp_port,
-    open_cli_session,
     open_session,
-    zenoh_options_from_args,
 )
 
 __all__ = [
@@ -54,15 +49,11 @@ __all__ = [
     "ReplayOptions",
     "ServeOptions",
     "ZenohOptions",
-    "add_zenoh_args",
     "ape_against_bag",
     "event_messages",
     "free_tcp_port",
-    "open_cli_session",
     "open_session",
     "publish_events",
-    "register",
     "replay_bag",
     "simulated_team",
-    "zenoh_options_from_args",
 ]

@@ -58,7 +58,7 @@ class EstimateCollector:
         ]
 
     def _on_pose(self, sample: Any) -> None:
-        from relloc.ros_messages import POSE_WITH_COVARIANCE_STAMPED, decode
+        from relloc.ros.messages import POSE_WITH_COVARIANCE_STAMPED, decode
 
         robot = str(sample.key_expr).split("/")[-2]
         msg = decode(sample.payload.to_bytes(), POSE_WITH_COVARIANCE_STAMPED)
@@ -129,8 +129,8 @@ def ape_against_bag(
     ``t0`` is the start of the warm-up window (default: the bag's first motion-capture stamp).
     Returns per robot ``{"median", "rmse", "max", "n"}`` and ``"mean_median"``.
     """
+    from relloc.evaluation.metrics import ApeStats, GroundTruth, after, associate
     from relloc.events import GroundTruthEvent
-    from relloc.sinks.metrics import ApeStats, GroundTruth, after, associate
     from relloc.sources.rosbag import RosbagSource
 
     gt = GroundTruth(config.reference)

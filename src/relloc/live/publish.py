@@ -3,7 +3,8 @@
 :func:`replay_bag` publishes a rosbag2 recording's raw CDR messages on the keys a bridge
 (zenoh-bridge-ros2dds) would use, at the recorded pace times ``rate``, so a recording stands in
 for live robots; :func:`publish_events` does the same for relloc events (the simulator's), as
-:func:`event_messages` encodes them. Every message carries its send wall time as an attachment
+:class:`EventEncoder` encodes them (the simulated robots of ``relloc sim-robots``,
+:mod:`relloc.live.sim_robots`, use it too). Every message carries its send wall time as an attachment
 (:func:`~relloc.sources.zenoh_source.encode_sent_time`): the server's trace turns it into
 end-to-end latency.
 """
@@ -20,14 +21,17 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from relloc.config import TeamConfig
-from relloc.events import Event, OdometryEvent, RangeEvent
+from relloc.config import RobotConfig, TeamConfig
+from relloc.events import Event, GroundTruthEvent, OdometryEvent, RangeEvent
 from relloc.sources.zenoh_source import build_routes, encode_sent_time, key_for_topic
 
 __all__ = [
     "SIM_TIME_BASE",
+    "EventEncoder",
     "PublishStats",
+    "Publishers",
     "ReplayOptions",
+    "cmd_vel_key",
     "event_messages",
     "publish_events",
     "replay_bag",
@@ -66,7 +70,7 @@ class PublishStats:
         }
 
 
-class _Publishers:
+class Publishers:
     """Publishers declared on demand, each put carrying its send time as an attachment."""
 
     def __init__(self, session: Any) -> None:
@@ -121,7 +125,7 @@ def _topic_keys(config: TeamConfig, prefix: str, topics: Iterable[str]) -> dict[
 
 def _run_schedule(
     items: Iterable[tuple[float, str, bytes]],
-    pubs: _Publishers,
+    pubs: Publishers,
     rate: float,
     stop: Callable[[], bool],
     stats: PublishStats,
@@ -201,7 +205,7 @@ def replay_bag(
     except Exception as exc:
         raise BagError(f"cannot open bag {bag}: {exc}") from exc
     stats = PublishStats()
-    pubs = _Publishers(session)
+    pubs = Publishers(session)
     try:
         routes = build_routes(config, prefix=opts.prefix)
         team_topics = {r.topic for r in routes.values()}
@@ -253,7 +257,7 @@ def simulated_team(seed: int = 0, duration: float = 30.0) -> tuple[Any, TeamConf
     Returns ``(Simulation, config)``: the config is the simulator's own (truthful calibration)
     with odometry on ``/<robot>/odom`` and UWB on the default ``/uwb/tof/{a}/{b}/distance``.
     """
-    from relloc.sources.simulator import multi_scenario
+    from relloc.simulator import multi_scenario
 
     sim = multi_scenario(seed, duration=duration)
     config = sim.config
@@ -262,31 +266,63 @@ def simulated_team(seed: int = 0, duration: float = 30.0) -> tuple[Any, TeamConf
     return sim, config
 
 
+def cmd_vel_key(robot: RobotConfig, prefix: str = "") -> str:
+    """The key of a robot's velocity commands: ``cmd_vel_topic`` (default ``/<robot>/cmd_vel``)
+    under the bridge convention, e.g. ``tb1/cmd_vel``."""
+    topic = robot.cmd_vel_topic or f"/{robot.name}/cmd_vel"
+    return key_for_topic(topic, prefix=prefix, scope=robot.zenoh_scope)
+
+
+class EventEncoder:
+    """Relloc events as the ROS 2 messages a team would publish, on the keys it would use.
+
+    Odometry becomes ``nav_msgs/Odometry`` on the robot's odometry key, a range
+    ``sensor_msgs/Range`` on the key of its node pair (in the event's node order), and, with
+    ``ground_truth``, a ground-truth pose ``geometry_msgs/PoseStamped`` on the robot's
+    motion-capture key (``mocap_topic``); other events have no message. The keys are those a
+    server of ``config`` subscribes to (:func:`~relloc.sources.zenoh_source.build_routes`).
+    """
+
+    def __init__(self, config: TeamConfig, *, prefix: str = "", ground_truth: bool = False) -> None:
+        routes = build_routes(config, prefix=prefix, detections=False)
+        self.odom_keys = {r.robot: k for k, r in routes.items() if r.kind == "odometry"}
+        self.range_keys: dict[tuple[str, str], str] = {}
+        for k, r in routes.items():
+            if r.kind == "range":
+                self.range_keys.setdefault((r.node_a, r.node_b), k)
+        self.mocap_keys = {
+            r.name: key_for_topic(config.mocap_topic.format(body=r.mocap_body or r.name), prefix=prefix)
+            for r in config.robots
+        }
+        self.ground_truth = ground_truth
+
+    def encode(self, ev: Event, time_base: float = 0.0) -> tuple[str, bytes] | None:
+        """``(key, CDR payload)`` of one event, ``None`` if it has no message. ``time_base`` is
+        added to the header stamp (the simulator starts at 0, and a zero stamp means "no stamp"
+        on the wire)."""
+        from relloc.ros.messages import encode, odometry_msg, pose_stamped_msg, range_msg
+
+        if isinstance(ev, OdometryEvent):
+            key = self.odom_keys.get(ev.robot)
+            return None if key is None else (key, encode(odometry_msg(replace(ev, t=ev.t + time_base))))
+        if isinstance(ev, RangeEvent):
+            key = self.range_keys.get((ev.node_a, ev.node_b))
+            return None if key is None else (key, encode(range_msg(replace(ev, t=ev.t + time_base))))
+        if isinstance(ev, GroundTruthEvent) and self.ground_truth:
+            return self.mocap_keys[ev.robot], encode(pose_stamped_msg(replace(ev, t=ev.t + time_base)))
+        return None
+
+
 def event_messages(
     events: Iterable[Event], config: TeamConfig, *, prefix: str = "", time_base: float = 0.0
 ) -> Iterator[tuple[float, str, bytes]]:
-    """Relloc events as the ROS 2 messages a team would publish: ``(t, key, CDR payload)``.
-
-    Odometry becomes ``nav_msgs/Odometry`` on the robot's odometry key, a range
-    ``sensor_msgs/Range`` on the key of its node pair (in the event's node order); other events
-    are skipped. ``time_base`` is added to every header stamp (the simulator starts at 0, and a
-    zero stamp means "no stamp" on the wire); ``t`` stays the event's own time.
-    """
-    from relloc.ros_messages import encode, odometry_msg, range_msg
-
-    routes = build_routes(config, prefix=prefix, detections=False)
-    odom_keys = {r.robot: k for k, r in routes.items() if r.kind == "odometry"}
-    range_keys: dict[tuple[str, str], str] = {}
-    for k, r in routes.items():
-        if r.kind == "range":
-            range_keys.setdefault((r.node_a, r.node_b), k)
+    """Relloc events as the messages :class:`EventEncoder` makes of them (no ground truth):
+    ``(t, key, CDR payload)``, ``t`` the event's own time."""
+    encoder = EventEncoder(config, prefix=prefix)
     for ev in events:
-        if isinstance(ev, OdometryEvent) and ev.robot in odom_keys:
-            yield ev.t, odom_keys[ev.robot], encode(odometry_msg(replace(ev, t=ev.t + time_base)))
-        elif isinstance(ev, RangeEvent):
-            key = range_keys.get((ev.node_a, ev.node_b))
-            if key is not None:
-                yield ev.t, key, encode(range_msg(replace(ev, t=ev.t + time_base)))
+        out = encoder.encode(ev, time_base)
+        if out is not None:
+            yield ev.t, *out
 
 
 def publish_events(
@@ -304,7 +340,7 @@ def publish_events(
     """Publish relloc events (e.g. from the simulator) on a team's keys in real time (times
     ``rate``), as :func:`event_messages` encodes them, after waiting up to ``wait`` s for
     subscribers of every key."""
-    pubs = _Publishers(session)
+    pubs = Publishers(session)
     stats = PublishStats()
     routes = build_routes(config, prefix=prefix, detections=False)
     keys = sorted(

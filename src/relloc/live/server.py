@@ -93,9 +93,7 @@ class LiveServer:
             primary_method=opts.methods[0],
             trace=opts.trace,
         )
-        self.engine = Engine(
-            self.pipelines, config.reference, [self.sink], keep_estimates=opts.keep_estimates
-        )
+        self.engine = Engine(self.pipelines, [self.sink], keep_estimates=opts.keep_estimates)
         self.engine_errors = 0
         self.engine_thread_cpu_s = 0.0
         """CPU time of the thread that ran :meth:`run` (the rest is Zenoh's threads)."""

@@ -1,13 +1,13 @@
-"""Zenoh sessions for the live commands: options, opening, and their command-line flags.
+"""Zenoh sessions of the live engine: options and opening.
 
-Every live command (``serve``, ``replay``, ``navigate``, ``sim-robots``, ``bench resources``)
-opens its session the same way: peer or client mode, explicit ``--connect``/``--listen``
-endpoints, multicast scouting on or off, optionally a full Zenoh JSON5 config underneath.
+Every live part (server, replay, navigation, simulated robots, benchmarks) opens its session the
+same way: peer or client mode, explicit connect/listen endpoints, multicast scouting on or off,
+optionally a full Zenoh JSON5 config underneath. The command-line flags that fill
+:class:`ZenohOptions` are in :mod:`relloc.cli.common`.
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import socket
 from dataclasses import dataclass
@@ -16,11 +16,8 @@ from typing import Any, Literal
 
 __all__ = [
     "ZenohOptions",
-    "add_zenoh_args",
     "free_tcp_port",
-    "open_cli_session",
     "open_session",
-    "zenoh_options_from_args",
 ]
 
 
@@ -65,54 +62,3 @@ def free_tcp_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
-
-
-def add_zenoh_args(p: argparse.ArgumentParser) -> None:
-    """The Zenoh session options of every live command (``--mode``, ``--connect``, ...)."""
-    g = p.add_argument_group("zenoh")
-    g.add_argument("--mode", choices=("peer", "client"), default="peer")
-    g.add_argument(
-        "--connect",
-        action="append",
-        default=[],
-        metavar="EP",
-        help="e.g. tcp/192.168.1.10:7447 (repeatable)",
-    )
-    g.add_argument(
-        "--listen",
-        action="append",
-        default=[],
-        metavar="EP",
-        help="e.g. tcp/0.0.0.0:7447 (repeatable)",
-    )
-    g.add_argument("--no-multicast", action="store_true", help="disable multicast scouting")
-    g.add_argument(
-        "--zenoh-config",
-        default=None,
-        metavar="FILE",
-        help="a Zenoh JSON5 config (the options above override it)",
-    )
-    g.add_argument(
-        "--prefix", default="", help="key prefix of the robots' topics (the bridge namespace)"
-    )
-
-
-def zenoh_options_from_args(args: argparse.Namespace) -> ZenohOptions:
-    """The :class:`ZenohOptions` of arguments added by :func:`add_zenoh_args`."""
-    return ZenohOptions(
-        mode=args.mode,
-        connect=tuple(args.connect),
-        listen=tuple(args.listen),
-        multicast=not args.no_multicast,
-        config_file=Path(args.zenoh_config) if args.zenoh_config else None,
-    )
-
-
-def open_cli_session(args: argparse.Namespace) -> Any:
-    """The session of a command, or a one-line error (e.g. the --listen port is taken)."""
-    from relloc.cli import UserError
-
-    try:
-        return open_session(zenoh_options_from_args(args))
-    except Exception as exc:  # zenoh.ZError and config errors
-        raise UserError(f"cannot open a Zenoh session: {exc}") from None

@@ -6,7 +6,8 @@ robot, with the localizer's estimate as position feedback (the paper's last expe
 * :mod:`~relloc.navigation.safety`: when the robot must not move, and why;
 * :mod:`~relloc.navigation.navigator`: estimate + odometry in, velocity command out;
 * :mod:`~relloc.navigation.closed_loop`: the closed loop in the simulator (``relloc demo``, ``nav``);
-* :mod:`~relloc.navigation.live`: ``relloc navigate`` and ``relloc sim-robots`` over Zenoh.
+* :mod:`~relloc.navigation.live`: ``relloc navigate`` over Zenoh (its command: :mod:`relloc.cli.navigation`;
+  the simulated robots it can drive: :mod:`relloc.live.sim_robots`).
 
 The names below are the pure, I/O-free core; the simulator loop, plots and Zenoh parts are
 imported from their modules (they pull in matplotlib and zenoh).

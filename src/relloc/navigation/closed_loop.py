@@ -43,14 +43,14 @@ from rich.console import Console
 from rich.table import Table
 
 from relloc.engine import Engine
+from relloc.evaluation.metrics import ApeStats, GroundTruth, associate
 from relloc.events import OdometryEvent
 from relloc.methods import build_pipeline
 from relloc.navigation.controller import ControllerConfig
 from relloc.navigation.navigator import Navigator
 from relloc.navigation.path import FloatArray, PathError, WaypointPath, load_path
 from relloc.navigation.safety import SafetyConfig, StopRecord
-from relloc.sinks.metrics import ApeStats, associate
-from relloc.sources.simulator import UwbErrorModel, nav_scenario
+from relloc.simulator import UwbErrorModel, nav_scenario
 
 __all__ = [
     "DEFAULT_PATH",
@@ -228,7 +228,8 @@ def run_nav_scenario(
         latency_compensation=latency_compensation,
         max_odom_extrapolation=config.filter.max_odom_extrapolation,
     )
-    engine = Engine([pipeline], config.reference, sinks=[nav.on_estimate])
+    gt = GroundTruth(config.reference)
+    engine = Engine([pipeline], sinks=[nav.on_estimate], truth_sinks=[gt.add])
 
     period = ctrl.period
     ticks: list[float] = []
@@ -269,8 +270,8 @@ def run_nav_scenario(
     t = np.array(ticks)
     ref = config.reference
     true_xy = _relative_truth(sim, robot, ref, t)
-    paired = associate(pipeline.estimates, engine.ground_truth, [robot])[robot]
-    gt_t, _ = engine.ground_truth.trajectory(robot)
+    paired = associate(pipeline.estimates, gt, [robot])[robot]
+    gt_t, _ = gt.trajectory(robot)
     gt_t = gt_t[gt_t <= (t[-1] if t.size else 0.0)]
     return NavResult(
         path=path,
@@ -316,7 +317,7 @@ PAPER = {"ape_median": 0.109, "ape_std": 0.101, "tracking_median": 0.087, "track
 
 def print_nav_table(result: NavResult, console: Console | None = None) -> None:
     """The demo table of the nav scenario: APE and tracking error next to the paper's."""
-    from relloc.sinks.report import make_console
+    from relloc.evaluation.report import make_console
 
     console = console or make_console()
     s = result.summary()

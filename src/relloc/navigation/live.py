@@ -1,4 +1,4 @@
-"""Navigation and simulated robots over Eclipse Zenoh (``relloc navigate``, ``relloc sim-robots``).
+"""Navigation over Eclipse Zenoh (``relloc navigate``).
 
 Keys follow zenoh-bridge-ros2dds, as everywhere in relloc (:func:`relloc.sources.zenoh_source.key_for_topic`):
 a ROS topic ``/tb1/odom`` is the key ``tb1/odom``, below the global ``--prefix`` and the robot's
@@ -22,12 +22,10 @@ key                                message                                    wh
     ``Twist`` at the control rate: the :class:`~relloc.navigation.navigator.Navigator`'s command,
     zero while the safety gate holds the robot, and zero (three times) when it stops for good
     (path complete, Ctrl-C, SIGTERM, ``--duration``).
-``relloc sim-robots``
-    :class:`SimRobots` runs a simulated team (:mod:`relloc.sources.simulator`) in real time
-    (times ``--rate``) and publishes its odometry, UWB ranges and motion capture as the real
-    robots would; commanded robots obey ``cmd_vel`` (and stop when no command has come for
-    ``cmd_timeout`` seconds, as a robot base does). With it, ``relloc serve`` and
-    ``relloc navigate`` run the whole live system on one machine.
+
+The robots can be simulated: ``relloc sim-robots`` (:mod:`relloc.live.sim_robots`) publishes a
+simulated team's sensors on these keys and obeys ``cmd_vel``, so ``relloc serve`` and
+``relloc navigate`` run the whole live system on one machine.
 
 Clocks
 ------
@@ -42,66 +40,44 @@ the control period included, then runs R times faster, consistently.
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
-from pathlib import Path
+from dataclasses import dataclass, field
 from typing import Any
 
 from relloc.config import RobotConfig, TeamConfig
 from relloc.estimate import Estimate
-from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent
+from relloc.live.publish import cmd_vel_key
 from relloc.navigation.controller import Command, ControllerConfig
 from relloc.navigation.navigator import Navigator
 from relloc.navigation.path import WaypointPath
 from relloc.navigation.safety import SafetyConfig
-from relloc.ros_messages import (
+from relloc.ros.messages import (
     ODOMETRY,
-    POSE_STAMPED,
     POSE_WITH_COVARIANCE_STAMPED,
-    TWIST,
     MessageDecodeError,
     decode,
     encode,
-    odometry_msg,
     odometry_to_event,
-    quaternion_from_yaw,
-    range_msg,
     stamp_to_sec,
-    time_msg,
     twist_msg,
-    typestore,
 )
-from relloc.sources.zenoh_source import build_routes, key_for_topic
+from relloc.sources.zenoh_source import key_for_topic
 
 __all__ = [
     "DataClock",
     "LiveNavigation",
     "NavigateOptions",
     "NavigationLoop",
-    "SimRobots",
-    "SimRobotsOptions",
-    "cmd_vel_key",
     "decode_estimate",
     "odom_key",
-    "pose_stamped_msg",
-    "save_json",
-    "sim_team_config",
 ]
 
 log = logging.getLogger("relloc.navigation")
 
 
 # ============================================================================ keys and messages
-def cmd_vel_key(robot: RobotConfig, prefix: str = "") -> str:
-    """The key of a robot's velocity commands: ``cmd_vel_topic`` (default ``/<robot>/cmd_vel``)
-    under the bridge convention, e.g. ``tb1/cmd_vel``."""
-    topic = robot.cmd_vel_topic or f"/{robot.name}/cmd_vel"
-    return key_for_topic(topic, prefix=prefix, scope=robot.zenoh_scope)
-
-
 def odom_key(robot: RobotConfig, prefix: str = "") -> str:
     """The key of a robot's odometry (its ``odom_topic``, default ``/<robot>/odom``)."""
     topic = robot.odom_topic or f"/{robot.name}/odom"
@@ -120,15 +96,6 @@ def decode_estimate(payload: bytes, robot: str, reference: str, method: str = "p
         positions={robot: (float(p.x), float(p.y))},
         covariances={robot: ((float(c[0]), float(c[1])), (float(c[6]), float(c[7])))},
     )
-
-
-def pose_stamped_msg(t: float, x: float, y: float, yaw: float, frame_id: str = "world") -> Any:
-    """A ``geometry_msgs/PoseStamped`` (what a motion-capture bridge publishes)."""
-    types = typestore().types
-    header = types["std_msgs/msg/Header"](stamp=time_msg(t), frame_id=frame_id)
-    point = types["geometry_msgs/msg/Point"](x=float(x), y=float(y), z=0.0)
-    pose = types["geometry_msgs/msg/Pose"](position=point, orientation=quaternion_from_yaw(yaw))
-    return types[POSE_STAMPED](header=header, pose=pose)
 
 
 # ============================================================================ clock
@@ -439,227 +406,3 @@ class LiveNavigation:
             "cmd_vel_key": self.cmd_key,
             "estimate_key": "(in process)" if self.options.in_process else self.pose_key,
         }
-
-
-# ============================================================================ sim-robots
-def sim_team_config(
-    sim: Any, base: TeamConfig | None = None, particles: int | None = None
-) -> TeamConfig:
-    """The team config for a simulated team published over Zenoh.
-
-    The simulator's own config (truthful calibration) with ROS topics: odometry on
-    ``/<robot>/odom``, velocity commands on ``/<robot>/cmd_vel``, motion capture body = robot
-    name. With ``base`` (a user's config for the same robot names) its topics, scopes and filter
-    settings are used instead.
-    """
-    config: TeamConfig = sim.config
-    if base is not None:
-        missing = set(config.robot_names) - set(base.robot_names)
-        if missing or base.reference != config.reference:
-            raise ValueError(
-                f"config {base.name!r} does not describe the simulated team: it needs robots "
-                f"{list(config.robot_names)} with reference {config.reference!r}"
-            )
-        config = replace(
-            config, filter=base.filter, uwb=replace(config.uwb, range_topic=base.uwb.range_topic)
-        )
-    for r in config.robots:
-        own = base.robot(r.name) if base is not None else None
-        config = config.with_robot(
-            r.name,
-            odom_topic=(own.odom_topic if own and own.odom_topic else f"/{r.name}/odom"),
-            cmd_vel_topic=(
-                own.cmd_vel_topic if own and own.cmd_vel_topic else f"/{r.name}/cmd_vel"
-            ),
-            zenoh_scope=own.zenoh_scope if own else "",
-            mocap_body=(own.mocap_body if own and own.mocap_body else r.name),
-        )
-    if particles:
-        config = config.with_filter(particles=particles)
-    return config
-
-
-@dataclass(frozen=True)
-class SimRobotsOptions:
-    """How ``relloc sim-robots`` runs the simulated team."""
-
-    rate: float = 1.0
-    """Simulated seconds per wall second."""
-    step: float = 0.05
-    """Simulation step (s of simulated time): commands are applied and data published per step."""
-    prefix: str = ""
-    cmd_timeout: float = 0.5
-    """A commanded robot stops when no ``cmd_vel`` arrived for this long (simulated s)."""
-    ground_truth: bool = True
-    """Publish the true poses as motion capture (``mocap_topic``) for evaluation."""
-    wait: float = 10.0
-    """Wait up to this long (wall s) for a subscriber of the odometry and range keys."""
-    time_base: float | None = None
-    """Added to every stamp (default: the wall time at the start; stamps look like ROS time)."""
-    duration: float | None = None
-    """Stop after this many simulated seconds (default: the simulation's duration)."""
-
-
-class SimRobots:
-    """A simulated team on Zenoh: publishes its sensors, obeys ``cmd_vel``."""
-
-    def __init__(
-        self, sim: Any, config: TeamConfig, session: Any, options: SimRobotsOptions | None = None
-    ) -> None:
-        self.sim = sim
-        self.config = config
-        self.session = session
-        self.options = opts = options or SimRobotsOptions()
-        if not opts.rate > 0 or not opts.step > 0:
-            raise ValueError("rate and step must be positive")
-        routes = build_routes(config, prefix=opts.prefix, detections=False)
-        self.odom_keys = {r.robot: k for k, r in routes.items() if r.kind == "odometry"}
-        self.range_keys: dict[tuple[str, str], str] = {}
-        for k, r in routes.items():
-            if r.kind == "range":
-                self.range_keys.setdefault((r.node_a, r.node_b), k)
-        self.mocap_keys = {
-            r.name: key_for_topic(
-                config.mocap_topic.format(body=r.mocap_body or r.name), prefix=opts.prefix
-            )
-            for r in config.robots
-        }
-        self.cmd_keys = {
-            name: cmd_vel_key(config.robot(name), opts.prefix) for name in sim.commanded
-        }
-        self._pubs: dict[str, Any] = {}
-        self._subs: list[Any] = []
-        self._lock = threading.Lock()
-        self._commands: dict[str, tuple[float, float, float]] = {}  # robot -> (v, w, sim time)
-        self.t_sim = 0.0
-        self.time_base = 0.0
-        self.published = 0
-        self.commands_received = 0
-        self.max_behind = 0.0
-        self.truth: dict[str, list[tuple[float, float, float, float]]] = {n: [] for n in sim.robots}
-        """True world poses ``(stamp, x, y, yaw)`` published, per robot."""
-
-    def start(self) -> None:
-        """Subscribe to the commanded robots' ``cmd_vel`` keys."""
-        for robot, key in self.cmd_keys.items():
-            self._subs.append(
-                self.session.declare_subscriber(key, lambda s, robot=robot: self._on_cmd(robot, s))
-            )
-
-    def close(self) -> None:
-        for ent in [*self._subs, *self._pubs.values()]:
-            try:
-                ent.undeclare()
-            except Exception as exc:
-                log.debug("undeclaring failed: %s", exc)
-        self._subs, self._pubs = [], {}
-
-    def _on_cmd(self, robot: str, sample: Any) -> None:
-        try:
-            msg = decode(sample.payload.to_bytes(), TWIST)
-        except MessageDecodeError as exc:
-            log.warning("undecodable cmd_vel for %s: %s", robot, exc)
-            return
-        v, w = float(msg.linear.x), float(msg.angular.z)
-        if not (math.isfinite(v) and math.isfinite(w)):
-            log.warning("non-finite cmd_vel for %s ignored", robot)
-            return
-        with self._lock:
-            self._commands[robot] = (v, w, self.t_sim)
-            self.commands_received += 1
-
-    def _put(self, key: str, payload: bytes) -> None:
-        pub = self._pubs.get(key)
-        if pub is None:
-            pub = self._pubs[key] = self.session.declare_publisher(key)
-        pub.put(payload)
-
-    def _wait_for_subscribers(self, stop: threading.Event) -> None:
-        keys = [*self.odom_keys.values(), *set(self.range_keys.values())]
-        end = time.time() + self.options.wait
-        pending = keys
-        while pending and time.time() < end and not stop.is_set():
-            for k in pending:
-                if k not in self._pubs:
-                    self._pubs[k] = self.session.declare_publisher(k)
-            pending = [k for k in pending if not self._pubs[k].matching_status.matching]
-            if pending:
-                stop.wait(0.05)
-        if pending:
-            log.warning("no subscriber yet for %d key(s), publishing anyway", len(pending))
-
-    def run(self, stop: threading.Event | None = None) -> dict[str, Any]:
-        """Simulate and publish until ``stop``, ``duration`` or the end of the simulation."""
-        stop = stop or threading.Event()
-        opts = self.options
-        self._wait_for_subscribers(stop)
-        end = min(self.sim.duration, opts.duration or math.inf)
-        wall0 = time.time()
-        self.time_base = wall0 if opts.time_base is None else opts.time_base
-        k = 0
-        while not stop.is_set():
-            k += 1
-            t = round(k * opts.step, 9)
-            if t > end + 1e-9:
-                break
-            delay = wall0 + t / opts.rate - time.time()
-            if delay > 0:
-                stop.wait(delay)
-                if stop.is_set():
-                    break
-            else:
-                self.max_behind = max(self.max_behind, -delay)
-            self._apply_commands(t - opts.step)
-            with self._lock:
-                self.t_sim = t
-            for ev in self.sim.advance(t):
-                self._publish(ev)
-        return self.summary()
-
-    def _apply_commands(self, t_now: float) -> None:
-        with self._lock:
-            commands = dict(self._commands)
-        for robot in self.sim.commanded:
-            v, w, t_cmd = commands.get(robot, (0.0, 0.0, -math.inf))
-            if t_now - t_cmd > self.options.cmd_timeout:
-                v, w = 0.0, 0.0
-            self.sim.set_command(robot, v, w)
-
-    def _publish(self, ev: Any) -> None:
-        base = self.time_base
-        if isinstance(ev, OdometryEvent):
-            key = self.odom_keys.get(ev.robot)
-            if key:
-                self._put(key, encode(odometry_msg(replace(ev, t=ev.t + base))))
-                self.published += 1
-        elif isinstance(ev, RangeEvent):
-            key = self.range_keys.get((ev.node_a, ev.node_b))
-            if key:
-                self._put(key, encode(range_msg(replace(ev, t=ev.t + base))))
-                self.published += 1
-        elif isinstance(ev, GroundTruthEvent):
-            self.truth[ev.robot].append((ev.t + base, ev.x, ev.y, ev.yaw))
-            if self.options.ground_truth:
-                msg = pose_stamped_msg(ev.t + base, ev.x, ev.y, ev.yaw)
-                self._put(self.mocap_keys[ev.robot], encode(msg))
-                self.published += 1
-
-    def summary(self) -> dict[str, Any]:
-        """Figures of the run, and the true trajectories (stamps on the published clock)."""
-        return {
-            "simulated_s": round(self.t_sim, 3),
-            "time_base": self.time_base,
-            "messages": self.published,
-            "commands_received": self.commands_received,
-            "max_behind_s": round(self.max_behind, 4),
-            "reference": self.config.reference,
-            "truth": {r: [list(map(float, p)) for p in poses] for r, poses in self.truth.items()},
-        }
-
-
-def save_json(path: Path, data: dict[str, Any]) -> None:
-    """Write ``data`` as JSON (creating folders)."""
-    import json
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(data, indent=1))

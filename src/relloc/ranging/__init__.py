@@ -13,7 +13,7 @@ Modules, and what each needs:
 * :mod:`~relloc.ranging.models`, :mod:`~relloc.ranging.train`, :mod:`~relloc.ranging.export`
   (torch, the optional extra ``relloc[train]``): stacked LSTM, bidirectional LSTM and ConvLSTM,
   their training and ONNX export.
-* :mod:`~relloc.ranging.cli`: ``relloc ranging train | eval | export | bag-csv``.
+* :mod:`~relloc.cli.ranging`: ``relloc ranging train | eval | export | bag-csv``.
 
 The run-time stage is :class:`relloc.stages.range_correction.RangeCorrector`. Importing this
 package (or anything but the three torch modules) never imports torch. See docs/ranging.md.

@@ -34,7 +34,7 @@ import numpy as np
 
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
-from relloc.ros_cdr import encode_pose_with_covariance_stamped
+from relloc.ros.cdr import encode_pose_with_covariance_stamped
 from relloc.sources.zenoh_source import Arrival
 
 __all__ = ["UNKNOWN_VARIANCE", "ZenohSink", "pose_key"]

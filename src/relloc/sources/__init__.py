@@ -8,5 +8,5 @@ one it runs on:
   zero-stamp restamping, reorder buffer, one stats record);
 * :mod:`relloc.sources.rosbag`: rosbag2 recordings read with ``rosbags`` (the transport only);
 * :mod:`relloc.sources.zenoh_source`: live robots over Eclipse Zenoh (the transport only);
-* :mod:`relloc.sources.simulator`: simulated teams, which produce events directly.
+* :mod:`relloc.simulator`: simulated teams, which produce events directly.
 """

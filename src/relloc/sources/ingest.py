@@ -51,7 +51,7 @@ topic's order, even while a live estimate of the offset moves).
 Conversion and rejections
 -------------------------
 :meth:`Converter.convert` decodes one payload (odometry and ranges through the fast fixed-layout
-path of :mod:`relloc.ros_cdr`, everything else or anything odd through ``rosbags``), stamps it
+path of :mod:`relloc.ros.cdr`, everything else or anything odd through ``rosbags``), stamps it
 and builds its event. What cannot be used is dropped and counted per reason in the
 :class:`IngestStats` record, so that downstream stages only ever see valid numbers:
 ``decode_error``, ``range_nonfinite``/``range_nonpositive`` and, per object,
@@ -88,8 +88,8 @@ from typing import Any, Generic, Literal, TypeVar
 
 from relloc.config import CameraConfig, ConfigError, TeamConfig
 from relloc.events import DetectionEvent, Event, GroundTruthEvent, OdometryEvent, RangeEvent
-from relloc.ros_cdr import decode_odometry, decode_range
-from relloc.ros_messages import (
+from relloc.ros.cdr import decode_odometry, decode_range
+from relloc.ros.messages import (
     ODOMETRY,
     POSE_ARRAY,
     POSE_STAMPED,
@@ -587,7 +587,7 @@ class Converter:
 
 
 def _fast_fields(route: Route, payload: bytes) -> tuple[float, ...] | None:
-    """The hot messages' fields straight from the bytes (:mod:`relloc.ros_cdr`), or ``None``:
+    """The hot messages' fields straight from the bytes (:mod:`relloc.ros.cdr`), or ``None``:
     then the full ``rosbags`` decoder decodes the payload or says why not."""
     if route.kind == "odometry":
         return decode_odometry(payload)

@@ -47,7 +47,7 @@ from rosbags.rosbag2 import Reader
 
 from relloc.config import ConfigError, TeamConfig
 from relloc.events import Event
-from relloc.ros_messages import MessageDecodeError, decode, header_stamp_from_cdr, typestore
+from relloc.ros.messages import MessageDecodeError, decode, header_stamp_from_cdr, typestore
 from relloc.sources.ingest import (
     Converter,
     HeaderClock,

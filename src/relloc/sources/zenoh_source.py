@@ -58,7 +58,7 @@ from typing import Any
 
 from relloc.config import ConfigError, TeamConfig
 from relloc.events import Event
-from relloc.ros_messages import typestore
+from relloc.ros.messages import typestore
 from relloc.sources.ingest import (
     Converter,
     HeaderClock,

@@ -1,6 +1,10 @@
-"""Command line: ``relloc demo | run | calibrate | ranging ...``.
+"""Command line: ``relloc demo | run | calibrate | ranging | serve | replay | navigate | ...``.
 
-Each command is a thin layer over the library: parse arguments, call one function, print.
+The whole command-line layer lives in this package, on top of the library; nothing below
+imports it. This module is the parser and the dispatch; each command family registers itself
+from its own module (:mod:`.live`, :mod:`.navigation`, :mod:`.ranging`, :mod:`.bench_resources`);
+:mod:`.common` holds what they share (user errors, signals, Zenoh sessions, options from
+arguments). Each command is a thin layer: parse arguments, call one function, print.
 Expected failures (bad config, unreadable bag, unknown method) print one clear line and exit
 with status 2; they never show a traceback.
 """
@@ -8,63 +12,44 @@ with status 2; they never show a traceback.
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from relloc import __version__, argtypes
+from relloc import __version__
+from relloc.cli import argtypes
+from relloc.cli.common import UserError, is_user_error, options_from_args
 
-
-class UserError(Exception):
-    """A problem with the user's input, reported as one line without a traceback."""
+_COMMAND_MODULES = ("relloc.cli.ranging", "relloc.cli.live", "relloc.cli.bench_resources", "relloc.cli.navigation")
+"""Command families with a ``register(subparsers)`` of their own. None imports an optional
+dependency at module level (training imports torch only when it runs), so every command is
+always listed; a module that fails to import is a bug and raises."""
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from relloc.demo import SCENARIOS, DemoOptions, run_demo
+    from relloc.cli.demo import SCENARIOS, DemoOptions, run_demo
     from relloc.methods import parse_methods
 
     known = [*SCENARIOS, "nav"]
     for name in args.scenarios.split(","):
         if name not in known:
             raise UserError(f"unknown scenario {name!r}; known: {', '.join(known)}")
-    opts = DemoOptions(
-        seed=args.seed,
-        warmup=args.warmup,
-        particles=args.particles,
-        methods=tuple(parse_methods(args.methods)),
-        scenarios=tuple(args.scenarios.split(",")),
-        out=Path(args.out) if args.out else None,
-        json_path=Path(args.json) if args.json else None,
-        progress=not args.no_progress,
-        heading=args.heading,
-        bias=args.bias,
-        odom_scale=args.odom_scale,
+    opts = options_from_args(
+        DemoOptions, args, methods=tuple(parse_methods(args.methods)), scenarios=tuple(args.scenarios.split(","))
     )
     run_demo(opts)
     return 0
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
+    from relloc.cli.recording import RunOptions, run_recording
     from relloc.config import TeamConfig
     from relloc.methods import parse_methods
-    from relloc.recording import RunOptions, run_recording
 
     config = TeamConfig.load(args.config)
-    opts = RunOptions(
-        methods=tuple(parse_methods(args.methods)),
-        seed=args.seed,
-        warmup=args.warmup,
-        particles=args.particles,
-        models=Path(args.models) if args.models else None,
-        out=Path(args.out) if args.out else None,
-        json_path=Path(args.json) if args.json else None,
-        progress=not args.no_progress,
-        heading=args.heading,
-        bias=args.bias,
-        odom_scale=args.odom_scale,
-        reference=args.reference,
-    )
+    opts = options_from_args(RunOptions, args, methods=tuple(parse_methods(args.methods)))
     run_recording(Path(args.bag), config, opts)
     return 0
 
@@ -72,8 +57,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     import json
 
+    from relloc.cli.recording import calibrate
     from relloc.config import TeamConfig
-    from relloc.recording import calibrate
 
     config = TeamConfig.load(args.config)
     node_map = None
@@ -105,9 +90,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--particles", type=argtypes.count, default=None, help="override the particle count")
     demo.add_argument("--methods", default="pf,multilateration")
     demo.add_argument("--scenarios", default="multi,single,nav")
-    demo.add_argument("--out", default="out/demo", help="folder for plots")
-    demo.add_argument("--json", default=None, metavar="FILE", help="write the figures as JSON")
-    demo.add_argument("--no-progress", action="store_true")
+    demo.add_argument("--out", type=Path, default=Path("out/demo"), help="folder for plots")
+    demo.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE", help="write the figures as JSON")
+    demo.add_argument("--no-progress", dest="progress", action="store_false")
     _add_mode_flags(demo)
     demo.set_defaults(handler=_cmd_demo)
 
@@ -118,10 +103,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--seed", type=argtypes.seed, default=0)
     run.add_argument("--warmup", type=float, default=5.0, help="seconds excluded from APE")
     run.add_argument("--particles", type=argtypes.count, default=None)
-    run.add_argument("--models", default=None, help="trained range-error models (for pf_ul)")
-    run.add_argument("--out", default=None, help="folder for plots and TUM trajectories")
-    run.add_argument("--json", default=None, metavar="FILE")
-    run.add_argument("--no-progress", action="store_true")
+    run.add_argument("--models", type=Path, default=None, help="trained range-error models (for pf_ul)")
+    run.add_argument("--out", type=Path, default=None, help="folder for plots and TUM trajectories")
+    run.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE")
+    run.add_argument("--no-progress", dest="progress", action="store_false")
     _add_mode_flags(run)
     run.add_argument("--reference", default=None, metavar="ROBOT", help="another reference robot than the config's")
     run.set_defaults(handler=_cmd_run)
@@ -159,9 +144,8 @@ def _add_mode_flags(parser: argparse.ArgumentParser) -> None:
 
 def _register_optional(sub: argparse._SubParsersAction) -> None:
     """Commands that live in their own modules register themselves here."""
-    from relloc import commands
-
-    commands.register_all(sub)
+    for name in _COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -177,22 +161,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # expected user errors become one line
-        if _is_user_error(exc):
+        if is_user_error(exc):
             print(f"relloc {args.command}: error: {exc}", file=sys.stderr)
             return 2
         raise
-
-
-def _is_user_error(exc: Exception) -> bool:
-    from relloc.calibration import CalibrationError
-    from relloc.config import ConfigError
-    from relloc.methods import MethodError
-    from relloc.ranging.manifest import ModelDirError
-    from relloc.sources.rosbag import BagError
-
-    known = (UserError, ConfigError, MethodError, BagError, CalibrationError, ModelDirError, FileNotFoundError)
-    return isinstance(exc, known)
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

@@ -9,21 +9,23 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
-import threading
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from relloc import argtypes
+from relloc.cli import argtypes
+from relloc.cli.common import (
+    UserError,
+    add_zenoh_args,
+    open_command_session,
+    options_from_args,
+    stop_on_signals,
+)
 
 __all__ = ["register"]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``navigate`` and ``sim-robots`` to the ``relloc`` command line."""
-    from relloc.live.session import add_zenoh_args
 
     nav = sub.add_parser(
         "navigate",
@@ -106,7 +108,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     e.add_argument(
         "--no-latency-compensation",
-        action="store_true",
+        dest="latency_compensation",
+        action="store_false",
         help="use the estimate as is, not moved forward by odometry to the control time",
     )
     nav.add_argument(
@@ -160,7 +163,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="S",
         help="a commanded robot stops after S simulated seconds without cmd_vel",
     )
-    sim.add_argument("--no-ground-truth", action="store_true", help="do not publish motion capture")
+    sim.add_argument(
+        "--no-ground-truth", dest="ground_truth", action="store_false", help="do not publish motion capture"
+    )
     sim.add_argument(
         "--wait",
         type=float,
@@ -175,20 +180,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     sim.set_defaults(handler=_cmd_sim_robots)
 
 
-@contextmanager
-def _stop_on_signals() -> Iterator[threading.Event]:
-    """An event set by SIGINT/SIGTERM while the block runs (previous handlers restored)."""
-    stop = threading.Event()
-    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    for sig in previous:
-        signal.signal(sig, lambda *_: stop.set())
-    try:
-        yield stop
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-
-
 def _overrides(args: argparse.Namespace, names: dict[str, str]) -> dict[str, Any]:
     return {
         key: getattr(args, attr) for attr, key in names.items() if getattr(args, attr) is not None
@@ -196,9 +187,7 @@ def _overrides(args: argparse.Namespace, names: dict[str, str]) -> dict[str, Any
 
 
 def _cmd_navigate(args: argparse.Namespace) -> int:
-    from relloc.cli import UserError
     from relloc.config import TeamConfig
-    from relloc.live.session import open_session, zenoh_options_from_args
     from relloc.methods import parse_methods
     from relloc.navigation.controller import ControllerConfig
     from relloc.navigation.live import LiveNavigation, NavigateOptions
@@ -242,25 +231,15 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
         ),
         "options",
     )
-    opts = NavigateOptions(
-        robot=args.robot,
+    opts = options_from_args(
+        NavigateOptions,
+        args,
         path=path,
         controller=controller,
         safety=safety,
-        prefix=args.prefix,
-        estimate_prefix=args.estimate_prefix,
-        clock_rate=args.clock_rate,
-        in_process=args.in_process,
         methods=tuple(parse_methods(args.methods)),
-        seed=args.seed,
-        particles=args.particles,
-        latency_compensation=not args.no_latency_compensation,
-        duration=args.duration,
     )
-    try:
-        session = open_session(zenoh_options_from_args(args))
-    except Exception as exc:
-        raise UserError(f"cannot open a Zenoh session: {exc}") from None
+    session = open_command_session(args)
     try:
         try:
             live = LiveNavigation(config, session, opts)
@@ -273,7 +252,7 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
             f"{source}, odometry on {live.odom_key}, commands on {live.cmd_key}",
             flush=True,
         )
-        with _stop_on_signals() as stop:
+        with stop_on_signals() as stop:
             live.start()
             try:
                 summary = live.run(stop)
@@ -299,11 +278,9 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
 
 
 def _cmd_sim_robots(args: argparse.Namespace) -> int:
-    from relloc.cli import UserError
     from relloc.config import TeamConfig
-    from relloc.live.session import open_session, zenoh_options_from_args
-    from relloc.navigation.live import SimRobots, SimRobotsOptions, save_json, sim_team_config
-    from relloc.sources.simulator import multi_scenario, nav_scenario, single_scenario
+    from relloc.live.sim_robots import SimRobots, SimRobotsOptions, sim_team_config
+    from relloc.simulator import multi_scenario, nav_scenario, single_scenario
 
     robot = args.robot or ("r2" if args.scenario == "nav" else None)
     commanded = (robot,) if robot else ()
@@ -328,17 +305,8 @@ def _cmd_sim_robots(args: argparse.Namespace) -> int:
         if not args.write_config:
             raise UserError("--config-only needs --write-config FILE")
         return 0
-    opts = SimRobotsOptions(
-        rate=args.rate,
-        prefix=args.prefix,
-        cmd_timeout=args.cmd_timeout,
-        ground_truth=not args.no_ground_truth,
-        wait=args.wait,
-    )
-    try:
-        session = open_session(zenoh_options_from_args(args))
-    except Exception as exc:
-        raise UserError(f"cannot open a Zenoh session: {exc}") from None
+    opts = options_from_args(SimRobotsOptions, args)
+    session = open_command_session(args)
     try:
         robots = SimRobots(sim, config, session, opts)
         print(
@@ -347,7 +315,7 @@ def _cmd_sim_robots(args: argparse.Namespace) -> int:
             f"commands on {', '.join(robots.cmd_keys.values()) or 'none'}; x{args.rate:g} real time",
             flush=True,
         )
-        with _stop_on_signals() as stop:
+        with stop_on_signals() as stop:
             robots.start()
             try:
                 summary = robots.run(stop)
@@ -360,5 +328,6 @@ def _cmd_sim_robots(args: argparse.Namespace) -> int:
         f"published, {summary['commands_received']} commands received"
     )
     if args.json:
-        save_json(Path(args.json), summary)
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(summary, indent=1))
     return 0

@@ -21,8 +21,9 @@ from rich.console import Console
 from rich.table import Table
 
 from relloc.engine import Engine
-from relloc.sinks.metrics import (
+from relloc.evaluation.metrics import (
     ApeStats,
+    GroundTruth,
     HeadingPaired,
     Paired,
     after,
@@ -145,12 +146,15 @@ def _num(x: float) -> float | None:
 
 def evaluate(
     engine: Engine,
+    truth: GroundTruth,
     name: str,
     warmup: float,
     robots: list[str] | None = None,
     bias_truth: dict[str, float] | None = None,
 ) -> ScenarioReport:
-    """APE/ATE/convergence of every pipeline of ``engine`` after ``warmup`` seconds.
+    """APE/ATE/convergence of every pipeline of ``engine`` against ``truth`` after ``warmup`` s.
+
+``truth`` is the :class:`GroundTruth` that was the engine's truth sink during the run.
 
     In heading-estimate mode the estimates are in the reference robot's odometry frame: the
     ground truth is turned into it by the reference's motion-capture yaw at its first odometry
@@ -169,12 +173,12 @@ def evaluate(
         if getattr(loc, "heading_estimated", False):
             ref = loc.layout.reference
             first = loc.first_odometry.get(ref)
-            found = None if first is None else odometry_frame_rotation(engine.ground_truth, ref, first)
+            found = None if first is None else odometry_frame_rotation(truth, ref, first)
             if found is not None:
                 rotation, frame_deg = found, math.degrees(found)
                 yaws = getattr(loc, "odometry_yaws", {})
-                heading_pairs = associate_headings(p.estimates, engine.ground_truth, yaws, rotation)
-        paired = associate(p.estimates, engine.ground_truth, names, rotation)
+                heading_pairs = associate_headings(p.estimates, truth, yaws, rotation)
+        paired = associate(p.estimates, truth, names, rotation)
         last = p.estimates[-1] if p.estimates else None
         calibration: dict[str, Any] = {
             "headings": {

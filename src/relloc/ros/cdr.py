@@ -10,8 +10,8 @@ from the bytes with precompiled :mod:`struct` layouts.
 They are a fast path, not a second implementation of CDR: the decoders return ``None`` for
 anything that is not exactly a well-formed message of their type in the plain layout (XCDR1,
 either endianness, no trailing bytes, NUL-terminated UTF-8 strings), and the caller then falls
-back to :func:`relloc.ros_messages.decode`, which decodes it or raises a clear
-:class:`~relloc.ros_messages.MessageDecodeError`. ``tests/test_ros_cdr.py`` checks them against
+back to :func:`relloc.ros.messages.decode`, which decodes it or raises a clear
+:class:`~relloc.ros.messages.MessageDecodeError`. ``tests/test_ros_cdr.py`` checks them against
 ``rosbags`` on random messages and on every kind of malformed payload.
 
 CDR alignment is relative to the end of the 4-byte encapsulation header.
@@ -88,7 +88,7 @@ def _header(raw: bytes) -> tuple[str, float, int] | None:
 def decode_odometry(raw: bytes) -> tuple[float, float, float, float, float, float] | None:
     """``nav_msgs/Odometry`` -> ``(stamp, x, y, yaw, v, w)``, or ``None`` (use the full decoder).
 
-    ``yaw`` is :func:`relloc.ros_messages.yaw_from_quaternion` of the orientation; ``v`` and
+    ``yaw`` is :func:`relloc.ros.messages.yaw_from_quaternion` of the orientation; ``v`` and
     ``w`` are ``twist.linear.x`` and ``twist.angular.z``.
     """
     head = _header(raw)

@@ -9,7 +9,7 @@
 
 ``train`` and ``export`` need the optional extra ``relloc[train]`` (torch); it is imported only
 when they run, so ``eval`` and the rest of relloc work without it. Also runnable on its own as
-``python -m relloc.ranging.cli ...``.
+``python -m relloc.cli.ranging ...``.
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from relloc import argtypes
+from relloc.cli import argtypes
+from relloc.cli.common import options_from_args
 from relloc.ranging.dataset import (
     DEFAULT_NODE_MAP,
     DEFAULT_SPLIT,
@@ -95,24 +96,8 @@ def _train(args: argparse.Namespace) -> int:
         return 2
     console = _stdout()
     try:
-        arch = Architecture(
-            variant=args.variant,
-            hidden=args.hidden,
-            dropout=args.dropout,
-            features=args.features,
-            conv_subseq=args.conv_subseq,
-            conv_kernel=args.conv_kernel,
-        )
-        config = TrainConfig(
-            n_steps=args.n_steps,
-            epochs=args.epochs,
-            patience=args.patience,
-            batch_size=args.batch_size,
-            lr=args.lr,
-            weight_decay=args.weight_decay,
-            seed=args.seed,
-            split=tuple(args.split),  # type: ignore[arg-type]
-        )
+        arch = options_from_args(Architecture, args)
+        config = options_from_args(TrainConfig, args, split=tuple(args.split))
     except ValueError as exc:
         _stderr().print(f"[red]error:[/] {exc}")
         return 2
@@ -366,7 +351,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Stand-alone entry point: ``python -m relloc.ranging.cli ranging train ...``."""
+    """Stand-alone entry point: ``python -m relloc.cli.ranging ranging train ...``."""
     parser = argparse.ArgumentParser(prog="relloc")
     sub = parser.add_subparsers(dest="command", required=True)
     register(sub)

@@ -8,7 +8,7 @@ engine and the simulator that publishes over Zenoh all share it. It has three pa
 * **Type store.** :func:`typestore` is the ``rosbags`` ROS 2 Humble store plus the custom
   detection types of the TIERS robots (``depthai_ros_msgs/msg/SpatialDetectionArray`` and the
   ``vision_msgs`` types it uses, in the Humble-era layout), parsed from the ``.msg`` files
-  shipped in ``relloc/msg``. Bags recorded by these robots do not store the definitions.
+  shipped in ``relloc/ros/msg``. Bags recorded by these robots do not store the definitions.
 * **CDR.** :func:`decode` / :func:`encode` wrap ``deserialize_cdr`` / ``serialize_cdr``. A
   malformed payload raises :class:`MessageDecodeError` (a ``ValueError``) with the type name and
   the reason, never an ``IndexError`` from deep inside the deserialiser: a live engine must be
@@ -47,7 +47,7 @@ from relloc.events import (
     OdometryEvent,
     RangeEvent,
 )
-from relloc.ros_cdr import split_stamp, yaw_from_xyzw
+from relloc.ros.cdr import split_stamp, yaw_from_xyzw
 
 __all__ = [
     "MSG_DIR",
@@ -68,6 +68,7 @@ __all__ = [
     "header_stamp_from_cdr",
     "odometry_msg",
     "odometry_to_event",
+    "pose_stamped_msg",
     "pose_to_ground_truth",
     "pose_with_covariance_msg",
     "quaternion_from_yaw",
@@ -431,3 +432,9 @@ def range_msg(event: RangeEvent, *, frame_id: str = "") -> Any:
         max_range=0.0,
         range=float(event.distance),
     )
+
+
+def pose_stamped_msg(event: GroundTruthEvent, *, frame_id: str = "world") -> Any:
+    """A :class:`GroundTruthEvent` as ``geometry_msgs/PoseStamped`` (what a motion-capture
+    bridge publishes; the inverse of :func:`pose_to_ground_truth`)."""
+    return typestore().types[POSE_STAMPED](header=_header(event.t, frame_id), pose=_pose(event.x, event.y, event.yaw))

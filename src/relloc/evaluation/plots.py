@@ -11,7 +11,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from relloc.sinks.report import ScenarioReport
+from relloc.evaluation.report import ScenarioReport
 
 
 def plot_trajectories(report: ScenarioReport, path: Path, methods: list[str] | None = None) -> Path:

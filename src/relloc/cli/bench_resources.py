@@ -4,7 +4,7 @@ Runs the server as a subprocess (so that its CPU time and peak RSS can be read f
 feeds it over Zenoh on loopback (five simulated robots, the paper's team, and/or the TIERS
 shortbag replayed), and measures the latency from a message's publication to the publication
 of the estimate it triggered (the server's ``--trace`` key carries the trigger's send time).
-The paper's Table II reports the same figures (2.8 % of an i9 core, 69 MB at 400 particles).
+The paper's Table II reports the same quantities; docs/live.md sets ours beside them.
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from relloc import argtypes
+from relloc.cli import argtypes
+from relloc.cli.common import UserError, options_from_args
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
 from relloc.live import (
@@ -277,9 +278,7 @@ def _case_line(c: dict[str, Any]) -> str:
 
 
 def _cmd_bench_resources(args: argparse.Namespace) -> int:
-    from relloc.cli import UserError
-
-    root = Path(__file__).resolve().parents[2]
+    root = Path(__file__).resolve().parents[3]
     bag = Path(args.bag) if args.bag else root.parent / "shared" / "data" / "tiers" / SHORTBAG
     bag_config = (
         Path(args.bag_config)
@@ -298,16 +297,8 @@ def _cmd_bench_resources(args: argparse.Namespace) -> int:
         raise UserError(
             f"--particles must be numbers like 400,4000, got {args.particles!r}"
         ) from None
-    opts = BenchOptions(
-        particles=particles,
-        scenarios=scenarios,
-        sim_duration=args.duration,
-        rate=args.rate,
-        reorder_window=args.reorder_window,
-        seed=args.seed,
-        bag=bag,
-        bag_config=bag_config,
-        json_path=Path(args.json) if args.json else None,
+    opts = options_from_args(
+        BenchOptions, args, particles=particles, scenarios=scenarios, bag=bag, bag_config=bag_config
     )
     bench_resources(opts)
     if opts.json_path:
@@ -328,11 +319,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="sim5,shortbag",
         help="sim5 (5 simulated robots), shortbag (4 robots, TIERS)",
     )
-    res.add_argument("--duration", type=argtypes.positive, default=30.0, help="length of the simulated run (s)")
+    res.add_argument("--duration", dest="sim_duration", type=argtypes.positive, default=30.0, help="length of the simulated run (s)")
     res.add_argument("--rate", type=argtypes.positive, default=1.0)
     res.add_argument("--reorder-window", type=argtypes.non_negative, default=0.0, metavar="S")
     res.add_argument("--seed", type=argtypes.seed, default=0)
-    res.add_argument("--bag", default=None, help=f"default ../shared/data/tiers/{SHORTBAG}")
-    res.add_argument("--bag-config", default=None)
-    res.add_argument("--json", default=None, metavar="FILE")
+    res.add_argument("--bag", type=Path, default=None, help=f"default ../shared/data/tiers/{SHORTBAG}")
+    res.add_argument("--bag-config", type=Path, default=None)
+    res.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE")
     res.set_defaults(handler=_cmd_bench_resources)

@@ -19,13 +19,14 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
+from relloc.cli.progress import run_with_progress
 from relloc.config import TeamConfig
 from relloc.engine import Engine
+from relloc.evaluation.metrics import GroundTruth
+from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories
+from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.methods import DETECTION_METHODS, build_pipeline
-from relloc.progress import run_with_progress
-from relloc.sinks.plots import plot_ape, plot_ape_over_time, plot_trajectories
-from relloc.sinks.report import ScenarioReport, evaluate, make_console, print_table
-from relloc.sources.simulator import Simulation, multi_scenario, single_scenario
+from relloc.simulator import Simulation, multi_scenario, single_scenario
 
 
 @dataclass(frozen=True)
@@ -94,11 +95,12 @@ def run_scenario(name: str, opts: DemoOptions, console: Console) -> ScenarioRepo
             "estimates are in its odometry frame, which a static reference would leave unobservable)"
         )
     pipelines = [build_pipeline(m, config, seed=opts.seed) for m in opts.methods]
-    engine = Engine(pipelines, config.reference)
+    gt = GroundTruth(config.reference)
+    engine = Engine(pipelines, truth_sinks=[gt.add])
     run_with_progress(
         engine, sim.events(), label=name, duration=sim.duration, console=console, enabled=opts.progress
     )
-    return evaluate(engine, name, opts.warmup, bias_truth=bias_truth)
+    return evaluate(engine, gt, name, opts.warmup, bias_truth=bias_truth)
 
 
 def run_nav(opts: DemoOptions, console: Console) -> dict[str, Any]:

@@ -1,6 +1,6 @@
 """Calibration from recordings: UWB range error per transceiver pair, odometry heading offsets.
 
-UWB ranges are biased (0.2-0.5 m on the TIERS DWM1001 nodes) and the bias belongs to the pair
+UWB ranges are biased (by tens of centimetres on the TIERS DWM1001 nodes) and the bias belongs to the pair
 of transceivers, not to the robots that carry them. The range model of the filter is
 ``measured = scale * true + bias + noise`` (:class:`~relloc.config.PairCalibration`); this module
 estimates it from data where the true distance is known:
@@ -14,8 +14,8 @@ estimates it from data where the true distance is known:
   a 70 Hz timer while each pair updates at about 7 Hz, so a row that repeats the previous range
   of its pair is the same measurement again and is dropped.
 
-Both are robust, because the recordings have NLOS spikes (6 % of one pair's ranges are more
-than 0.5 m off): the bias is the **median** error, ``sigma`` the scaled median absolute
+Both are robust, because the recordings have NLOS spikes (ranges far longer than the
+distance, a few per cent of some pairs' ranges; docs/results.md): the bias is the **median** error, ``sigma`` the scaled median absolute
 deviation (1.4826 MAD, the standard deviation for Gaussian data), and the optional scale a
 Huber-weighted linear fit, attempted only when the true distances span enough to tell a scale
 from a bias.
@@ -43,7 +43,7 @@ import numpy as np
 from relloc.config import PairCalibration, TeamConfig
 from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent, pair_key
 from relloc.ranging.dataset import CSV_COLUMNS
-from relloc.ros_messages import stamp_to_sec
+from relloc.ros.messages import stamp_to_sec
 from relloc.sources.rosbag import RosbagSource, recording_name
 
 __all__ = [

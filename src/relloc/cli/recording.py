@@ -19,13 +19,14 @@ from typing import Any
 
 from rich.console import Console
 
+from relloc.cli.progress import run_with_progress
 from relloc.config import PairCalibration, TeamConfig
 from relloc.engine import Engine
+from relloc.evaluation.metrics import GroundTruth
+from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories
+from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.methods import build_pipeline
-from relloc.progress import run_with_progress
-from relloc.sinks.metrics import write_tum
-from relloc.sinks.plots import plot_ape, plot_ape_over_time, plot_trajectories
-from relloc.sinks.report import ScenarioReport, evaluate, make_console, print_table
+from relloc.sinks.tum import write_tum
 from relloc.sources.rosbag import RosbagSource, recording_name
 
 
@@ -60,7 +61,8 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
     source = RosbagSource(bag, config)
     name = recording_name(bag)
     pipelines = [build_pipeline(m, config, seed=opts.seed, models=opts.models) for m in opts.methods]
-    engine = Engine(pipelines, config.reference)
+    gt = GroundTruth(config.reference)
+    engine = Engine(pipelines, truth_sinks=[gt.add])
     run_with_progress(
         engine,
         source,
@@ -71,7 +73,7 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
         start=source.start_time,
     )
     bias_truth = _bag_bias_truth(bag, config) if config.filter.bias_mode == "online" else None
-    report = evaluate(engine, name, opts.warmup, bias_truth=bias_truth)
+    report = evaluate(engine, gt, name, opts.warmup, bias_truth=bias_truth)
     print_table(report, console)
     for warning in source.warnings:
         console.print(f"[yellow]warning:[/] {warning}")
@@ -96,7 +98,7 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
 def _bag_bias_truth(bag: Path, config: TeamConfig) -> dict[str, float] | None:
     """Each node pair's range bias measured against motion capture in ``bag`` itself, to score
     online bias estimates (evaluation only; the filter never sees it). None without mocap."""
-    from relloc import calibration
+    from relloc.evaluation import calibration
 
     try:
         pairs = calibration.pair_biases_from_bag(bag, config)
@@ -129,7 +131,7 @@ def calibrate(
 ) -> tuple[TeamConfig, dict[str, Any]]:
     """A copy of ``config`` with UWB pair calibration (and optionally heading offsets) from
     ``source``: a rosbag2 recording with motion capture, or a CSV of UWB errors."""
-    from relloc import calibration
+    from relloc.evaluation import calibration
 
     summary: dict[str, Any] = {"source": str(source)}
     if source.suffix.lower() == ".csv":

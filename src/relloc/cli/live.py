@@ -4,15 +4,19 @@ from __future__ import annotations
 
 import argparse
 import json
-import signal
 from pathlib import Path
 from typing import Any
 
-from relloc import argtypes
+from relloc.cli import argtypes
+from relloc.cli.common import (
+    add_zenoh_args,
+    open_command_session,
+    options_from_args,
+    stop_on_signals,
+)
 from relloc.config import TeamConfig
 from relloc.live.publish import ReplayOptions, replay_bag
 from relloc.live.server import LiveServer, ServeOptions
-from relloc.live.session import add_zenoh_args, open_cli_session
 
 __all__ = ["register"]
 
@@ -21,40 +25,24 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from relloc.methods import parse_methods
 
     config = TeamConfig.load(args.config)
-    opts = ServeOptions(
-        methods=tuple(parse_methods(args.methods)),
-        seed=args.seed,
-        particles=args.particles,
-        models=Path(args.models) if args.models else None,
-        prefix=args.prefix,
-        out_prefix=args.out_prefix,
-        reorder_window=args.reorder_window,
-        clock_rate=args.clock_rate,
-        status_period=args.status_period,
-        trace=args.trace,
-        subscribe_all=args.subscribe_all,
-    )
-    session = open_cli_session(args)
+    opts = options_from_args(ServeOptions, args, methods=tuple(parse_methods(args.methods)))
+    session = open_command_session(args)
     try:
         server = LiveServer(config, session, opts)
     except Exception:
         session.close()
         raise
-    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    for sig in previous:
-        signal.signal(sig, lambda *_: server.stop())
     try:
-        server.start()
-        print(
-            f"relloc serve: {config.name}, {', '.join(opts.methods)}, "
-            f"{server.config.filter.particles} particles; {len(server.source.keys)} keys in, "
-            f"estimates on {server.sink.key('<robot>', opts.methods[0])}",
-            flush=True,
-        )
-        summary = server.run(args.duration)
+        with stop_on_signals(server.stop):
+            server.start()
+            print(
+                f"relloc serve: {config.name}, {', '.join(opts.methods)}, "
+                f"{server.config.filter.particles} particles; {len(server.source.keys)} keys in, "
+                f"estimates on {server.sink.key('<robot>', opts.methods[0])}",
+                flush=True,
+            )
+            summary = server.run(args.duration)
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
         server.close()
         session.close()
     _print_summary(summary)
@@ -79,30 +67,12 @@ def _print_summary(s: dict[str, Any]) -> None:
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     config = TeamConfig.load(args.config)
-    opts = ReplayOptions(
-        rate=args.rate,
-        prefix=args.prefix,
-        team_only=args.team_only,
-        ground_truth=args.ground_truth,
-        wait=args.wait,
-        start=args.start,
-        duration=args.duration,
-    )
-    session = open_cli_session(args)
-    stopping = False
-
-    def request_stop(*_: Any) -> None:
-        nonlocal stopping
-        stopping = True
-
-    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-    for sig in previous:
-        signal.signal(sig, request_stop)
+    opts = options_from_args(ReplayOptions, args)
+    session = open_command_session(args)
     try:
-        stats = replay_bag(Path(args.bag), config, session, opts, stop=lambda: stopping)
+        with stop_on_signals() as stop:
+            stats = replay_bag(Path(args.bag), config, session, opts, stop=stop.is_set)
     finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
         session.close()
     d = stats.as_dict()
     print(
@@ -129,7 +99,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.add_argument(
         "--particles", type=argtypes.count, default=None, help="override the config's particle count"
     )
-    serve.add_argument("--models", default=None, help="trained range-error models (for pf_ul)")
+    serve.add_argument("--models", type=Path, default=None, help="trained range-error models (for pf_ul)")
     serve.add_argument(
         "--out-prefix", default="relloc", help="key prefix of the estimates and status"
     )

@@ -1,4 +1,4 @@
-"""Evaluation against motion capture: APE, ATE, convergence time, TUM export.
+"""Evaluation against motion capture: APE, ATE, convergence time.
 
 Definitions follow evo (MichaelGrupp/evo), applied to *relative* positions:
 
@@ -23,7 +23,6 @@ import bisect
 import math
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
@@ -238,15 +237,6 @@ def after(p: Paired, t_start: float) -> Paired:
     """The part of ``p`` at or after ``t_start``."""
     keep = p.t >= t_start
     return Paired(p.t[keep], p.est[keep], p.gt[keep], p.std[keep])
-
-
-def write_tum(path: Path, times: FloatArray, xy: FloatArray) -> None:
-    """A TUM trajectory file (``t x y z qx qy qz qw``) of 2-D positions, for evo."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("w") as fh:
-        fh.write("# timestamp tx ty tz qx qy qz qw\n")
-        for t, (x, y) in zip(times, xy, strict=True):
-            fh.write(f"{t:.6f} {x:.6f} {y:.6f} 0 0 0 0 1\n")
 
 
 # ---------------------------------------------------------------------------- self-calibration

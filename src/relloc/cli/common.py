@@ -1,0 +1,135 @@
+"""What every command shares: user errors, stopping on signals, Zenoh sessions, options.
+
+* :class:`UserError` is a problem with the user's input; :func:`is_user_error` says which
+  exceptions (this one, and the library's own: bad config, bag, method, model directory) the
+  ``relloc`` entry point reports as one line with exit status 2 instead of a traceback.
+* :func:`stop_on_signals` turns SIGINT/SIGTERM into a request to stop (a :class:`threading.Event`,
+  and an optional callback), so a long-running command ends cleanly and prints its figures;
+  the previous handlers come back when the block ends.
+* :func:`add_zenoh_args` and :func:`open_command_session`: every live command (``serve``,
+  ``replay``, ``navigate``, ``sim-robots``) opens its Zenoh session from the same flags.
+* :func:`options_from_args` builds a command's option dataclass from the parsed arguments by
+  field name, so a new option is one ``add_argument`` whose ``dest`` is the field's name.
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import fields
+from pathlib import Path
+from typing import Any, TypeVar
+
+from relloc.live.session import ZenohOptions, open_session
+
+__all__ = [
+    "UserError",
+    "add_zenoh_args",
+    "is_user_error",
+    "open_command_session",
+    "options_from_args",
+    "stop_on_signals",
+    "zenoh_options_from_args",
+]
+
+T = TypeVar("T")
+
+
+class UserError(Exception):
+    """A problem with the user's input, reported as one line without a traceback."""
+
+
+def is_user_error(exc: Exception) -> bool:
+    """Whether ``exc`` is an expected failure (one line, exit 2) rather than a bug."""
+    from relloc.config import ConfigError
+    from relloc.evaluation.calibration import CalibrationError
+    from relloc.methods import MethodError
+    from relloc.ranging.manifest import ModelDirError
+    from relloc.sources.rosbag import BagError
+
+    known = (UserError, ConfigError, MethodError, BagError, CalibrationError, ModelDirError, FileNotFoundError)
+    return isinstance(exc, known)
+
+
+@contextmanager
+def stop_on_signals(on_stop: Callable[[], None] | None = None) -> Iterator[threading.Event]:
+    """An event set by SIGINT/SIGTERM while the block runs (``on_stop`` is called too)."""
+    stop = threading.Event()
+
+    def handler(*_: Any) -> None:
+        stop.set()
+        if on_stop is not None:
+            on_stop()
+
+    previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+    for sig in previous:
+        signal.signal(sig, handler)
+    try:
+        yield stop
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+def options_from_args(cls: type[T], args: argparse.Namespace, **values: Any) -> T:
+    """The dataclass ``cls`` with each field taken from the argument of its name.
+
+    ``values`` give the fields that need more than parsing (a parsed method list, a loaded
+    path); fields with neither keep their default. Arguments of other names are ignored.
+    """
+    given = vars(args)
+    kwargs = {f.name: given[f.name] for f in fields(cls) if f.init and f.name in given}  # type: ignore[arg-type]
+    kwargs.update(values)
+    return cls(**kwargs)
+
+
+def add_zenoh_args(p: argparse.ArgumentParser) -> None:
+    """The Zenoh session options of every live command (``--mode``, ``--connect``, ...)."""
+    g = p.add_argument_group("zenoh")
+    g.add_argument("--mode", choices=("peer", "client"), default="peer")
+    g.add_argument(
+        "--connect",
+        action="append",
+        default=[],
+        metavar="EP",
+        help="e.g. tcp/192.168.1.10:7447 (repeatable)",
+    )
+    g.add_argument(
+        "--listen",
+        action="append",
+        default=[],
+        metavar="EP",
+        help="e.g. tcp/0.0.0.0:7447 (repeatable)",
+    )
+    g.add_argument("--no-multicast", action="store_true", help="disable multicast scouting")
+    g.add_argument(
+        "--zenoh-config",
+        default=None,
+        metavar="FILE",
+        help="a Zenoh JSON5 config (the options above override it)",
+    )
+    g.add_argument(
+        "--prefix", default="", help="key prefix of the robots' topics (the bridge namespace)"
+    )
+
+
+def zenoh_options_from_args(args: argparse.Namespace) -> ZenohOptions:
+    """The :class:`ZenohOptions` of arguments added by :func:`add_zenoh_args`."""
+    return ZenohOptions(
+        mode=args.mode,
+        connect=tuple(args.connect),
+        listen=tuple(args.listen),
+        multicast=not args.no_multicast,
+        config_file=Path(args.zenoh_config) if args.zenoh_config else None,
+    )
+
+
+def open_command_session(args: argparse.Namespace) -> Any:
+    """The session of a command, or a one-line error (e.g. the --listen port is taken)."""
+    try:
+        return open_session(zenoh_options_from_args(args))
+    except Exception as exc:  # zenoh.ZError and config errors
+        raise UserError(f"cannot open a Zenoh session: {exc}") from None

@@ -1,0 +1,210 @@
+"""Simulated robots on Eclipse Zenoh (``relloc sim-robots``): a team that stands in for real ones.
+
+:class:`SimRobots` runs a simulated team (:mod:`relloc.simulator`) in real time (times
+``rate``) and publishes its odometry, UWB ranges and motion capture as the real robots behind
+zenoh-bridge-ros2dds would: the same keys and ROS 2 CDR payloads, encoded by the
+:class:`~relloc.live.publish.EventEncoder` that also publishes recorded and simulated events
+for ``relloc replay`` and the benchmarks. Commanded robots obey ``geometry_msgs/Twist`` on their
+``cmd_vel`` key, and stop when no command has come for ``cmd_timeout`` simulated seconds, as a
+robot base does. With it, ``relloc serve`` and ``relloc navigate`` run the whole live system on
+one machine.
+
+The simulation advances in fixed steps of simulated time, each published no earlier than its
+wall-clock schedule (``step / rate``); commands received during a step apply from the next.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass, replace
+from typing import Any
+
+from relloc.config import TeamConfig
+from relloc.events import GroundTruthEvent
+from relloc.live.publish import EventEncoder, Publishers, cmd_vel_key
+from relloc.ros.messages import TWIST, MessageDecodeError, decode
+
+__all__ = ["SimRobots", "SimRobotsOptions", "sim_team_config"]
+
+log = logging.getLogger(__name__)
+
+
+def sim_team_config(
+    sim: Any, base: TeamConfig | None = None, particles: int | None = None
+) -> TeamConfig:
+    """The team config for a simulated team published over Zenoh.
+
+    The simulator's own config (truthful calibration) with ROS topics: odometry on
+    ``/<robot>/odom``, velocity commands on ``/<robot>/cmd_vel``, motion capture body = robot
+    name. With ``base`` (a user's config for the same robot names) its topics, scopes and filter
+    settings are used instead.
+    """
+    config: TeamConfig = sim.config
+    if base is not None:
+        missing = set(config.robot_names) - set(base.robot_names)
+        if missing or base.reference != config.reference:
+            raise ValueError(
+                f"config {base.name!r} does not describe the simulated team: it needs robots "
+                f"{list(config.robot_names)} with reference {config.reference!r}"
+            )
+        config = replace(
+            config, filter=base.filter, uwb=replace(config.uwb, range_topic=base.uwb.range_topic)
+        )
+    for r in config.robots:
+        own = base.robot(r.name) if base is not None else None
+        config = config.with_robot(
+            r.name,
+            odom_topic=(own.odom_topic if own and own.odom_topic else f"/{r.name}/odom"),
+            cmd_vel_topic=(
+                own.cmd_vel_topic if own and own.cmd_vel_topic else f"/{r.name}/cmd_vel"
+            ),
+            zenoh_scope=own.zenoh_scope if own else "",
+            mocap_body=(own.mocap_body if own and own.mocap_body else r.name),
+        )
+    if particles:
+        config = config.with_filter(particles=particles)
+    return config
+
+
+@dataclass(frozen=True)
+class SimRobotsOptions:
+    """How ``relloc sim-robots`` runs the simulated team."""
+
+    rate: float = 1.0
+    """Simulated seconds per wall second."""
+    step: float = 0.05
+    """Simulation step (s of simulated time): commands are applied and data published per step."""
+    prefix: str = ""
+    cmd_timeout: float = 0.5
+    """A commanded robot stops when no ``cmd_vel`` arrived for this long (simulated s)."""
+    ground_truth: bool = True
+    """Publish the true poses as motion capture (``mocap_topic``) for evaluation."""
+    wait: float = 10.0
+    """Wait up to this long (wall s) for a subscriber of the odometry and range keys."""
+    time_base: float | None = None
+    """Added to every stamp (default: the wall time at the start; stamps look like ROS time)."""
+    duration: float | None = None
+    """Stop after this many simulated seconds (default: the simulation's duration)."""
+
+
+class SimRobots:
+    """A simulated team on Zenoh: publishes its sensors, obeys ``cmd_vel``."""
+
+    def __init__(
+        self, sim: Any, config: TeamConfig, session: Any, options: SimRobotsOptions | None = None
+    ) -> None:
+        self.sim = sim
+        self.config = config
+        self.session = session
+        self.options = opts = options or SimRobotsOptions()
+        if not opts.rate > 0 or not opts.step > 0:
+            raise ValueError("rate and step must be positive")
+        self.encoder = EventEncoder(config, prefix=opts.prefix, ground_truth=opts.ground_truth)
+        self.odom_keys = self.encoder.odom_keys
+        self.range_keys = self.encoder.range_keys
+        self.cmd_keys = {
+            name: cmd_vel_key(config.robot(name), opts.prefix) for name in sim.commanded
+        }
+        self._pubs = Publishers(session)
+        self._subs: list[Any] = []
+        self._lock = threading.Lock()
+        self._commands: dict[str, tuple[float, float, float]] = {}  # robot -> (v, w, sim time)
+        self.t_sim = 0.0
+        self.time_base = 0.0
+        self.published = 0
+        self.commands_received = 0
+        self.max_behind = 0.0
+        self.truth: dict[str, list[tuple[float, float, float, float]]] = {n: [] for n in sim.robots}
+        """True world poses ``(stamp, x, y, yaw)`` published, per robot."""
+
+    def start(self) -> None:
+        """Subscribe to the commanded robots' ``cmd_vel`` keys."""
+        for robot, key in self.cmd_keys.items():
+            self._subs.append(
+                self.session.declare_subscriber(key, lambda s, robot=robot: self._on_cmd(robot, s))
+            )
+
+    def close(self) -> None:
+        for sub in self._subs:
+            try:
+                sub.undeclare()
+            except Exception as exc:
+                log.debug("undeclaring failed: %s", exc)
+        self._subs = []
+        self._pubs.close()
+
+    def _on_cmd(self, robot: str, sample: Any) -> None:
+        try:
+            msg = decode(sample.payload.to_bytes(), TWIST)
+        except MessageDecodeError as exc:
+            log.warning("undecodable cmd_vel for %s: %s", robot, exc)
+            return
+        v, w = float(msg.linear.x), float(msg.angular.z)
+        if not (math.isfinite(v) and math.isfinite(w)):
+            log.warning("non-finite cmd_vel for %s ignored", robot)
+            return
+        with self._lock:
+            self._commands[robot] = (v, w, self.t_sim)
+            self.commands_received += 1
+
+    def run(self, stop: threading.Event | None = None) -> dict[str, Any]:
+        """Simulate and publish until ``stop``, ``duration`` or the end of the simulation."""
+        stop = stop or threading.Event()
+        opts = self.options
+        keys = [*self.odom_keys.values(), *self.range_keys.values()]
+        if self._pubs.wait_matching(keys, opts.wait, stop.is_set):
+            log.warning("no subscriber yet for some of the team's keys, publishing anyway")
+        end = min(self.sim.duration, opts.duration or math.inf)
+        wall0 = time.time()
+        self.time_base = wall0 if opts.time_base is None else opts.time_base
+        k = 0
+        while not stop.is_set():
+            k += 1
+            t = round(k * opts.step, 9)
+            if t > end + 1e-9:
+                break
+            delay = wall0 + t / opts.rate - time.time()
+            if delay > 0:
+                stop.wait(delay)
+                if stop.is_set():
+                    break
+            else:
+                self.max_behind = max(self.max_behind, -delay)
+            self._apply_commands(t - opts.step)
+            with self._lock:
+                self.t_sim = t
+            for ev in self.sim.advance(t):
+                self._publish(ev)
+        return self.summary()
+
+    def _apply_commands(self, t_now: float) -> None:
+        with self._lock:
+            commands = dict(self._commands)
+        for robot in self.sim.commanded:
+            v, w, t_cmd = commands.get(robot, (0.0, 0.0, -math.inf))
+            if t_now - t_cmd > self.options.cmd_timeout:
+                v, w = 0.0, 0.0
+            self.sim.set_command(robot, v, w)
+
+    def _publish(self, ev: Any) -> None:
+        if isinstance(ev, GroundTruthEvent):
+            self.truth[ev.robot].append((ev.t + self.time_base, ev.x, ev.y, ev.yaw))
+        out = self.encoder.encode(ev, self.time_base)
+        if out is not None:
+            self._pubs.put(*out)
+            self.published += 1
+
+    def summary(self) -> dict[str, Any]:
+        """Figures of the run, and the true trajectories (stamps on the published clock)."""
+        return {
+            "simulated_s": round(self.t_sim, 3),
+            "time_base": self.time_base,
+            "messages": self.published,
+            "commands_received": self.commands_received,
+            "max_behind_s": round(self.max_behind, 4),
+            "reference": self.config.reference,
+            "truth": {r: [list(map(float, p)) for p in poses] for r, poses in self.truth.items()},
+        }

@@ -1,0 +1,249 @@
+"""The paper's scenarios as simulations.
+
+:func:`multi_scenario` is the paper's five-robot experiment in the 8 m x 9 m arena (a static
+reference robot and four robots on a triangle, an X, a circle and a rectangle),
+:func:`single_scenario` the two-robot single-range experiment, and :func:`nav_scenario` the
+multi team with one robot driven by velocity commands.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from typing import Literal
+
+from relloc.simulator.error_models import (
+    ActuationModel,
+    DetectionErrorModel,
+    OdometryErrorModel,
+    UwbErrorModel,
+)
+from relloc.simulator.kinematics import (
+    RobotMotion,
+    SimObject,
+    circle_loop,
+    looped_motion,
+    polygon_loop,
+)
+from relloc.simulator.runner import Simulation
+from relloc.simulator.streams import stream
+
+
+def _initial_yaw(seed: int, name: str, heading_offsets: str) -> float | None:
+    if heading_offsets == "start":
+        return None
+    if heading_offsets == "random":
+        return float(stream(seed, "initial-yaw", name).uniform(-math.pi, math.pi))
+    raise ValueError(f"heading_offsets must be 'start' or 'random', got {heading_offsets!r}")
+
+
+def _place_objects(
+    seed: int, nominal: Sequence[SimObject], jitter: float = 0.15
+) -> list[SimObject]:
+    """The nominal objects, each moved by up to ``jitter`` metres (seeded)."""
+    rng = stream(seed, "objects")
+    offsets = rng.uniform(-jitter, jitter, size=(len(nominal), 2))
+    return [
+        SimObject(o.label, o.x + float(dx), o.y + float(dy), o.z)
+        for o, (dx, dy) in zip(nominal, offsets, strict=True)
+    ]
+
+
+TURN_RATE = 0.6
+"""Turn-in-place rate at pattern corners (rad/s)."""
+
+MULTI_OBJECTS: tuple[SimObject, ...] = (
+    SimObject("chair", 2.2, 0.7, 0.45),
+    SimObject("chair", 0.0, 2.4, 0.45),
+    SimObject("bottle", 0.25, -1.6, 0.75),
+    SimObject("backpack", -2.7, 0.2, 0.25),
+    SimObject("suitcase", 1.4, -0.2, 0.35),
+    SimObject("potted plant", -2.5, 3.7, 0.5),
+    SimObject("tv", 3.55, 3.2, 0.8),
+    SimObject("cup", 4.4, -2.0, 0.75),
+)
+"""Nominal objects of the multi scenario (each moved by up to 0.15 m per seed).
+
+Placed (by a small search over layouts, at least 0.45 m from every path) so that pairs of
+robots see a common object at the same time for much of the run (:func:`covisibility`
+measures how much; the figures are in docs/results.md).
+"""
+
+
+def multi_scenario(
+    seed: int = 0,
+    *,
+    duration: float = 60.0,
+    detections: bool = False,
+    heading_offsets: Literal["start", "random"] = "start",
+    uwb: UwbErrorModel | None = None,
+    commanded: Sequence[str] = (),
+    odometry: OdometryErrorModel | None = None,
+    camera: DetectionErrorModel | None = None,
+    actuation: ActuationModel | None = None,
+) -> Simulation:
+    """The paper's five-robot experiment in the 8 m x 9 m arena.
+
+    ``r0`` (node ``n_0``) is static and the reference; ``r1`` drives a triangle, ``r2`` an X
+    (both diagonals of a square joined by two of its sides), ``r3`` a circle and ``r4`` a
+    rectangle, one per quarter of the arena, each 2-2.5 m across at 0.22-0.28 m/s, turning in
+    place at the corners and looping until the end (each from a seeded point of its loop).
+
+    ``heading_offsets="start"``: robots start heading along their pattern (``r0``, at (1.0, -0.6),
+    faces 75 degrees); ``"random"``: every robot starts with a random heading (the moving
+    ones first turn onto their pattern). Either way the odometry frame is the start pose, so
+    the heading offset is the initial yaw, given truthfully in ``config``.
+    Robots named in ``commanded`` start where their pattern would and obey
+    :meth:`Simulation.set_command` instead.
+    """
+    unknown = set(commanded) - {"r0", "r1", "r2", "r3", "r4"}
+    if unknown:
+        raise ValueError(f"unknown commanded robot(s) {sorted(unknown)}; the team is r0..r4")
+    loops = {
+        "r1": (
+            "triangle",
+            polygon_loop([(-3.2, 1.4), (-0.8, 1.4), (-2.0, 3.48)], 0.25, TURN_RATE),
+        ),
+        "r2": (
+            "x",
+            polygon_loop([(1.0, 1.3), (3.0, 3.3), (3.0, 1.3), (1.0, 3.3)], 0.22, TURN_RATE),
+        ),
+        "r3": ("circle", circle_loop(-2.0, -2.4, 1.1, 0.25)),
+        "r4": (
+            "rectangle",
+            polygon_loop([(0.8, -3.3), (3.2, -3.3), (3.2, -1.5), (0.8, -1.5)], 0.28, TURN_RATE),
+        ),
+    }
+    yaw0 = _initial_yaw(seed, "r0", heading_offsets)
+    motions = [
+        RobotMotion(
+            "r0",
+            "n_0",
+            1.0,
+            -0.6,
+            math.radians(75.0) if yaw0 is None else yaw0,
+            commanded="r0" in commanded,
+            pattern="static",
+        )
+    ]
+    for i, (name, (pattern, loop)) in enumerate(loops.items(), start=1):
+        motions.append(
+            looped_motion(
+                name,
+                f"n_{i}",
+                pattern,
+                loop,
+                seed=seed,
+                duration=duration,
+                initial_yaw=_initial_yaw(seed, name, heading_offsets),
+                turn_rate=TURN_RATE,
+                commanded=name in commanded,
+            )
+        )
+    return Simulation(
+        motions,
+        reference="r0",
+        seed=seed,
+        duration=duration,
+        name="sim_multi" if not commanded else "sim_nav",
+        objects=_place_objects(seed, MULTI_OBJECTS),
+        detections=detections,
+        uwb=uwb,
+        odometry=odometry,
+        camera=camera,
+        actuation=actuation,
+    )
+
+
+SINGLE_OBJECTS: tuple[SimObject, ...] = (
+    SimObject("chair", 0.5, 0.0, 0.45),
+    SimObject("bottle", 0.0, 1.6, 0.75),
+    SimObject("backpack", 0.2, -1.7, 0.25),
+    SimObject("suitcase", -3.3, 0.0, 0.35),
+)
+
+
+def single_scenario(
+    seed: int = 0,
+    *,
+    duration: float = 45.0,
+    detections: bool = False,
+    heading_offsets: Literal["start", "random"] = "start",
+    uwb: UwbErrorModel | None = None,
+    commanded: Sequence[str] = (),
+    odometry: OdometryErrorModel | None = None,
+    camera: DetectionErrorModel | None = None,
+    actuation: ActuationModel | None = None,
+) -> Simulation:
+    """The single-range experiment: ``r0`` static (the reference), ``r1`` driving circles.
+
+    ``r1`` drives counter-clockwise circles of 1 m radius at 0.22 m/s (about 10 m in 45 s,
+    like the real recording) about 2.5 m from ``r0``; one UWB pair (``n_0-n_1``) at 10 Hz.
+    """
+    yaw0 = _initial_yaw(seed, "r0", heading_offsets)
+    motions = [
+        RobotMotion(
+            "r0",
+            "n_0",
+            1.5,
+            0.0,
+            math.pi if yaw0 is None else yaw0,
+            commanded="r0" in commanded,
+            pattern="static",
+        ),
+        looped_motion(
+            "r1",
+            "n_1",
+            "circle",
+            circle_loop(-1.0, 0.0, 1.0, 0.22),
+            seed=seed,
+            duration=duration,
+            initial_yaw=_initial_yaw(seed, "r1", heading_offsets),
+            turn_rate=TURN_RATE,
+            commanded="r1" in commanded,
+        ),
+    ]
+    return Simulation(
+        motions,
+        reference="r0",
+        seed=seed,
+        duration=duration,
+        name="sim_single",
+        objects=_place_objects(seed, SINGLE_OBJECTS, jitter=0.1),
+        detections=detections,
+        uwb=uwb,
+        odometry=odometry,
+        camera=camera,
+        actuation=actuation,
+    )
+
+
+def nav_scenario(
+    seed: int = 0,
+    *,
+    robot: str = "r2",
+    duration: float = 60.0,
+    detections: bool = False,
+    heading_offsets: Literal["start", "random"] = "start",
+    uwb: UwbErrorModel | None = None,
+    odometry: OdometryErrorModel | None = None,
+    camera: DetectionErrorModel | None = None,
+    actuation: ActuationModel | None = None,
+) -> Simulation:
+    """The multi team with ``robot`` (default ``r2``) driven by :meth:`Simulation.set_command`.
+
+    For closed-loop navigation on the relative estimate: call :meth:`Simulation.advance` in
+    steps, feed the events to the localizer, and command the robot from its estimate.
+    """
+    return multi_scenario(
+        seed,
+        duration=duration,
+        detections=detections,
+        heading_offsets=heading_offsets,
+        uwb=uwb,
+        commanded=(robot,),
+        odometry=odometry,
+        camera=camera,
+        actuation=actuation,
+    )
+

@@ -1,0 +1,65 @@
+"""The layers of the README hold: no module of ``src/relloc`` imports one of a higher layer.
+
+Every ``import relloc.x`` and ``from relloc.x import ...`` counts, inside functions too (a lazy
+import is still a dependency).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src" / "relloc"
+
+LAYERS: tuple[tuple[str, ...], ...] = (
+    ("events", "config", "estimate", "odometry"),
+    ("filter",),
+    ("localizer", "stages", "ranging", "ros", "simulator"),
+    ("sources",),
+    ("engine", "methods"),
+    ("sinks", "evaluation"),
+    ("live",),
+    ("navigation",),
+    ("cli",),
+)
+"""Bottom first, as in the README: a module may import its own layer and those before it."""
+
+LAYER_OF = {part: i for i, parts in enumerate(LAYERS) for part in parts}
+
+
+def _part(module: str) -> str | None:
+    """The top-level part of ``relloc.<part>...``, or ``None`` for another package."""
+    names = module.split(".")
+    return names[1] if names[0] == "relloc" and len(names) > 1 else None
+
+
+def _imports(path: Path) -> set[str]:
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if node.module == "relloc":
+                out.update(f"relloc.{alias.name}" for alias in node.names)
+            else:
+                out.add(node.module)
+    return out
+
+
+MODULES = sorted(p for p in SRC.rglob("*.py") if p.parent != SRC or p.name != "__init__.py")
+
+
+def test_every_part_of_the_package_has_a_layer() -> None:
+    parts = {(p.relative_to(SRC).parts[0]).removesuffix(".py") for p in MODULES}
+    assert parts == set(LAYER_OF)
+
+
+@pytest.mark.parametrize("path", MODULES, ids=lambda p: str(p.relative_to(SRC)))
+def test_no_import_reaches_a_higher_layer(path: Path) -> None:
+    own = LAYER_OF[path.relative_to(SRC).parts[0].removesuffix(".py")]
+    higher = sorted(
+        m for m in _imports(path) if (part := _part(m)) is not None and part in LAYER_OF and LAYER_OF[part] > own
+    )
+    assert not higher, f"{path.relative_to(SRC)} (layer {own + 1}) imports {higher}"
