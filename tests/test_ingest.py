@@ -334,7 +334,7 @@ def test_stats_record_counts_emitted_kinds_and_has_one_plain_view() -> None:
 def test_bag_csv_rows_are_the_reference(shared_data: Path) -> None:
     """The rows of ``relloc ranging bag-csv`` on the chair recording, recorded when it still
     had its own bag reader (commit 96b88d6): reading through RosbagSource gives the same."""
-    from relloc.ranging.bagcsv import bag_rows, parse_bodies
+    from relloc.evaluation.range_errors import bag_rows, parse_bodies
 
     bodies = parse_bodies("n_7=turtlebot1_cap,n_3=turtlebot3_cap")
     rows = bag_rows(shared_data / "tiers" / "pair_chair_moving_20220923", bodies)
@@ -344,7 +344,7 @@ def test_bag_csv_rows_are_the_reference(shared_data: Path) -> None:
 
 
 def test_bag_csv_errors(tmp_path: Path) -> None:
-    from relloc.ranging.bagcsv import bag_rows
+    from relloc.evaluation.range_errors import bag_rows
     from relloc.ranging.dataset import RangingDataError
 
     with pytest.raises(RangingDataError, match="bag not found"):

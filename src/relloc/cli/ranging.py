@@ -230,7 +230,7 @@ def _export(args: argparse.Namespace) -> int:
 
 # ---------------------------------------------------------------------------- bag-csv
 def _bag_csv(args: argparse.Namespace) -> int:
-    from relloc.ranging.bagcsv import bag_rows, parse_bodies, write_csv
+    from relloc.evaluation.range_errors import bag_rows, parse_bodies, write_csv
 
     try:
         rows = bag_rows(args.bag, parse_bodies(args.bodies), args.mocap_topic)

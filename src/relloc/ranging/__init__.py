@@ -8,7 +8,8 @@ Modules, and what each needs:
 * :mod:`~relloc.ranging.evaluate` (onnxruntime): models against the zero and per-pair bias
   baselines.
 * :mod:`~relloc.ranging.manifest`: the model directory layout and its ``manifest.json``.
-* :mod:`~relloc.ranging.bagcsv` (rosbags): a ranging CSV from a recording with motion capture.
+* :mod:`~relloc.evaluation.range_errors` (outside this package, above the sources): a ranging CSV
+  from a recording with motion capture.
 * :mod:`~relloc.ranging.synthetic`: CSVs with a known orientation-dependent error.
 * :mod:`~relloc.ranging.models`, :mod:`~relloc.ranging.train`, :mod:`~relloc.ranging.export`
   (torch, the optional extra ``relloc[train]``): stacked LSTM, bidirectional LSTM and ConvLSTM,
