@@ -28,6 +28,7 @@ from relloc import argtypes
 from relloc.ranging.dataset import (
     DEFAULT_NODE_MAP,
     DEFAULT_SPLIT,
+    DEFAULT_VAL_BLOCKS,
     RangingDataError,
     format_node_map,
     parse_node_map,
@@ -112,6 +113,9 @@ def _train(args: argparse.Namespace) -> int:
             weight_decay=args.weight_decay,
             seed=args.seed,
             split=tuple(args.split),  # type: ignore[arg-type]
+            val_blocks=args.val_blocks,
+            guard_margin=args.guard_margin,
+            offset=args.offset,
         )
     except ValueError as exc:
         _stderr().print(f"[red]error:[/] {exc}")
@@ -157,6 +161,7 @@ def _train(args: argparse.Namespace) -> int:
         "epochs (best)",
         "val MSE",
         "val MSE bias",
+        "fallback",
         "time s",
     ):
         table.add_column(col, justify="right")
@@ -171,6 +176,7 @@ def _train(args: argparse.Namespace) -> int:
             f"{r.epochs} ({r.best_epoch})",
             f"{r.val_mse:.5f}",
             f"{r.val_mse_bias:.5f}",
+            "yes" if r.fallback else "",
             f"{r.train_time_s:.1f}",
         )
     table.add_row(
@@ -178,6 +184,7 @@ def _train(args: argparse.Namespace) -> int:
         *[""] * 6,
         f"{manifest['mean_val_mse']:.5f}",
         f"{manifest['mean_val_mse_bias']:.5f}",
+        "",
         "",
     )
     console.print(table)
@@ -306,7 +313,28 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--split",
         type=_floats,
         default=DEFAULT_SPLIT,
-        help="chronological train,val,test fractions (default 0.7,0.1,0.2)",
+        help="train,val,test fractions (default 0.7,0.1,0.2); test = the last rows",
+    )
+    train.add_argument(
+        "--val-blocks",
+        type=int,
+        default=DEFAULT_VAL_BLOCKS,
+        help=f"validation blocks spread over the rows before the test part "
+        f"(default {DEFAULT_VAL_BLOCKS})",
+    )
+    train.add_argument(
+        "--guard-margin",
+        type=float,
+        default=0.1,
+        help="fall back to the pair's constant unless the model beats its validation MSE "
+        "by this fraction (default 0.1)",
+    )
+    train.add_argument(
+        "--offset",
+        choices=("manifest", "filter"),
+        default="manifest",
+        help="run time: add the pair's constant (manifest) or leave it to the filter's pair "
+        "bias (filter); default manifest",
     )
     train.add_argument(
         "--node-map", type=_node_map, default=dict(DEFAULT_NODE_MAP), help=node_map_help

@@ -1,7 +1,9 @@
 """Export range-error models to ONNX and check the export against torch (needs ``relloc[train]``).
 
-The graph takes the raw window ``(batch, n_steps, 3)`` (batch dynamic) and returns the error in
-metres ``(batch, 1)``; features and normalisation are inside it. We use PyTorch's TorchScript
+The graph takes the raw window ``(batch, n_steps, 3)`` (batch dynamic) and returns two outputs,
+``residual`` (the predicted error around the pair's constant) and ``sigma`` (the standard
+deviation of what remains), each ``(batch, 1)`` in metres; features and normalisation are inside
+it. We use PyTorch's TorchScript
 -based exporter (``dynamo=False``): it writes ``nn.LSTM`` as one ONNX ``LSTM`` node, which
 onnxruntime runs fast on one core, keeps the batch axis dynamic, and needs no package beyond
 ``onnx``. Every export is verified by running onnxruntime on random windows.
@@ -17,12 +19,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from relloc.ranging.inference import INPUT_NAME, OUTPUT_NAMES
 from relloc.ranging.manifest import read_manifest, write_manifest
 from relloc.ranging.models import Architecture, RangeErrorModel
 
 OPSET = 17
-INPUT_NAME = "window"
-OUTPUT_NAME = "error"
 
 
 def onnx_bytes(model: RangeErrorModel) -> bytes:
@@ -41,8 +42,8 @@ def onnx_bytes(model: RangeErrorModel) -> bytes:
             buf,
             dynamo=False,
             input_names=[INPUT_NAME],
-            output_names=[OUTPUT_NAME],
-            dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
+            output_names=list(OUTPUT_NAMES),
+            dynamic_axes={INPUT_NAME: {0: "batch"}, **{n: {0: "batch"} for n in OUTPUT_NAMES}},
             opset_version=OPSET,
         )
     return buf.getvalue()
@@ -51,7 +52,7 @@ def onnx_bytes(model: RangeErrorModel) -> bytes:
 def verify_onnx(
     model: RangeErrorModel, onnx_model: bytes, windows: np.ndarray | None = None, seed: int = 0
 ) -> float:
-    """Largest absolute difference between torch and onnxruntime outputs (m).
+    """Largest absolute difference between torch and onnxruntime outputs (both outputs, m).
 
     ``windows`` default: 64 random windows with plausible ranges and yaws.
     """
@@ -70,9 +71,9 @@ def verify_onnx(
     windows = np.asarray(windows, dtype=np.float32)
     model.eval()
     with torch.no_grad():
-        expected = model(torch.from_numpy(windows)).numpy()
+        expected = np.concatenate([o.numpy() for o in model(torch.from_numpy(windows))], axis=1)
     session = ort.InferenceSession(onnx_model, providers=["CPUExecutionProvider"])
-    got = session.run(None, {INPUT_NAME: windows})[0]
+    got = np.concatenate(session.run(list(OUTPUT_NAMES), {INPUT_NAME: windows}), axis=1)
     return float(np.max(np.abs(got - expected))) if len(windows) else 0.0
 
 
