@@ -23,7 +23,7 @@ from relloc.ranging.export import (  # noqa: E402
     verify_onnx,
 )
 from relloc.ranging.inference import ModelSet  # noqa: E402
-from relloc.ranging.models import Architecture, RangeErrorModel  # noqa: E402
+from relloc.ranging.models import Architecture, EnsembleModel, RangeErrorModel  # noqa: E402
 from relloc.ranging.synthetic import write_synthetic_csv  # noqa: E402
 from relloc.ranging.train import TrainConfig, split_pair, train_model  # noqa: E402
 
@@ -97,6 +97,29 @@ def test_onnx_matches_torch(variant: str, features: str) -> None:
     assert verify_onnx(model, data, one) <= 1e-5
 
 
+def test_ensemble_sigma_adds_the_members_spread_and_exports(tmp_path: Path) -> None:
+    torch.manual_seed(0)
+    arch = Architecture("stacked", hidden=(4,), dropout=0.0)
+    members = [RangeErrorModel(arch, n_steps=3) for _ in range(3)]
+    ensemble = EnsembleModel(members).eval()
+    window = torch.from_numpy(np.random.default_rng(0).uniform(0, 3, (5, 3, 3)).astype("f4"))
+    with torch.no_grad():
+        mus = torch.stack([m(window)[0] for m in members])
+        sig2 = torch.stack([m(window)[1] ** 2 for m in members]).mean(0)
+        mu, sigma = ensemble(window)
+    assert torch.allclose(mu, mus.mean(0))
+    assert torch.allclose(sigma**2, sig2 + mus.var(0, unbiased=False), rtol=1e-5)
+    assert torch.all(sigma**2 > sig2)  # untrained members disagree
+    from relloc.ranging.export import save_checkpoint
+
+    save_checkpoint(ensemble, tmp_path / "e.pt")
+    again = load_checkpoint(tmp_path / "e.pt")
+    assert isinstance(again, EnsembleModel) and len(again.members) == 3
+    assert export_model(again, tmp_path / "e.onnx") <= 1e-5
+    with pytest.raises(ValueError, match="share"):
+        EnsembleModel([members[0], RangeErrorModel(arch, n_steps=4)])
+
+
 def test_constant_training_feature_is_masked() -> None:
     arch = Architecture("stacked", hidden=(4,), dropout=0.0)
     model = RangeErrorModel(arch, n_steps=3)
@@ -137,7 +160,7 @@ def test_cli_train_eval_export_and_correct(tmp_path: Path) -> None:
     out = tmp_path / "models"
     common = ["--n-steps", "4", "--hidden", "4", "--epochs", "3", "--no-progress"]
     for variant in ("stacked", "convlstm"):
-        extra = ["--conv-subseq", "2"] if variant == "convlstm" else []
+        extra = ["--conv-subseq", "2", "--ensemble", "2"] if variant == "convlstm" else []
         args = ["ranging", "train", str(csv), "--variant", variant, "--out", str(out / variant)]
         assert main([*args, *common, *extra, "--pairs", "n_3-n_7,n_4-n_7"]) == 0
     manifest = json.loads((out / "stacked" / "manifest.json").read_text())
@@ -153,6 +176,8 @@ def test_cli_train_eval_export_and_correct(tmp_path: Path) -> None:
     assert entry["residual_min"] < 0 < entry["residual_max"]
     assert entry["fallback"] == (entry["val_mse"] > 0.9 * entry["val_mse_bias"])
     assert manifest["offset"] == "manifest"
+    conv = json.loads((out / "convlstm" / "manifest.json").read_text())["pairs"]["n_3-n_7"]
+    assert len(conv["member_val_mse"]) == 2 and len(conv["best_epoch"]) == 2
 
     report_file = tmp_path / "eval.json"
     assert (

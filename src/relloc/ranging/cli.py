@@ -114,6 +114,8 @@ def _train(args: argparse.Namespace) -> int:
             seed=args.seed,
             split=tuple(args.split),  # type: ignore[arg-type]
             val_blocks=args.val_blocks,
+            val_gap=args.val_gap,
+            ensemble=args.ensemble,
             guard_margin=args.guard_margin,
             offset=args.offset,
         )
@@ -173,7 +175,7 @@ def _train(args: argparse.Namespace) -> int:
             str(r.n_train),
             str(r.n_val),
             str(r.n_test),
-            f"{r.epochs} ({r.best_epoch})",
+            f"{r.epochs} ({','.join(map(str, r.best_epoch))})",
             f"{r.val_mse:.5f}",
             f"{r.val_mse_bias:.5f}",
             "yes" if r.fallback else "",
@@ -217,6 +219,8 @@ def _eval(args: argparse.Namespace) -> int:
     for p in pairs:
         table.add_column(p, justify="right")
     table.add_column("ms/pred", justify="right")
+    table.add_column("σ z-rms", justify="right")
+    table.add_column("fallback", justify="left")
     for name, m in report["methods"].items():
         timing = m.get("time_per_prediction_s")
         table.add_row(
@@ -225,6 +229,8 @@ def _eval(args: argparse.Namespace) -> int:
             f"{m['pooled_mse']:.5f}",
             *[f"{m['per_pair_mse'][p]:.5f}" for p in pairs],
             f"{timing['median'] * 1e3:.3f}" if timing else "-",
+            f"{m['sigma_z_rms']:.2f}" if "sigma_z_rms" in m else "-",
+            ",".join(m.get("fallback_pairs", [])) or "-",
         )
     _stdout().print(table)
     if report["skipped_pairs"]:
@@ -321,6 +327,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=DEFAULT_VAL_BLOCKS,
         help=f"validation blocks spread over the rows before the test part "
         f"(default {DEFAULT_VAL_BLOCKS})",
+    )
+    train.add_argument(
+        "--ensemble",
+        type=int,
+        default=1,
+        help="models per pair from different seeds; their spread adds to the sigma (default 1)",
+    )
+    train.add_argument(
+        "--val-gap",
+        type=int,
+        default=None,
+        help="rows left out of training around each validation block and before the test "
+        "part (default: --n-steps)",
     )
     train.add_argument(
         "--guard-margin",

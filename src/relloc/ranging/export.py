@@ -21,12 +21,14 @@ import torch
 
 from relloc.ranging.inference import INPUT_NAME, OUTPUT_NAMES
 from relloc.ranging.manifest import read_manifest, write_manifest
-from relloc.ranging.models import Architecture, RangeErrorModel
+from relloc.ranging.models import Architecture, EnsembleModel, RangeErrorModel
+
+Exportable = RangeErrorModel | EnsembleModel
 
 OPSET = 17
 
 
-def onnx_bytes(model: RangeErrorModel) -> bytes:
+def onnx_bytes(model: Exportable) -> bytes:
     """Serialise ``model`` (switched to eval mode) to ONNX."""
     model.eval()
     example = torch.zeros(1, model.n_steps, 3)
@@ -50,7 +52,7 @@ def onnx_bytes(model: RangeErrorModel) -> bytes:
 
 
 def verify_onnx(
-    model: RangeErrorModel, onnx_model: bytes, windows: np.ndarray | None = None, seed: int = 0
+    model: Exportable, onnx_model: bytes, windows: np.ndarray | None = None, seed: int = 0
 ) -> float:
     """Largest absolute difference between torch and onnxruntime outputs (both outputs, m).
 
@@ -77,27 +79,35 @@ def verify_onnx(
     return float(np.max(np.abs(got - expected))) if len(windows) else 0.0
 
 
-def save_checkpoint(model: RangeErrorModel, path: str | Path) -> None:
-    """Torch weights and shape, enough to rebuild and re-export the model."""
+def save_checkpoint(model: Exportable, path: str | Path) -> None:
+    """Torch weights and shape, enough to rebuild and re-export the model (or ensemble)."""
+    members = len(model.members) if isinstance(model, EnsembleModel) else 0
     torch.save(
         {
             "architecture": model.arch.to_dict(),
             "n_steps": model.n_steps,
+            "members": members,
             "state": model.state_dict(),
         },
         path,
     )
 
 
-def load_checkpoint(path: str | Path) -> RangeErrorModel:
-    """Rebuild a model saved by :func:`save_checkpoint`."""
+def load_checkpoint(path: str | Path) -> Exportable:
+    """Rebuild a model saved by :func:`save_checkpoint` (an ensemble if it was one)."""
     data: dict[str, Any] = torch.load(path, map_location="cpu", weights_only=True)
-    model = RangeErrorModel(Architecture.from_dict(data["architecture"]), int(data["n_steps"]))
+    arch, n_steps = Architecture.from_dict(data["architecture"]), int(data["n_steps"])
+    members = int(data.get("members", 0))
+    model: Exportable
+    if members:
+        model = EnsembleModel([RangeErrorModel(arch, n_steps) for _ in range(members)])
+    else:
+        model = RangeErrorModel(arch, n_steps)
     model.load_state_dict(data["state"])
     return model.eval()
 
 
-def export_model(model: RangeErrorModel, path: str | Path, tolerance: float = 1e-5) -> float:
+def export_model(model: Exportable, path: str | Path, tolerance: float = 1e-5) -> float:
     """Write ``model`` as ONNX to ``path`` after checking it; returns the torch/ONNX max diff.
 
     Raises ``RuntimeError`` if onnxruntime disagrees with torch by more than ``tolerance`` m.

@@ -304,6 +304,36 @@ class RangeErrorModel(nn.Module):
         )
 
 
+class EnsembleModel(nn.Module):
+    """Members trained alone from different seeds, in one graph: window -> (residual, sigma).
+
+    ``residual`` is the members' mean; ``sigma^2`` is the mean of their own variances plus the
+    variance of their residuals around that mean (the law of total variance over members), so
+    the sigma grows where the members disagree: on inputs unlike the training data, which is
+    what a new session brings. :attr:`sigma_scale` calibrates it on the validation blocks. One
+    member is a plain model (its spread is zero).
+    """
+
+    def __init__(self, members: list[RangeErrorModel]) -> None:
+        super().__init__()
+        if not members:
+            raise ValueError("an ensemble needs at least one member")
+        self.arch = members[0].arch
+        self.n_steps = members[0].n_steps
+        if any(m.arch != self.arch or m.n_steps != self.n_steps for m in members):
+            raise ValueError("ensemble members must share architecture and n_steps")
+        self.members = nn.ModuleList(members)
+        self.register_buffer("sigma_scale", torch.ones(()))
+
+    def forward(self, window: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        outputs = [m(window) for m in self.members]
+        mus = torch.stack([o[0] for o in outputs])  # (K, B, 1)
+        variances = torch.stack([o[1] ** 2 for o in outputs])
+        mu = mus.mean(dim=0)
+        var = variances.mean(dim=0) + ((mus - mu) ** 2).mean(dim=0)
+        return mu, torch.sqrt(var) * self.sigma_scale
+
+
 def build_model(arch: Architecture, n_steps: int) -> RangeErrorModel:
     """A fresh model (call :meth:`RangeErrorModel.set_normalisation` before training)."""
     return RangeErrorModel(arch, n_steps)

@@ -11,7 +11,7 @@ manifest: the run time adds it back, or leaves the offset to the filter
 
 For each pair of the CSV: drop repeated ranges; keep the last rows as the test part and take
 validation rows in blocks spread over the rest (:func:`relloc.ranging.dataset.block_split`,
-with a gap of ``n_steps`` rows around each); fit the normalisation on the training windows;
+with a gap of ``val_gap`` rows around each); fit the normalisation on the training windows;
 train with AdamW (weight decay), dropout and gradient clipping on the MSE of the normalised
 residual, stopping early when the validation MSE has not improved for ``patience`` epochs (the
 best weights are kept). The uncertainty head learns a standard deviation by the Gaussian
@@ -57,7 +57,13 @@ from relloc.ranging.dataset import (
 from relloc.ranging.export import export_model, save_checkpoint
 from relloc.ranging.inference import OFFSET_MODES
 from relloc.ranging.manifest import write_manifest
-from relloc.ranging.models import Architecture, Normalisation, RangeErrorModel, build_model
+from relloc.ranging.models import (
+    Architecture,
+    EnsembleModel,
+    Normalisation,
+    RangeErrorModel,
+    build_model,
+)
 
 
 @dataclass(frozen=True)
@@ -79,8 +85,13 @@ class TrainConfig:
     """Fractions of the rows: train, validation (in blocks), test (the last rows)."""
     val_blocks: int = DEFAULT_VAL_BLOCKS
     """Validation blocks, spread over the rows before the test part."""
+    val_gap: int | None = None
+    """Rows left out of training on each side of a validation block and before the test part;
+    None: ``n_steps``."""
     guard_margin: float = 0.1
     """A model must beat the constant's validation MSE by this fraction, else it falls back."""
+    ensemble: int = 1
+    """Members per pair, trained from different seeds (spread adds to the sigma)."""
     offset: str = "manifest"
     """Run-time offset: ``manifest`` (add the pair's constant, the range is ``corrected``) or
     ``filter`` (remove only the residual; the filter applies its own pair bias, calibrated or
@@ -91,6 +102,10 @@ class TrainConfig:
             raise ValueError(f"n_steps, epochs, patience and batch_size must be >= 1: {self}")
         if self.val_blocks < 1:
             raise ValueError(f"val_blocks must be >= 1, got {self.val_blocks}")
+        if self.ensemble < 1:
+            raise ValueError(f"ensemble must be >= 1, got {self.ensemble}")
+        if self.val_gap is not None and self.val_gap < 0:
+            raise ValueError(f"val_gap must be >= 0, got {self.val_gap}")
         if not 0.0 <= self.guard_margin < 1.0:
             raise ValueError(f"guard_margin must be in [0, 1), got {self.guard_margin}")
         if self.offset not in OFFSET_MODES:
@@ -109,7 +124,7 @@ class PairReport:
     n_val: int
     n_test: int
     epochs: int
-    best_epoch: int
+    best_epoch: list[int]
     val_mse: float
     val_mse_bias: float
     val_mse_zero: float
@@ -229,6 +244,50 @@ def train_model(
     }
 
 
+def train_ensemble(
+    train: tuple[np.ndarray, np.ndarray],
+    val: tuple[np.ndarray, np.ndarray],
+    arch: Architecture,
+    config: TrainConfig,
+    *,
+    seed: int | None = None,
+    on_epoch: Callable[[int, float], None] | None = None,
+) -> tuple[EnsembleModel, dict[str, Any]]:
+    """``config.ensemble`` members (:func:`train_model`, seeds ``seed + 7919 k``), combined
+    and their sigma calibrated on ``val`` again. ``on_epoch`` counts epochs over all members.
+
+    Returns the ensemble and ``{"epochs", "best_epoch", "val_mse", "sigma_scale",
+    "member_val_mse"}`` (epochs and best epochs summed and listed per member).
+    """
+    seed = config.seed if seed is None else seed
+    members, infos = [], []
+    for k in range(config.ensemble):
+
+        def member_epoch(epoch: int, mse: float, k: int = k) -> None:
+            if on_epoch is not None:
+                on_epoch(k * config.epochs + epoch, mse)
+
+        member, info = train_model(
+            train, val, arch, config, seed=seed + 7919 * k, on_epoch=member_epoch
+        )
+        members.append(member)
+        infos.append(info)
+    ensemble = EnsembleModel(members).eval()
+    xv, yv = _as_tensor(val[0]), _as_tensor(val[1])
+    with torch.no_grad():
+        mu, sigma = ensemble(xv)
+        val_mse = float(torch.mean((mu[:, 0] - yv) ** 2))
+        z2 = float(torch.mean(((yv - mu[:, 0]) / sigma[:, 0]) ** 2))
+        ensemble.sigma_scale.fill_(float(np.sqrt(z2)) if np.isfinite(z2) and z2 > 0 else 1.0)
+    return ensemble, {
+        "epochs": int(sum(i["epochs"] for i in infos)),
+        "best_epoch": [int(i["best_epoch"]) for i in infos],
+        "val_mse": val_mse,
+        "sigma_scale": float(ensemble.sigma_scale),
+        "member_val_mse": [float(i["val_mse"]) for i in infos],
+    }
+
+
 @dataclass(frozen=True)
 class PairData:
     """One pair's repeat-free rows, their split, the constant and the windows per part."""
@@ -245,7 +304,8 @@ class PairData:
 def split_pair(series: PairSeries, config: TrainConfig) -> PairData:
     """Drop repeats, split by blocks of time, de-mean the errors by the pair's constant."""
     clean, dropped = drop_repeats(series)
-    split = block_split(len(clean), config.split, config.val_blocks, gap=config.n_steps)
+    gap = config.n_steps if config.val_gap is None else config.val_gap
+    split = block_split(len(clean), config.split, config.val_blocks, gap=gap)
     train_bias = float(np.mean(clean.error[: split.end_dev])) if split.end_dev else 0.0
     parts: dict[str, np.ndarray | slice] = {
         "train": split.train,
@@ -293,9 +353,9 @@ def train_directory(
 
         def on_epoch(epoch: int, mse: float, key: str = key) -> None:
             if progress is not None:
-                progress(key, epoch, config.epochs, mse)
+                progress(key, epoch, config.epochs * config.ensemble, mse)
 
-        model, info = train_model(
+        model, info = train_ensemble(
             win["train"],
             win["val"],
             arch,
@@ -328,7 +388,7 @@ def train_directory(
         )
         reports.append(report)
         dev_errors.append(data.clean.error[: data.split.end_dev])
-        norm = model.transform
+        norm = model.members[0].transform
         train_resid = win["train"][1]
         entries[key] = {
             "nodes": [data.clean.node_a, data.clean.node_b],
@@ -337,13 +397,14 @@ def train_directory(
             "normalisation": {
                 "feature_mean": [float(v) for v in norm.mean],
                 "feature_scale": [float(v) for v in norm.scale],
-                "target_mean": float(model.target_mean),
-                "target_std": float(model.target_std),
+                "target_mean": float(model.members[0].target_mean),
+                "target_std": float(model.members[0].target_std),
             },
             "residual_min": float(np.min(train_resid)),
             "residual_max": float(np.max(train_resid)),
             "fallback_sigma": float(np.sqrt(val_mse_bias)),
             "sigma_scale": info["sigma_scale"],
+            "member_val_mse": info["member_val_mse"],
             "test_rows": [data.split.end_dev, len(data.clean)],
             "val_blocks": [list(b) for b in data.split.val_blocks],
             "onnx_max_diff": diff,
