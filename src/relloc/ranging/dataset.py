@@ -1,4 +1,4 @@
-"""UWB range-error data: CSV loading and validation, repeat removal, chronological splits, windows.
+"""UWB range-error data: CSV loading and validation, repeat removal, block splits, windows.
 
 NumPy only (no torch): the evaluation and the run-time stage use it too.
 
@@ -271,7 +271,7 @@ def drop_repeats(series: PairSeries) -> tuple[PairSeries, int]:
 
 # ---------------------------------------------------------------------------- splits, windows
 def split_bounds(n: int, fractions: Iterable[float] = DEFAULT_SPLIT) -> tuple[int, int]:
-    """Row indices ``(end_train, end_val)`` of a chronological train/validation/test split."""
+    """Row indices ``(end_train, end_dev)``: the fractions' bounds; rows ``end_dev:`` are the test part."""
     fr = [float(f) for f in fractions]
     if len(fr) != 3 or any(f < 0 for f in fr) or not math.isclose(sum(fr), 1.0, abs_tol=1e-6):
         raise ValueError(f"split must be three non-negative fractions summing to 1, got {fr}")
