@@ -68,7 +68,15 @@ def untrained_dirs(root: Path) -> list[Path]:
             {
                 "variant": variant,
                 "n_steps": 10,
-                "pairs": {"n_3-n_7": {"nodes": ["n_3", "n_7"], "onnx": "n_3-n_7.onnx"}},
+                "pairs": {
+                    "n_3-n_7": {
+                        "nodes": ["n_3", "n_7"],
+                        "onnx": "n_3-n_7.onnx",
+                        "train_bias": 0.3,
+                        "residual_min": -1.0,
+                        "residual_max": 1.0,
+                    }
+                },
             },
         )
         dirs.append(d)
@@ -101,7 +109,7 @@ def bench(models: ModelSet, n: int, seed: int = 0) -> dict[str, dict[str, float]
         ],
         axis=-1,
     ).astype(np.float32)
-    onnx = time_calls(lambda i: model.predict(windows[i % 256 : i % 256 + 1]), n)
+    onnx = time_calls(lambda i: model.predict_raw(windows[i % 256 : i % 256 + 1]), n)
 
     node_a, node_b = model.nodes
     corrector = RangeCorrector(models, max_yaw_age=None, max_gap=None)

@@ -1,8 +1,9 @@
 """Range-error data handling, evaluation and the run-time RangeCorrector, without torch.
 
 The corrector and the evaluation are exercised with a hand-built ONNX model whose prediction is
-known exactly (``0.3 + 0.1 * yaw_a`` of the newest frame), so every corrected distance can be
-checked to the float.
+known exactly (residual ``0.1 * yaw_a`` of the newest frame, sigma ``0.02 + 0.01 |yaw_a|``,
+beside the manifest's pair constant 0.3), so every corrected distance and sigma can be checked
+to the float.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from relloc.events import DetectionEvent, OdometryEvent, RangeEvent
 from relloc.ranging.dataset import (
     DEFAULT_NODE_MAP,
     RangingDataError,
+    block_split,
     drop_repeats,
     load_csv,
     make_windows,
@@ -113,6 +115,43 @@ def test_repeats_dropped_and_windows_chronological(tmp_path: Path) -> None:
         split_bounds(10, (0.5, 0.1, 0.1))
 
 
+def test_block_split_spreads_validation_blocks_with_gaps() -> None:
+    split = block_split(1000, (0.7, 0.1, 0.2), val_blocks=3, gap=10)
+    assert split.end_dev == 800 and split.n == 1000
+    # 100 validation rows: three blocks of 33, centred in thirds of the 800 rows before test.
+    assert split.val_blocks == ((117, 150), (384, 417), (650, 683))
+    assert len(split.val) == 99
+    train = set(split.train.tolist())
+    assert not train & set(split.val.tolist())
+    for start, stop in split.val_blocks:  # gap rows on both sides excluded from training
+        assert not train & set(range(start - 10, stop + 10))
+    assert max(train) == 789 and min(train) == 0  # a gap before the test part too
+    assert len(train) == 800 - 99 - 6 * 10 - 10
+    # Indices as targets: windows only where the history is full.
+    csv_series = load_csv_from_rows(40)
+    w, _, idx = make_windows(csv_series, 5, np.array([0, 3, 4, 10, 39, 40]))
+    assert idx.tolist() == [4, 10, 39] and w.shape == (3, 5, 3)
+    with pytest.raises(ValueError, match="val_blocks"):
+        block_split(100, val_blocks=0)
+
+
+def load_csv_from_rows(n: int):  # type: ignore[no-untyped-def]
+    from relloc.ranging.dataset import PairSeries
+
+    x = np.arange(n, dtype=float)
+    return PairSeries("n_3-n_7", "n_3", "n_7", x, 3 + 0.01 * x, 0 * x, 0 * x, 0.1 + 0 * x)
+
+
+def test_online_offset_starts_at_the_prior_and_moves_to_the_session_mean() -> None:
+    from relloc.ranging.evaluate import online_offset
+
+    values = np.full(200, 0.5)
+    est = online_offset(values, prior=0.3, weight=20.0)
+    assert est[0] == pytest.approx(0.3)  # causal: nothing seen yet
+    assert est[20] == pytest.approx((20 * 0.3 + 20 * 0.5) / 40)
+    assert est[-1] == pytest.approx((20 * 0.3 + 199 * 0.5) / 219)
+
+
 def test_synthetic_error_is_the_documented_function() -> None:
     rows = synthetic_rows(("1", "3"), n_samples=50, noise=0.0, repeat_probability=0.0)
     for _t, _r1, _r2, measured, distance, _yaw1, yaw3, error in rows:
@@ -122,8 +161,9 @@ def test_synthetic_error_is_the_documented_function() -> None:
 
 
 # ---------------------------------------------------------------------------- known ONNX model
-def known_onnx(n_steps: int, scale: float = 0.1, offset: float = 0.3) -> bytes:
-    """ONNX graph: raw window (B, n_steps, 3) -> offset + scale * yaw_a of the newest frame."""
+def known_onnx(n_steps: int, scale: float = 0.1, offset: float = 0.0) -> bytes:
+    """ONNX graph: raw window (B, n_steps, 3) -> residual ``offset + scale * yaw_a`` and sigma
+    ``0.02 + 0.01 * |yaw_a|`` of the newest frame."""
     onnx = pytest.importorskip("onnx")
     from onnx import TensorProto, helper
 
@@ -134,13 +174,20 @@ def known_onnx(n_steps: int, scale: float = 0.1, offset: float = 0.3) -> bytes:
         helper.make_node("Slice", ["window", "starts", "ends", "axes"], ["last"]),
         helper.make_node("Reshape", ["last", "shape"], ["col"]),
         helper.make_node("Mul", ["col", "scale"], ["scaled"]),
-        helper.make_node("Add", ["scaled", "offset"], ["error"]),
+        helper.make_node("Add", ["scaled", "offset"], ["residual"]),
+        helper.make_node("Abs", ["col"], ["abs"]),
+        helper.make_node("Mul", ["abs", "s_scale"], ["s_scaled"]),
+        helper.make_node("Add", ["s_scaled", "s_floor"], ["sigma"]),
+    ]
+    out = [
+        helper.make_tensor_value_info(n, TensorProto.FLOAT, ["batch", 1])
+        for n in ("residual", "sigma")
     ]
     graph = helper.make_graph(
         nodes,
         "known",
         [helper.make_tensor_value_info("window", TensorProto.FLOAT, ["batch", n_steps, 3])],
-        [helper.make_tensor_value_info("error", TensorProto.FLOAT, ["batch", 1])],
+        out,
         [
             const("starts", [n_steps - 1, 1], TensorProto.INT64),
             const("ends", [n_steps, 2], TensorProto.INT64),
@@ -148,6 +195,8 @@ def known_onnx(n_steps: int, scale: float = 0.1, offset: float = 0.3) -> bytes:
             const("shape", [-1, 1], TensorProto.INT64),
             const("scale", [scale], TensorProto.FLOAT),
             const("offset", [offset], TensorProto.FLOAT),
+            const("s_scale", [0.01], TensorProto.FLOAT),
+            const("s_floor", [0.02], TensorProto.FLOAT),
         ],
     )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
@@ -156,7 +205,11 @@ def known_onnx(n_steps: int, scale: float = 0.1, offset: float = 0.3) -> bytes:
 
 
 def known_model_dir(
-    path: Path, n_steps: int = 3, pairs: tuple[str, ...] = ("n_3-n_7",), **entry: object
+    path: Path,
+    n_steps: int = 3,
+    pairs: tuple[str, ...] = ("n_3-n_7",),
+    offset: str = "manifest",
+    **entry: object,
 ) -> Path:
     path.mkdir(parents=True, exist_ok=True)
     data = known_onnx(n_steps)
@@ -166,12 +219,21 @@ def known_model_dir(
         entries[pair] = {
             "nodes": pair.split("-"),
             "onnx": f"{pair}.onnx",
-            "error_min": -1.0,
-            "error_max": 1.0,
+            "residual_min": -1.0,
+            "residual_max": 1.0,
             "train_bias": 0.3,
             **entry,
         }
-    write_manifest(path, {"variant": "stacked", "n_steps": n_steps, "pairs": entries})
+    write_manifest(
+        path,
+        {
+            "variant": "stacked",
+            "n_steps": n_steps,
+            "offset": offset,
+            "constant": 0.3,
+            "pairs": entries,
+        },
+    )
     return path
 
 
@@ -207,10 +269,12 @@ def test_corrector_pass_through_reasons_and_correction(tmp_path: Path) -> None:
     out = c.correct(rng_ev(0.4, 4.05))  # third distinct range: window full
     assert out.corrected is True
     assert out.distance == pytest.approx(4.05 - (0.3 + 0.1 * -0.4), abs=1e-6)
+    assert out.sigma == pytest.approx(0.02 + 0.01 * 0.4, abs=1e-7)  # the model's uncertainty
     assert (out.robot_a, out.node_a, out.t) == ("turtle01", "n_7", 0.4)
     # The same measurement again gets the same correction without a new frame.
     again = c.correct(rng_ev(0.45, 4.05))
     assert again.corrected and again.distance == pytest.approx(out.distance)
+    assert again.sigma == out.sigma
     assert c.stats["corrected"] == 1 and c.stats["corrected_repeat"] == 1
     # Naming the robots the other way round changes nothing.
     swapped = c.correct(rng_ev(0.5, 4.07, "turtle03", "turtle01", "n_3", "n_7"))
@@ -250,11 +314,65 @@ def test_corrector_gap_resets_window_and_told_yaws(tmp_path: Path) -> None:
 def test_corrector_clips_to_training_errors(tmp_path: Path) -> None:
     from relloc.stages.range_correction import RangeCorrector
 
-    d = known_model_dir(tmp_path / "m", n_steps=1, error_min=0.0, error_max=0.35)
-    c = RangeCorrector.from_dir(d, yaw_provider=lambda robot, t: 3.0)  # predicts 0.6 m
+    d = known_model_dir(tmp_path / "m", n_steps=1, residual_min=-0.3, residual_max=0.05)
+    c = RangeCorrector.from_dir(d, yaw_provider=lambda robot, t: 3.0)  # residual 0.3 m
     out = c.correct(rng_ev(0.0, 4.0))
-    assert out.corrected and out.distance == pytest.approx(4.0 - 0.35)
+    assert out.corrected and out.distance == pytest.approx(4.0 - (0.3 + 0.05))
     assert c.stats["clipped"] == 1
+    c2 = RangeCorrector.from_dir(d, yaw_provider=lambda robot, t: -2.0)  # -0.2: inside
+    assert c2.correct(rng_ev(0.0, 4.0)).distance == pytest.approx(4.0 - (0.3 - 0.2), abs=1e-6)
+    assert c2.stats["clipped"] == 0
+    # Batch inference clips the same way.
+    from relloc.ranging.inference import ModelSet
+
+    model = ModelSet.load(d)["n_3-n_7"]
+    windows = np.array([[[4.0, 3.0, 0.0]], [[4.0, -2.0, 0.0]], [[4.0, -5.0, 0.0]]])
+    assert model.predict(windows) == pytest.approx([0.35, 0.1, 0.0], abs=1e-6)
+
+
+def test_fallback_pair_gets_the_constant_and_its_sigma(tmp_path: Path) -> None:
+    """A pair the training guard marked fallback: the constant alone, from the first range."""
+    from relloc.ranging.evaluate import evaluate
+    from relloc.ranging.inference import ModelSet
+    from relloc.stages.range_correction import RangeCorrector
+
+    d = known_model_dir(
+        tmp_path / "models" / "stacked", n_steps=3, fallback=True, fallback_sigma=0.07
+    )
+    models = ModelSet.load(d)
+    assert models["n_3-n_7"].fallback
+    residual, sigma = models["n_3-n_7"].predict_residual(np.ones((2, 3, 3)))
+    assert residual.tolist() == [0.0, 0.0] and sigma.tolist() == [0.07, 0.07]
+    c = RangeCorrector(models)
+    out = c.correct(rng_ev(0.0, 4.0))  # no heading, no full window: not needed
+    assert out.corrected and out.distance == pytest.approx(3.7) and out.sigma == 0.07
+    assert c.stats["fallback"] == 1 and c.stats["corrected"] == 0
+    # Evaluation honours the guard: the model's MSE is the constant's.
+    report = evaluate(known_csv(tmp_path / "k.csv"), [tmp_path / "models"])
+    m = report["methods"]
+    assert m["stacked"]["fallback_pairs"] == ["n_3-n_7"]
+    assert m["stacked"]["mean_mse"] == pytest.approx(m["bias"]["mean_mse"])
+    # A fallback with no sigma is a malformed directory.
+    bad = known_model_dir(tmp_path / "bad", n_steps=3, fallback=True)
+    with pytest.raises(ModelDirError, match="fallback_sigma"):
+        ModelSet.load(bad)
+
+
+def test_filter_offset_mode_leaves_the_constant_to_the_filter(tmp_path: Path) -> None:
+    """offset = filter: only the learned residual is removed, the range stays uncorrected."""
+    from relloc.stages.range_correction import RangeCorrector
+
+    d = known_model_dir(tmp_path / "m", n_steps=1, offset="filter")
+    c = RangeCorrector.from_dir(d, yaw_provider=lambda robot, t: 0.5)
+    out = c.correct(rng_ev(0.0, 4.0))
+    assert not out.corrected and out.distance == pytest.approx(4.0 - 0.05, abs=1e-6)
+    assert out.sigma == pytest.approx(0.025, abs=1e-7)
+    assert c.stats["corrected"] == 1
+    assert c.correct(out) is out and c.stats["already_corrected"] == 1  # never twice
+    manifest = RangeCorrector.from_dir(d, offset="manifest", yaw_provider=lambda r, t: 0.5)
+    assert manifest.correct(rng_ev(0.0, 4.0)).distance == pytest.approx(4.0 - 0.35, abs=1e-6)
+    with pytest.raises(ValueError, match="offset"):
+        RangeCorrector.from_dir(d, offset="online")
 
 
 def test_corrector_uses_team_heading_offsets(tmp_path: Path) -> None:
@@ -304,8 +422,13 @@ def test_evaluate_scores_models_and_baselines(tmp_path: Path) -> None:
     assert report["part"] == "all"  # not the training CSV
     assert report["pairs"] == ["n_3-n_7"] and report["n_targets"]["n_3-n_7"] == 78
     m = report["methods"]
-    assert set(m) == {"zero", "bias", "stacked"}
+    assert set(m) == {"zero", "bias", "constant", "stacked", "bias+online", "stacked+online"}
     assert m["stacked"]["mean_mse"] < 1e-12
+    assert m["stacked+online"]["mean_mse"] < 1e-12  # the right offset stays put
+    assert m["constant"]["mean_mse"] == pytest.approx(m["bias"]["mean_mse"])  # both 0.3
+    assert m["stacked"]["fallback_pairs"] == []
+    # sigma 0.02 + 0.01 |yaw| against errors of 0: z = 0, all inside two sigmas.
+    assert m["stacked"]["sigma_z_rms"] < 1e-4 and m["stacked"]["sigma_cover_2"] == 1.0
     assert m["bias"]["mean_mse"] == pytest.approx(0.01 * 3.0, rel=0.5)  # var of 0.1 * U(-3, 3)
     assert m["zero"]["mean_mse"] > m["bias"]["mean_mse"]
     assert m["stacked"]["time_per_prediction_s"]["median"] < 0.01
@@ -353,7 +476,11 @@ def test_corrector_passes_the_raw_range_when_the_model_answers_nan_or_inf(tmp_pa
 @pytest.mark.parametrize(
     ("change", "message"),
     [
-        ({"error_min": 1.0, "error_max": -1.0}, "error_min 1.0 must be below error_max -1.0"),
+        (
+            {"residual_min": 1.0, "residual_max": -1.0},
+            "residual_min 1.0 must be below residual_max -1.0",
+        ),
+        ({"offset": "online"}, "offset 'online' is not one of"),
         ({"n_steps": 5}, r"not \(B, 5, 3\)"),
         ({"n_steps": "ten"}, "malformed manifest"),
         ({"pairs": []}, "must map each node pair"),
@@ -370,7 +497,7 @@ def test_a_model_directory_that_cannot_serve_is_one_clear_error(
     manifest = json.loads((d / "manifest.json").read_text())
     if change.pop("garbage", False):
         (d / "n_3-n_7.onnx").write_bytes(b"not a model")
-    for key in ("error_min", "error_max"):
+    for key in ("residual_min", "residual_max"):
         if key in change:
             manifest["pairs"]["n_3-n_7"][key] = change.pop(key)
     manifest.update(change)

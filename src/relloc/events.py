@@ -51,6 +51,14 @@ class RangeEvent:
     corrected: bool = False
     """True once a range-correction stage removed the pair's error (the filter then applies no
     bias of its own)."""
+    sigma: float | None = None
+    """Standard deviation (m) of this range's remaining error after a range-correction stage
+    changed it: of ``distance - true distance`` when ``corrected`` is True, of
+    ``distance - true distance - the pair's bias`` (the bias the filter still applies) when the
+    stage removed only the orientation/motion part and left ``corrected`` False. Set by the
+    stage from its model's uncertainty (or, for a pair whose model fell back to the constant,
+    the constant's validation RMSE); ``None``: no estimate, the filter uses its configured
+    sigma."""
 
     @property
     def node_pair(self) -> str:

@@ -29,6 +29,7 @@ from relloc.cli.common import options_from_args
 from relloc.ranging.dataset import (
     DEFAULT_NODE_MAP,
     DEFAULT_SPLIT,
+    DEFAULT_VAL_BLOCKS,
     RangingDataError,
     format_node_map,
     parse_node_map,
@@ -142,6 +143,7 @@ def _train(args: argparse.Namespace) -> int:
         "epochs (best)",
         "val MSE",
         "val MSE bias",
+        "fallback",
         "time s",
     ):
         table.add_column(col, justify="right")
@@ -153,9 +155,10 @@ def _train(args: argparse.Namespace) -> int:
             str(r.n_train),
             str(r.n_val),
             str(r.n_test),
-            f"{r.epochs} ({r.best_epoch})",
+            f"{r.epochs} ({','.join(map(str, r.best_epoch))})",
             f"{r.val_mse:.5f}",
             f"{r.val_mse_bias:.5f}",
+            "yes" if r.fallback else "",
             f"{r.train_time_s:.1f}",
         )
     table.add_row(
@@ -163,6 +166,7 @@ def _train(args: argparse.Namespace) -> int:
         *[""] * 6,
         f"{manifest['mean_val_mse']:.5f}",
         f"{manifest['mean_val_mse_bias']:.5f}",
+        "",
         "",
     )
     console.print(table)
@@ -195,6 +199,8 @@ def _eval(args: argparse.Namespace) -> int:
     for p in pairs:
         table.add_column(p, justify="right")
     table.add_column("ms/pred", justify="right")
+    table.add_column("σ z-rms", justify="right")
+    table.add_column("fallback", justify="left")
     for name, m in report["methods"].items():
         timing = m.get("time_per_prediction_s")
         table.add_row(
@@ -203,6 +209,8 @@ def _eval(args: argparse.Namespace) -> int:
             f"{m['pooled_mse']:.5f}",
             *[f"{m['per_pair_mse'][p]:.5f}" for p in pairs],
             f"{timing['median'] * 1e3:.3f}" if timing else "-",
+            f"{m['sigma_z_rms']:.2f}" if "sigma_z_rms" in m else "-",
+            ",".join(m.get("fallback_pairs", [])) or "-",
         )
     _stdout().print(table)
     if report["skipped_pairs"]:
@@ -291,7 +299,41 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--split",
         type=_floats,
         default=DEFAULT_SPLIT,
-        help="chronological train,val,test fractions (default 0.7,0.1,0.2)",
+        help="train,val,test fractions (default 0.7,0.1,0.2); test = the last rows",
+    )
+    train.add_argument(
+        "--val-blocks",
+        type=int,
+        default=DEFAULT_VAL_BLOCKS,
+        help=f"validation blocks spread over the rows before the test part "
+        f"(default {DEFAULT_VAL_BLOCKS})",
+    )
+    train.add_argument(
+        "--ensemble",
+        type=int,
+        default=1,
+        help="models per pair from different seeds; their spread adds to the sigma (default 1)",
+    )
+    train.add_argument(
+        "--val-gap",
+        type=int,
+        default=None,
+        help="rows left out of training around each validation block and before the test "
+        "part (default: --n-steps)",
+    )
+    train.add_argument(
+        "--guard-margin",
+        type=float,
+        default=0.1,
+        help="fall back to the pair's constant unless the model beats its validation MSE "
+        "by this fraction (default 0.1)",
+    )
+    train.add_argument(
+        "--offset",
+        choices=("manifest", "filter"),
+        default="manifest",
+        help="run time: add the pair's constant (manifest) or leave it to the filter's pair "
+        "bias (filter); default manifest",
     )
     train.add_argument(
         "--node-map", type=_node_map, default=dict(DEFAULT_NODE_MAP), help=node_map_help

@@ -3,7 +3,7 @@
 Modules, and what each needs:
 
 * :mod:`~relloc.ranging.dataset` (NumPy): ranging CSV loading and validation, repeat removal,
-  chronological splits, windows.
+  splits by blocks of time, windows.
 * :mod:`~relloc.ranging.inference` (onnxruntime): trained model directories at run time.
 * :mod:`~relloc.ranging.evaluate` (onnxruntime): models against the zero and per-pair bias
   baselines.

@@ -1,4 +1,4 @@
-"""UWB range-error data: CSV loading and validation, repeat removal, chronological splits, windows.
+"""UWB range-error data: CSV loading and validation, repeat removal, block splits, windows.
 
 NumPy only (no torch): the evaluation and the run-time stage use it too.
 
@@ -19,9 +19,13 @@ Three things matter for models that generalise beyond the session they were trai
   so about 17 % of a pair's consecutive rows repeat the previous range exactly. A window full of
   copies would tell the model that the range is frozen; :func:`drop_repeats` keeps only rows
   whose range differs from the pair's previous row, and the run-time stage does the same.
-* **Time order.** Splits are chronological per pair (train, then validation, then test), never
-  shuffled across time: neighbouring ranging errors are strongly correlated, so a random split
-  would score a model on near-copies of its training rows.
+* **Time order.** Splits are by blocks of time, never shuffled across time: neighbouring
+  ranging errors are strongly correlated, so a random split would score a model on
+  near-copies of its training rows. The test part is the pair's last rows; the validation rows
+  (early stopping, the fallback guard, the uncertainty's calibration) are a few blocks spread
+  over the rest, far apart in time (:func:`block_split`), each with a gap of excluded rows on
+  both sides, so that model selection rewards what holds minutes later, not what fits the
+  neighbouring seconds.
 """
 
 from __future__ import annotations
@@ -64,7 +68,10 @@ DEFAULT_NODE_MAP: dict[str, str] = {"1": "n_7", "3": "n_3", "4": "n_4", "5": "n_
 """Robot number in the training CSV -> UWB node it carried (see the data README)."""
 
 DEFAULT_SPLIT: tuple[float, float, float] = (0.7, 0.1, 0.2)
-"""Chronological fractions of each pair's (repeat-free) rows: train, validation, test."""
+"""Fractions of each pair's (repeat-free) rows: train, validation (in blocks), test (last)."""
+
+DEFAULT_VAL_BLOCKS = 3
+"""Validation blocks spread over the rows before the test part (see :func:`block_split`)."""
 
 
 class RangingDataError(ValueError):
@@ -264,7 +271,7 @@ def drop_repeats(series: PairSeries) -> tuple[PairSeries, int]:
 
 # ---------------------------------------------------------------------------- splits, windows
 def split_bounds(n: int, fractions: Iterable[float] = DEFAULT_SPLIT) -> tuple[int, int]:
-    """Row indices ``(end_train, end_val)`` of a chronological train/validation/test split."""
+    """Row indices ``(end_train, end_dev)``: the fractions' bounds; rows ``end_dev:`` are the test part."""
     fr = [float(f) for f in fractions]
     if len(fr) != 3 or any(f < 0 for f in fr) or not math.isclose(sum(fr), 1.0, abs_tol=1e-6):
         raise ValueError(f"split must be three non-negative fractions summing to 1, got {fr}")
@@ -273,12 +280,62 @@ def split_bounds(n: int, fractions: Iterable[float] = DEFAULT_SPLIT) -> tuple[in
     return end_train, end_val
 
 
+@dataclass(frozen=True)
+class BlockSplit:
+    """Which rows of a pair's repeat-free series train, validate and test a model."""
+
+    train: np.ndarray
+    """Indices of the training target rows."""
+    val: np.ndarray
+    """Indices of the validation target rows (``val_blocks`` blocks, far apart)."""
+    val_blocks: tuple[tuple[int, int], ...]
+    """``(start, stop)`` of each validation block."""
+    end_dev: int
+    """First test row: rows ``end_dev:`` are the held-out test part."""
+    n: int
+
+
+def block_split(
+    n: int,
+    fractions: Iterable[float] = DEFAULT_SPLIT,
+    val_blocks: int = DEFAULT_VAL_BLOCKS,
+    gap: int = 0,
+) -> BlockSplit:
+    """Test part last; validation in ``val_blocks`` blocks spread over the rows before it.
+
+    The rows before the test part (``0:end_dev``, from :func:`split_bounds`) are cut into
+    ``val_blocks`` equal stretches; the middle of each holds one validation block, so the
+    blocks are as far apart as the data allows and together hold the validation fraction.
+    Training rows are the others, except ``gap`` rows on each side of every block and before
+    the test part: a training target right next to a held-out one is nearly a copy of it.
+    """
+    if val_blocks < 1 or gap < 0:
+        raise ValueError(f"val_blocks must be >= 1 and gap >= 0, got {val_blocks}, {gap}")
+    end_train, end_dev = split_bounds(n, fractions)
+    n_val = end_dev - end_train
+    length = max(1, n_val // val_blocks) if n_val > 0 else 0
+    blocks = []
+    for k in range(val_blocks if length else 0):
+        centre = (2 * k + 1) * end_dev / (2 * val_blocks)
+        start = max(0, min(end_dev - length, round(centre - length / 2)))
+        blocks.append((start, start + length))
+    is_val = np.zeros(n, dtype=bool)
+    excluded = np.zeros(n, dtype=bool)
+    excluded[max(0, end_dev - gap) :] = True
+    for start, stop in blocks:
+        is_val[start:stop] = True
+        excluded[max(0, start - gap) : stop + gap] = True
+    train = np.flatnonzero(~excluded & (np.arange(n) < end_dev))
+    return BlockSplit(train, np.flatnonzero(is_val), tuple(blocks), end_dev, n)
+
+
 def make_windows(
-    series: PairSeries, n_steps: int, targets: slice | None = None
+    series: PairSeries, n_steps: int, targets: slice | np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Sliding windows of the last ``n_steps`` frames and the error at each window's last frame.
 
-    ``targets`` selects which samples to predict (default: all that have a full history); a
+    ``targets`` selects which samples to predict (a slice or an array of indices; default: all
+    that have a full history); a
     window may reach back before ``targets.start`` (its inputs are ranges and yaws only, never
     errors, so nothing of a held-out target leaks). Returns ``(windows (N, n_steps, 3),
     errors (N,), index (N,))`` where ``index`` is each target's position in ``series``.
@@ -286,17 +343,20 @@ def make_windows(
     if n_steps < 1:
         raise ValueError(f"n_steps must be >= 1, got {n_steps}")
     n = len(series)
-    start, stop = 0, n
-    if targets is not None:
-        start, stop, _ = targets.indices(n)
-    start = max(start, n_steps - 1)
-    if stop <= start:
+    if isinstance(targets, np.ndarray):
+        index = np.asarray(targets, dtype=np.int64)
+        index = index[(index >= n_steps - 1) & (index < n)]
+    else:
+        start, stop = 0, n
+        if targets is not None:
+            start, stop, _ = targets.indices(n)
+        index = np.arange(max(start, n_steps - 1), stop)
+    if len(index) == 0:
         return (
             np.zeros((0, n_steps, 3)),
             np.zeros(0),
             np.zeros(0, dtype=np.int64),
         )
     frames = series.frames()
-    index = np.arange(start, stop)
     gather = index[:, None] + np.arange(-n_steps + 1, 1)[None, :]
     return frames[gather], series.error[index], index

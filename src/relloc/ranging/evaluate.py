@@ -5,8 +5,17 @@ predicted by:
 
 * ``zero``: no correction (the raw range); its MSE is the mean squared ranging error;
 * ``bias``: one constant per pair, the mean error of the rows the models were trained on
-  (train + validation part; the research code's approach, done per pair);
-* each model directory (one per variant): its ONNX models on the repeat-free windows.
+  (everything before the test part; the research code's approach, done per pair);
+* ``constant``: one constant for every pair (the mean error over all pairs' training rows);
+* each model directory (one per variant): as deployed, the pair's constant plus the clipped
+  residual of its ONNX model (or the constant alone where the guard made the pair fall back),
+  on the repeat-free windows; with the calibration of its sigma (``sigma_z_rms``, the RMS of
+  error / sigma, 1 when calibrated; ``sigma_cover_2``, the fraction within two sigmas);
+* ``bias+online`` and ``<variant>+online``: the same with the pair's constant replaced by an
+  offset estimated online, causally, from the rows already seen (see :func:`online_offset`).
+  It uses the true errors, so it is what an online bias estimator could reach at best; the
+  difference between ``<variant>+online`` and ``bias+online`` is what the learned
+  orientation/motion part adds once the session's offset is known.
 
 Which rows: if the CSV is the one the models were trained on (same SHA-256), the chronological
 test part recorded in the manifest; otherwise every row with a full window (``part="all"``),
@@ -40,24 +49,41 @@ from relloc.ranging.inference import ModelSet
 from relloc.ranging.manifest import find_model_dirs
 
 PARTS = ("auto", "test", "all")
+BASELINES = ("zero", "bias", "constant")
+
+ONLINE_PRIOR_WEIGHT = 20.0
+"""Weight, in samples, of the training constant in :func:`online_offset` (about 3 s of ranges)."""
+
+
+def online_offset(values: np.ndarray, prior: float, weight: float = ONLINE_PRIOR_WEIGHT) -> np.ndarray:
+    """Causal running estimate of a session offset: before sample ``k``,
+    ``(weight * prior + sum(values[:k])) / (weight + k)``.
+
+    ``values`` are what the offset should explain (the true error minus the learned residual);
+    the training constant is the prior, worth ``weight`` samples, so the estimate starts at the
+    training constant and moves to the session's own mean as the session goes on.
+    """
+    seen = np.concatenate([[0.0], np.cumsum(values)[:-1]])
+    k = np.arange(len(values), dtype=np.float64)
+    return (weight * prior + seen) / (weight + k)
 
 
 def _target_start(model_sets: Sequence[ModelSet], pair: str, clean: PairSeries, part: str) -> int:
     if part == "all":
         return 0
-    starts = {tuple(ms.manifest["pairs"][pair].get("split_rows", ())) for ms in model_sets}
+    starts = {tuple(ms.manifest["pairs"][pair].get("test_rows", ())) for ms in model_sets}
     if len(starts) != 1 or not next(iter(starts)):
         raise RangingDataError(
             f"pair {pair}: the model directories record different (or no) train/test splits; "
             "evaluate with --part all or on models trained together"
         )
-    _end_train, end_val, n_rows = next(iter(starts))
+    end_dev, n_rows = next(iter(starts))
     if n_rows != len(clean):
         raise RangingDataError(
             f"pair {pair}: the manifest split has {n_rows} rows but the CSV gives {len(clean)}; "
             "was it trained with another --node-map? Use --part all to score every row"
         )
-    return int(end_val)
+    return int(end_dev)
 
 
 def evaluate(
@@ -95,7 +121,13 @@ def evaluate(
         )
     n_max = max(ms.n_steps for ms in model_sets)
     names = _method_names(model_sets)
-    per_pair: dict[str, dict[str, float]] = {n: {} for n in ["zero", "bias", *names]}
+    online = [f"{n}+online" for n in ["bias", *names]]
+    per_pair: dict[str, dict[str, float]] = {
+        n: {} for n in ["zero", "bias", "constant", *names, *online]
+    }
+    sigma_z2: dict[str, list[np.ndarray]] = {n: [] for n in names}
+    sigma_all: dict[str, list[np.ndarray]] = {n: [] for n in names}
+    constant = float(first.get("constant", 0.0))
     sq_errors: dict[str, list[np.ndarray]] = {n: [] for n in per_pair}
     n_targets: dict[str, int] = {}
     timing_windows: list[tuple[str, np.ndarray]] = []
@@ -109,11 +141,21 @@ def evaluate(
         _, y, _ = make_windows(clean, n_max, targets)
         n_targets[pair] = len(y)
         bias = float(first["pairs"][pair].get("train_bias", 0.0))
-        results = {"zero": y, "bias": y - bias}
+        results = {
+            "zero": y,
+            "bias": y - bias,
+            "constant": y - constant,
+            "bias+online": y - online_offset(y, bias),
+        }
         for name, ms in zip(names, model_sets, strict=True):
             w, y_m, _ = make_windows(clean, ms.n_steps, targets)
             assert np.array_equal(y_m, y)
-            results[name] = ms[pair].predict(w) - y
+            model = ms[pair]
+            residual, sigma = model.predict_residual(w)
+            results[name] = model.offset + residual - y
+            results[f"{name}+online"] = online_offset(y - residual, model.offset) + residual - y
+            sigma_z2[name].append((results[name] / sigma) ** 2)
+            sigma_all[name].append(sigma)
             timing_windows.append((name, w[: max(1, timing_samples // len(covered))]))
         for name, err in results.items():
             per_pair[name][pair] = float(np.mean(err**2))
@@ -124,7 +166,7 @@ def evaluate(
     methods: dict[str, Any] = {}
     for name in per_pair:
         entry: dict[str, Any] = {
-            "kind": "baseline" if name in ("zero", "bias") else "model",
+            "kind": "model" if name in names else ("baseline" if name in BASELINES else "online"),
             "per_pair_mse": per_pair[name],
             "mean_mse": float(np.mean(list(per_pair[name].values()))),
             "pooled_mse": float(np.mean(np.concatenate(sq_errors[name]))),
@@ -133,9 +175,16 @@ def evaluate(
             entry["bias_per_pair"] = {
                 p: float(first["pairs"][p].get("train_bias", 0.0)) for p in n_targets
             }
+        if name == "constant":
+            entry["constant"] = constant
         if name in timings:
             ms = model_sets[names.index(name)]
+            z2 = np.concatenate(sigma_z2[name])
             entry.update(
+                sigma_z_rms=float(np.sqrt(np.mean(z2))),
+                sigma_cover_2=float(np.mean(z2 <= 4.0)),
+                sigma_median=float(np.median(np.concatenate(sigma_all[name]))),
+                fallback_pairs=sorted(p for p in n_targets if ms[p].fallback),
                 variant=ms.variant,
                 directory=str(ms.directory),
                 n_steps=ms.n_steps,
@@ -161,7 +210,7 @@ def _method_names(model_sets: Sequence[ModelSet]) -> list[str]:
     names = []
     for ms in model_sets:
         name = ms.variant
-        if variants.count(name) > 1 or name in ("zero", "bias"):
+        if variants.count(name) > 1 or name in BASELINES:
             name = f"{ms.variant}:{ms.directory.name}"
         names.append(name)
     return names
@@ -178,11 +227,11 @@ def _time_predictions(
             continue
         model = next(iter(ms.values()))  # every pair's model has the same architecture
         stacked = np.concatenate(samples).astype(np.float32)
-        model.predict(stacked[:1])  # warm-up: first run allocates
+        model.predict_raw(stacked[:1])  # warm-up: first run allocates
         times = []
         for i in range(len(stacked)):
             t0 = time.perf_counter()
-            model.predict(stacked[i : i + 1])
+            model.predict_raw(stacked[i : i + 1])
             times.append(time.perf_counter() - t0)
         out[name] = {
             "median": float(np.median(times)),

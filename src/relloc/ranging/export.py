@@ -1,7 +1,9 @@
 """Export range-error models to ONNX and check the export against torch (needs ``relloc[train]``).
 
-The graph takes the raw window ``(batch, n_steps, 3)`` (batch dynamic) and returns the error in
-metres ``(batch, 1)``; features and normalisation are inside it. We use PyTorch's TorchScript
+The graph takes the raw window ``(batch, n_steps, 3)`` (batch dynamic) and returns two outputs,
+``residual`` (the predicted error around the pair's constant) and ``sigma`` (the standard
+deviation of what remains), each ``(batch, 1)`` in metres; features and normalisation are inside
+it. We use PyTorch's TorchScript
 -based exporter (``dynamo=False``): it writes ``nn.LSTM`` as one ONNX ``LSTM`` node, which
 onnxruntime runs fast on one core, keeps the batch axis dynamic, and needs no package beyond
 ``onnx``. Every export is verified by running onnxruntime on random windows.
@@ -17,15 +19,16 @@ from typing import Any
 import numpy as np
 import torch
 
+from relloc.ranging.inference import INPUT_NAME, OUTPUT_NAMES
 from relloc.ranging.manifest import read_manifest, write_manifest
-from relloc.ranging.models import Architecture, RangeErrorModel
+from relloc.ranging.models import Architecture, EnsembleModel, RangeErrorModel
+
+Exportable = RangeErrorModel | EnsembleModel
 
 OPSET = 17
-INPUT_NAME = "window"
-OUTPUT_NAME = "error"
 
 
-def onnx_bytes(model: RangeErrorModel) -> bytes:
+def onnx_bytes(model: Exportable) -> bytes:
     """Serialise ``model`` (switched to eval mode) to ONNX."""
     model.eval()
     example = torch.zeros(1, model.n_steps, 3)
@@ -41,17 +44,17 @@ def onnx_bytes(model: RangeErrorModel) -> bytes:
             buf,
             dynamo=False,
             input_names=[INPUT_NAME],
-            output_names=[OUTPUT_NAME],
-            dynamic_axes={INPUT_NAME: {0: "batch"}, OUTPUT_NAME: {0: "batch"}},
+            output_names=list(OUTPUT_NAMES),
+            dynamic_axes={INPUT_NAME: {0: "batch"}, **{n: {0: "batch"} for n in OUTPUT_NAMES}},
             opset_version=OPSET,
         )
     return buf.getvalue()
 
 
 def verify_onnx(
-    model: RangeErrorModel, onnx_model: bytes, windows: np.ndarray | None = None, seed: int = 0
+    model: Exportable, onnx_model: bytes, windows: np.ndarray | None = None, seed: int = 0
 ) -> float:
-    """Largest absolute difference between torch and onnxruntime outputs (m).
+    """Largest absolute difference between torch and onnxruntime outputs (both outputs, m).
 
     ``windows`` default: 64 random windows with plausible ranges and yaws.
     """
@@ -70,33 +73,41 @@ def verify_onnx(
     windows = np.asarray(windows, dtype=np.float32)
     model.eval()
     with torch.no_grad():
-        expected = model(torch.from_numpy(windows)).numpy()
+        expected = np.concatenate([o.numpy() for o in model(torch.from_numpy(windows))], axis=1)
     session = ort.InferenceSession(onnx_model, providers=["CPUExecutionProvider"])
-    got = session.run(None, {INPUT_NAME: windows})[0]
+    got = np.concatenate(session.run(list(OUTPUT_NAMES), {INPUT_NAME: windows}), axis=1)
     return float(np.max(np.abs(got - expected))) if len(windows) else 0.0
 
 
-def save_checkpoint(model: RangeErrorModel, path: str | Path) -> None:
-    """Torch weights and shape, enough to rebuild and re-export the model."""
+def save_checkpoint(model: Exportable, path: str | Path) -> None:
+    """Torch weights and shape, enough to rebuild and re-export the model (or ensemble)."""
+    members = len(model.members) if isinstance(model, EnsembleModel) else 0
     torch.save(
         {
             "architecture": model.arch.to_dict(),
             "n_steps": model.n_steps,
+            "members": members,
             "state": model.state_dict(),
         },
         path,
     )
 
 
-def load_checkpoint(path: str | Path) -> RangeErrorModel:
-    """Rebuild a model saved by :func:`save_checkpoint`."""
+def load_checkpoint(path: str | Path) -> Exportable:
+    """Rebuild a model saved by :func:`save_checkpoint` (an ensemble if it was one)."""
     data: dict[str, Any] = torch.load(path, map_location="cpu", weights_only=True)
-    model = RangeErrorModel(Architecture.from_dict(data["architecture"]), int(data["n_steps"]))
+    arch, n_steps = Architecture.from_dict(data["architecture"]), int(data["n_steps"])
+    members = int(data.get("members", 0))
+    model: Exportable
+    if members:
+        model = EnsembleModel([RangeErrorModel(arch, n_steps) for _ in range(members)])
+    else:
+        model = RangeErrorModel(arch, n_steps)
     model.load_state_dict(data["state"])
     return model.eval()
 
 
-def export_model(model: RangeErrorModel, path: str | Path, tolerance: float = 1e-5) -> float:
+def export_model(model: Exportable, path: str | Path, tolerance: float = 1e-5) -> float:
     """Write ``model`` as ONNX to ``path`` after checking it; returns the torch/ONNX max diff.
 
     Raises ``RuntimeError`` if onnxruntime disagrees with torch by more than ``tolerance`` m.

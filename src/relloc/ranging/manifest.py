@@ -4,15 +4,17 @@ Layout (written by ``relloc ranging train``, read by evaluation and the run-time
 
     DIR/
       manifest.json        # this module's schema, below
-      n_3-n_7.onnx         # raw window (B, n_steps, 3) -> error (B, 1), metres
+      n_3-n_7.onnx         # raw window (B, n_steps, 3) -> residual, sigma (B, 1), metres
       n_3-n_7.pt           # torch checkpoint, only for `relloc ranging export` (re-export)
       ...
 
 ``manifest.json``::
 
     {
-      "format": "relloc-ranging/1",
+      "format": "relloc-ranging/2",
       "variant": "stacked", "n_steps": 10,
+      "offset": "manifest",                       # run time: add train_bias, or "filter"
+      "constant": 0.32,                           # mean error over every pair (a baseline)
       "architecture": {"variant": ..., "hidden": [50, 50], "dropout": 0.3, "features": ...},
       "node_map": {"1": "n_7", ...},
       "training": {"csv": ..., "csv_sha256": ..., "split": [0.7, 0.1, 0.2], "seed": 0, ...},
@@ -21,15 +23,22 @@ Layout (written by ``relloc ranging train``, read by evaluation and the run-time
           "nodes": ["n_3", "n_7"], "onnx": "n_3-n_7.onnx", "checkpoint": "n_3-n_7.pt",
           "normalisation": {"feature_mean": [...], "feature_scale": [...],
                             "target_mean": ..., "target_std": ...},
-          "error_min": ..., "error_max": ...,     # training errors (run-time clip)
-          "train_bias": ...,                      # mean error on train+validation rows
+          "train_bias": ...,                      # the pair's constant: mean error of the
+                                                  # rows before the test part (the offset)
+          "residual_min": ..., "residual_max": ..., # training residuals (run-time clip)
+          "fallback": false,                      # guard: true = apply the constant only
+          "fallback_sigma": ...,                  # the constant's validation RMSE
+          "test_rows": [start, stop], "val_blocks": [[start, stop], ...],
           "val_mse": ..., "val_mse_bias": ..., "epochs": ..., "best_epoch": ..., ...
         }, ...
       }
     }
 
-The normalisation is also baked into each ONNX graph (the manifest copy is for people and for
-checks); the frames are ``[range, yaw_a, yaw_b]`` with ``a`` the node that sorts first.
+The model predicts the *residual* around the pair's constant; the predicted error is
+``train_bias + clip(residual, residual_min, residual_max)`` (or ``train_bias`` alone for a
+``fallback`` pair). The normalisation is also baked into each ONNX graph (the manifest copy is
+for people and for checks); the frames are ``[range, yaw_a, yaw_b]`` with ``a`` the node that
+sorts first. Directories of the first format (models of the full error) must be retrained.
 No torch here.
 """
 
@@ -40,7 +49,7 @@ from pathlib import Path
 from typing import Any
 
 MANIFEST_NAME = "manifest.json"
-FORMAT = "relloc-ranging/1"
+FORMAT = "relloc-ranging/2"
 
 
 class ModelDirError(ValueError):
@@ -67,7 +76,10 @@ def read_manifest(path: str | Path) -> dict[str, Any]:
     if not isinstance(data, dict):
         raise ModelDirError(f"{file}: expected a JSON object, got {type(data).__name__}")
     if data.get("format") != FORMAT:
-        raise ModelDirError(f"{file}: format {data.get('format')!r}, expected {FORMAT!r}")
+        raise ModelDirError(
+            f"{file}: format {data.get('format')!r}, expected {FORMAT!r}; retrain with "
+            "`relloc ranging train`"
+        )
     for key in ("variant", "n_steps", "pairs"):
         if key not in data:
             raise ModelDirError(f"{file}: missing key {key!r}")

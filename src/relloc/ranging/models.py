@@ -9,7 +9,16 @@ time cannot apply a different preprocessing than training did:
 1. :class:`FeatureTransform` turns the raw frames into features (see :data:`FEATURE_SETS`),
 2. fixed buffers z-normalise them with statistics of the training windows,
 3. the recurrent core and a dense layer predict a normalised error,
-4. fixed buffers map it back to metres (training mean and standard deviation of the error).
+4. fixed buffers map it back to metres (training mean and standard deviation of the target),
+5. a second dense head, on the same (detached) recurrent features, predicts the standard
+   deviation of the remaining error: a learned, input-dependent uncertainty.
+
+The target is the pair's error *minus the pair's constant* (the residual around the mean error
+of its training rows, see :mod:`relloc.ranging.train`): the constant moves between sessions, the
+orientation- and motion-dependent residual should not, so the run time adds the constant (or
+leaves it to the filter) separately. The uncertainty head is trained by the Gaussian negative
+log-likelihood of the detached residuals (so it cannot bend the error prediction), then scaled
+so that on the validation blocks ``mean((residual / sigma)^2) = 1`` (:attr:`sigma_scale`).
 
 Architectures follow the paper's defaults (two recurrent layers of 50 units, dropout 0.3, one
 dense output) and are configurable through :class:`Architecture`. PyTorch has no ConvLSTM layer;
@@ -214,7 +223,7 @@ class ConvLSTM1d(nn.Module):
 
 
 class RangeErrorModel(nn.Module):
-    """Raw window ``(B, n_steps, 3)`` -> predicted ranging error ``(B, 1)`` in metres."""
+    """Raw window ``(B, n_steps, 3)`` -> predicted residual and its sigma, ``(B, 1)`` each, m."""
 
     def __init__(self, arch: Architecture, n_steps: int) -> None:
         super().__init__()
@@ -228,6 +237,7 @@ class RangeErrorModel(nn.Module):
         self.dropout = nn.Dropout(arch.dropout)
         self.register_buffer("target_mean", torch.zeros(()))
         self.register_buffer("target_std", torch.ones(()))
+        self.register_buffer("sigma_scale", torch.ones(()))
         layers: list[nn.Module] = []
         size = arch.n_features
         if arch.variant in ("stacked", "bilstm"):
@@ -243,6 +253,7 @@ class RangeErrorModel(nn.Module):
             out_size = size * arch.conv_subseq
         self.recurrent = nn.ModuleList(layers)
         self.head = nn.Linear(out_size, 1)
+        self.sigma_head = nn.Linear(out_size, 1)
 
     def set_normalisation(self, norm: Normalisation) -> None:
         """Store training statistics in the model's buffers."""
@@ -254,8 +265,12 @@ class RangeErrorModel(nn.Module):
             self.target_mean.fill_(norm.target_mean)
             self.target_std.fill_(norm.target_std)
 
-    def forward_normalised(self, window: torch.Tensor) -> torch.Tensor:
-        """Predicted error in training units, ``(B, 1)`` (what the loss is computed on)."""
+    def forward_normalised(self, window: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Predicted target and its standard deviation in training units, each ``(B, 1)``.
+
+        The standard deviation comes from the detached recurrent features (``softplus`` plus a
+        floor of 1e-3): its loss trains only :attr:`sigma_head`, never the error prediction.
+        """
         x = self.transform(window)
         if self.arch.variant == "convlstm":
             b, t, f = x.shape
@@ -276,10 +291,47 @@ class RangeErrorModel(nn.Module):
                 last = torch.cat([x[:, -1, :h], x[:, 0, h:]], dim=1)
             else:
                 last = x[:, -1]
-        return self.head(last)
+        sigma = nn.functional.softplus(self.sigma_head(last.detach())) + 1e-3
+        return self.head(last), sigma
 
-    def forward(self, window: torch.Tensor) -> torch.Tensor:
-        return self.forward_normalised(window) * self.target_std + self.target_mean
+    def forward(self, window: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """``(residual, sigma)`` in metres, each ``(B, 1)``: the predicted error around the
+        pair's constant and the standard deviation of what remains after subtracting it."""
+        mu, sigma = self.forward_normalised(window)
+        return (
+            mu * self.target_std + self.target_mean,
+            sigma * self.target_std * self.sigma_scale,
+        )
+
+
+class EnsembleModel(nn.Module):
+    """Members trained alone from different seeds, in one graph: window -> (residual, sigma).
+
+    ``residual`` is the members' mean; ``sigma^2`` is the mean of their own variances plus the
+    variance of their residuals around that mean (the law of total variance over members), so
+    the sigma grows where the members disagree: on inputs unlike the training data, which is
+    what a new session brings. :attr:`sigma_scale` calibrates it on the validation blocks. One
+    member is a plain model (its spread is zero).
+    """
+
+    def __init__(self, members: list[RangeErrorModel]) -> None:
+        super().__init__()
+        if not members:
+            raise ValueError("an ensemble needs at least one member")
+        self.arch = members[0].arch
+        self.n_steps = members[0].n_steps
+        if any(m.arch != self.arch or m.n_steps != self.n_steps for m in members):
+            raise ValueError("ensemble members must share architecture and n_steps")
+        self.members = nn.ModuleList(members)
+        self.register_buffer("sigma_scale", torch.ones(()))
+
+    def forward(self, window: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        outputs = [m(window) for m in self.members]
+        mus = torch.stack([o[0] for o in outputs])  # (K, B, 1)
+        variances = torch.stack([o[1] ** 2 for o in outputs])
+        mu = mus.mean(dim=0)
+        var = variances.mean(dim=0) + ((mus - mu) ** 2).mean(dim=0)
+        return mu, torch.sqrt(var) * self.sigma_scale
 
 
 def build_model(arch: Architecture, n_steps: int) -> RangeErrorModel:

@@ -3,10 +3,12 @@
 For tests and for trying ``relloc ranging`` without the TIERS data: every robot turns at its
 own rate while the pair distances oscillate, and each pair's error is
 
-    error = bias + amplitude * cos(yaw_a - phase) + N(0, noise^2)
+    error = bias + amplitude * cos(yaw_a - phase) + N(0, s^2),
+    s = noise + noise_yaw * (1 + cos(yaw_a)) / 2
 
 with ``yaw_a`` the heading of the robot carrying the pair's first node: a model that sees the
-headings can learn it, a constant cannot. Ranges are quantised to 1 cm like the DWM1001's, and
+headings can learn it, a constant cannot; with ``noise_yaw`` the noise itself depends on the
+heading (an uncertainty a model can learn). Ranges are quantised to 1 cm like the DWM1001's, and
 rows come from a timer faster than the ranging, so rows repeat the previous range (as in the
 real training CSV) and exercise the repeat removal.
 """
@@ -36,6 +38,7 @@ def synthetic_rows(
     amplitude: float = 0.1,
     phase: float = 0.5,
     noise: float = 0.01,
+    noise_yaw: float = 0.0,
     seed: int = 0,
 ) -> list[tuple[float, str, str, float, float, float, float, float]]:
     """Rows ``(timestamp, node1, node2, uwb_range, mocap_range, yaw1, yaw2, error)``.
@@ -61,7 +64,8 @@ def synthetic_rows(
             if (r1, r2) in last and rng.random() < repeat_probability:
                 measured = last[(r1, r2)]  # the timer read the same measurement again
             else:
-                error = bias + amplitude * math.cos(yaws[first] - phase) + rng.normal(0, noise)
+                std = noise + noise_yaw * (1 + math.cos(yaws[first])) / 2
+                error = bias + amplitude * math.cos(yaws[first] - phase) + rng.normal(0, std)
                 measured = round(distance + error, 2)
             last[(r1, r2)] = measured
             rows.append((t, r1, r2, measured, distance, yaws[r1], yaws[r2], measured - distance))

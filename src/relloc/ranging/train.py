@@ -1,15 +1,31 @@
 """Train one range-error model per UWB node pair (needs ``relloc[train]``).
 
-For each pair of the CSV: drop repeated ranges, split the rows chronologically into train /
-validation / test (:data:`relloc.ranging.dataset.DEFAULT_SPLIT`), build windows, fit the
-normalisation on the training windows, and train with Adam on the MSE of the normalised error,
-stopping early when the validation MSE has not improved for ``patience`` epochs (the best
-weights are kept). Mini-batches are shuffled *within* the training part only; nothing crosses
-the chronological split. Training is seeded per pair and single-threaded, so it is
-deterministic and does not depend on which other pairs are trained.
+What is learnt, and what is not. A pair's ranging error is a constant (its bias) plus a part
+that depends on how the antennas are turned and on recent motion. The constant moves between
+sessions (the per-pair biases of one day are worse than one shared constant on another, see
+docs/ranging.md); the orientation- and motion-dependent part should not. So each model learns
+only the **residual around the pair's constant** (``error - train_bias``, with ``train_bias``
+the mean error of the rows before the test part), and the constant is stored beside it in the
+manifest: the run time adds it back, or leaves the offset to the filter
+(``TrainConfig.offset``), and evaluation can estimate it online.
 
-The test rows are not touched here; ``relloc ranging eval`` scores them, against the
-zero-error and constant-bias baselines.
+For each pair of the CSV: drop repeated ranges; keep the last rows as the test part and take
+validation rows in blocks spread over the rest (:func:`relloc.ranging.dataset.block_split`,
+with a gap of ``val_gap`` rows around each); fit the normalisation on the training windows;
+train with AdamW (weight decay), dropout and gradient clipping on the MSE of the normalised
+residual, stopping early when the validation MSE has not improved for ``patience`` epochs (the
+best weights are kept). The uncertainty head learns a standard deviation by the Gaussian
+negative log-likelihood of the detached residuals and is then scaled so that it is calibrated
+on the validation blocks. Mini-batches are shuffled within the training rows only.
+
+**Guard**: a model that does not beat the constant on its validation blocks by at least
+``guard_margin`` (relative MSE) is marked ``fallback`` in the manifest; the run time then
+applies the constant alone, with the constant's validation RMSE as the sigma. Predictions are
+clipped at run time to the residuals seen in training (``residual_min``, ``residual_max``).
+
+Training is seeded per pair and single-threaded, so it is deterministic and does not depend
+on which other pairs are trained. The test rows are not touched here; ``relloc ranging eval``
+scores them.
 """
 
 from __future__ import annotations
@@ -27,8 +43,11 @@ from torch import nn
 from relloc.ranging.dataset import (
     DEFAULT_NODE_MAP,
     DEFAULT_SPLIT,
+    DEFAULT_VAL_BLOCKS,
+    BlockSplit,
     PairSeries,
     RangingDataError,
+    block_split,
     drop_repeats,
     file_sha256,
     load_csv,
@@ -36,8 +55,15 @@ from relloc.ranging.dataset import (
     split_bounds,
 )
 from relloc.ranging.export import export_model, save_checkpoint
+from relloc.ranging.inference import OFFSET_MODES
 from relloc.ranging.manifest import write_manifest
-from relloc.ranging.models import Architecture, Normalisation, RangeErrorModel, build_model
+from relloc.ranging.models import (
+    Architecture,
+    EnsembleModel,
+    Normalisation,
+    RangeErrorModel,
+    build_model,
+)
 
 
 @dataclass(frozen=True)
@@ -56,10 +82,34 @@ class TrainConfig:
     """AdamW decoupled weight decay: a little regularisation for one short session."""
     seed: int = 0
     split: tuple[float, float, float] = DEFAULT_SPLIT
+    """Fractions of the rows: train, validation (in blocks), test (the last rows)."""
+    val_blocks: int = DEFAULT_VAL_BLOCKS
+    """Validation blocks, spread over the rows before the test part."""
+    val_gap: int | None = None
+    """Rows left out of training on each side of a validation block and before the test part;
+    None: ``n_steps``."""
+    guard_margin: float = 0.1
+    """A model must beat the constant's validation MSE by this fraction, else it falls back."""
+    ensemble: int = 1
+    """Members per pair, trained from different seeds (spread adds to the sigma)."""
+    offset: str = "manifest"
+    """Run-time offset: ``manifest`` (add the pair's constant, the range is ``corrected``) or
+    ``filter`` (remove only the residual; the filter applies its own pair bias, calibrated or
+    estimated online)."""
 
     def __post_init__(self) -> None:
         if self.n_steps < 1 or self.epochs < 1 or self.patience < 1 or self.batch_size < 1:
             raise ValueError(f"n_steps, epochs, patience and batch_size must be >= 1: {self}")
+        if self.val_blocks < 1:
+            raise ValueError(f"val_blocks must be >= 1, got {self.val_blocks}")
+        if self.ensemble < 1:
+            raise ValueError(f"ensemble must be >= 1, got {self.ensemble}")
+        if self.val_gap is not None and self.val_gap < 0:
+            raise ValueError(f"val_gap must be >= 0, got {self.val_gap}")
+        if not 0.0 <= self.guard_margin < 1.0:
+            raise ValueError(f"guard_margin must be in [0, 1), got {self.guard_margin}")
+        if self.offset not in OFFSET_MODES:
+            raise ValueError(f"offset must be one of {OFFSET_MODES}, got {self.offset!r}")
         split_bounds(100, self.split)  # validates the fractions
 
 
@@ -74,11 +124,12 @@ class PairReport:
     n_val: int
     n_test: int
     epochs: int
-    best_epoch: int
+    best_epoch: list[int]
     val_mse: float
     val_mse_bias: float
     val_mse_zero: float
     train_bias: float
+    fallback: bool
     train_time_s: float
 
 
@@ -121,10 +172,14 @@ def train_model(
     seed: int | None = None,
     on_epoch: Callable[[int, float], None] | None = None,
 ) -> tuple[RangeErrorModel, dict[str, Any]]:
-    """Train one model on ``(windows, errors)`` with early stopping on ``val``.
+    """Train one model on ``(windows, targets)`` with early stopping on ``val``.
+
+    The loss is the MSE of the normalised target plus the Gaussian negative log-likelihood of
+    the uncertainty head on the detached residuals (it trains that head only). After training
+    the sigma is scaled so that ``mean((residual / sigma)^2) = 1`` on ``val``.
 
     Returns the model with its best weights (eval mode) and ``{"epochs", "best_epoch",
-    "val_mse"}`` (validation MSE in m^2 of the best weights).
+    "val_mse", "sigma_scale"}`` (validation MSE in m^2 of the best weights).
     """
     train_w, train_y = train
     val_w, val_y = val
@@ -144,12 +199,11 @@ def train_model(
     optimiser = torch.optim.AdamW(
         model.parameters(), lr=config.lr, weight_decay=config.weight_decay
     )
-    loss_fn = nn.MSELoss()
 
     def val_mse() -> float:
         model.eval()
         with torch.no_grad():
-            return float(torch.mean((model(xv)[:, 0] - yv) ** 2))
+            return float(torch.mean((model(xv)[0][:, 0] - yv) ** 2))
 
     best = val_mse()
     best_state = {k: v.clone() for k, v in model.state_dict().items()}
@@ -160,7 +214,11 @@ def train_model(
         for start in range(0, len(order), config.batch_size):
             idx = torch.from_numpy(order[start : start + config.batch_size])
             optimiser.zero_grad()
-            loss = loss_fn(model.forward_normalised(x[idx])[:, 0], y[idx])
+            mu, sigma = model.forward_normalised(x[idx])
+            mu, sigma = mu[:, 0], sigma[:, 0]
+            residual = (y[idx] - mu).detach()
+            nll = torch.mean(0.5 * (residual / sigma) ** 2 + torch.log(sigma))
+            loss = torch.mean((mu - y[idx]) ** 2) + nll
             loss.backward()
             nn.utils.clip_grad_norm_(model.parameters(), 1.0)
             optimiser.step()
@@ -174,25 +232,91 @@ def train_model(
             break
     model.load_state_dict(best_state)
     model.eval()
-    return model, {"epochs": epoch, "best_epoch": best_epoch, "val_mse": best}
+    with torch.no_grad():
+        mu, sigma = model(xv)
+        z2 = float(torch.mean(((yv - mu[:, 0]) / sigma[:, 0]) ** 2))
+        model.sigma_scale.fill_(float(np.sqrt(z2)) if np.isfinite(z2) and z2 > 0 else 1.0)
+    return model, {
+        "epochs": epoch,
+        "best_epoch": best_epoch,
+        "val_mse": best,
+        "sigma_scale": float(model.sigma_scale),
+    }
 
 
-def split_pair(
-    series: PairSeries, config: TrainConfig
-) -> tuple[PairSeries, int, dict[str, tuple[np.ndarray, np.ndarray]], tuple[int, int]]:
-    """Repeat-free series, repeats dropped, windows per part and the split row indices."""
+def train_ensemble(
+    train: tuple[np.ndarray, np.ndarray],
+    val: tuple[np.ndarray, np.ndarray],
+    arch: Architecture,
+    config: TrainConfig,
+    *,
+    seed: int | None = None,
+    on_epoch: Callable[[int, float], None] | None = None,
+) -> tuple[EnsembleModel, dict[str, Any]]:
+    """``config.ensemble`` members (:func:`train_model`, seeds ``seed + 7919 k``), combined
+    and their sigma calibrated on ``val`` again. ``on_epoch`` counts epochs over all members.
+
+    Returns the ensemble and ``{"epochs", "best_epoch", "val_mse", "sigma_scale",
+    "member_val_mse"}`` (epochs and best epochs summed and listed per member).
+    """
+    seed = config.seed if seed is None else seed
+    members, infos = [], []
+    for k in range(config.ensemble):
+
+        def member_epoch(epoch: int, mse: float, k: int = k) -> None:
+            if on_epoch is not None:
+                on_epoch(k * config.epochs + epoch, mse)
+
+        member, info = train_model(
+            train, val, arch, config, seed=seed + 7919 * k, on_epoch=member_epoch
+        )
+        members.append(member)
+        infos.append(info)
+    ensemble = EnsembleModel(members).eval()
+    xv, yv = _as_tensor(val[0]), _as_tensor(val[1])
+    with torch.no_grad():
+        mu, sigma = ensemble(xv)
+        val_mse = float(torch.mean((mu[:, 0] - yv) ** 2))
+        z2 = float(torch.mean(((yv - mu[:, 0]) / sigma[:, 0]) ** 2))
+        ensemble.sigma_scale.fill_(float(np.sqrt(z2)) if np.isfinite(z2) and z2 > 0 else 1.0)
+    return ensemble, {
+        "epochs": int(sum(i["epochs"] for i in infos)),
+        "best_epoch": [int(i["best_epoch"]) for i in infos],
+        "val_mse": val_mse,
+        "sigma_scale": float(ensemble.sigma_scale),
+        "member_val_mse": [float(i["val_mse"]) for i in infos],
+    }
+
+
+@dataclass(frozen=True)
+class PairData:
+    """One pair's repeat-free rows, their split, the constant and the windows per part."""
+
+    clean: PairSeries
+    dropped: int
+    split: BlockSplit
+    train_bias: float
+    """Mean error of the rows before the test part: the pair's constant (offset)."""
+    windows: dict[str, tuple[np.ndarray, np.ndarray]]
+    """``train``/``val``/``test`` -> ``(windows, residual targets = error - train_bias)``."""
+
+
+def split_pair(series: PairSeries, config: TrainConfig) -> PairData:
+    """Drop repeats, split by blocks of time, de-mean the errors by the pair's constant."""
     clean, dropped = drop_repeats(series)
-    end_train, end_val = split_bounds(len(clean), config.split)
-    parts = {
-        "train": slice(0, end_train),
-        "val": slice(end_train, end_val),
-        "test": slice(end_val, len(clean)),
+    gap = config.n_steps if config.val_gap is None else config.val_gap
+    split = block_split(len(clean), config.split, config.val_blocks, gap=gap)
+    train_bias = float(np.mean(clean.error[: split.end_dev])) if split.end_dev else 0.0
+    parts: dict[str, np.ndarray | slice] = {
+        "train": split.train,
+        "val": split.val,
+        "test": slice(split.end_dev, len(clean)),
     }
     windows = {}
-    for name, sl in parts.items():
-        w, e, _ = make_windows(clean, config.n_steps, sl)
-        windows[name] = (w, e)
-    return clean, dropped, windows, (end_train, end_val)
+    for name, rows in parts.items():
+        w, e, _ = make_windows(clean, config.n_steps, rows)
+        windows[name] = (w, e - train_bias)
+    return PairData(clean, dropped, split, train_bias, windows)
 
 
 def train_directory(
@@ -221,15 +345,17 @@ def train_directory(
     out.mkdir(parents=True, exist_ok=True)
     reports: list[PairReport] = []
     entries: dict[str, Any] = {}
+    dev_errors: list[np.ndarray] = []
     for key, s in series.items():
         t0 = time.perf_counter()
-        clean, dropped, win, (end_train, end_val) = split_pair(s, config)
+        data = split_pair(s, config)
+        win = data.windows
 
         def on_epoch(epoch: int, mse: float, key: str = key) -> None:
             if progress is not None:
-                progress(key, epoch, config.epochs, mse)
+                progress(key, epoch, config.epochs * config.ensemble, mse)
 
-        model, info = train_model(
+        model, info = train_ensemble(
             win["train"],
             win["val"],
             arch,
@@ -237,48 +363,58 @@ def train_directory(
             seed=_seed_for(config.seed, key),
             on_epoch=on_epoch,
         )
-        train_errors = clean.error[:end_val]  # everything before the test rows
-        bias = float(np.mean(train_errors))
-        val_err = win["val"][1]
+        val_resid = win["val"][1]
+        val_mse_bias = float(np.mean(val_resid**2))
+        # Guard: the model must clearly beat the constant on the validation blocks.
+        fallback = not info["val_mse"] <= (1.0 - config.guard_margin) * val_mse_bias
         onnx_name, ckpt_name = f"{key}.onnx", f"{key}.pt"
         diff = export_model(model, out / onnx_name)
         save_checkpoint(model, out / ckpt_name)
         report = PairReport(
             pair=key,
             n_rows=len(s),
-            repeats_dropped=dropped,
+            repeats_dropped=data.dropped,
             n_train=len(win["train"][1]),
-            n_val=len(val_err),
+            n_val=len(val_resid),
             n_test=len(win["test"][1]),
             epochs=info["epochs"],
             best_epoch=info["best_epoch"],
             val_mse=info["val_mse"],
-            val_mse_bias=float(np.mean((val_err - np.mean(clean.error[:end_train])) ** 2)),
-            val_mse_zero=float(np.mean(val_err**2)),
-            train_bias=bias,
+            val_mse_bias=val_mse_bias,
+            val_mse_zero=float(np.mean((val_resid + data.train_bias) ** 2)),
+            train_bias=data.train_bias,
+            fallback=fallback,
             train_time_s=time.perf_counter() - t0,
         )
         reports.append(report)
-        norm = model.transform
+        dev_errors.append(data.clean.error[: data.split.end_dev])
+        norm = model.members[0].transform
+        train_resid = win["train"][1]
         entries[key] = {
-            "nodes": [clean.node_a, clean.node_b],
+            "nodes": [data.clean.node_a, data.clean.node_b],
             "onnx": onnx_name,
             "checkpoint": ckpt_name,
             "normalisation": {
                 "feature_mean": [float(v) for v in norm.mean],
                 "feature_scale": [float(v) for v in norm.scale],
-                "target_mean": float(model.target_mean),
-                "target_std": float(model.target_std),
+                "target_mean": float(model.members[0].target_mean),
+                "target_std": float(model.members[0].target_std),
             },
-            "error_min": float(np.min(clean.error[:end_train])),
-            "error_max": float(np.max(clean.error[:end_train])),
-            "split_rows": [end_train, end_val, len(clean)],
+            "residual_min": float(np.min(train_resid)),
+            "residual_max": float(np.max(train_resid)),
+            "fallback_sigma": float(np.sqrt(val_mse_bias)),
+            "sigma_scale": info["sigma_scale"],
+            "member_val_mse": info["member_val_mse"],
+            "test_rows": [data.split.end_dev, len(data.clean)],
+            "val_blocks": [list(b) for b in data.split.val_blocks],
             "onnx_max_diff": diff,
             **{k: v for k, v in asdict(report).items() if k != "pair"},
         }
     manifest: dict[str, Any] = {
         "variant": arch.variant,
         "n_steps": config.n_steps,
+        "offset": config.offset,
+        "constant": float(np.mean(np.concatenate(dev_errors))),
         "architecture": arch.to_dict(),
         "node_map": node_map,
         "training": {

@@ -2,8 +2,22 @@
 
 For each UWB node pair with a trained model (``relloc ranging train``), the stage keeps the
 pair's window of the last ``n_steps`` frames ``[range, yaw_a, yaw_b]`` from the live events and
-replaces each range by ``range - predicted error``, marked ``corrected=True`` so the filter
-applies no bias of its own. Inference is onnxruntime only: nothing here imports torch.
+removes the predicted error. The models predict the **residual** around the pair's constant
+(the part that depends on orientation and motion, which should hold on another session); the
+constant itself (the pair's bias, which moves between sessions) is applied by the offset mode
+(the manifest's ``offset``, or the ``offset`` argument):
+
+* ``manifest``: ``range - (constant + residual)``, marked ``corrected=True`` so the filter
+  applies no bias of its own;
+* ``filter``: ``range - residual``, left ``corrected=False``: the filter applies its own pair
+  bias (calibrated in the team config, or estimated online with ``--bias online``), which is
+  how a session-level offset estimated online combines with the learned part.
+
+Every range the stage changes carries ``sigma``, the model's standard deviation of what remains
+(see :class:`relloc.events.RangeEvent`), so the filter can weigh an unsure correction less.
+A pair whose model fell back to the constant (the training guard, ``fallback`` in the manifest)
+gets the constant from its first range on, with the constant's validation RMSE as sigma.
+Inference is onnxruntime only: nothing here imports torch.
 
 Usage by the engine::
 
@@ -32,6 +46,7 @@ A range passes through unchanged (``corrected=False``) when the stage cannot cor
 
 ==================== ==========================================================
 ``corrected``         corrected with a fresh prediction
+``fallback``          the pair's model fell back: corrected by the constant alone
 ``corrected_repeat``  a repeated range, corrected with the window's prediction
 ``window_not_full``   fewer than ``n_steps`` distinct ranges since start or reset
 ``no_model``          no model for this node pair
@@ -39,12 +54,12 @@ A range passes through unchanged (``corrected=False``) when the stage cannot cor
 ``stale_yaw``         the last heading is older than ``max_yaw_age``
 ``invalid_range``     distance not finite or not positive
 ``out_of_order``      older than the pair's previous range
-``already_corrected`` the event was corrected upstream
+``already_corrected`` the event was corrected upstream (``corrected`` or a ``sigma``)
 ==================== ==========================================================
 
 plus two occurrence counters that are not outcomes: ``window_reset`` (a gap longer than
-``max_gap`` emptied the pair's window) and ``clipped`` (a prediction was clipped to the
-training errors' range).
+``max_gap`` emptied the pair's window) and ``clipped`` (a residual was clipped to the
+training residuals' range).
 """
 
 from __future__ import annotations
@@ -60,13 +75,14 @@ import numpy as np
 from relloc.config import TeamConfig
 from relloc.events import Event, OdometryEvent, RangeEvent
 from relloc.odometry import OdometryTrack
-from relloc.ranging.inference import ModelSet, PairModel
+from relloc.ranging.inference import OFFSET_MODES, ModelSet, PairModel
 
 YawProvider = Callable[[str, float], float | None]
 """``(robot, t) -> heading in the shared frame (rad)``, or ``None`` if unknown."""
 
 OUTCOMES: tuple[str, ...] = (
     "corrected",
+    "fallback",
     "corrected_repeat",
     "window_not_full",
     "no_model",
@@ -86,8 +102,9 @@ class _PairState:
     frames: deque[tuple[float, float, float]]
     last_t: float = -math.inf
     last_distance: float = math.nan
-    last_error: float | None = None
-    """Prediction for the current window, reused for repeats; ``None`` until the window is full."""
+    last_error: tuple[float, float] | None = None
+    """``(residual, sigma)`` of the current window, reused for repeats; ``None`` until the
+    window is full."""
 
 
 @dataclass
@@ -111,9 +128,18 @@ class RangeCorrector:
     """Pass a range through if a robot's last heading is older than this (s); None: no limit."""
     max_gap: float | None = 2.0
     """Empty a pair's window when its ranges pause longer than this (s); None: never."""
+    offset: str | None = None
+    """``manifest`` or ``filter`` (see the module docstring); None: the model directory's
+    choice (``ModelSet.offset_mode``), else ``manifest``."""
     stats: Counter[str] = field(default_factory=Counter)
     _pairs: dict[str, _PairState] = field(default_factory=dict, repr=False)
     _told: dict[str, _ToldYaw] = field(default_factory=dict, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.offset is None:
+            self.offset = str(getattr(self.models, "offset_mode", "manifest"))
+        if self.offset not in OFFSET_MODES:
+            raise ValueError(f"offset must be one of {OFFSET_MODES}, got {self.offset!r}")
 
     # ------------------------------------------------------------------ construction
     @classmethod
@@ -177,7 +203,7 @@ class RangeCorrector:
     # ------------------------------------------------------------------ ranges
     def correct(self, event: RangeEvent) -> RangeEvent:
         """The corrected range, or ``event`` itself when it cannot be corrected (counted)."""
-        if event.corrected:
+        if event.corrected or event.sigma is not None:
             return self._pass(event, "already_corrected")
         if not (math.isfinite(event.distance) and event.distance > 0.0):
             return self._pass(event, "invalid_range")
@@ -185,6 +211,8 @@ class RangeCorrector:
         model = self.models.get(key)
         if model is None:
             return self._pass(event, "no_model")
+        if model.fallback:
+            return self._corrected(event, model, 0.0, float(model.fallback_sigma), "fallback")  # type: ignore[arg-type]
         state = self._pairs.get(key)
         if state is None:
             state = self._pairs[key] = _PairState(deque(maxlen=model.n_steps))
@@ -199,7 +227,7 @@ class RangeCorrector:
             state.last_t = event.t
             if state.last_error is None:
                 return self._pass(event, "window_not_full")
-            return self._corrected(event, state.last_error, "corrected_repeat")
+            return self._corrected(event, model, *state.last_error, "corrected_repeat")
         node_a = event.node_a or event.robot_a
         node_b = event.node_b or event.robot_b
         # Canonical order (as pair_key sorts): yaw_a is the heading of the first node's robot.
@@ -219,23 +247,31 @@ class RangeCorrector:
         if len(state.frames) < model.n_steps:
             return self._pass(event, "window_not_full")
         window = np.asarray(state.frames, dtype=np.float32)[None]
-        raw = float(model.predict_raw(window)[0])
-        if not math.isfinite(raw):
+        raw_residual, raw_sigma = model.predict_raw(window)
+        raw, sigma = float(raw_residual[0]), float(raw_sigma[0])
+        if not (math.isfinite(raw) and math.isfinite(sigma) and sigma > 0.0):
             state.last_error = None
             return self._pass(event, "model_nonfinite")  # the raw range is better than none
-        error = min(max(raw, model.error_min), model.error_max)
-        if error != raw:
+        residual = min(max(raw, model.residual_min), model.residual_max)
+        if residual != raw:
             self.stats["clipped"] += 1
-        state.last_error = error
-        return self._corrected(event, error, "corrected")
+        state.last_error = (residual, sigma)
+        return self._corrected(event, model, residual, sigma, "corrected")
 
     def _pass(self, event: RangeEvent, reason: str) -> RangeEvent:
         self.stats[reason] += 1
         return event
 
-    def _corrected(self, event: RangeEvent, error: float, reason: str) -> RangeEvent:
+    def _corrected(
+        self, event: RangeEvent, model: PairModel, residual: float, sigma: float, reason: str
+    ) -> RangeEvent:
+        """Remove the residual, and the pair's constant in ``manifest`` mode; attach sigma."""
         self.stats[reason] += 1
-        return replace(event, distance=event.distance - error, corrected=True)
+        if self.offset == "manifest":
+            distance, corrected = event.distance - model.offset - residual, True
+        else:
+            distance, corrected = event.distance - residual, False
+        return replace(event, distance=distance, corrected=corrected, sigma=sigma)
 
     def reset(self) -> None:
         """Forget every window, heading and count (e.g. when a recording restarts)."""
