@@ -159,7 +159,7 @@ class FilterConfig(_Checked):
 
     particles: int = 50000
     range_model: Literal["nlos", "symmetric"] = "nlos"
-    """Range likelihood of the particle filter (``relloc.filter.models``). ``nlos``: Gaussian
+    """Range likelihood of the particle filter (``relloc.filter.ranges``). ``nlos``: Gaussian
     line-of-sight noise ``los_sigma``, a one-sided non-line-of-sight part (ranges too long by a
     half-normal excess of scale ``nlos_sigma``, weight ``nlos_fraction``) and a uniform floor
     ``gross_fraction``; ``symmetric``: Gaussian ``sigma_uwb`` plus uniform ``outlier_fraction``.
