@@ -208,7 +208,7 @@ class CalibrationNoise:
     """Random walk of each online range bias (m per sqrt(s))."""
     colored_sigma: float = 0.05
     """Stationary standard deviation of a pair's time-correlated range error (m; layout
-    ``colored_bias``): the simulator's heading-dependent error has 0.03-0.06 m."""
+    ``colored_bias``), of the order of the heading-dependent UWB error."""
     colored_time: float = 10.0
     """Correlation time of that error (s): how long the headings of the two ends relative to
     the bearing between them take to change (a turn in place, a pass by the other robot)."""
