@@ -20,7 +20,7 @@ filter is printed beside the times as a check that both really track the team.
 relloc, one update::
 
     pf.predict(disp, sigma, dt)                          # odometry displacement + noise
-    pf.update(RangeBatch(...).log_likelihood)            # the 10 ranges, log-weights
+    pf.update([RangeBatch(...)])                         # the 10 ranges, log-weights
     pf.estimate()                                        # weighted mean and covariance
     pf.resample()                                        # systematic, every step, 1 % re-drawn
 
@@ -103,8 +103,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from relloc.filter.models import OdometryMotion, RangeBatch
+from relloc.filter.motion import OdometryMotion
 from relloc.filter.pf import ParticleFilter
+from relloc.filter.ranges import RangeBatch
 from relloc.filter.state import StateLayout
 
 FloatArray = NDArray[np.float64]
@@ -209,7 +210,7 @@ class RellocRunner:
         ranges = RangeBatch(
             self.scenario.pair_a, self.scenario.pair_b, s.ranges, self.bias, self.sigma_uwb
         )
-        self.pf.update(ranges.log_likelihood)
+        self.pf.update([ranges])
         est = self.pf.estimate()
         self.pf.resample()
         return est.mean

@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-import relloc.localizer
+import relloc.localizers.self_calibrating
 from relloc.cli.demo import DemoOptions, scenario_setup
 from relloc.config import TeamConfig
 from relloc.engine import Engine
@@ -92,7 +92,7 @@ def run_one(team: str, particles: int, seed: int, warmup: float, bias: str = "on
     def timed(t: float, batch: list) -> Any:
         start = time.perf_counter()
         out = step(t, batch)
-        if loc.initialized and loc.gsf is not None and out is not None:
+        if loc.initialized and out is not None:
             times.append(time.perf_counter() - start)
         return out
 
@@ -109,7 +109,7 @@ def run_one(team: str, particles: int, seed: int, warmup: float, bias: str = "on
         "team": team,
         "bias_mode": bias,
         "robots": len(config.robots),
-        "state_columns": loc.gsf.layout.width if loc.gsf is not None else None,
+        "state_columns": loc.filter.layout.width,
         "particles": particles,
         "seed": seed,
         "update_ms_median": 1e3 * float(np.median(times[1:])) if len(times) > 1 else math.nan,
@@ -136,8 +136,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", default=None, metavar="FILE")
     args = parser.parse_args(argv)
     if args.range_error == "white":  # not a config key: the layout the localizer builds
-        relloc.localizer.CalibrationLayout = functools.partial(  # type: ignore[misc]
-            relloc.localizer.CalibrationLayout, colored_bias=False
+        relloc.localizers.self_calibrating.CalibrationLayout = functools.partial(  # type: ignore[misc]
+            relloc.localizers.self_calibrating.CalibrationLayout, colored_bias=False
         )
     teams = ("two", "single", "five") if args.team == "all" else (args.team,)
     rows = []

@@ -5,10 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from relloc.filter.models import OdometryMotion, RangeBatch, RelativePositionBatch
+from relloc.filter.motion import OdometryMotion
 from relloc.filter.pf import ParticleFilter
+from relloc.filter.ranges import RangeBatch
 from relloc.filter.resampling import ess, log_normalize, normalize, systematic_resample
 from relloc.filter.state import StateLayout
+from relloc.filter.vectors import RelativePositionBatch
 
 
 def test_log_normalize_sums_to_one_without_underflow() -> None:

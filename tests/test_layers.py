@@ -16,7 +16,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "relloc"
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("events", "config", "estimate", "odometry"),
     ("filter",),
-    ("localizer", "stages", "ranging", "ros", "simulator"),
+    ("localizers", "stages", "ranging", "ros", "simulator"),
     ("sources",),
     ("engine", "methods"),
     ("sinks", "evaluation"),

@@ -11,7 +11,11 @@ from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
 from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent, RelativeObservation
-from relloc.localizer import MultilaterationLocalizer, ParticleFilterLocalizer
+from relloc.filter.measurement import ModelContext
+from relloc.filter.ranges import RangeBatch
+from relloc.filter.state import StateLayout
+from relloc.localizers.multilateration import MultilaterationLocalizer
+from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.methods import build_pipeline
 from relloc.simulator import multi_scenario, single_scenario
 
@@ -221,9 +225,12 @@ def test_a_calibrated_range_scale_is_applied_to_range_bias_and_sigma() -> None:
 
     sim = single_scenario(seed=0, duration=5.0)
     uwb = replace(sim.config.uwb, pairs={"n_0-n_1": PairCalibration(bias=0.3, scale=1.1, sigma=0.11)})
-    loc = ParticleFilterLocalizer(replace(sim.config, uwb=uwb).with_filter(particles=500), seed=0)
-    _, dist, bias, sigma, keys = loc._pair_ranges([RangeEvent(1.0, "r0", "r1", 5.8, "n_0", "n_1")])
-    true = (dist - bias)[0]
-    assert true == pytest.approx((5.8 - 0.3) / 1.1)
-    assert sigma[0] == pytest.approx(0.11 / 1.1)
-    assert loc._los_sigmas(keys)[0] == pytest.approx(0.11 / 1.1)
+    config = replace(sim.config, uwb=uwb)
+    layout = StateLayout(config.robot_names, config.reference)
+    event = RangeEvent(1.0, "r0", "r1", 5.8, "n_0", "n_1")
+    for range_model in ("symmetric", "nlos"):  # the NLOS model's line-of-sight sigma too
+        (model,) = RangeBatch.build([event], ModelContext(config, layout, range_model=range_model))
+        assert isinstance(model, RangeBatch)
+        assert (model.distance - model.bias)[0] == pytest.approx((5.8 - 0.3) / 1.1)
+        assert model.sigma[0] == pytest.approx(0.11 / 1.1)
+        assert model.nlos_fraction == (config.filter.nlos_fraction if range_model == "nlos" else 0.0)

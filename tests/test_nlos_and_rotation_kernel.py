@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from relloc.config import FilterConfig
-from relloc.filter.models import RangeBatch, _range_mixture
 from relloc.filter.pf import ParticleFilter
+from relloc.filter.ranges import RangeBatch, _range_mixture
 from relloc.filter.state import StateLayout
 
 
@@ -68,7 +68,7 @@ def test_online_bias_learns_less_from_a_long_range_than_from_a_short_one() -> No
             np.array([0]), np.array([1]), np.array([z]), np.array([0.0]), np.array([0.1]),
             outlier_fraction=0.02, bias_columns=np.array([2]), nlos_fraction=0.1, nlos_sigma=0.3,
         )
-        batch.kalman_update(pos, p)
+        batch.condition(pos, p)
         return abs(p[0, 2])
 
     assert moved(2.0 + 0.35) < 0.5 * moved(2.0 - 0.35)

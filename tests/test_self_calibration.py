@@ -23,7 +23,8 @@ from relloc.evaluation.metrics import GroundTruth, HeadingPaired, wrap_angle
 from relloc.evaluation.report import evaluate
 from relloc.events import OdometryEvent
 from relloc.filter.gaussian_sum import CalibrationLayout, CalibrationNoise, GaussianSumFilter
-from relloc.localizer import ParticleFilterLocalizer
+from relloc.filter.ranges import RangeBatch
+from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
 from relloc.methods import build_pipeline
 from relloc.simulator import (
     RobotMotion,
@@ -218,7 +219,12 @@ def test_range_update_is_the_kalman_update_and_the_weight_its_predictive_density
                             bias_prior=(np.array([0.3]), np.array([0.04])))
     gsf.mean[0, :2] = [3.0, 4.0]
     p0, m0 = gsf.cov[0].copy(), gsf.mean[0].copy()
-    ll = gsf.update_range(0, 1, 5.5, 0.1, bias_column=layout.bias_column("n_1-n_2"), outlier_fraction=0.0)
+    ranges = RangeBatch(
+        np.array([0]), np.array([1]), np.array([5.5]), np.array([0.0]), np.array([0.1]), outlier_fraction=0.0,
+        state_columns=(layout.bias_state_columns("n_1-n_2"),), layout=layout,
+    )
+    logw = gsf.logw.copy()
+    assert gsf.update([ranges])
     h = np.zeros(4)
     h[:2] = np.array([3.0, 4.0]) / 5.0  # d|p_b - p_a| / dp_b, a the reference at the origin
     h[layout.bias_column("n_1-n_2")] = 1.0
@@ -228,7 +234,10 @@ def test_range_update_is_the_kalman_update_and_the_weight_its_predictive_density
     r = 5.5 - (5.0 + 0.3)
     np.testing.assert_allclose(gsf.mean[0], m0 + k * r)
     np.testing.assert_allclose(gsf.cov[0], p0 - np.outer(k, h @ p0), atol=1e-12)
-    assert ll[0] == pytest.approx(-0.5 * r * r / s - 0.5 * math.log(2 * math.pi * s))
+    # the weight is multiplied by the predictive density (one Gaussian: normalised away)
+    row = ranges.row(0, m0[None, :])
+    assert row.density(np.array([r]), np.array([s]))[0][0] == pytest.approx(-0.5 * r * r / s - 0.5 * math.log(2 * math.pi * s))
+    assert gsf.logw == pytest.approx(logw)
 
 
 def test_correlated_range_error_is_a_gauss_markov_state_beside_the_constant_bias() -> None:
@@ -269,8 +278,14 @@ def test_deferred_covariance_updates_equal_the_sequential_ones() -> None:
             gsf.predict(disp, np.full(3, 0.01), 0.1)
         for k, (i, j) in enumerate(((0, 1), (0, 2), (1, 2))):
             z = 2.0 + 0.1 * step + 0.3 * k
+            ranges = RangeBatch(
+                np.array([i]), np.array([j]), np.array([z]), np.array([0.0]), np.array([0.15]), 0.1, 15.0,
+                state_columns=(layout.bias_state_columns(pairs[k]),), layout=layout,
+            )
             for gsf in (a, b):
-                gsf.update_range(i, j, z, 0.15, 0.0, layout.bias_column(pairs[k]), 0.1, 15.0)
+                for row in range(ranges.rows):
+                    r = ranges.row(row, gsf.mean)
+                    gsf._scalar_update(r.columns, r.jacobian, r.residual, r.variance, r.density)
             _ = b.cov  # b: sequential
         assert len(a._pending) == 3
         np.testing.assert_allclose(a.mean, b.mean, atol=1e-12)
@@ -334,8 +349,8 @@ def test_modes_from_the_command_line_and_the_config() -> None:
     with pytest.raises(ConfigError):
         sim.config.with_modes(reference="ghost")
     cfg = TeamConfig.from_dict({**sim.config.to_dict(), "filter": {"heading_mode": "estimate", "odom_scale_mode": "online"}})
-    loc = ParticleFilterLocalizer(cfg.with_filter(selfcal_particles=50, selfcal_init_particles=50))
-    assert loc.gsf is not None and loc.gsf.layout.heading and loc.gsf.layout.scale
+    loc = build_pipeline("pf", cfg.with_filter(selfcal_particles=50, selfcal_init_particles=50)).localizer
+    assert isinstance(loc, SelfCalibratingLocalizer) and loc.filter.layout.heading and loc.filter.layout.scale
     # the config's heading offsets and scales are not read in these modes
     assert all(t.heading_offset == 0.0 and t.scale == 1.0 for t in loc.tracks.values())
 

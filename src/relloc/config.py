@@ -159,7 +159,7 @@ class FilterConfig(_Checked):
 
     particles: int = 50000
     range_model: Literal["nlos", "symmetric"] = "nlos"
-    """Range likelihood of the particle filter (``relloc.filter.models``). ``nlos``: Gaussian
+    """Range likelihood of the particle filter (``relloc.filter.ranges``). ``nlos``: Gaussian
     line-of-sight noise ``los_sigma``, a one-sided non-line-of-sight part (ranges too long by a
     half-normal excess of scale ``nlos_sigma``, weight ``nlos_fraction``) and a uniform floor
     ``gross_fraction``; ``symmetric``: Gaussian ``sigma_uwb`` plus uniform ``outlier_fraction``.
@@ -167,12 +167,13 @@ class FilterConfig(_Checked):
     has predicted the skewed part), with online biases (an unknown bias and the one-sided excess
     are confounded) and by the self-calibrating filter."""
     los_sigma: float = 0.1
-    """NLOS-aware model: line-of-sight range noise (m). The training table's residuals give
-    0.077 m; widened for the pair biases moving by up to 0.06 m between sessions."""
+    """NLOS-aware model: line-of-sight range noise (m), wider than the training residuals' for
+    the pair biases moving between sessions (docs/results.md, "Design measurements behind the
+    filter's defaults")."""
     nlos_fraction: float = 0.1
-    """NLOS-aware model: weight of the non-line-of-sight part (training table: 0.09)."""
+    """NLOS-aware model: weight of the non-line-of-sight part."""
     nlos_sigma: float = 0.3
-    """NLOS-aware model: scale of the excess delay of a blocked path (m; training table: 0.28)."""
+    """NLOS-aware model: scale of the excess delay of a blocked path (m)."""
     gross_fraction: float = 0.02
     """NLOS-aware model: weight of the uniform part (gross errors of any sign)."""
     sigma_uwb: float = 0.15
@@ -253,7 +254,7 @@ class FilterConfig(_Checked):
     """The UWB range used by the range gate must be at most this old (s)."""
     det_heading_drift: float = 0.003
     """Growth of a robot's odometry-heading uncertainty per second of motion (rad/s), which
-    weakens its detection vectors over time (shortbag turtle03: 3.3 deg in 17 s of driving)."""
+    weakens its detection vectors over time."""
     # Self-calibration (docs/self-calibration.md). The defaults are the compass/fixed modes.
     heading_mode: Literal["compass", "estimate"] = "compass"
     """``compass``: each robot's odometry is rotated by its configured ``heading_offset_deg``

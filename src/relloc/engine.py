@@ -20,7 +20,7 @@ from typing import Protocol
 
 from relloc.estimate import Estimate
 from relloc.events import Event, GroundTruthEvent
-from relloc.localizer import Localizer
+from relloc.localizers.base import Localizer
 
 
 class Stage(Protocol):

@@ -15,7 +15,10 @@ from pathlib import Path
 
 from relloc.config import TeamConfig
 from relloc.engine import Pipeline, Stage
-from relloc.localizer import MultilaterationLocalizer, ParticleFilterLocalizer
+from relloc.localizers.base import FilterLocalizer
+from relloc.localizers.multilateration import MultilaterationLocalizer
+from relloc.localizers.sampled import ParticleFilterLocalizer
+from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
 
 METHODS = ("pf", "pf_ul", "pf_uv", "pf_ulv", "multilateration")
 
@@ -53,4 +56,14 @@ def build_pipeline(method: str, config: TeamConfig, *, seed: int = 0, models: Pa
         from relloc.stages.association import DetectionAssociator
 
         stages.append(DetectionAssociator(config))
-    return Pipeline(method, ParticleFilterLocalizer(config, seed=seed, method=method), stages)
+    return Pipeline(method, filter_localizer(config, seed=seed, method=method), stages)
+
+
+def filter_localizer(config: TeamConfig, *, seed: int = 0, method: str = "pf") -> FilterLocalizer:
+    """The particle localizer the config's modes call for: the self-calibrating one where the
+    headings or the odometry scales are estimated, else the sampled one (which estimates
+    range biases itself with ``bias_mode = "online"``)."""
+    fc = config.filter
+    if fc.heading_mode == "estimate" or fc.odom_scale_mode == "online":
+        return SelfCalibratingLocalizer(config, seed=seed, method=method)
+    return ParticleFilterLocalizer(config, seed=seed, method=method)

@@ -60,7 +60,7 @@ estimator can tell from the bias: docs/self-calibration.md, "Observability".
 
 Robust ranges and pseudo-measurements
 -------------------------------------
-Ranges use the same Gaussian-plus-uniform likelihood as :mod:`relloc.filter.models`; the
+Ranges use the same Gaussian-plus-uniform likelihood as :mod:`relloc.filter.ranges`; the
 Kalman gain is scaled by the probability that the range is an inlier, so an NLOS spike barely
 moves the state. The prior on the *magnitude* of ``u`` (the odometry scale, ``1 +- 0.15`` when
 estimated online, the configured scale otherwise) is not Gaussian in ``u``; it is applied once
@@ -82,20 +82,21 @@ never changes leaves its bias and its distance confounded; the bias variance sta
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy.special import i0e, i1e
 
-from relloc.filter.resampling import ess, log_normalize, mixture_moments, resample_with_reinjection
+from relloc.filter.base import FilterEstimate, WeightedFilter, renormalized
+from relloc.filter.measurement import MeasurementModel, robust_gaussian
+from relloc.filter.motion import OdometryMotion
+from relloc.filter.resampling import mixture_moments
 from relloc.filter.state import TeamLayout
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
-
-_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
-
 
 def _rotation_jacobian(d: FloatArray) -> FloatArray:
     """``A(d)`` with ``A(d) u = s R(theta) d`` for ``u = s (cos theta, sin theta)``."""
@@ -112,8 +113,6 @@ class CalibrationLayout(TeamLayout):
     scale: bool = False
     """Estimate odometry scales online (as ``|u|`` in heading mode, else as one scale column
     per robot)."""
-    bias_pairs: tuple[str, ...] = ()
-    """Node pairs whose range bias is estimated online, in column order."""
     colored_bias: bool = True
     """Beside each online pair's constant bias, a zero-mean, time-correlated range error (a
     first-order Gauss-Markov process, :class:`CalibrationNoise` ``colored_sigma`` and
@@ -160,10 +159,6 @@ class CalibrationLayout(TeamLayout):
     def width(self) -> int:
         return self.colored_start + (len(self.bias_pairs) if self.colored_bias else 0)
 
-    def slot(self, robot: str) -> int:
-        """Position of ``robot`` among the non-reference robots (-1 for the reference)."""
-        return -1 if robot == self.reference else self.others.index(robot)
-
     def u_columns(self, robot: str) -> tuple[int, int]:
         """Columns of ``robot``'s heading vector ``u`` (heading mode). The reference has one
         too: its prior is ``(1, 0)`` (its odometry frame *is* the shared frame), and its
@@ -186,6 +181,15 @@ class CalibrationLayout(TeamLayout):
         """Column of ``pair``'s time-correlated range error (-1 without ``colored_bias``)."""
         return self.colored_start + self.bias_pairs.index(pair) if self.colored_bias else -1
 
+    def bias_state_columns(self, pair: str) -> tuple[int, ...]:
+        """The pair's bias and, with ``colored_bias``, its time-correlated error: a range sees
+        their sum."""
+        if pair not in self.bias_pairs:
+            return ()
+        if self.colored_bias:
+            return (self.bias_column(pair), self.colored_column(pair))
+        return (self.bias_column(pair),)
+
 
 @dataclass(frozen=True)
 class CalibrationNoise:
@@ -204,7 +208,7 @@ class CalibrationNoise:
     """Random walk of each online range bias (m per sqrt(s))."""
     colored_sigma: float = 0.05
     """Stationary standard deviation of a pair's time-correlated range error (m; layout
-    ``colored_bias``): the simulator's heading-dependent error has 0.03-0.06 m."""
+    ``colored_bias``), of the order of the heading-dependent UWB error."""
     colored_time: float = 10.0
     """Correlation time of that error (s): how long the headings of the two ends relative to
     the bearing between them take to change (a turn in place, a pass by the other robot)."""
@@ -219,8 +223,10 @@ class CalibrationNoise:
     """Apply the ``|u|`` pseudo-measurement once the angular std of ``u`` is below this (rad)."""
 
 
-class GaussianSumFilter:
+class GaussianSumFilter(WeightedFilter):
     """``M`` weighted Gaussians over positions and calibration parameters (see module doc)."""
+
+    layout: CalibrationLayout
 
     def __init__(
         self,
@@ -233,24 +239,19 @@ class GaussianSumFilter:
         bias_prior: tuple[FloatArray, FloatArray] | None = None,
         position_sigma: float = 0.2,
         process_noise: float = 0.03,
+        motion: OdometryMotion | None = None,
         ess_threshold: float = 0.5,
         reinject_fraction: float = 0.01,
         heading_prior: dict[str, tuple[float, float]] | None = None,
     ) -> None:
-        if n_particles < 1:
-            raise ValueError("n_particles must be positive")
-        if not 0.0 <= reinject_fraction < 1.0:
-            raise ValueError("reinject_fraction must be in [0, 1)")
+        super().__init__(
+            n_particles, area, rng=rng, resample="ess", ess_threshold=ess_threshold,
+            reinject_fraction=reinject_fraction,
+        )
         self.layout = layout
-        self.n = n_particles
-        self.rng = rng
         self.noise = noise or CalibrationNoise()
         self.position_sigma = position_sigma
-        self.process_noise = process_noise
-        self.ess_threshold = ess_threshold
-        self.reinject_fraction = reinject_fraction
-        xmin, xmax, ymin, ymax = area
-        self.half_extent = np.array([xmax - xmin, ymax - ymin], dtype=float)
+        self.motion = motion or OdometryMotion(process_noise=process_noise)
         nb = len(layout.bias_pairs)
         if bias_prior is None:
             bias_prior = (np.zeros(nb), np.full(nb, 0.25**2))
@@ -264,9 +265,16 @@ class GaussianSumFilter:
         self.mean = np.zeros((n_particles, layout.width))
         self.cov = np.zeros((n_particles, layout.width, layout.width))
         self.magnitude_done = np.zeros((n_particles, layout.n_others), dtype=bool)
-        self.logw = np.full(n_particles, -math.log(n_particles))
-        self.resample_count = 0
+        self.magnitude_count = 0
         self.initialize(self.sample_positions(n_particles))
+
+    @property
+    def shared_heading(self) -> bool:
+        """In heading mode the frame is the reference robot's odometry frame, not a compass."""
+        return not self.layout.heading
+
+    def counters(self) -> dict[str, int]:
+        return {"scale_priors_applied": self.magnitude_count} if self.layout.heading else {}
 
     # ---------------------------------------------------------------- covariance
     @property
@@ -332,9 +340,7 @@ class GaussianSumFilter:
 
     def sample_positions(self, m: int) -> FloatArray:
         """``m`` relative formations uniform over the prior box, shape ``(m, 2(N-1))``."""
-        k = self.layout.n_others
-        u = self.rng.uniform(-1.0, 1.0, size=(m, k, 2)) * self.half_extent
-        return u.reshape(m, 2 * k)
+        return self.prior.sample(self.rng, m, self.layout.n_others)
 
     def initialize(self, positions: FloatArray) -> None:
         """Start every Gaussian at one formation hypothesis (``positions``: ``(M, 2(N-1))``),
@@ -388,7 +394,7 @@ class GaussianSumFilter:
         # Process noise: each robot's own odometry noise and a random walk; the reference's
         # noise is common to every relative position.
         q = np.zeros((width, width))
-        own = sigma[others] ** 2 + self.process_noise**2 * max(dt, 0.0)
+        own = self.motion.own_variance(sigma, others, dt)
         for k in range(lay.n_others):
             q[2 * k, 2 * k] = q[2 * k + 1, 2 * k + 1] = own[k]
         if sigma[ref] > 0.0:
@@ -449,82 +455,22 @@ class GaussianSumFilter:
             self.cov[:, c0 : c1 + 1, c0 : c1 + 1] += block
 
     # ---------------------------------------------------------------- updates
-    def update_range(
-        self,
-        index_a: int,
-        index_b: int,
-        distance: float,
-        sigma: float,
-        bias: float = 0.0,
-        bias_column: int = -1,
-        outlier_fraction: float = 0.1,
-        support: float = 15.0,
-    ) -> FloatArray:
-        """Fuse one range between robots ``index_a`` and ``index_b`` (team indices) into every
-        Gaussian; returns and adds the per-particle log predictive density."""
-        lay = self.layout
-        sa = lay.slot(lay.robots[index_a])
-        sb = lay.slot(lay.robots[index_b])
-        m = self.mean
-        pa = m[:, 2 * sa : 2 * sa + 2] if sa >= 0 else np.zeros((self.n, 2))
-        pb = m[:, 2 * sb : 2 * sb + 2] if sb >= 0 else np.zeros((self.n, 2))
-        diff = pa - pb
-        dist = np.sqrt(np.sum(diff * diff, axis=1))
-        e = diff / np.maximum(dist, 1e-6)[:, None]
-        cols: list[int] = []
-        coefs: list[FloatArray] = []
-        if sa >= 0:
-            cols += [2 * sa, 2 * sa + 1]
-            coefs += [e[:, 0], e[:, 1]]
-        if sb >= 0:
-            cols += [2 * sb, 2 * sb + 1]
-            coefs += [-e[:, 0], -e[:, 1]]
-        predicted = dist + bias
-        if bias_column >= 0:
-            cols.append(bias_column)
-            coefs.append(np.ones(self.n))
-            predicted = predicted + m[:, bias_column]
-            if lay.colored_bias:  # the range sees the constant bias plus the correlated error
-                c = lay.colored_start + (bias_column - lay.bias_start)
-                cols.append(c)
-                coefs.append(np.ones(self.n))
-                predicted = predicted + m[:, c]
-        h = np.stack(coefs, axis=1)  # (M, c)
-        residual = distance - predicted
-        return self._scalar_update(np.array(cols), h, residual, sigma**2, outlier_fraction, support)
-
-    def update_vector(
-        self,
-        observer: int,
-        target: int,
-        vector: FloatArray,
-        sigma: float,
-        outlier_fraction: float = 0.02,
-        support: float = 100.0,
-    ) -> FloatArray:
-        """Fuse a measured ``p_target - p_observer`` (shared frame) as two scalar updates."""
-        lay = self.layout
-        so = lay.slot(lay.robots[observer])
-        st = lay.slot(lay.robots[target])
-        total = np.zeros(self.n)
-        for axis in range(2):
-            cols, coefs = [], []
-            pred = np.zeros(self.n)
-            if st >= 0:
-                cols.append(2 * st + axis)
-                coefs.append(np.ones(self.n))
-                pred = pred + self.mean[:, 2 * st + axis]
-            if so >= 0:
-                cols.append(2 * so + axis)
-                coefs.append(-np.ones(self.n))
-                pred = pred - self.mean[:, 2 * so + axis]
-            if not cols:
-                continue
-            total += self._scalar_update(
-                np.array(cols), np.stack(coefs, axis=1), vector[axis] - pred, sigma**2,
-                outlier_fraction, math.sqrt(support),
-            )
-        return total
+    def update(self, models: Sequence[MeasurementModel]) -> bool:
+        """Fuse every scalar row of every model, each linearised at the means as updated by
+        the rows before it; then (heading mode) the ``|u|`` pseudo-measurements that have
+        become due, and normalise. False (weights kept) if no Gaussian has any support."""
+        before = self.logw
+        for model in models:
+            for k in range(model.rows):
+                row = model.row(k, self.mean)
+                self._scalar_update(row.columns, row.jacobian, row.residual, row.variance, row.density)
+        if self.layout.heading:
+            self.magnitude_count += self.apply_magnitude_priors(np.ones(self.layout.n_others))
+        logw = renormalized(self.logw)
+        ok = logw is not None
+        self.logw = logw if logw is not None else before
+        self.cov = 0.5 * (self.cov + self.cov.transpose(0, 2, 1))  # symmetric against round-off
+        return ok
 
     def apply_magnitude_priors(self, nominal: FloatArray) -> int:
         """Heading mode: apply the prior on ``|u|`` (``nominal[k]`` +- the scale sigma) once,
@@ -548,7 +494,8 @@ class GaussianSumFilter:
             rows = np.flatnonzero(ready)
             h = mu[rows] / norm[rows, None]
             self._scalar_update(
-                np.array([c0, c1]), h, nominal[k] - norm[rows], sigma**2, 0.0, 1.0, rows=rows
+                np.array([c0, c1]), h, nominal[k] - norm[rows], sigma**2,
+                lambda r, s: robust_gaussian(r, s, 0.0, 1.0), rows=rows,
             )
             self.magnitude_done[rows, k] = True
             applied += rows.size
@@ -560,12 +507,13 @@ class GaussianSumFilter:
         h: FloatArray,
         residual: FloatArray,
         r_var: float,
-        eps: float,
-        support: float,
+        density: Callable[[FloatArray, FloatArray], tuple[FloatArray, FloatArray]],
         rows: IntArray | None = None,
     ) -> FloatArray:
         """Robust scalar EKF update of ``rows`` (default all) with measurement Jacobian ``h``
-        (``(m, len(cols))``, nonzero only in ``cols``) and innovation ``residual``.
+        (``(m, len(cols))``, nonzero only in ``cols``), innovation ``residual`` and noise
+        variance ``r_var``. ``density(residual, s)`` gives the log predictive density of the
+        innovation (predictive variance ``s``) and the inlier probability that scales the gain.
 
         Updating all rows, the covariance update ``P -= gain pht^T`` is deferred: the next
         update needs only ``P h``, which the pending updates give at ``O(M D)`` each
@@ -582,15 +530,7 @@ class GaussianSumFilter:
             pht = np.einsum("mdc,mc->md", cov[:, :, cols], h)  # (m, D)
         s = np.einsum("mc,mc->m", pht[:, cols], h) + r_var
         s = np.maximum(s, 1e-12)
-        z2 = residual * residual / s
-        gauss = np.exp(-0.5 * z2) / np.sqrt(2.0 * np.pi * s)
-        if eps > 0.0:
-            dens = (1.0 - eps) * gauss + eps / support
-            inlier = (1.0 - eps) * gauss / dens
-            ll = np.log(dens)
-        else:
-            inlier = np.ones_like(s)
-            ll = -0.5 * z2 - 0.5 * np.log(s) - _LOG_SQRT_2PI
+        ll, inlier = density(residual, s)
         gain = pht * (inlier / s)[:, None]
         mean += gain * residual[:, None]
         if rows is None:
@@ -602,40 +542,28 @@ class GaussianSumFilter:
             self.logw[rows] += ll
         return ll
 
-    def normalize(self) -> bool:
-        """Normalise the log-weights; False (weights kept) if no particle has support."""
-        if not np.any(np.isfinite(self.logw)):
-            return False
-        self.logw = log_normalize(np.where(np.isfinite(self.logw), self.logw, -np.inf))
-        return True
-
-    def symmetrize(self) -> None:
-        self.cov = 0.5 * (self.cov + self.cov.transpose(0, 2, 1))
-
     # ---------------------------------------------------------------- resampling
-    def ess(self) -> float:
-        return ess(self.logw)
-
-    def maybe_resample(self) -> bool:
-        if self.ess() >= self.ess_threshold * self.n:
-            return False
-        self.resample()
-        return True
-
-    def resample(self) -> None:
-        idx, slots = resample_with_reinjection(self.logw, self.rng, self.reinject_fraction)
+    def _select(self, idx: IntArray) -> None:
         self.mean = self.mean[idx]
         self.cov = self.cov[idx]
         self.magnitude_done = self.magnitude_done[idx]
-        if slots.size:
-            self._set_prior_rows(slots, self.sample_positions(slots.size))
-        self.logw = np.full(self.n, -math.log(self.n))
-        self.resample_count += 1
+
+    def _reinject(self, slots: IntArray, positions: FloatArray) -> None:
+        self._set_prior_rows(slots, positions)
 
     # ---------------------------------------------------------------- estimates
+    def estimate(self) -> FilterEstimate:
+        """Mixture moments of the positions, and of every estimated heading, bias and scale."""
+        lay = self.layout
+        mean, cov = self.position_moments()
+        headings = {robot: self.heading(robot) for robot in lay.robots} if lay.heading else {}
+        biases = {pair: self.bias(pair) for pair in lay.bias_pairs}
+        scales = {robot: self.scale(robot) for robot in lay.robots} if lay.scale else {}
+        return FilterEstimate(mean, cov, self.ess(), headings, biases, scales)
+
     def weights(self) -> FloatArray:
-        """Normalised weights (the log-weights themselves are normalised only by
-        :meth:`normalize`)."""
+        """Normalised weights (the log-weights are normalised by :meth:`update`; weights set
+        from outside may not be)."""
         top = np.max(self.logw)
         if not np.isfinite(top):
             return np.full(self.n, 1.0 / self.n)

@@ -14,7 +14,7 @@ two robots gives a distance, not a relative position). ``solve`` therefore
    rotation stays continuous from step to step (without ground truth).
 
 The formation is returned with the reference at the origin, in an arbitrary but continuous
-gauge; evaluation fits one rotation/reflection for a whole run (see :mod:`relloc.sinks.metrics`).
+gauge; evaluation fits one rotation/reflection for a whole run (see :mod:`relloc.evaluation.metrics`).
 """
 
 from __future__ import annotations

@@ -5,12 +5,13 @@ State
     (positions of the non-reference robots relative to the reference, shared heading frame).
     ``logw`` holds one log-weight per particle.
 
-Cycle (driven by :class:`relloc.localizer.Localizer`)
-    ``predict`` moves every particle with the odometry of every robot; ``update`` adds the
-    log-likelihood of whatever measurements arrived; ``estimate`` returns the weighted mean
-    and covariance; ``maybe_resample`` resamples (every step, as in the paper, or when the
-    effective sample size falls below a threshold) and re-draws a small fraction from the prior
-    so that the filter can recover from a wrong mode.
+Cycle (the interface of :mod:`relloc.filter.base`, driven by :mod:`relloc.localizers`)
+    ``predict`` moves every particle with the odometry of every robot (and walks the variance
+    of each online bias belief); ``update`` adds the log-likelihoods of whatever measurement
+    models arrived and lets them condition their sufficient statistics (the online biases);
+    ``estimate`` returns the weighted moments; ``maybe_resample`` resamples (every step, as in
+    the paper, or when the effective sample size falls below a threshold) and re-draws a small
+    fraction from the prior so that the filter can recover from a wrong mode.
 
 Starting from a uniform prior
     A uniform prior over an 8 m x 9 m arena is very wide compared with a 0.15 m range noise: in
@@ -29,9 +30,8 @@ The formation's orientation: a nearly static, weakly observed quantity
     for how well their *shape* fits the ranges, and the orientation of the survivors is just
     inherited ("hitchhiking"): after a few seconds the cloud's orientations descend from a handful
     of ancestors, and the estimate's orientation becomes a random draw rather than the
-    posterior mean. On the 4-robot TIERS recording the ancestors of the particles at 10 s
-    collapsed to an effective 6 at 11 s; seeds disagreed by 1-1.7 deg in orientation (0.1-0.2 m on
-    a robot 7 m away), and 4 times more particles did not reduce it. As for a static parameter,
+    posterior mean; more particles do not cure it (docs/results.md, "Design measurements
+    behind the filter's defaults"). As for a static parameter,
     the remedy is a kernel move with shrinkage (Liu & West, 2001), here along the one direction
     the ranges cannot see: after each resampling every particle's formation is turned from
     its orientation ``theta`` (relative to the median formation) to
@@ -39,30 +39,27 @@ The formation's orientation: a nearly static, weakly observed quantity
     mean and variance of the orientations and re-creates their diversity (``h``:
     ``rotation_kernel``, the fraction of the variance re-drawn). The ranges are unchanged by
     construction. It acts only on a formation (two robots or more besides the reference: with
-    one, the state is a single relative position whose bearing the kernel would only blur; on
-    the single-range recording it cost 5 mm) and only when the orientations form one mode
+    one, the state is a single relative position whose bearing the kernel would only blur) and
+    only when the orientations form one mode
     narrower than ``rotation_kernel_max_spread`` (robust std): never while rotations and mirror
     images compete, nor on an unobservable bearing.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
-from relloc.filter.models import OdometryMotion
-from relloc.filter.resampling import (
-    ess,
-    log_normalize,
-    resample_with_reinjection,
-    systematic_resample,
-)
+from relloc.filter.base import FilterEstimate, WeightedFilter
+from relloc.filter.measurement import MeasurementModel, stacked
+from relloc.filter.motion import OdometryMotion
+from relloc.filter.resampling import ess, log_normalize, mixture_moments, systematic_resample
 from relloc.filter.state import StateLayout
 
 FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
 _BLOCK = 4096
 """Particles per block when evaluating likelihoods (see ``ParticleFilter.log_likelihood``)."""
 
@@ -71,17 +68,10 @@ LogLikelihood = Callable[[FloatArray, FloatArray], FloatArray]
 to log-likelihoods ``(M,)``."""
 
 
-@dataclass(frozen=True)
-class FilterEstimate:
-    """Weighted mean and covariance of each non-reference robot's relative position."""
-
-    mean: FloatArray  # (N-1, 2)
-    cov: FloatArray  # (N-1, 2, 2)
-    ess: float
-
-
-class ParticleFilter:
+class ParticleFilter(WeightedFilter):
     """Particle filter for ``N`` robots' positions relative to a reference robot."""
+
+    layout: StateLayout
 
     def __init__(
         self,
@@ -95,81 +85,77 @@ class ParticleFilter:
         ess_threshold: float = 0.5,
         reinject_fraction: float = 0.01,
         extra_prior: FloatArray | None = None,
+        rotation_noise: float = 0.0,
         rotation_kernel: float = 0.0,
         rotation_kernel_max_spread: float = 0.25,
+        bias_walk: float = 0.0,
     ) -> None:
-        if n_particles < 1:
-            raise ValueError("n_particles must be positive")
-        if resample not in ("ess", "every_step"):
-            raise ValueError(f"resample must be 'ess' or 'every_step', got {resample!r}")
-        if not 0.0 <= reinject_fraction < 1.0:
-            raise ValueError("reinject_fraction must be in [0, 1)")
+        super().__init__(
+            n_particles, area, rng=rng, resample=resample, ess_threshold=ess_threshold,
+            reinject_fraction=reinject_fraction,
+        )
         if not 0.0 <= rotation_kernel < 1.0:
             raise ValueError("rotation_kernel must be in [0, 1)")
         self.layout = layout
         self.extra_prior = np.zeros(layout.width - layout.dim) if extra_prior is None else np.asarray(extra_prior, float)
         if self.extra_prior.shape != (layout.width - layout.dim,):
             raise ValueError(f"extra_prior needs {layout.width - layout.dim} values")
-        self.n = n_particles
-        self.rng = rng
         self.motion = motion or OdometryMotion()
-        self.resample_mode = resample
-        self.ess_threshold = ess_threshold
-        self.reinject_fraction = reinject_fraction
+        self.rotation_noise = rotation_noise
+        """Random turn of the whole formation about the reference (rad/sqrt(s)) per predict:
+        the one direction ranges cannot see, along which only the robots' headings inform the
+        filter (their drift is this noise)."""
         self.rotation_kernel = rotation_kernel
         self.rotation_kernel_max_spread = rotation_kernel_max_spread
         self.rotation_kernel_count = 0
-        xmin, xmax, ymin, ymax = area
-        # Each robot is anywhere in the arena, so a relative position spans twice its extent.
-        self.half_extent = np.array([xmax - xmin, ymax - ymin], dtype=float)
+        self.bias_walk = bias_walk
+        """Random walk of each online bias (m/sqrt(s)), added to its beliefs' variances."""
         self._others = np.array([layout.index(r) for r in layout.others], dtype=np.intp)
         self._reference = layout.index(layout.reference)
         self.particles = self.sample_prior(n_particles)
-        self.logw = np.full(n_particles, -np.log(n_particles))
-        self.resample_count = 0
         self._mcmc_scale = 0.5
 
     # ---------------------------------------------------------------- prior
     def sample_prior(self, m: int) -> FloatArray:
         """``m`` particles uniform over the prior box of relative positions (further blocks at
         their prior values)."""
-        k = len(self.layout.others)
-        u = self.rng.uniform(-1.0, 1.0, size=(m, k, 2)) * self.half_extent
         out = np.empty((m, self.layout.width))
-        out[:, : 2 * k] = u.reshape(m, 2 * k)
-        out[:, 2 * k :] = self.extra_prior
+        out[:, : self.layout.dim] = self.prior.sample(self.rng, m, self.layout.n_others)
+        out[:, self.layout.dim :] = self.extra_prior
         return out
 
     def in_prior(self, particles: FloatArray) -> NDArray[np.bool_]:
-        m = particles.shape[0]
-        rel = particles[:, : self.layout.dim].reshape(m, -1, 2)
-        return np.all(np.abs(rel) <= self.half_extent, axis=(1, 2))
+        return self.prior.contains(particles[:, : self.layout.dim])
 
     def positions(self, particles: FloatArray | None = None) -> FloatArray:
         return self.layout.positions(self.particles if particles is None else particles)
 
     # ---------------------------------------------------------------- cycle
-    def predict(self, disp: FloatArray, sigma: FloatArray, dt: float, rotation_noise: float = 0.0) -> None:
-        """Move particles by every robot's displacement ``disp`` (N, 2) with std ``sigma`` (N,).
-
-        ``rotation_noise`` (rad/sqrt(s)) also turns each particle's whole formation about the
-        reference by a small random angle: the one direction ranges cannot see, along which
-        only the robots' headings inform the filter (their drift is this noise).
-        """
+    def predict(self, disp: FloatArray, sigma: FloatArray, dt: float) -> None:
+        """Move particles by every robot's displacement ``disp`` (N, 2) with std ``sigma`` (N,),
+        turn each formation by ``rotation_noise`` and walk the online bias beliefs."""
         self.motion.propagate(self.particles, self._others, self._reference, disp, sigma, dt, self.rng)
-        if rotation_noise > 0.0 and dt > 0.0:
-            self.rotate(self.rng.normal(0.0, rotation_noise * np.sqrt(dt), self.n))
+        if self.rotation_noise > 0.0 and dt > 0.0:
+            self.rotate(self.rng.normal(0.0, self.rotation_noise * np.sqrt(dt), self.n))
+        if self.layout.bias_pairs and dt > 0.0:
+            self.particles[:, self.layout.dim + 1 :: 2] += self.bias_walk**2 * dt  # variances
 
-    def update(self, loglik: LogLikelihood) -> FloatArray:
-        """Add ``loglik`` to the log-weights; returns the per-particle log-likelihood."""
-        ll = self.log_likelihood(loglik, self.particles)
+    def update(self, models: Sequence[MeasurementModel]) -> bool:
+        """Add the models' log-likelihoods to the log-weights and normalise, then let each
+        model condition its sufficient statistics; False (weights kept) if no particle has
+        any support."""
+        if not models:
+            return True
+        ll = self.log_likelihood(stacked(models), self.particles)
         new = self.logw + ll
-        if not np.any(np.isfinite(new)):
-            # No particle explains the measurement at all: keep the weights and let the
-            # caller count it rather than dividing by zero.
-            return ll
-        self.logw = log_normalize(new)
-        return ll
+        if np.any(np.isfinite(new)):
+            self.logw = log_normalize(new)
+        positions = None
+        for model in models:
+            if model.conditions:
+                positions = self.positions() if positions is None else positions
+                model.condition(positions, self.particles)
+        return bool(np.any(np.isfinite(ll)))
 
     def log_likelihood(self, loglik: LogLikelihood, particles: FloatArray) -> FloatArray:
         """``loglik`` of every particle, evaluated in cache-sized blocks (non-finite -> -inf).
@@ -185,27 +171,20 @@ class ParticleFilter:
         out[~np.isfinite(out)] = -np.inf
         return out
 
-    def ess(self) -> float:
-        return ess(self.logw)
-
-    def maybe_resample(self) -> bool:
-        """Resample if configured to (every step, or ESS below threshold); True if it did."""
-        if self.resample_mode == "ess" and self.ess() >= self.ess_threshold * self.n:
-            return False
-        self.resample()
-        return True
-
-    def resample(self) -> None:
-        """Systematic resampling, re-injection of a fraction of particles from the prior, and
-        the orientation kernel (module docstring)."""
-        idx, slots = resample_with_reinjection(self.logw, self.rng, self.reinject_fraction)
+    def _select(self, idx: IntArray) -> None:
         self.particles = self.particles[idx]
-        if slots.size:
-            self.particles[slots] = self.sample_prior(slots.size)
-        self.logw = np.full(self.n, -np.log(self.n))
-        self.resample_count += 1
+
+    def _reinject(self, slots: IntArray, positions: FloatArray) -> None:
+        self.particles[slots, : self.layout.dim] = positions
+        self.particles[slots, self.layout.dim :] = self.extra_prior
+
+    def _after_resample(self) -> None:
+        """The orientation kernel (module docstring)."""
         if self.rotation_kernel > 0.0 and self.rejuvenate_rotation(self.rotation_kernel):
             self.rotation_kernel_count += 1
+
+    def counters(self) -> dict[str, int]:
+        return {"rotation_kernel": self.rotation_kernel_count}
 
     def orientations(self) -> FloatArray:
         """Each particle's formation angle (rad) about the reference, relative to the
@@ -242,7 +221,8 @@ class ParticleFilter:
         return True
 
     def estimate(self) -> FilterEstimate:
-        """Weighted mean and covariance of each robot's relative position.
+        """Weighted mean and covariance of each robot's relative position (and the mixture
+        moments of each online bias).
 
         Only the 2x2 blocks are computed (variances and the x-y covariance of each robot), from
         weighted second moments: no (D, D) product and no centred copy of the cloud.
@@ -258,7 +238,11 @@ class ParticleFilter:
         cov = np.empty((var.shape[0], 2, 2))
         cov[:, 0, 0], cov[:, 1, 1] = var[:, 0], var[:, 1]
         cov[:, 0, 1] = cov[:, 1, 0] = cxy
-        return FilterEstimate(mean=mean.reshape(-1, 2), cov=cov, ess=float(1.0 / (w @ w)))
+        biases = {}
+        for pair in self.layout.bias_pairs:
+            c, _ = self.layout.bias_columns(pair)
+            biases[pair] = mixture_moments(w, self.particles[:, c], self.particles[:, c + 1])
+        return FilterEstimate(mean=mean.reshape(-1, 2), cov=cov, ess=float(1.0 / (w @ w)), biases=biases)
 
     # ---------------------------------------------------------------- initialisation
     def initialize_annealed(

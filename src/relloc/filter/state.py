@@ -33,6 +33,10 @@ class TeamLayout:
 
     robots: tuple[str, ...]
     reference: str
+    bias_pairs: tuple[str, ...] = ()
+    """UWB node pairs (``"n_3-n_7"``) whose range bias the filter estimates online, in
+    column order; how the state holds them is the subclass's (:meth:`bias_belief_column`,
+    :meth:`bias_state_columns`)."""
 
     def __post_init__(self) -> None:
         if self.reference not in self.robots:
@@ -56,13 +60,47 @@ class TeamLayout:
         except ValueError:
             raise KeyError(f"unknown robot {robot!r}") from None
 
+    def slot(self, robot: str) -> int:
+        """Position of ``robot`` among the non-reference robots (-1 for the reference): its
+        position columns are ``2 slot, 2 slot + 1``."""
+        return -1 if robot == self.reference else self.others.index(robot)
+
+    def slot_of(self, index: int) -> int:
+        """:meth:`slot` of the robot with team index ``index``."""
+        return self.slot(self.robots[index])
+
+    def positions(self, particles: FloatArray) -> FloatArray:
+        """All robots' relative positions as coordinate planes of shape ``(2, N, M)``.
+
+        ``positions[0, i]`` holds robot ``i``'s x over all particles (the reference's row is
+        zero). Robot-major rows make the gathers of the measurement models
+        (``positions[:, index_a]``) contiguous, which is several times faster than gathering
+        along the middle axis of an ``(M, N, 2)`` array.
+        """
+        m = particles.shape[0]
+        out = np.zeros((2, len(self.robots), m))
+        rel = particles[:, : 2 * self.n_others].T.reshape(-1, 2, m)  # (N-1, 2, M)
+        out[:, self._other_rows, :] = rel.transpose(1, 0, 2)
+        return out
+
+    @cached_property
+    def _other_rows(self) -> NDArray[np.intp]:
+        return np.array([i for i, r in enumerate(self.robots) if r != self.reference], dtype=np.intp)
+
+    def bias_belief_column(self, pair: str) -> int:
+        """Column of the mean of a per-particle Gaussian belief about ``pair``'s bias (its
+        variance is the next column), -1 if the state holds none."""
+        return -1
+
+    def bias_state_columns(self, pair: str) -> tuple[int, ...]:
+        """State columns whose sum a range of ``pair`` sees on top of its fixed bias (an
+        estimated bias as a state variable), ``()`` if none."""
+        return ()
+
 
 @dataclass(frozen=True)
 class StateLayout(TeamLayout):
     """The column blocks of the sampled filter's particle state."""
-
-    bias_pairs: tuple[str, ...] = ()
-    """Node pairs (``"n_3-n_7"``) whose range bias is estimated online, in column order."""
 
     @property
     def dim(self) -> int:
@@ -78,25 +116,10 @@ class StateLayout(TeamLayout):
         k = self.bias_pairs.index(pair)
         return self.dim + 2 * k, self.dim + 2 * k + 1
 
+    def bias_belief_column(self, pair: str) -> int:
+        return self.bias_columns(pair)[0] if pair in self.bias_pairs else -1
+
     def columns(self, robot: str) -> slice:
         """Columns of ``robot``'s relative position (the reference has none)."""
         k = self.others.index(robot)
         return slice(2 * k, 2 * k + 2)
-
-    def positions(self, particles: FloatArray) -> FloatArray:
-        """All robots' relative positions as coordinate planes of shape ``(2, N, M)``.
-
-        ``positions[0, i]`` holds robot ``i``'s x over all particles (the reference's row is
-        zero). Robot-major rows make the gathers of the measurement models
-        (``positions[:, index_a]``) contiguous, which is several times faster than gathering
-        along the middle axis of an ``(M, N, 2)`` array.
-        """
-        m = particles.shape[0]
-        out = np.zeros((2, len(self.robots), m))
-        rel = particles[:, : self.dim].T.reshape(-1, 2, m)  # (N-1, 2, M)
-        out[:, self._other_rows, :] = rel.transpose(1, 0, 2)
-        return out
-
-    @cached_property
-    def _other_rows(self) -> NDArray[np.intp]:
-        return np.array([i for i, r in enumerate(self.robots) if r != self.reference], dtype=np.intp)

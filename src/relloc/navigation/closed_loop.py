@@ -7,7 +7,7 @@ robots keep driving their patterns. The loop is the live system's, in simulated 
 1. ``Simulation.advance(t)`` to the next control tick (``1 / rate_hz``) returns the events of
    that interval: odometry, UWB ranges, ground truth;
 2. every event goes through the same :class:`~relloc.engine.Engine`, pipeline and
-   :class:`~relloc.localizer.ParticleFilterLocalizer` as every other relloc run (the engine
+   :class:`~relloc.localizers.sampled.ParticleFilterLocalizer` as every other relloc run (the engine
    keeps ground truth aside; the localizer never sees it); the robot's own odometry also goes
    to the :class:`~relloc.navigation.navigator.Navigator` (its heading in the shared frame);
 3. the navigator turns the latest estimate + odometry into a command, through the safety gate

@@ -10,7 +10,7 @@ point at one place, ``p_i + R_i o_i = p_j + R_j o_j``, hence
 
 a measured relative position. The stage emits it as a
 :class:`~relloc.events.RelativeObservation` and the particle filter fuses it, in the same update
-as the ranges, with :class:`~relloc.filter.models.RelativePositionBatch`. Unlike a range, the
+as the ranges, with :class:`~relloc.filter.vectors.RelativePositionBatch`. Unlike a range, the
 vector fixes the bearing between the robots: it resolves the rotations and reflections that
 ranges alone cannot, and it is the only source of bearing for robots that do not move.
 

@@ -1,0 +1,148 @@
+"""The one interface of relloc's filters, and what they share.
+
+Both filters hold ``M`` weighted hypotheses about the team (particles, or Gaussians each carrying
+a Kalman filter) and run the same cycle, which is all a localizer calls:
+
+``predict(disp, sigma, dt)``
+    move every hypothesis by each robot's odometry displacement ``disp`` (N, 2) with per-axis
+    standard deviation ``sigma`` (N,) over ``dt`` seconds (random walks of any calibration
+    state included);
+``update(models)``
+    fuse the measurement models of one batch (:mod:`relloc.filter.measurement`) and normalise
+    the log-weights; returns False, the weights kept, when no hypothesis explains the batch;
+``estimate()``
+    the weighted moments as a :class:`FilterEstimate`;
+``maybe_resample()``
+    resample when due (every step, or when the effective sample size falls below
+    ``ess_threshold * M``), re-drawing a ``reinject_fraction`` of the hypotheses from the
+    uniform prior box so that a filter locked on a wrong mode can still find the right one.
+
+:class:`WeightedFilter` implements the weights, the resampling schedule and the re-injection
+once; a filter supplies how to copy hypotheses (``_select``) and how to re-draw some from its
+prior (``_reinject``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from relloc.filter.measurement import MeasurementModel
+from relloc.filter.motion import PriorBox
+from relloc.filter.resampling import ess, log_normalize, resample_with_reinjection
+from relloc.filter.state import TeamLayout
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+RESAMPLE_MODES = ("ess", "every_step")
+
+
+@dataclass(frozen=True)
+class FilterEstimate:
+    """Weighted moments of a filter: each non-reference robot's relative position and, where
+    the filter estimates them, headings, range biases and odometry scales (mean, std)."""
+
+    mean: FloatArray  # (N-1, 2)
+    cov: FloatArray  # (N-1, 2, 2)
+    ess: float
+    headings: dict[str, tuple[float, float]] = field(default_factory=dict)
+    biases: dict[str, tuple[float, float]] = field(default_factory=dict)
+    scales: dict[str, tuple[float, float]] = field(default_factory=dict)
+
+
+def renormalized(logw: FloatArray) -> FloatArray | None:
+    """Log-weights normalised (non-finite ones to ``-inf``), or ``None`` when none is finite:
+    no hypothesis explains the measurements, and the caller keeps its weights."""
+    if not np.any(np.isfinite(logw)):
+        return None
+    return log_normalize(np.where(np.isfinite(logw), logw, -np.inf))
+
+
+class WeightedFilter:
+    """Log-weights, the resampling schedule and re-injection from the uniform prior box."""
+
+    layout: TeamLayout
+
+    def __init__(
+        self,
+        n: int,
+        area: tuple[float, float, float, float],
+        *,
+        rng: np.random.Generator,
+        resample: str = "ess",
+        ess_threshold: float = 0.5,
+        reinject_fraction: float = 0.01,
+    ) -> None:
+        if n < 1:
+            raise ValueError("n_particles must be positive")
+        if resample not in RESAMPLE_MODES:
+            raise ValueError(f"resample must be 'ess' or 'every_step', got {resample!r}")
+        if not 0.0 <= reinject_fraction < 1.0:
+            raise ValueError("reinject_fraction must be in [0, 1)")
+        self.n = n
+        self.rng = rng
+        self.prior = PriorBox(area)
+        self.half_extent = self.prior.half_extent
+        self.resample_mode = resample
+        self.ess_threshold = ess_threshold
+        self.reinject_fraction = reinject_fraction
+        self.logw = np.full(n, -math.log(n))
+        self.resample_count = 0
+
+    # ---------------------------------------------------------------- the cycle
+    def predict(self, disp: FloatArray, sigma: FloatArray, dt: float) -> None:
+        raise NotImplementedError
+
+    def update(self, models: Sequence[MeasurementModel]) -> bool:
+        raise NotImplementedError
+
+    def estimate(self) -> FilterEstimate:
+        raise NotImplementedError
+
+    @property
+    def shared_heading(self) -> bool:
+        """Whether the state is in the team's shared heading frame (measurements expressed in
+        it, such as detection vectors, can be fused)."""
+        return True
+
+    def counters(self) -> dict[str, int]:
+        """Running counts of the filter's own events, for the localizer's statistics."""
+        return {}
+
+    # ---------------------------------------------------------------- resampling
+    def ess(self) -> float:
+        return ess(self.logw)
+
+    def maybe_resample(self) -> bool:
+        """Resample if configured to (every step, or ESS below threshold); True if it did."""
+        if self.resample_mode == "ess" and self.ess() >= self.ess_threshold * self.n:
+            return False
+        self.resample()
+        return True
+
+    def resample(self) -> None:
+        """Systematic resampling, then a ``reinject_fraction`` of the slots re-drawn from the
+        prior box; equal weights."""
+        idx, slots = resample_with_reinjection(self.logw, self.rng, self.reinject_fraction)
+        self._select(idx)
+        if slots.size:
+            self._reinject(slots, self.prior.sample(self.rng, slots.size, self.layout.n_others))
+        self.logw = np.full(self.n, -math.log(self.n))
+        self.resample_count += 1
+        self._after_resample()
+
+    def _select(self, idx: IntArray) -> None:
+        """Keep hypotheses ``idx`` (with repetitions), in that order."""
+        raise NotImplementedError
+
+    def _reinject(self, slots: IntArray, positions: FloatArray) -> None:
+        """Restart the hypotheses in ``slots`` at the prior, at formations ``positions``."""
+        raise NotImplementedError
+
+    def _after_resample(self) -> None:
+        """A filter's own step after each resampling (none by default)."""

@@ -1,0 +1,84 @@
+"""What both filters share about motion and the start: the odometry noise model and the
+uniform prior box of relative positions."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+
+@dataclass(frozen=True)
+class OdometryMotion:
+    """Relative-position process model driven by every robot's odometry.
+
+    Robot ``i`` moved by ``disp[i]`` over ``dt`` seconds with per-axis standard deviation
+    ``sigma[i]`` (:meth:`step_sigma`: ``noise_per_m`` per metre travelled plus ``noise_per_rad``
+    per radian turned). The relative position of ``i`` with respect to the reference ``r``
+    moves by ``disp[i] - disp[r]``; the reference's noise is drawn once per particle and shared
+    by every relative position, as it is in reality. ``process_noise`` (m/sqrt(s)) adds a
+    random walk so that particles of static robots stay diverse.
+    """
+
+    process_noise: float = 0.03
+    noise_per_m: float = 0.05
+    noise_per_rad: float = 0.02
+
+    def step_sigma(self, distance: float, turn: float) -> float:
+        """Per-axis standard deviation of one robot's displacement over one step."""
+        return self.noise_per_m * distance + self.noise_per_rad * turn
+
+    def own_variance(self, sigma: FloatArray, others: IntArray | list[int], dt: float) -> FloatArray:
+        """Per non-reference robot, the variance of its own motion noise over ``dt``: its
+        odometry's and the random walk's (the reference's adds to every one, in common)."""
+        return sigma[others] ** 2 + self.process_noise**2 * max(dt, 0.0)
+
+    def propagate(
+        self,
+        particles: FloatArray,
+        others: IntArray,
+        reference: int,
+        disp: FloatArray,
+        sigma: FloatArray,
+        dt: float,
+        rng: np.random.Generator,
+    ) -> None:
+        """Move the position columns of ``particles`` (``(M, D)``, ``D >= 2(N-1)``: online-bias
+        columns may follow; in place); ``others`` indexes disp/sigma rows."""
+        m = particles.shape[0]
+        n_others = len(others)
+        rel = particles[:, : 2 * n_others].reshape(m, n_others, 2)
+        own = np.sqrt(self.own_variance(sigma, others, dt))
+        noise = rng.standard_normal((m, n_others, 2))
+        noise *= own[None, :, None]
+        noise += disp[others] - disp[reference]
+        if sigma[reference] > 0.0:
+            noise -= rng.standard_normal((m, 1, 2)) * sigma[reference]
+        rel += noise
+
+
+@dataclass(frozen=True)
+class PriorBox:
+    """Uniform prior over relative positions: each robot is anywhere in the arena
+    ``(xmin, xmax, ymin, ymax)``, so a relative position spans twice its extent."""
+
+    area: tuple[float, float, float, float]
+
+    @property
+    def half_extent(self) -> FloatArray:
+        xmin, xmax, ymin, ymax = self.area
+        return np.array([xmax - xmin, ymax - ymin], dtype=float)
+
+    def sample(self, rng: np.random.Generator, m: int, n_others: int) -> FloatArray:
+        """``m`` formations uniform over the box, shape ``(m, 2 n_others)``."""
+        u = rng.uniform(-1.0, 1.0, size=(m, n_others, 2)) * self.half_extent
+        return u.reshape(m, 2 * n_others)
+
+    def contains(self, positions: FloatArray) -> NDArray[np.bool_]:
+        """Which rows of ``positions`` (``(m, 2 n_others)``) lie inside the box."""
+        m = positions.shape[0]
+        return np.all(np.abs(positions.reshape(m, -1, 2)) <= self.half_extent, axis=(1, 2))

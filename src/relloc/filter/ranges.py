@@ -1,0 +1,347 @@
+"""The UWB range model: robust likelihoods of ranges between robots, and their linearisation.
+
+With ``r = z - b - ||p_a - p_b||`` the residual of a range after the pair's bias ``b``, the
+*symmetric* model is a Gaussian-plus-uniform mixture::
+
+    p(r) = (1 - eps) N(r; 0, sigma^2) + eps / R
+
+with ``eps`` the outlier fraction and ``R`` the support of the outliers. The uniform floor
+bounds the damage one spike can do to a good particle.
+
+A time-of-flight range can only be *too long* when the direct path is blocked: the signal that
+arrives first took a detour. The *NLOS-aware* model (``nlos_fraction > 0``) adds that one-sided
+component: a line-of-sight range has Gaussian noise; a non-line-of-sight one has, on top, a
+positive excess delay ``e ~ |N(0, sigma_n^2)|`` (half-normal), so its residual is skew-normal::
+
+    p(r) = (1 - eps_n - eps) N(r; 0, sigma^2) + eps_n SN(r; sigma, sigma_n) + eps / R
+    SN(r; sigma, sigma_n) = 2/w phi(r/w) Phi(alpha r/w),  w^2 = sigma^2 + sigma_n^2,
+                                                           alpha = sigma_n / sigma
+
+(``Phi`` by its logistic approximation ``1 / (1 + exp(-1.702 x))``, within 0.01). A run of long
+ranges is thus explained as a blocked path rather than pulling the particles apart, while a
+range that is too *short* stays as informative as the line-of-sight noise says. The parameters
+are fitted to the TIERS training table (docs/results.md, "Design measurements behind the
+filter's defaults").
+
+Online biases. In the sampled filter each particle holds a Gaussian belief ``N(mu, v)`` about a
+pair's bias (two state columns, Rao-Blackwellised) and the range likelihood marginalises it:
+``N(z - mu; ||p_a - p_b||, sigma^2 + v)``; after the weights are updated, :meth:`RangeBatch.condition`
+updates ``mu, v`` (a scalar Kalman filter per particle and pair), weighting each range by the
+probability that it is line-of-sight. In the Gaussian-sum filter the bias (and its
+time-correlated part) are ordinary state columns that the range's linearisation includes.
+
+Several ranges of one pair in a batch are not independent evidence (their errors are strongly
+correlated over a tenth of a second): :meth:`RangeBatch.build` takes their median. A calibrated
+pair's scale (``measured = scale * true + bias``) is divided out there, from range, bias and
+sigma alike, so every likelihood sees ``range = true + bias + noise``.
+"""
+
+from __future__ import annotations
+
+import math
+import statistics
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from relloc.config import TeamConfig
+from relloc.events import RangeEvent, pair_key
+from relloc.filter.measurement import (
+    LinearRow,
+    MeasurementModel,
+    ModelContext,
+    ValidationContext,
+    finite,
+)
+from relloc.filter.state import TeamLayout
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+_LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
+_LOGISTIC_PROBIT = 1.702
+"""``Phi(x) ~ 1 / (1 + exp(-1.702 x))``: the logistic approximation of the normal CDF."""
+
+
+def _robust_gaussian_loglik(residual: FloatArray, sigma: FloatArray, eps: float, support: float) -> FloatArray:
+    """Elementwise log of ``(1-eps) N(residual; 0, sigma^2) + eps / support``.
+
+    Computed in linear space (one ``exp`` and one ``log``, in place): exact, because the
+    uniform floor keeps the sum away from zero, and about twice as fast as ``logaddexp``.
+    """
+    z = residual / sigma
+    z *= z
+    z *= -0.5
+    if eps <= 0.0:
+        z -= np.log(sigma) + _LOG_SQRT_2PI
+        return z
+    np.exp(z, out=z)
+    z *= (1.0 - eps) / (sigma * np.sqrt(2.0 * np.pi))
+    z += eps / support
+    np.log(z, out=z)
+    return z
+
+
+def _range_mixture(
+    residual: FloatArray, sigma: FloatArray, eps: float, support: float, nlos_fraction: float, nlos_sigma: float
+) -> tuple[FloatArray, FloatArray]:
+    """Line-of-sight density and total density of the range mixture (module docstring),
+    elementwise; ``sigma`` broadcasts against ``residual``. ``nlos_fraction`` 0 is the
+    symmetric Gaussian-plus-uniform model."""
+    z = residual / sigma
+    los = np.exp(-0.5 * z * z)
+    los *= (1.0 - nlos_fraction - eps) / (sigma * np.sqrt(2.0 * np.pi))
+    if nlos_fraction <= 0.0:
+        return los, los + eps / support
+    w = np.sqrt(sigma * sigma + nlos_sigma * nlos_sigma)
+    u = residual / w
+    nlos = np.exp(-0.5 * u * u)
+    # (2 / w) phi(u) Phi(alpha u), Phi by the logistic approximation
+    nlos *= 2.0 * nlos_fraction / (w * np.sqrt(2.0 * np.pi))
+    nlos /= 1.0 + np.exp(-_LOGISTIC_PROBIT * (nlos_sigma / sigma) * u)
+    total = los + nlos
+    total += eps / support
+    return los, total
+
+
+def pair_sigma(config: TeamConfig, node_pair: str, base: float) -> float:
+    """Noise of a raw range of ``node_pair`` (after its scale is divided out): the pair's
+    calibrated sigma, else ``base``, over its scale; an uncalibrated pair's ``base`` widened
+    by ``uwb.default_bias_sigma`` (its bias is only the default)."""
+    uwb = config.uwb
+    cal = uwb.pairs.get(node_pair)
+    if cal is None:
+        return math.hypot(base, uwb.default_bias_sigma)
+    return (cal.sigma if cal.sigma is not None else base) / cal.scale
+
+
+@dataclass(frozen=True)
+class RangeBatch:
+    """``K`` ranges between robots ``index_a[k]`` and ``index_b[k]`` (indices into the team).
+
+    ``distance`` is the measured range, ``bias`` the pair's fixed bias (``measured = true +
+    bias``; a calibrated range scale is divided out by :meth:`build`) and ``sigma`` its noise.
+    """
+
+    events: ClassVar[tuple[type, ...]] = (RangeEvent,)
+    stat: ClassVar[str] = "range"
+    invariant: ClassVar[bool] = True
+    needs_shared_heading: ClassVar[bool] = False
+
+    index_a: IntArray
+    index_b: IntArray
+    distance: FloatArray
+    bias: FloatArray
+    sigma: FloatArray
+    outlier_fraction: float = 0.1
+    max_range: float = 15.0
+    bias_columns: IntArray | None = None
+    """Sampled filter, online biases: per range, the state column of the particle's bias mean
+    (the variance is the next column), or -1 where the bias is the fixed ``bias``; ``None``:
+    all fixed."""
+    nlos_fraction: float = 0.0
+    """Weight of the non-line-of-sight (one-sided, too long) component; 0: the symmetric
+    Gaussian-plus-uniform model. ``sigma`` is then the line-of-sight noise."""
+    nlos_sigma: float = 0.3
+    """Scale of the NLOS excess delay (half-normal, m)."""
+    state_columns: tuple[tuple[int, ...], ...] = ()
+    """Gaussian-sum filter, online biases: per range, the state columns whose sum the range
+    sees on top of the fixed ``bias`` (the pair's bias and its time-correlated error); ``()``:
+    none anywhere."""
+    layout: TeamLayout | None = None
+    """The state layout the ranges index (needed by :meth:`row` only)."""
+
+    def __len__(self) -> int:
+        return len(self.distance)
+
+    # ---------------------------------------------------------------- building, validation
+    @classmethod
+    def build(cls, events: Sequence[RangeEvent], context: ModelContext) -> list[MeasurementModel]:
+        """The range models of one batch: per robot pair its median range; raw ranges get the
+        NLOS-aware model when ``context.range_model`` says so and their bias is not online (an
+        unknown bias and a one-sided excess are confounded), ranges corrected upstream by a
+        learned model the symmetric one (the correction predicted the skewed part)."""
+        config, layout = context.config, context.layout
+        fc, uwb = config.filter, config.uwb
+        groups: dict[tuple[int, int], list[RangeEvent]] = {}
+        for m in events:
+            a, b = layout.index(m.robot_a), layout.index(m.robot_b)
+            groups.setdefault((min(a, b), max(a, b)), []).append(m)
+        if not groups:
+            return []
+        pairs, dist, bias, sigma, keys = [], [], [], [], []
+        for key, group in groups.items():
+            nodes = config.range_nodes(group[0])
+            node_pair = pair_key(*nodes)
+            d = float(statistics.median(ev.distance for ev in group))  # a few values: no NumPy
+            if all(ev.corrected for ev in group):
+                b, s, node_pair = 0.0, fc.sigma_uwb, ""
+            elif node_pair in layout.bias_pairs:
+                b, s = 0.0, fc.sigma_uwb  # the bias is in the state
+            else:
+                b, scale, _ = uwb.calibration(*nodes)
+                d, b, s = d / scale, b / scale, pair_sigma(config, node_pair, fc.sigma_uwb)
+            pairs.append(key)
+            dist.append(d)
+            bias.append(b)
+            sigma.append(s)
+            keys.append(node_pair)
+        idx = np.array(pairs, dtype=np.intp)
+        dist_a, bias_a, sigma_a = np.array(dist), np.array(bias), np.array(sigma)
+        online = [k in layout.bias_pairs for k in keys]
+        belief = np.array([layout.bias_belief_column(k) if on else -1 for k, on in zip(keys, online, strict=True)], dtype=np.intp)
+        state = tuple(layout.bias_state_columns(k) if on else () for k, on in zip(keys, online, strict=True))
+        if context.range_model == "nlos":
+            raw = np.array([bool(k) and not on for k, on in zip(keys, online, strict=True)])
+        else:
+            raw = np.zeros(len(keys), bool)
+        out: list[MeasurementModel] = []
+        for sel, nlos in ((raw, True), (~raw, False)):
+            if not np.any(sel):
+                continue
+            if nlos:
+                s = np.array([pair_sigma(config, k, fc.los_sigma) for k in keys])[sel]
+                eps = fc.gross_fraction if context.robust else 0.0
+            else:
+                s = sigma_a[sel]
+                eps = fc.outlier_fraction if context.robust else 0.0
+            rows = np.flatnonzero(sel)
+            out.append(
+                cls(
+                    idx[sel, 0], idx[sel, 1], dist_a[sel], bias_a[sel], s, eps, fc.max_range,
+                    belief[sel] if np.any(belief >= 0) else None,
+                    nlos_fraction=fc.nlos_fraction if nlos and context.robust else 0.0,
+                    nlos_sigma=fc.nlos_sigma,
+                    state_columns=tuple(state[i] for i in rows) if any(state) else (),
+                    layout=layout,
+                )
+            )
+        return out
+
+    @classmethod
+    def rejection(cls, event: RangeEvent, context: ValidationContext) -> str | None:
+        """Unknown robots, a robot ranging itself, a non-finite, non-positive or out-of-range
+        distance, a measurement the filter has moved past, a node pair the online-bias state
+        has no column for, and a range equal to its pair's previous one."""
+        names = context.layout.robots
+        if event.robot_a not in names or event.robot_b not in names:
+            return "unknown_robot"
+        if event.robot_a == event.robot_b:
+            return "self_range"
+        d = event.distance
+        if not finite(d) or d <= 0.0 or d > context.config.filter.max_range:
+            return "invalid_range"
+        if context.is_late(event.t):
+            return "late_measurement"
+        bias_pairs = context.layout.bias_pairs
+        if bias_pairs and not event.corrected and pair_key(*context.config.range_nodes(event)) not in bias_pairs:
+            return "unknown_node_pair"  # online biases: the state has a column per configured pair only
+        last = context.memory(cls)
+        key = (event.robot_a, event.robot_b) if event.robot_a < event.robot_b else (event.robot_b, event.robot_a)
+        if last.get(key) == d:
+            # Equal to the pair's previous range: a driver re-publishing a stale sample, or a
+            # new one that the 1 cm resolution made equal. Dropped either way: the likelihood
+            # treats each batch as independent evidence, and a repeated value is not.
+            return "repeated_range"
+        last[key] = d
+        return None
+
+    # ---------------------------------------------------------------- sampled filter
+    def predicted(self, positions: FloatArray) -> FloatArray:
+        """True distances of each particle's pairs, shape ``(K, M)``."""
+        dx = positions[0, self.index_a] - positions[0, self.index_b]
+        dy = positions[1, self.index_a] - positions[1, self.index_b]
+        return np.sqrt(dx * dx + dy * dy)
+
+    def _residual_and_sigma(self, positions: FloatArray, particles: FloatArray | None) -> tuple[FloatArray, FloatArray]:
+        d = self.predicted(positions)
+        residual = (self.distance - self.bias)[:, None] - d
+        sigma = self.sigma[:, None]  # (K, 1): broadcasts against (K, M)
+        if particles is None:
+            return residual, sigma
+        if self.bias_columns is not None:
+            online = self.bias_columns >= 0
+            if np.any(online):
+                cols = self.bias_columns[online]
+                residual[online] -= particles[:, cols].T
+                sigma = np.repeat(sigma, residual.shape[1], axis=1)
+                sigma[online] = np.sqrt(self.sigma[online, None] ** 2 + particles[:, cols + 1].T)
+        for k, cols in enumerate(self.state_columns):
+            for c in cols:
+                residual[k] -= particles[:, c]
+        return residual, sigma
+
+    def log_likelihood(self, positions: FloatArray, particles: FloatArray | None = None) -> FloatArray:
+        residual, sigma = self._residual_and_sigma(positions, particles)
+        if self.nlos_fraction > 0.0:
+            _, total = _range_mixture(
+                residual, sigma, self.outlier_fraction, self.max_range, self.nlos_fraction, self.nlos_sigma
+            )
+            return np.log(total).sum(axis=0)
+        ll = _robust_gaussian_loglik(residual, sigma, self.outlier_fraction, self.max_range)
+        return ll.sum(axis=0)
+
+    @property
+    def conditions(self) -> bool:
+        return self.bias_columns is not None and bool(np.any(self.bias_columns >= 0))
+
+    def condition(self, positions: FloatArray, particles: FloatArray) -> None:
+        """Update each particle's online bias beliefs with this batch, in place.
+
+        The Kalman gain is scaled by the probability that the range is an inlier under the
+        robust mixture, so an NLOS spike barely moves the bias.
+        """
+        if not self.conditions:
+            return
+        assert self.bias_columns is not None
+        online = self.bias_columns >= 0
+        residual, sigma = self._residual_and_sigma(positions, particles)
+        r, s = residual[online], sigma[online]
+        cols = self.bias_columns[online]
+        var = particles[:, cols + 1].T  # (K', M)
+        los, total = _range_mixture(r, s, self.outlier_fraction, self.max_range, self.nlos_fraction, self.nlos_sigma)
+        inlier = los / total
+        gain = inlier * var / (s * s)
+        particles[:, cols] += (gain * r).T
+        particles[:, cols + 1] = ((1.0 - gain) * var).T
+
+    # ---------------------------------------------------------------- Gaussian-sum filter
+    @property
+    def rows(self) -> int:
+        return len(self.distance)
+
+    def row(self, k: int, mean: FloatArray) -> LinearRow:
+        """Range ``k`` linearised at every Gaussian's mean: ``d(|p_a - p_b|)/dp = +-e`` (the
+        unit vector from b to a) and 1 for every online bias column it sees."""
+        if self.nlos_fraction > 0.0 or self.bias_columns is not None:
+            raise ValueError("only the symmetric range model with state-column biases has a linear row")
+        if self.layout is None:
+            raise ValueError("a range model needs its layout to be linearised")
+        n = mean.shape[0]
+        sa = self.layout.slot_of(int(self.index_a[k]))
+        sb = self.layout.slot_of(int(self.index_b[k]))
+        pa = mean[:, 2 * sa : 2 * sa + 2] if sa >= 0 else np.zeros((n, 2))
+        pb = mean[:, 2 * sb : 2 * sb + 2] if sb >= 0 else np.zeros((n, 2))
+        diff = pa - pb
+        dist = np.sqrt(np.sum(diff * diff, axis=1))
+        e = diff / np.maximum(dist, 1e-6)[:, None]
+        cols: list[int] = []
+        coefs: list[FloatArray] = []
+        if sa >= 0:
+            cols += [2 * sa, 2 * sa + 1]
+            coefs += [e[:, 0], e[:, 1]]
+        if sb >= 0:
+            cols += [2 * sb, 2 * sb + 1]
+            coefs += [-e[:, 0], -e[:, 1]]
+        predicted = dist + float(self.bias[k])
+        for c in self.state_columns[k] if self.state_columns else ():
+            cols.append(c)
+            coefs.append(np.ones(n))
+            predicted = predicted + mean[:, c]
+        return LinearRow(
+            np.array(cols), np.stack(coefs, axis=1), float(self.distance[k]) - predicted,
+            float(self.sigma[k]) ** 2, self.outlier_fraction, self.max_range,
+        )

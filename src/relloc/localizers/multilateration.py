@@ -1,0 +1,57 @@
+"""The multilateration baseline (the paper's Multi): least squares on the ranges present.
+
+Keeps the latest bias-corrected range of every robot pair and, at every batch, solves for the
+formation from those at most ``max_age`` old (:mod:`relloc.filter.multilateration`), the gauge
+(rotation, reflection) kept continuous with the previous solution. No odometry, no filter: what
+the ranges alone say at each instant.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from relloc.config import TeamConfig
+from relloc.estimate import Estimate
+from relloc.events import RangeEvent
+from relloc.filter import multilateration
+from relloc.filter.measurement import ModelContext
+from relloc.filter.ranges import RangeBatch
+from relloc.localizers.base import Localizer, Measurement
+
+FloatArray = NDArray[np.float64]
+
+
+class MultilaterationLocalizer(Localizer):
+    """Least-squares formation from the latest range of every pair, gauge kept continuous."""
+
+    method = "multilateration"
+
+    def __init__(self, config: TeamConfig, *, max_age: float = 0.5, seed: int = 0) -> None:
+        super().__init__(config)
+        self.max_age = max_age
+        self._latest: dict[tuple[int, int], tuple[float, float]] = {}  # pair -> (t, corrected d)
+        self._previous: FloatArray | None = None
+        self.rng = np.random.default_rng(seed)
+        self._context = ModelContext(config, self.layout, range_model="symmetric")
+
+    def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
+        ranges = [m for m in batch if isinstance(m, RangeEvent)]
+        for model in RangeBatch.build(ranges, self._context):
+            assert isinstance(model, RangeBatch)
+            for a, b, d, bias in zip(model.index_a, model.index_b, model.distance, model.bias, strict=True):
+                self._latest[(int(a), int(b))] = (t, max(float(d - bias), 0.0))
+        fresh = {k: d for k, (tk, d) in self._latest.items() if t - tk <= self.max_age}
+        n = len(self.layout.robots)
+        ref = self.layout.index(self.layout.reference)
+        if not fresh:
+            self.stats["no_estimate"] += 1
+            return None
+        keys = np.array(list(fresh), dtype=np.intp)
+        sol = multilateration.solve(n, ref, keys, np.array(list(fresh.values())), self._previous, self.rng)
+        if sol is None:
+            self.stats["no_estimate"] += 1
+            return None
+        self._previous = sol
+        positions = {r: (float(sol[self.layout.index(r), 0]), float(sol[self.layout.index(r), 1])) for r in self.layout.others}
+        return Estimate(t, self.method, self.layout.reference, positions)

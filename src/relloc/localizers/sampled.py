@@ -1,0 +1,90 @@
+"""The sampled localizer: odometry + UWB ranges (+ detection vectors) in a particle filter.
+
+Every particle is one hypothesis about the formation (:mod:`relloc.filter.pf`); with online
+biases (``bias_mode = "online"``) it also carries a Gaussian belief about each UWB node pair's
+range bias, its prior the pair's calibration where there is one, else wide around
+``uwb.default_bias`` (Rao-Blackwellised, :mod:`relloc.filter.state`). The range model updates
+those beliefs; the filter walks their variances. The localizer itself only starts the filter
+(:mod:`relloc.localizers.start`) and then runs the cycle of
+:class:`~relloc.localizers.base.FilterLocalizer`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from relloc.config import TeamConfig
+from relloc.estimate import Estimate
+from relloc.events import pair_key
+from relloc.filter.motion import OdometryMotion
+from relloc.filter.pf import ParticleFilter
+from relloc.filter.state import StateLayout
+from relloc.localizers.base import FilterLocalizer, Measurement
+from relloc.localizers.start import annealed_start
+
+
+def bias_layout(config: TeamConfig) -> tuple[StateLayout, list[float]]:
+    """The sampled state's layout and the prior of its non-position columns: with online
+    biases a (mean, variance) belief per UWB node pair of the team, none otherwise."""
+    fc = config.filter
+    names = config.robot_names
+    if fc.bias_mode != "online":
+        return StateLayout(names, config.reference), []
+    node_pairs = sorted({_node_pair(config, a, b) for i, a in enumerate(names) for b in names[i + 1 :]})
+    prior: list[float] = []
+    for pair in node_pairs:
+        cal = config.uwb.pairs.get(pair)
+        if cal is not None:
+            prior += [cal.bias, fc.bias_prior_sigma**2]
+        else:
+            prior += [config.uwb.default_bias, fc.bias_prior_sigma_uncalibrated**2]
+    return StateLayout(names, config.reference, tuple(node_pairs)), prior
+
+
+def _node_pair(config: TeamConfig, robot_a: str, robot_b: str) -> str:
+    """Key of the UWB transceiver pair between two robots (robot names if no node ids)."""
+    a = config.robot(robot_a).uwb_node or robot_a
+    b = config.robot(robot_b).uwb_node or robot_b
+    return pair_key(a, b)
+
+
+def particle_filter(
+    config: TeamConfig, layout: StateLayout, prior: list[float], n: int, rng: np.random.Generator
+) -> ParticleFilter:
+    """The configured particle filter of ``n`` particles over ``layout``."""
+    fc = config.filter
+    return ParticleFilter(
+        layout,
+        n,
+        config.area,
+        rng=rng,
+        motion=OdometryMotion(fc.process_noise, fc.odom_noise_per_m, fc.odom_noise_per_rad),
+        resample=fc.resample,
+        ess_threshold=fc.ess_threshold,
+        reinject_fraction=fc.reinject_fraction,
+        extra_prior=np.array(prior),
+        rotation_noise=fc.rotation_noise,
+        rotation_kernel=fc.rotation_kernel,
+        rotation_kernel_max_spread=fc.rotation_kernel_max_spread,
+        bias_walk=fc.bias_walk,
+    )
+
+
+class ParticleFilterLocalizer(FilterLocalizer):
+    """Odometry + UWB ranges (+ relative observations from detections) in a particle filter."""
+
+    method = "pf"
+    filter: ParticleFilter
+
+    def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
+        layout, prior = bias_layout(config)
+        super().__init__(config, layout, seed=seed)
+        self.method = method
+        self.range_model = config.filter.range_model  # online pairs keep the symmetric model
+        self.filter = particle_filter(config, layout, prior, config.filter.particles, self.rng)
+
+    def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
+        if not annealed_start(self, self.filter, batch):
+            return None
+        self._started(t)
+        return self._emit(t, self.filter.estimate())

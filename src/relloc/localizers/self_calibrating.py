@@ -1,0 +1,113 @@
+"""The self-calibrating localizer: headings, odometry scales and range biases estimated online.
+
+Where the config says ``heading_mode = "estimate"`` or ``odom_scale_mode = "online"``, the
+quantities a sampled particle cannot integrate (a heading revealed a little at every step) are
+carried by a Gaussian-sum filter (:mod:`relloc.filter.gaussian_sum`, which explains why): each
+of its components is a Kalman filter over positions and calibration. It starts from the
+sampled filter's annealed start (:mod:`relloc.localizers.start`), one Gaussian per particle,
+after which the sampled filter is dropped.
+
+What the filter estimates is not read from the config: a robot's odometry track keeps its own
+frame (heading estimated) or its raw length (scale estimated). With estimated headings there is
+no compass frame, so detection vectors cannot be fused; every range uses the symmetric model.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from relloc.config import TeamConfig
+from relloc.estimate import Estimate
+from relloc.filter.gaussian_sum import CalibrationLayout, CalibrationNoise, GaussianSumFilter
+from relloc.filter.motion import OdometryMotion
+from relloc.filter.pf import ParticleFilter
+from relloc.filter.resampling import normalize, systematic_resample
+from relloc.localizers.base import FilterLocalizer, Measurement
+from relloc.localizers.sampled import bias_layout, particle_filter
+from relloc.localizers.start import annealed_start
+
+
+def calibration_layout(config: TeamConfig) -> CalibrationLayout:
+    """Which calibration blocks the config asks to estimate (the layout of the filter)."""
+    fc = config.filter
+    layout, _ = bias_layout(config)
+    return CalibrationLayout(
+        layout.robots,
+        layout.reference,
+        heading=fc.heading_mode == "estimate",
+        scale=fc.odom_scale_mode == "online",
+        bias_pairs=layout.bias_pairs,
+    )
+
+
+class SelfCalibratingLocalizer(FilterLocalizer):
+    """Odometry + UWB ranges in a Gaussian-sum filter that estimates the calibration."""
+
+    method = "pf"
+    range_model = "symmetric"
+    filter: GaussianSumFilter
+
+    def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
+        layout, prior = bias_layout(config)
+        self.calibration = calibration_layout(config)
+        super().__init__(config, layout, seed=seed)
+        self.method = method
+        fc = config.filter
+        self.filter = self._gaussian_sum(np.array(prior))
+        # the annealed start: a sampled filter over positions (and bias beliefs)
+        n_start = max(fc.selfcal_init_particles, fc.selfcal_particles)
+        self.start_filter: ParticleFilter | None = particle_filter(config, layout, prior, n_start, self.rng)
+
+    def _track_frame(self, robot: str) -> tuple[float, float]:
+        """The config's heading offset and scale, unless the filter estimates them: then the
+        track keeps the robot's own frame (offset 0) or its raw length (scale 1)."""
+        offset, scale = super()._track_frame(robot)
+        return (0.0 if self.calibration.heading else offset, 1.0 if self.calibration.scale else scale)
+
+    def _gaussian_sum(self, bias_prior: np.ndarray) -> GaussianSumFilter:
+        fc, layout = self.config.filter, self.calibration
+        prior = (bias_prior[0::2], bias_prior[1::2]) if len(layout.bias_pairs) else None
+        heading_prior: dict[str, tuple[float, float]] = {}
+        if layout.heading and fc.heading_prior_sigma_deg > 0.0:
+            ref = self.config.robot(layout.reference).heading_offset
+            for robot in layout.others:
+                angle = math.remainder(self.config.robot(robot).heading_offset - ref, math.tau)
+                heading_prior[robot] = (angle, math.radians(fc.heading_prior_sigma_deg))
+        noise = CalibrationNoise(
+            heading_walk=fc.heading_walk,
+            reference_heading_walk=fc.reference_heading_walk,
+            scale_walk=fc.scale_walk,
+            bias_walk=fc.bias_walk,
+            scale_prior_sigma=fc.scale_prior_sigma,
+        )
+        return GaussianSumFilter(
+            layout,
+            fc.selfcal_particles,
+            self.config.area,
+            rng=self.rng,
+            noise=noise,
+            bias_prior=prior,
+            position_sigma=fc.selfcal_position_sigma,
+            motion=OdometryMotion(fc.process_noise, fc.odom_noise_per_m, fc.odom_noise_per_rad),
+            ess_threshold=fc.ess_threshold,
+            reinject_fraction=fc.reinject_fraction,
+            heading_prior=heading_prior,
+        )
+
+    def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
+        """Anneal the sampled start, then hand its particles to the Gaussian-sum filter (one
+        Gaussian per particle, resampled to its size) and drop the sampled filter."""
+        pf = self.start_filter
+        assert pf is not None
+        if not annealed_start(self, pf, batch):
+            return None
+        self._started(t)
+        gsf, particles = self.filter, pf.particles
+        if particles.shape[0] != gsf.n or np.ptp(pf.logw) > 0.0:  # (the vectors' weights)
+            idx = systematic_resample(normalize(pf.logw), self.rng, gsf.n)
+            particles = particles[idx]
+        gsf.initialize(particles[:, : self.layout.dim])
+        self.start_filter = None
+        return self._emit(t, gsf.estimate())
