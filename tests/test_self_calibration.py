@@ -347,7 +347,7 @@ def test_modes_from_the_command_line_and_the_config() -> None:
         sim.config.with_modes(heading="magnetometer")
     with pytest.raises(ConfigError):
         sim.config.with_modes(reference="ghost")
-    cfg = TeamConfig.from_dict({**sim.config.to_dict(), "filter": {"heading_mode": "estimate", "odom_scale_mode": "online"}})
+    cfg = TeamConfig.from_dict({**sim.config.to_dict(), "filter": {"self_calibration": {"heading_mode": "estimate", "odom_scale_mode": "online"}}})
     loc = build_pipeline("pf", cfg.with_filter(selfcal_particles=50, selfcal_init_particles=50)).localizer
     assert isinstance(loc, SelfCalibratingLocalizer) and loc.filter.layout.heading and loc.filter.layout.scale
     # the config's heading offsets and scales are not read in these modes
@@ -356,12 +356,12 @@ def test_modes_from_the_command_line_and_the_config() -> None:
 
 def test_demo_hides_what_is_estimated_and_moves_the_reference() -> None:
     sim, config, truth = scenario_setup("multi", DemoOptions(heading="estimate", bias="online"))
-    assert config.reference == "r1" and config.filter.heading_mode == "estimate"
+    assert config.reference == "r1" and config.filter.self_calibration.heading_mode == "estimate"
     assert all(r.heading_offset_deg == 0.0 for r in config.robots)
     assert config.uwb.pairs == {} and truth == sim.true_biases
     assert len({round(v, 3) for v in sim.true_heading_offsets.values()}) == 5  # random frames
     _, default, none = scenario_setup("multi", DemoOptions())
-    assert default.reference == "r0" and default.filter.heading_mode == "compass" and none is None
+    assert default.reference == "r0" and default.filter.self_calibration.heading_mode == "compass" and none is None
 
 
 # ---------------------------------------------------------------------------- TIERS recordings
