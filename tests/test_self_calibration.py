@@ -20,6 +20,7 @@ from relloc.demo import DemoOptions, scenario_setup
 from relloc.engine import Engine
 from relloc.events import OdometryEvent
 from relloc.filter.gaussian_sum import CalibrationLayout, CalibrationNoise, GaussianSumFilter
+from relloc.filter.motion import OdometryMotion
 from relloc.filter.ranges import RangeBatch
 from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
 from relloc.methods import build_pipeline
@@ -192,7 +193,7 @@ def test_wrapping_at_180_degrees_in_the_mean_and_in_the_error() -> None:
 
 def test_prediction_rotates_odometry_by_the_heading_and_propagates_covariance() -> None:
     layout = CalibrationLayout(("a", "b"), "a", heading=True, scale=True)
-    gsf = GaussianSumFilter(layout, 3, (-4, 4, -4, 4), rng=np.random.default_rng(0), process_noise=0.0)
+    gsf = GaussianSumFilter(layout, 3, (-4, 4, -4, 4), rng=np.random.default_rng(0), motion=OdometryMotion(process_noise=0.0))
     theta, s = 0.7, 1.1
     c0, c1 = layout.u_columns("b")
     gsf.mean[:, c0], gsf.mean[:, c1] = s * math.cos(theta), s * math.sin(theta)
@@ -243,7 +244,7 @@ def test_correlated_range_error_is_a_gauss_markov_state_beside_the_constant_bias
     layout = CalibrationLayout(("a", "b"), "a", bias_pairs=("n_1-n_2",))
     noise = CalibrationNoise(colored_sigma=0.05, colored_time=10.0, bias_walk=0.0)
     gsf = GaussianSumFilter(layout, 2, (-4, 4, -4, 4), rng=np.random.default_rng(0), noise=noise,
-                            bias_prior=(np.array([0.3]), np.array([0.04])), process_noise=0.0)
+                            bias_prior=(np.array([0.3]), np.array([0.04])), motion=OdometryMotion(process_noise=0.0))
     b, c = layout.bias_column("n_1-n_2"), layout.colored_column("n_1-n_2")
     assert gsf.mean[0, c] == 0.0 and gsf.cov[0, c, c] == pytest.approx(0.05**2)  # stationary
     gsf.mean[:, c] = 0.1
