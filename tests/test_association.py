@@ -268,7 +268,7 @@ def test_sigma_grows_with_detection_distance() -> None:
     by_sigma = sorted(obs, key=lambda o: o.sigma)
     assert len(by_sigma) == 2
     assert by_sigma[0].sigma < by_sigma[1].sigma
-    assert by_sigma[0].sigma >= _team().filter.sigma_det
+    assert by_sigma[0].sigma >= _team().filter.association.sigma_det
 
 
 def test_unlabelled_detections_match_any_label() -> None:

@@ -233,4 +233,4 @@ def test_a_calibrated_range_scale_is_applied_to_range_bias_and_sigma() -> None:
         assert isinstance(model, RangeBatch)
         assert (model.distance - model.bias)[0] == pytest.approx((5.8 - 0.3) / 1.1)
         assert model.sigma[0] == pytest.approx(0.11 / 1.1)
-        assert model.nlos_fraction == (config.filter.nlos_fraction if range_model == "nlos" else 0.0)
+        assert model.nlos_fraction == (config.filter.likelihood.nlos_fraction if range_model == "nlos" else 0.0)

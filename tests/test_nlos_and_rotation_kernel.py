@@ -127,7 +127,7 @@ def test_orientation_kernel_needs_a_formation() -> None:
 
 def test_defaults_use_the_nlos_model_and_the_kernel() -> None:
     fc = FilterConfig()
-    assert fc.range_model == "nlos" and fc.rotation_kernel > 0.0
+    assert fc.likelihood.range_model == "nlos" and fc.resampling.rotation_kernel > 0.0
     with pytest.raises(ValueError):
         ParticleFilter(StateLayout(("r", "a"), "r"), 10, (-1.0, 1.0, -1.0, 1.0), rng=np.random.default_rng(0),
                        rotation_kernel=1.0)

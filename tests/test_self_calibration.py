@@ -23,6 +23,7 @@ from relloc.evaluation.metrics import GroundTruth, HeadingPaired, wrap_angle
 from relloc.evaluation.report import evaluate
 from relloc.events import OdometryEvent
 from relloc.filter.gaussian_sum import CalibrationLayout, CalibrationNoise, GaussianSumFilter
+from relloc.filter.motion import OdometryMotion
 from relloc.filter.ranges import RangeBatch
 from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
 from relloc.methods import build_pipeline
@@ -193,7 +194,7 @@ def test_wrapping_at_180_degrees_in_the_mean_and_in_the_error() -> None:
 
 def test_prediction_rotates_odometry_by_the_heading_and_propagates_covariance() -> None:
     layout = CalibrationLayout(("a", "b"), "a", heading=True, scale=True)
-    gsf = GaussianSumFilter(layout, 3, (-4, 4, -4, 4), rng=np.random.default_rng(0), process_noise=0.0)
+    gsf = GaussianSumFilter(layout, 3, (-4, 4, -4, 4), rng=np.random.default_rng(0), motion=OdometryMotion(process_noise=0.0))
     theta, s = 0.7, 1.1
     c0, c1 = layout.u_columns("b")
     gsf.mean[:, c0], gsf.mean[:, c1] = s * math.cos(theta), s * math.sin(theta)
@@ -244,7 +245,7 @@ def test_correlated_range_error_is_a_gauss_markov_state_beside_the_constant_bias
     layout = CalibrationLayout(("a", "b"), "a", bias_pairs=("n_1-n_2",))
     noise = CalibrationNoise(colored_sigma=0.05, colored_time=10.0, bias_walk=0.0)
     gsf = GaussianSumFilter(layout, 2, (-4, 4, -4, 4), rng=np.random.default_rng(0), noise=noise,
-                            bias_prior=(np.array([0.3]), np.array([0.04])), process_noise=0.0)
+                            bias_prior=(np.array([0.3]), np.array([0.04])), motion=OdometryMotion(process_noise=0.0))
     b, c = layout.bias_column("n_1-n_2"), layout.colored_column("n_1-n_2")
     assert gsf.mean[0, c] == 0.0 and gsf.cov[0, c, c] == pytest.approx(0.05**2)  # stationary
     gsf.mean[:, c] = 0.1
@@ -348,7 +349,7 @@ def test_modes_from_the_command_line_and_the_config() -> None:
         sim.config.with_modes(heading="magnetometer")
     with pytest.raises(ConfigError):
         sim.config.with_modes(reference="ghost")
-    cfg = TeamConfig.from_dict({**sim.config.to_dict(), "filter": {"heading_mode": "estimate", "odom_scale_mode": "online"}})
+    cfg = TeamConfig.from_dict({**sim.config.to_dict(), "filter": {"self_calibration": {"heading_mode": "estimate", "odom_scale_mode": "online"}}})
     loc = build_pipeline("pf", cfg.with_filter(selfcal_particles=50, selfcal_init_particles=50)).localizer
     assert isinstance(loc, SelfCalibratingLocalizer) and loc.filter.layout.heading and loc.filter.layout.scale
     # the config's heading offsets and scales are not read in these modes
@@ -357,12 +358,12 @@ def test_modes_from_the_command_line_and_the_config() -> None:
 
 def test_demo_hides_what_is_estimated_and_moves_the_reference() -> None:
     sim, config, truth = scenario_setup("multi", DemoOptions(heading="estimate", bias="online"))
-    assert config.reference == "r1" and config.filter.heading_mode == "estimate"
+    assert config.reference == "r1" and config.filter.self_calibration.heading_mode == "estimate"
     assert all(r.heading_offset_deg == 0.0 for r in config.robots)
     assert config.uwb.pairs == {} and truth == sim.true_biases
     assert len({round(v, 3) for v in sim.true_heading_offsets.values()}) == 5  # random frames
     _, default, none = scenario_setup("multi", DemoOptions())
-    assert default.reference == "r0" and default.filter.heading_mode == "compass" and none is None
+    assert default.reference == "r0" and default.filter.self_calibration.heading_mode == "compass" and none is None
 
 
 # ---------------------------------------------------------------------------- TIERS recordings

@@ -22,6 +22,8 @@ A team is described by one TOML file (see ``configs/``)::
 
     [filter]
     particles = 20000
+    [filter.likelihood]
+    range_model = "nlos"
 
 Everything has a default except the robots; unknown keys are errors (a typo must not silently
 fall back to a default). ``TeamConfig.to_toml`` writes the file back, which is how
@@ -154,10 +156,10 @@ class UwbConfig(_Checked):
 
 
 @dataclass(frozen=True)
-class FilterConfig(_Checked):
-    """Particle-filter parameters. The defaults are the ones used on every shared recording."""
+class LikelihoodConfig(_Checked):
+    """Measurement likelihoods of the filters (``[filter.likelihood]``): the range models of
+    :mod:`relloc.filter.ranges`."""
 
-    particles: int = 50000
     range_model: Literal["nlos", "symmetric"] = "nlos"
     """Range likelihood of the particle filter (``relloc.filter.ranges``). ``nlos``: Gaussian
     line-of-sight noise ``los_sigma``, a one-sided non-line-of-sight part (ranges too long by a
@@ -182,8 +184,25 @@ class FilterConfig(_Checked):
     """Symmetric model: weight of the uniform (NLOS/outlier) part of the range likelihood."""
     max_range: float = 15.0
     """Support of the uniform outlier density (m)."""
-    sigma_det: float = 0.15
-    """Standard deviation of a cooperative-detection relative position, per axis (m)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _require(
+            self, "filter.likelihood", positive=("los_sigma", "nlos_sigma", "sigma_uwb", "max_range"),
+            fraction=("nlos_fraction", "gross_fraction", "outlier_fraction"),
+        )
+        if self.nlos_fraction + self.gross_fraction >= 1.0:
+            raise ConfigError(
+                f"filter.likelihood.nlos_fraction + gross_fraction must be < 1, got {self.nlos_fraction} + "
+                f"{self.gross_fraction}"
+            )
+
+
+@dataclass(frozen=True)
+class OdometryConfig(_Checked):
+    """Motion noise (``[filter.odometry]``): the one odometry noise model of both filters
+    (:class:`relloc.filter.motion.OdometryMotion`) and how far odometry is extrapolated."""
+
     odom_noise_per_m: float = 0.05
     """Odometry displacement noise, standard deviation per metre travelled (fraction)."""
     odom_noise_per_rad: float = 0.02
@@ -193,6 +212,26 @@ class FilterConfig(_Checked):
     rotation_noise: float = 0.0
     """Random turn of the whole formation about the reference (rad per sqrt(s)): the drift of
     the shared heading (a model of the compass, unlike ``rotation_kernel``)."""
+    max_odom_extrapolation: float = 0.5
+    """How far past a robot's last odometry message its motion is extrapolated (s)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _require(self, "filter.odometry", non_negative=(
+            "odom_noise_per_m", "odom_noise_per_rad", "process_noise", "rotation_noise", "max_odom_extrapolation",
+        ))
+
+
+@dataclass(frozen=True)
+class ResamplingConfig(_Checked):
+    """When and how the particles are resampled (``[filter.resampling]``), with the
+    re-injection from the prior and the orientation kernel that follow a resampling."""
+
+    resample: Literal["every_step", "ess"] = "ess"
+    ess_threshold: float = 0.5
+    """Resample when the effective sample size falls below this fraction of ``particles``."""
+    reinject_fraction: float = 0.01
+    """Fraction of particles re-drawn from the prior at each resampling (recovery)."""
     rotation_kernel: float = 0.1
     """After each resampling, the fraction of the variance of the formation's orientation
     about the reference that is re-drawn by a Liu-West kernel (mean and variance kept): restores
@@ -201,6 +240,29 @@ class FilterConfig(_Checked):
     rotation_kernel_max_spread: float = 0.25
     """The kernel acts only when the orientations form one mode with a robust standard
     deviation below this (rad), never while rotations or mirror images compete."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _require(
+            self, "filter.resampling", non_negative=("rotation_kernel_max_spread",),
+            fraction=("reinject_fraction",), unit=("ess_threshold", "rotation_kernel"),
+        )
+
+
+@dataclass(frozen=True)
+class SelfCalibrationConfig(_Checked):
+    """What is estimated online and how (``[filter.self_calibration]``, docs/self-calibration.md).
+    The defaults are the compass/fixed/calibrated modes."""
+
+    heading_mode: Literal["compass", "estimate"] = "compass"
+    """``compass``: each robot's odometry is rotated by its configured ``heading_offset_deg``
+    into the shared frame; ``estimate``: the rotation of every robot's odometry frame relative
+    to the reference robot's is estimated online (uniform prior) and the estimates are
+    expressed in the reference robot's odometry frame (``heading_offset_deg`` is not read)."""
+    odom_scale_mode: Literal["fixed", "online"] = "fixed"
+    """``fixed``: odometry is multiplied by the configured ``odom_scale``; ``online``: every
+    robot's odometry scale is estimated (prior ``1 +- scale_prior_sigma``; not read from the
+    config)."""
     bias_mode: Literal["calibrated", "online"] = "calibrated"
     """``calibrated``: each pair's bias is the config's (or ``uwb.default_bias``);
     ``online``: every particle carries a Kalman belief about each pair's bias (Rao-Blackwellised),
@@ -212,28 +274,45 @@ class FilterConfig(_Checked):
     bias_walk: float = 0.01
     """Online mode: random walk of each bias (m per sqrt(s)): orientation-dependent errors
     make the effective bias drift as the robots turn."""
-    resample: Literal["every_step", "ess"] = "ess"
-    ess_threshold: float = 0.5
-    """Resample when the effective sample size falls below this fraction of ``particles``."""
-    reinject_fraction: float = 0.01
-    """Fraction of particles re-drawn from the prior at each resampling (recovery)."""
-    update_period: float = 0.1
-    """Measurements arriving within this window are fused in one update (s)."""
-    estimate_period: float = 0.1
-    """Estimates are emitted at this period (s)."""
-    init_window: float = 0.5
-    """Collect ranges for this long before the first (annealed) update (s)."""
-    mcmc_steps: int = 3
-    spread_rotations: bool = True
-    """After the annealed start, spread particles over rotations/reflections about the reference
-    (exact while only ranges have been seen); odometry motion then selects the right one."""
-    max_odom_extrapolation: float = 0.5
-    """How far past a robot's last odometry message its motion is extrapolated (s)."""
-    max_time_jump: float = 5.0
-    """An event stamped more than this (s) after the newest accepted one is rejected
-    (``time_jump``) unless three events in a row agree on the new time: one corrupted stamp
-    must not drag the filter's clock away; a real gap in a recording costs two events."""
-    # Cooperative detections (relloc.stages.association, methods pf_uv / pf_ulv).
+    heading_walk: float = 0.01
+    """Estimate mode: random walk of each relative heading (rad per sqrt(s)): gyro drift."""
+    reference_heading_walk: float = 0.003
+    """Estimate mode: random walk of the reference robot's own odometry heading (rad per
+    sqrt(s)); its drift turns the frame it defines, and only its motion tells it."""
+    heading_prior_sigma_deg: float = 0.0
+    """Estimate mode: > 0 uses the configured heading offsets as a prior with this standard
+    deviation (deg); 0 (default): uniform prior, the offsets are not read."""
+    scale_prior_sigma: float = 0.15
+    """Online scale: prior standard deviation of each odometry scale around 1."""
+    scale_walk: float = 0.001
+    """Online scale: random walk of each odometry scale (per sqrt(s))."""
+    selfcal_particles: int = 1000
+    """Particles (Gaussians) of the self-calibrating filter (heading estimate or online scale),
+    each carrying a Kalman filter over positions and calibration (relloc.filter.gaussian_sum)."""
+    selfcal_init_particles: int = 20000
+    """Particles of the annealed start of the self-calibrating filter (then subsampled)."""
+    selfcal_position_sigma: float = 0.2
+    """Initial position standard deviation of each Gaussian after the annealed start (m)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _require(
+            self, "filter.self_calibration", at_least_one=("selfcal_particles", "selfcal_init_particles"),
+            positive=("selfcal_position_sigma", "scale_prior_sigma"),
+            non_negative=(
+                "bias_prior_sigma", "bias_prior_sigma_uncalibrated", "bias_walk", "heading_walk",
+                "reference_heading_walk", "heading_prior_sigma_deg", "scale_walk",
+            ),
+        )
+
+
+@dataclass(frozen=True)
+class AssociationConfig(_Checked):
+    """Cooperative detections (``[filter.association]``; :mod:`relloc.stages.association`,
+    methods ``pf_uv`` / ``pf_ulv``)."""
+
+    sigma_det: float = 0.15
+    """Standard deviation of a cooperative-detection relative position, per axis (m)."""
     detection_window: float = 0.1
     """Detections of two robots are paired when their capture times differ by at most this (s)."""
     d_th: float = 0.15
@@ -255,77 +334,118 @@ class FilterConfig(_Checked):
     det_heading_drift: float = 0.003
     """Growth of a robot's odometry-heading uncertainty per second of motion (rad/s), which
     weakens its detection vectors over time."""
-    # Self-calibration (docs/self-calibration.md). The defaults are the compass/fixed modes.
-    heading_mode: Literal["compass", "estimate"] = "compass"
-    """``compass``: each robot's odometry is rotated by its configured ``heading_offset_deg``
-    into the shared frame; ``estimate``: the rotation of every robot's odometry frame relative
-    to the reference robot's is estimated online (uniform prior) and the estimates are
-    expressed in the reference robot's odometry frame (``heading_offset_deg`` is not read)."""
-    odom_scale_mode: Literal["fixed", "online"] = "fixed"
-    """``fixed``: odometry is multiplied by the configured ``odom_scale``; ``online``: every
-    robot's odometry scale is estimated (prior ``1 +- scale_prior_sigma``; not read from the
-    config)."""
-    heading_walk: float = 0.01
-    """Estimate mode: random walk of each relative heading (rad per sqrt(s)): gyro drift."""
-    reference_heading_walk: float = 0.003
-    """Estimate mode: random walk of the reference robot's own odometry heading (rad per
-    sqrt(s)); its drift turns the frame it defines, and only its motion tells it."""
-    heading_prior_sigma_deg: float = 0.0
-    """Estimate mode: > 0 uses the configured heading offsets as a prior with this standard
-    deviation (deg); 0 (default): uniform prior, the offsets are not read."""
-    scale_prior_sigma: float = 0.15
-    """Online scale: prior standard deviation of each odometry scale around 1."""
-    scale_walk: float = 0.001
-    """Online scale: random walk of each odometry scale (per sqrt(s))."""
-    selfcal_particles: int = 1000
-    """Particles (Gaussians) of the self-calibrating filter (heading estimate or online scale),
-    each carrying a Kalman filter over positions and calibration (relloc.filter.gaussian_sum)."""
-    selfcal_init_particles: int = 20000
-    """Particles of the annealed start of the self-calibrating filter (then subsampled)."""
-    selfcal_position_sigma: float = 0.2
-    """Initial position standard deviation of each Gaussian after the annealed start (m)."""
 
-    @classmethod
-    def choices(cls, name: str) -> tuple[str, ...]:
-        """The allowed values of the ``Literal`` field ``name`` (e.g. for a CLI flag)."""
-        return get_args(_type_hints(cls)[name])
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _require(self, "filter.association", positive=("sigma_det",), non_negative=(
+            "detection_window", "d_th", "det_sigma_per_m", "det_converged_std", "det_gate_sigmas", "det_range_gate",
+            "det_range_max_age", "det_heading_drift",
+        ))
+
+
+@dataclass(frozen=True)
+class FilterConfig(_Checked):
+    """Filter parameters, in sections (``[filter.<section>]`` in a file); what every method
+    shares is at the top. The defaults are the ones used on every shared recording."""
+
+    particles: int = 50000
+    update_period: float = 0.1
+    """Measurements arriving within this window are fused in one update (s)."""
+    estimate_period: float = 0.1
+    """Estimates are emitted at this period (s)."""
+    init_window: float = 0.5
+    """Collect ranges for this long before the first (annealed) update (s)."""
+    mcmc_steps: int = 3
+    spread_rotations: bool = True
+    """After the annealed start, spread particles over rotations/reflections about the reference
+    (exact while only ranges have been seen); odometry motion then selects the right one."""
+    max_time_jump: float = 5.0
+    """An event stamped more than this (s) after the newest accepted one is rejected
+    (``time_jump``) unless three events in a row agree on the new time: one corrupted stamp
+    must not drag the filter's clock away; a real gap in a recording costs two events."""
+    likelihood: LikelihoodConfig = field(default_factory=LikelihoodConfig)
+    odometry: OdometryConfig = field(default_factory=OdometryConfig)
+    resampling: ResamplingConfig = field(default_factory=ResamplingConfig)
+    self_calibration: SelfCalibrationConfig = field(default_factory=SelfCalibrationConfig)
+    association: AssociationConfig = field(default_factory=AssociationConfig)
 
     def __post_init__(self) -> None:
         """Reject values no filter can run with (a typo must not become a silent NaN)."""
         super().__post_init__()
-        for name in ("particles", "selfcal_particles", "selfcal_init_particles"):
-            if getattr(self, name) < 1:
-                raise ConfigError(f"filter.{name} must be >= 1, got {getattr(self, name)}")
-        positive = (
-            "los_sigma", "nlos_sigma", "sigma_uwb", "sigma_det", "max_range", "update_period",
-            "estimate_period", "selfcal_position_sigma", "scale_prior_sigma",
+        _require(
+            self, "filter", at_least_one=("particles",), positive=("update_period", "estimate_period"),
+            non_negative=("init_window", "mcmc_steps", "max_time_jump"),
         )
-        for name in positive:
-            if not getattr(self, name) > 0.0:
-                raise ConfigError(f"filter.{name} must be > 0, got {getattr(self, name)}")
-        non_negative = (
-            "odom_noise_per_m", "odom_noise_per_rad", "process_noise", "rotation_noise",
-            "rotation_kernel_max_spread", "bias_prior_sigma", "bias_prior_sigma_uncalibrated",
-            "bias_walk", "init_window", "mcmc_steps", "max_odom_extrapolation", "detection_window",
-            "max_time_jump",
-            "d_th", "det_sigma_per_m", "det_converged_std", "det_gate_sigmas", "det_range_gate",
-            "det_range_max_age", "det_heading_drift", "heading_walk", "reference_heading_walk",
-            "heading_prior_sigma_deg", "scale_walk",
-        )
-        for name in non_negative:
-            if not getattr(self, name) >= 0.0:
-                raise ConfigError(f"filter.{name} must be >= 0, got {getattr(self, name)}")
-        for name in ("nlos_fraction", "gross_fraction", "outlier_fraction", "reinject_fraction"):
-            if not 0.0 <= getattr(self, name) < 1.0:
-                raise ConfigError(f"filter.{name} must be in [0, 1), got {getattr(self, name)}")
-        for name in ("ess_threshold", "rotation_kernel"):
-            if not 0.0 <= getattr(self, name) <= 1.0:
-                raise ConfigError(f"filter.{name} must be in [0, 1], got {getattr(self, name)}")
-        if self.nlos_fraction + self.gross_fraction >= 1.0:
-            raise ConfigError(
-                f"filter.nlos_fraction + gross_fraction must be < 1, got {self.nlos_fraction} + "
-                f"{self.gross_fraction}"
-            )
+
+    @classmethod
+    def sections(cls) -> dict[str, type]:
+        """Section name -> its dataclass."""
+        hints = _type_hints(cls)
+        return {name: hints[name] for name in _SECTIONS}
+
+    @classmethod
+    def section_of(cls, name: str) -> str | None:
+        """The section holding the field ``name`` (``""``: the top of ``[filter]``; ``None``:
+        no such field). Field names are unique across the sections."""
+        if name in _SECTIONS:
+            return None
+        if name in {f.name for f in fields(cls)}:
+            return ""
+        for section, sub in cls.sections().items():
+            if name in {f.name for f in fields(sub)}:
+                return section
+        return None
+
+    @classmethod
+    def choices(cls, name: str) -> tuple[str, ...]:
+        """The allowed values of the ``Literal`` field ``name`` of any section (e.g. for a CLI
+        flag)."""
+        section = cls.section_of(name)
+        owner = cls.sections()[section] if section else cls
+        return get_args(_type_hints(owner)[name])
+
+    def with_changes(self, **changes: Any) -> FilterConfig:
+        """A copy with fields changed, each named by itself (its section is found: field names
+        are unique), or whole sections replaced by their names."""
+        top: dict[str, Any] = {}
+        nested: dict[str, dict[str, Any]] = {}
+        for name, value in changes.items():
+            section = "" if name in _SECTIONS else self.section_of(name)
+            if section is None:
+                raise TypeError(f"FilterConfig has no field {name!r}")
+            if section:
+                nested.setdefault(section, {})[name] = value
+            else:
+                top[name] = value
+        for section, sub in nested.items():
+            top[section] = replace(top.get(section, getattr(self, section)), **sub)
+        return replace(self, **top)
+
+    @classmethod
+    def from_dict(cls, raw: dict[str, Any]) -> FilterConfig:
+        """``[filter]`` and its ``[filter.<section>]`` tables as read from a file. A key of a
+        section written at the top of ``[filter]`` (the flat layout of earlier versions) is a
+        :class:`ConfigError` that names its place."""
+        raw = dict(raw)
+        for key in raw:
+            section = cls.section_of(key)
+            if section:
+                raise ConfigError(
+                    f"filter.{key} has moved to the [filter.{section}] table: write {key} = ... under "
+                    f"[filter.{section}]"
+                )
+        built: dict[str, Any] = {}
+        for section, sub in cls.sections().items():
+            table = raw.pop(section, {})
+            if not isinstance(table, dict):
+                raise ConfigError(f"filter.{section} must be a table ([filter.{section}])")
+            built[section] = _build(sub, table, f"filter.{section}")
+        return _build(cls, {**raw, **built}, "filter")
+
+
+_SECTIONS = ("likelihood", "odometry", "resampling", "self_calibration", "association")
+"""The sections of :class:`FilterConfig`, in file order."""
+
 
 @dataclass(frozen=True)
 class TeamConfig(_Checked):
@@ -387,8 +507,9 @@ class TeamConfig(_Checked):
         return None
 
     def with_filter(self, **changes: Any) -> TeamConfig:
-        """A copy with some filter parameters changed."""
-        return replace(self, filter=replace(self.filter, **changes))
+        """A copy with some filter parameters changed (:meth:`FilterConfig.with_changes`: each
+        named by itself, whichever section holds it)."""
+        return replace(self, filter=self.filter.with_changes(**changes))
 
     def with_modes(
         self,
@@ -440,7 +561,7 @@ class TeamConfig(_Checked):
             for k, v in uwb_raw.pop("pairs", {}).items()
         }
         uwb = _build(UwbConfig, {**uwb_raw, "pairs": pairs}, "uwb")
-        flt = _build(FilterConfig, data.pop("filter", {}), "filter")
+        flt = FilterConfig.from_dict(data.pop("filter", {}))
         if "area" in data:
             data["area"] = tuple(float(v) for v in data["area"])
             if len(data["area"]) != 4:
@@ -488,6 +609,35 @@ def with_numeric_overrides(obj: Any, overrides: dict[str, Any], where: str) -> A
     for key, value in overrides.items():
         _check_value(float, value, f"{where}.{key}")
     return replace(obj, **{k: float(v) for k, v in overrides.items()})
+
+
+def _require(
+    obj: Any,
+    where: str,
+    *,
+    at_least_one: tuple[str, ...] = (),
+    positive: tuple[str, ...] = (),
+    non_negative: tuple[str, ...] = (),
+    fraction: tuple[str, ...] = (),
+    unit: tuple[str, ...] = (),
+) -> None:
+    """Range checks of numeric fields of ``obj`` (a table named ``where``): counts >= 1, values
+    > 0 or >= 0, fractions in [0, 1) and in [0, 1]."""
+    for name in at_least_one:
+        if getattr(obj, name) < 1:
+            raise ConfigError(f"{where}.{name} must be >= 1, got {getattr(obj, name)}")
+    for name in positive:
+        if not getattr(obj, name) > 0.0:
+            raise ConfigError(f"{where}.{name} must be > 0, got {getattr(obj, name)}")
+    for name in non_negative:
+        if not getattr(obj, name) >= 0.0:
+            raise ConfigError(f"{where}.{name} must be >= 0, got {getattr(obj, name)}")
+    for name in fraction:
+        if not 0.0 <= getattr(obj, name) < 1.0:
+            raise ConfigError(f"{where}.{name} must be in [0, 1), got {getattr(obj, name)}")
+    for name in unit:
+        if not 0.0 <= getattr(obj, name) <= 1.0:
+            raise ConfigError(f"{where}.{name} must be in [0, 1], got {getattr(obj, name)}")
 
 
 def _check_known(cls: type, raw: dict[str, Any], where: str) -> None:

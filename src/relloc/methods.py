@@ -64,6 +64,6 @@ def filter_localizer(config: TeamConfig, *, seed: int = 0, method: str = "pf") -
     headings or the odometry scales are estimated, else the sampled one (which estimates
     range biases itself with ``bias_mode = "online"``)."""
     fc = config.filter
-    if fc.heading_mode == "estimate" or fc.odom_scale_mode == "online":
+    if fc.self_calibration.heading_mode == "estimate" or fc.self_calibration.odom_scale_mode == "online":
         return SelfCalibratingLocalizer(config, seed=seed, method=method)
     return ParticleFilterLocalizer(config, seed=seed, method=method)

@@ -83,7 +83,7 @@ def scenario_setup(name: str, opts: DemoOptions) -> tuple[Simulation, TeamConfig
     )
     if opts.particles:
         config = config.with_filter(particles=opts.particles, selfcal_particles=opts.particles)
-    truth = dict(sim.true_biases) if config.filter.bias_mode == "online" else None
+    truth = dict(sim.true_biases) if config.filter.self_calibration.bias_mode == "online" else None
     return sim, config, truth
 
 

@@ -72,7 +72,7 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
         enabled=opts.progress,
         start=source.start_time,
     )
-    bias_truth = _bag_bias_truth(bag, config) if config.filter.bias_mode == "online" else None
+    bias_truth = _bag_bias_truth(bag, config) if config.filter.self_calibration.bias_mode == "online" else None
     report = evaluate(engine, gt, name, opts.warmup, bias_truth=bias_truth)
     print_table(report, console)
     for warning in source.warnings:

@@ -170,7 +170,7 @@ def evaluate(
         rotation = 0.0
         frame_deg = None
         heading_pairs: dict[str, HeadingPaired] = {}
-        if loc.config.filter.heading_mode == "estimate":
+        if loc.config.filter.self_calibration.heading_mode == "estimate":
             ref = loc.layout.reference
             first = loc.first_odometry.get(ref)
             found = None if first is None else odometry_frame_rotation(truth, ref, first)

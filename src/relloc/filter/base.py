@@ -58,9 +58,10 @@ class FilterEstimate:
 def renormalized(logw: FloatArray) -> FloatArray | None:
     """Log-weights normalised (non-finite ones to ``-inf``), or ``None`` when none is finite:
     no hypothesis explains the measurements, and the caller keeps its weights."""
-    if not np.any(np.isfinite(logw)):
+    finite = np.isfinite(logw)
+    if not finite.any():
         return None
-    return log_normalize(np.where(np.isfinite(logw), logw, -np.inf))
+    return log_normalize(logw if finite.all() else np.where(finite, logw, -np.inf))
 
 
 class WeightedFilter:

@@ -238,7 +238,6 @@ class GaussianSumFilter(WeightedFilter):
         noise: CalibrationNoise | None = None,
         bias_prior: tuple[FloatArray, FloatArray] | None = None,
         position_sigma: float = 0.2,
-        process_noise: float = 0.03,
         motion: OdometryMotion | None = None,
         ess_threshold: float = 0.5,
         reinject_fraction: float = 0.01,
@@ -251,7 +250,9 @@ class GaussianSumFilter(WeightedFilter):
         self.layout = layout
         self.noise = noise or CalibrationNoise()
         self.position_sigma = position_sigma
-        self.motion = motion or OdometryMotion(process_noise=process_noise)
+        self.motion = motion or OdometryMotion()
+        """The odometry noise model (the sampled filter's): its per-robot variances and random
+        walk are the prediction's process noise."""
         nb = len(layout.bias_pairs)
         if bias_prior is None:
             bias_prior = (np.zeros(nb), np.full(nb, 0.25**2))

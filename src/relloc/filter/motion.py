@@ -4,6 +4,7 @@ uniform prior box of relative positions."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -68,7 +69,7 @@ class PriorBox:
 
     area: tuple[float, float, float, float]
 
-    @property
+    @cached_property
     def half_extent(self) -> FloatArray:
         xmin, xmax, ymin, ymax = self.area
         return np.array([xmax - xmin, ymax - ymin], dtype=float)

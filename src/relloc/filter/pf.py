@@ -52,7 +52,7 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from relloc.filter.base import FilterEstimate, WeightedFilter
+from relloc.filter.base import FilterEstimate, WeightedFilter, renormalized
 from relloc.filter.measurement import MeasurementModel, stacked
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.resampling import ess, log_normalize, mixture_moments, systematic_resample
@@ -142,20 +142,20 @@ class ParticleFilter(WeightedFilter):
 
     def update(self, models: Sequence[MeasurementModel]) -> bool:
         """Add the models' log-likelihoods to the log-weights and normalise, then let each
-        model condition its sufficient statistics; False (weights kept) if no particle has
-        any support."""
+        model condition its sufficient statistics; False (weights kept) if no particle has any
+        support."""
         if not models:
             return True
-        ll = self.log_likelihood(stacked(models), self.particles)
-        new = self.logw + ll
-        if np.any(np.isfinite(new)):
-            self.logw = log_normalize(new)
+        loglik = models[0].log_likelihood if len(models) == 1 else stacked(models)
+        logw = renormalized(self.logw + self.log_likelihood(loglik, self.particles))
+        if logw is not None:
+            self.logw = logw
         positions = None
         for model in models:
             if model.conditions:
                 positions = self.positions() if positions is None else positions
                 model.condition(positions, self.particles)
-        return bool(np.any(np.isfinite(ll)))
+        return logw is not None
 
     def log_likelihood(self, loglik: LogLikelihood, particles: FloatArray) -> FloatArray:
         """``loglik`` of every particle, evaluated in cache-sized blocks (non-finite -> -inf).
@@ -176,7 +176,8 @@ class ParticleFilter(WeightedFilter):
 
     def _reinject(self, slots: IntArray, positions: FloatArray) -> None:
         self.particles[slots, : self.layout.dim] = positions
-        self.particles[slots, self.layout.dim :] = self.extra_prior
+        if self.extra_prior.size:
+            self.particles[slots, self.layout.dim :] = self.extra_prior
 
     def _after_resample(self) -> None:
         """The orientation kernel (module docstring)."""

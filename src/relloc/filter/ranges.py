@@ -178,12 +178,12 @@ class RangeBatch:
             node_pair = pair_key(*nodes)
             d = float(statistics.median(ev.distance for ev in group))  # a few values: no NumPy
             if all(ev.corrected for ev in group):
-                b, s, node_pair = 0.0, fc.sigma_uwb, ""
+                b, s, node_pair = 0.0, fc.likelihood.sigma_uwb, ""
             elif node_pair in layout.bias_pairs:
-                b, s = 0.0, fc.sigma_uwb  # the bias is in the state
+                b, s = 0.0, fc.likelihood.sigma_uwb  # the bias is in the state
             else:
                 b, scale, _ = uwb.calibration(*nodes)
-                d, b, s = d / scale, b / scale, pair_sigma(config, node_pair, fc.sigma_uwb)
+                d, b, s = d / scale, b / scale, pair_sigma(config, node_pair, fc.likelihood.sigma_uwb)
             pairs.append(key)
             dist.append(d)
             bias.append(b)
@@ -203,18 +203,18 @@ class RangeBatch:
             if not np.any(sel):
                 continue
             if nlos:
-                s = np.array([pair_sigma(config, k, fc.los_sigma) for k in keys])[sel]
-                eps = fc.gross_fraction if context.robust else 0.0
+                s = np.array([pair_sigma(config, k, fc.likelihood.los_sigma) for k in keys])[sel]
+                eps = fc.likelihood.gross_fraction if context.robust else 0.0
             else:
                 s = sigma_a[sel]
-                eps = fc.outlier_fraction if context.robust else 0.0
+                eps = fc.likelihood.outlier_fraction if context.robust else 0.0
             rows = np.flatnonzero(sel)
             out.append(
                 cls(
-                    idx[sel, 0], idx[sel, 1], dist_a[sel], bias_a[sel], s, eps, fc.max_range,
+                    idx[sel, 0], idx[sel, 1], dist_a[sel], bias_a[sel], s, eps, fc.likelihood.max_range,
                     belief[sel] if np.any(belief >= 0) else None,
-                    nlos_fraction=fc.nlos_fraction if nlos and context.robust else 0.0,
-                    nlos_sigma=fc.nlos_sigma,
+                    nlos_fraction=fc.likelihood.nlos_fraction if nlos and context.robust else 0.0,
+                    nlos_sigma=fc.likelihood.nlos_sigma,
                     state_columns=tuple(state[i] for i in rows) if any(state) else (),
                     layout=layout,
                 )
@@ -232,7 +232,7 @@ class RangeBatch:
         if event.robot_a == event.robot_b:
             return "self_range"
         d = event.distance
-        if not finite(d) or d <= 0.0 or d > context.config.filter.max_range:
+        if not finite(d) or d <= 0.0 or d > context.config.filter.likelihood.max_range:
             return "invalid_range"
         if context.is_late(event.t):
             return "late_measurement"

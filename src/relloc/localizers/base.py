@@ -69,7 +69,7 @@ class Localizer:
         self.estimate_period = fc.estimate_period
         self.tracks = {
             r.name: OdometryTrack(
-                *self._track_frame(r.name), r.odom_mode, max_extrapolation=fc.max_odom_extrapolation
+                *self._track_frame(r.name), r.odom_mode, max_extrapolation=fc.odometry.max_odom_extrapolation
             )
             for r in config.robots
         }
@@ -250,7 +250,7 @@ class FilterLocalizer(Localizer):
         super().__init__(config, layout)
         fc = config.filter
         self.rng = np.random.default_rng(seed)
-        self.motion = OdometryMotion(fc.process_noise, fc.odom_noise_per_m, fc.odom_noise_per_rad)
+        self.motion = OdometryMotion(fc.odometry.process_noise, fc.odometry.odom_noise_per_m, fc.odometry.odom_noise_per_rad)
         self.initialized = False
         self.t = math.nan
         self._anchor: dict[str, tuple[float, float, float]] = {}

@@ -28,16 +28,16 @@ def bias_layout(config: TeamConfig) -> tuple[StateLayout, list[float]]:
     biases a (mean, variance) belief per UWB node pair of the team, none otherwise."""
     fc = config.filter
     names = config.robot_names
-    if fc.bias_mode != "online":
+    if fc.self_calibration.bias_mode != "online":
         return StateLayout(names, config.reference), []
     node_pairs = sorted({_node_pair(config, a, b) for i, a in enumerate(names) for b in names[i + 1 :]})
     prior: list[float] = []
     for pair in node_pairs:
         cal = config.uwb.pairs.get(pair)
         if cal is not None:
-            prior += [cal.bias, fc.bias_prior_sigma**2]
+            prior += [cal.bias, fc.self_calibration.bias_prior_sigma**2]
         else:
-            prior += [config.uwb.default_bias, fc.bias_prior_sigma_uncalibrated**2]
+            prior += [config.uwb.default_bias, fc.self_calibration.bias_prior_sigma_uncalibrated**2]
     return StateLayout(names, config.reference, tuple(node_pairs)), prior
 
 
@@ -58,15 +58,15 @@ def particle_filter(
         n,
         config.area,
         rng=rng,
-        motion=OdometryMotion(fc.process_noise, fc.odom_noise_per_m, fc.odom_noise_per_rad),
-        resample=fc.resample,
-        ess_threshold=fc.ess_threshold,
-        reinject_fraction=fc.reinject_fraction,
+        motion=OdometryMotion(fc.odometry.process_noise, fc.odometry.odom_noise_per_m, fc.odometry.odom_noise_per_rad),
+        resample=fc.resampling.resample,
+        ess_threshold=fc.resampling.ess_threshold,
+        reinject_fraction=fc.resampling.reinject_fraction,
         extra_prior=np.array(prior),
-        rotation_noise=fc.rotation_noise,
-        rotation_kernel=fc.rotation_kernel,
-        rotation_kernel_max_spread=fc.rotation_kernel_max_spread,
-        bias_walk=fc.bias_walk,
+        rotation_noise=fc.odometry.rotation_noise,
+        rotation_kernel=fc.resampling.rotation_kernel,
+        rotation_kernel_max_spread=fc.resampling.rotation_kernel_max_spread,
+        bias_walk=fc.self_calibration.bias_walk,
     )
 
 
@@ -80,7 +80,7 @@ class ParticleFilterLocalizer(FilterLocalizer):
         layout, prior = bias_layout(config)
         super().__init__(config, layout, seed=seed)
         self.method = method
-        self.range_model = config.filter.range_model  # online pairs keep the symmetric model
+        self.range_model = config.filter.likelihood.range_model  # online pairs keep the symmetric model
         self.filter = particle_filter(config, layout, prior, config.filter.particles, self.rng)
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:

@@ -36,8 +36,8 @@ def calibration_layout(config: TeamConfig) -> CalibrationLayout:
     return CalibrationLayout(
         layout.robots,
         layout.reference,
-        heading=fc.heading_mode == "estimate",
-        scale=fc.odom_scale_mode == "online",
+        heading=fc.self_calibration.heading_mode == "estimate",
+        scale=fc.self_calibration.odom_scale_mode == "online",
         bias_pairs=layout.bias_pairs,
     )
 
@@ -57,7 +57,7 @@ class SelfCalibratingLocalizer(FilterLocalizer):
         fc = config.filter
         self.filter = self._gaussian_sum(np.array(prior))
         # the annealed start: a sampled filter over positions (and bias beliefs)
-        n_start = max(fc.selfcal_init_particles, fc.selfcal_particles)
+        n_start = max(fc.self_calibration.selfcal_init_particles, fc.self_calibration.selfcal_particles)
         self.start_filter: ParticleFilter | None = particle_filter(config, layout, prior, n_start, self.rng)
 
     def _track_frame(self, robot: str) -> tuple[float, float]:
@@ -70,29 +70,29 @@ class SelfCalibratingLocalizer(FilterLocalizer):
         fc, layout = self.config.filter, self.calibration
         prior = (bias_prior[0::2], bias_prior[1::2]) if len(layout.bias_pairs) else None
         heading_prior: dict[str, tuple[float, float]] = {}
-        if layout.heading and fc.heading_prior_sigma_deg > 0.0:
+        if layout.heading and fc.self_calibration.heading_prior_sigma_deg > 0.0:
             ref = self.config.robot(layout.reference).heading_offset
             for robot in layout.others:
                 angle = math.remainder(self.config.robot(robot).heading_offset - ref, math.tau)
-                heading_prior[robot] = (angle, math.radians(fc.heading_prior_sigma_deg))
+                heading_prior[robot] = (angle, math.radians(fc.self_calibration.heading_prior_sigma_deg))
         noise = CalibrationNoise(
-            heading_walk=fc.heading_walk,
-            reference_heading_walk=fc.reference_heading_walk,
-            scale_walk=fc.scale_walk,
-            bias_walk=fc.bias_walk,
-            scale_prior_sigma=fc.scale_prior_sigma,
+            heading_walk=fc.self_calibration.heading_walk,
+            reference_heading_walk=fc.self_calibration.reference_heading_walk,
+            scale_walk=fc.self_calibration.scale_walk,
+            bias_walk=fc.self_calibration.bias_walk,
+            scale_prior_sigma=fc.self_calibration.scale_prior_sigma,
         )
         return GaussianSumFilter(
             layout,
-            fc.selfcal_particles,
+            fc.self_calibration.selfcal_particles,
             self.config.area,
             rng=self.rng,
             noise=noise,
             bias_prior=prior,
-            position_sigma=fc.selfcal_position_sigma,
-            motion=OdometryMotion(fc.process_noise, fc.odom_noise_per_m, fc.odom_noise_per_rad),
-            ess_threshold=fc.ess_threshold,
-            reinject_fraction=fc.reinject_fraction,
+            position_sigma=fc.self_calibration.selfcal_position_sigma,
+            motion=OdometryMotion(fc.odometry.process_noise, fc.odometry.odom_noise_per_m, fc.odometry.odom_noise_per_rad),
+            ess_threshold=fc.resampling.ess_threshold,
+            reinject_fraction=fc.resampling.reinject_fraction,
             heading_prior=heading_prior,
         )
 

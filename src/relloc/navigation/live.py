@@ -271,7 +271,7 @@ class LiveNavigation:
             controller=opts.controller,
             safety=opts.safety,
             latency_compensation=opts.latency_compensation,
-            max_odom_extrapolation=config.filter.max_odom_extrapolation,
+            max_odom_extrapolation=config.filter.odometry.max_odom_extrapolation,
         )
         self.clock = DataClock(opts.clock_rate)
         self.cmd_key = cmd_vel_key(robot, opts.prefix)

@@ -153,32 +153,32 @@ class DetectionAssociator:
     def __init__(self, config: TeamConfig) -> None:
         self.config = config
         fc = config.filter
-        self.window = fc.detection_window
-        self.d_th = fc.d_th
-        self.sigma_det = fc.sigma_det
-        self.sigma_per_m = fc.det_sigma_per_m
-        self.converged_std = fc.det_converged_std
-        self.gate_sigmas = fc.det_gate_sigmas
-        self.range_gate = fc.det_range_gate
-        self.range_max_age = fc.det_range_max_age
-        self.heading_drift = fc.det_heading_drift
+        self.window = fc.association.detection_window
+        self.d_th = fc.association.d_th
+        self.sigma_det = fc.association.sigma_det
+        self.sigma_per_m = fc.association.det_sigma_per_m
+        self.converged_std = fc.association.det_converged_std
+        self.gate_sigmas = fc.association.det_gate_sigmas
+        self.range_gate = fc.association.det_range_gate
+        self.range_max_age = fc.association.det_range_max_age
+        self.heading_drift = fc.association.det_heading_drift
         for name in ("detection_window", "d_th", "sigma_det", "det_range_gate"):
-            value = getattr(fc, name)
+            value = getattr(fc.association, name)
             if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"filter.{name} must be positive, got {value!r}")
-        if fc.heading_mode != "compass":
+                raise ValueError(f"filter.association.{name} must be positive, got {value!r}")
+        if fc.self_calibration.heading_mode != "compass":
             raise ValueError(
                 "cooperative detections need each robot's heading in the shared frame "
-                "(filter.heading_mode = 'compass'); with heading_mode = "
-                f"{fc.heading_mode!r} the headings are only known inside the filter"
+                "(filter.self_calibration.heading_mode = 'compass'); with heading_mode = "
+                f"{fc.self_calibration.heading_mode!r} the headings are only known inside the filter"
             )
-        online_scale = fc.odom_scale_mode == "online"  # then the config's scale is not read
+        online_scale = fc.self_calibration.odom_scale_mode == "online"  # then the config's scale is not read
         self.tracks: dict[str, OdometryTrack] = {
             r.name: OdometryTrack(
                 r.heading_offset,
                 1.0 if online_scale else r.odom_scale,
                 r.odom_mode,
-                max_extrapolation=fc.max_odom_extrapolation,
+                max_extrapolation=fc.odometry.max_odom_extrapolation,
             )
             for r in config.robots
         }
