@@ -97,6 +97,10 @@ def test_unwritable_out_fails_before_the_run(tmp_path: Path, capsys: pytest.Capt
     assert "relloc demo: error: cannot write to --out" in capsys.readouterr().err
     assert _code(["demo", "--scenarios", "single", "--json", str(blocker / "d.json"), "--no-progress"]) == 2
     assert "cannot write to --json" in capsys.readouterr().err
+    config = tmp_path / "team.toml"
+    synthetic_team().save(config)
+    assert _code(["run", "absent_bag", "--config", str(config), "--out", str(blocker / "o")]) == 2
+    assert "relloc run: error: cannot write to --out" in capsys.readouterr().err
 
 
 def test_config_error_names_the_key(tmp_path: Path) -> None:
@@ -135,8 +139,8 @@ def test_run_writes_to_out_recording_by_default(
     warning = out.index("r3: uwb_node 'n_9' matches no range topic")
     assert warning < out.index("APE after 0.5 s warm-up")
     # the source's rejections as sentences: one NaN and one negative range
-    assert "the source dropped 1 UWB ranges that were NaN or infinite (range_nonfinite)" in out
-    assert "the source dropped 1 UWB ranges of zero or less (range_nonpositive)" in out
+    assert "the source dropped 1 UWB ranges that were NaN or infinite [range_nonfinite]: harmless" in out
+    assert "the source dropped 1 UWB ranges of zero or less [range_nonpositive]: harmless" in out
 
 
 def test_run_without_any_team_range_is_an_error_before_the_run(
@@ -255,9 +259,9 @@ def test_calibrate_in_place_and_write_exclude_each_other(team_files: tuple[Path,
 def test_rejection_lines_say_what_and_whether_it_matters() -> None:
     lines = rejection_lines("pf", {"repeated_range": 539, "time_jump": 2, "late_measurement": 0, "new_reason": 1})
     assert lines == [
-        f"pf dropped 539 {REASONS['repeated_range'][0]} (repeated_range): {REASONS['repeated_range'][1]}",
-        f"pf dropped 2 {REASONS['time_jump'][0]} (time_jump): {REASONS['time_jump'][1]}",
-        "pf dropped 1 events (new_reason): see the log (-v)",
+        f"pf dropped 539 {REASONS['repeated_range'][0]} [repeated_range]: {REASONS['repeated_range'][1]}",
+        f"pf dropped 2 {REASONS['time_jump'][0]} [time_jump]: {REASONS['time_jump'][1]}",
+        "pf dropped 1 events [new_reason]: see the log (-v)",
     ]
     assert rejection_lines("source", {}) == []
 
@@ -266,3 +270,27 @@ def test_stamps_are_iso_times_or_simulator_seconds() -> None:
     assert format_stamp(1796140551.69) == "at 2026-12-01T15:55:51.690Z"
     assert format_stamp(12.345) == "at t = 12.35 s"
     assert format_stamp(None) == "never"
+
+
+def test_serve_summary_in_sentences_and_iso_times(capsys: pytest.CaptureFixture[str]) -> None:
+    from relloc.cli.live import _print_summary
+
+    summary = {
+        "uptime_s": 12.5,
+        "events": 900,
+        "engine_errors": 0,
+        "source": {"messages": 1000, "rejected": {"decode_error": 2}, "out_of_order": 3},
+        "methods": {
+            "pf": {
+                "estimates": 120, "last_estimate_t": 1796140551.69, "ess": 800.0,
+                "compute_s": 1.5, "rejected": {"repeated_range": 539},
+            }
+        },
+    }
+    _print_summary(summary)
+    out = capsys.readouterr().out
+    assert "pf: 120 estimates, last at 2026-12-01T15:55:51.690Z, ESS 800.0" in out
+    assert "1796140551" not in out
+    assert "source dropped 2 messages that could not be decoded [decode_error]" in out
+    assert "pf dropped 539 ranges equal to their pair's previous one [repeated_range]" in out
+    assert "{" not in out

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
 
 from relloc.cli.common import UserError, check_warmup
 from relloc.cli.progress import run_with_progress
@@ -68,7 +69,7 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
     pipelines = [build_pipeline(m, config, seed=opts.seed, models=opts.models) for m in opts.methods]
     check_warmup(opts.warmup, source.duration, name)
     for warning in [*source.warnings, *range_warnings(source)]:
-        console.print(f"[yellow]warning:[/] {warning}")
+        console.print(f"[yellow]warning:[/] {escape(warning)}", soft_wrap=True)
     gt = GroundTruth(config.reference)
     engine = Engine(pipelines, truth_sinks=[gt.add])
     run_with_progress(
@@ -87,7 +88,7 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
     for p in engine.pipelines:
         lines += rejection_lines(p.name, p.localizer.rejected)
     for line in lines:
-        console.print(line)
+        console.print(line, soft_wrap=True, highlight=False, markup=False)
     if opts.out is not None:
         write_outputs(report, engine, opts.out)
         console.print(f"plots and TUM trajectories written to {opts.out}/")

@@ -20,15 +20,15 @@ REASONS: dict[str, tuple[str, str]] = {
     "range_nonfinite": ("UWB ranges that were NaN or infinite", "harmless: a driver's invalid reading"),
     "range_nonpositive": ("UWB ranges of zero or less", "harmless: a driver's invalid reading"),
     "detection_zero_position": (
-        "detections at exactly (0, 0, 0): the camera had no depth for the box",
-        "harmless: the camera's 'no depth' value",
+        "detections at exactly (0, 0, 0)",
+        "harmless: the camera's value for a box without depth",
     ),
     "detection_nonfinite": ("detections with NaN or infinite positions", "harmless"),
     "detection_behind_camera": ("detections with depth <= 0", "harmless: impossible positions"),
     # ------------------------------------------------------------------ localizers
     "repeated_range": (
-        "ranges equal to the same pair's previous one (a stale sample re-published)",
-        "expected on the TIERS recordings: not independent evidence, so not fused",
+        "ranges equal to their pair's previous one",
+        "expected on the TIERS recordings: a stale sample re-published is not new evidence",
     ),
     "late_measurement": ("measurements older than the filter's time", "matters if many: raise --reorder-window"),
     "time_jump": ("events far ahead of or behind the filter's time", "matters: a clock problem"),
@@ -47,12 +47,12 @@ REASONS: dict[str, tuple[str, str]] = {
 
 
 def rejection_lines(who: str, counts: Mapping[str, int]) -> list[str]:
-    """One line per non-zero counter: ``"<who> dropped 539 <what> (repeated_range): <matters>"``;
+    """One line per non-zero counter: ``"<who> dropped 539 <what> [repeated_range]: <matters>"``;
     an empty list when nothing was dropped."""
     lines = []
     for reason, n in sorted(counts.items(), key=lambda kv: (-kv[1], kv[0])):
         if not n:
             continue
         what, matters = REASONS.get(reason, ("events", "see the log (-v)"))
-        lines.append(f"{who} dropped {n} {what} ({reason}): {matters}")
+        lines.append(f"{who} dropped {n} {what} [{reason}]: {matters}")
     return lines
