@@ -563,9 +563,13 @@ class TeamConfig(_Checked):
         uwb = _build(UwbConfig, {**uwb_raw, "pairs": pairs}, "uwb")
         flt = FilterConfig.from_dict(data.pop("filter", {}))
         if "area" in data:
-            data["area"] = tuple(float(v) for v in data["area"])
-            if len(data["area"]) != 4:
-                raise ConfigError("area must have four numbers: xmin, xmax, ymin, ymax")
+            area = data["area"]
+            numbers_only = isinstance(area, list | tuple) and all(
+                isinstance(v, numbers.Real) and not isinstance(v, bool) for v in area
+            )
+            if not numbers_only or len(area) != 4:
+                raise ConfigError(f"area must be four numbers [xmin, xmax, ymin, ymax], got {area!r}")
+            data["area"] = tuple(float(v) for v in area)
         return _build(cls, {**data, "robots": tuple(robots), "uwb": uwb, "filter": flt}, "team")
 
     @classmethod

@@ -20,12 +20,27 @@ from pathlib import Path
 
 from relloc import __version__
 from relloc.cli import argtypes
-from relloc.cli.common import UserError, is_user_error, options_from_args
+from relloc.cli.common import UserError, check_writable, is_user_error, options_from_args
 
 _COMMAND_MODULES = ("relloc.cli.ranging", "relloc.cli.live", "relloc.cli.bench_resources", "relloc.cli.navigation")
 """Command families with a ``register(subparsers)`` of their own. None imports an optional
 dependency at module level (training imports torch only when it runs), so every command is
 always listed; a module that fails to import is a bug and raises."""
+
+
+METHODS_HELP = (
+    "comma-separated methods: pf (particle filter: odometry + UWB ranges), "
+    "pf_ul (pf on learned-corrected ranges, needs --models), pf_uv (pf + cooperative detections), "
+    "pf_ulv (both), multilateration (least squares on each step's ranges)"
+)
+
+
+def _check_outputs(args: argparse.Namespace) -> None:
+    """--out and --json must be writable before a run of minutes starts."""
+    if getattr(args, "out", None) is not None:
+        check_writable(args.out)
+    if getattr(args, "json_path", None) is not None:
+        check_writable(args.json_path.parent or Path("."), "--json")
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -39,6 +54,7 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     opts = options_from_args(
         DemoOptions, args, methods=tuple(parse_methods(args.methods)), scenarios=tuple(args.scenarios.split(","))
     )
+    _check_outputs(args)
     run_demo(opts)
     return 0
 
@@ -47,9 +63,13 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from relloc.cli.recording import RunOptions, run_recording
     from relloc.config import TeamConfig
     from relloc.methods import parse_methods
+    from relloc.sources.rosbag import recording_name
 
     config = TeamConfig.load(args.config)
+    if args.out is None:
+        args.out = Path("out") / recording_name(args.bag)
     opts = options_from_args(RunOptions, args, methods=tuple(parse_methods(args.methods)))
+    _check_outputs(args)
     run_recording(Path(args.bag), config, opts)
     return 0
 
@@ -57,70 +77,137 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     import json
 
-    from relloc.cli.recording import calibrate
+    from relloc.cli.calibrate import calibrate, calibration_section, edit_config_text
     from relloc.config import TeamConfig
 
     config = TeamConfig.load(args.config)
+    text = Path(args.config).read_text()
     node_map = None
     if args.node_map:
         try:
             node_map = {int(k): v for k, v in (item.split("=") for item in args.node_map.split(","))}
         except ValueError:
             raise UserError(f"--node-map must look like 1=n_7,3=n_3, got {args.node_map!r}") from None
-    new, summary = calibrate(Path(args.source), config, node_map=node_map, headings=args.headings, fit_scale=args.scale)
-    out = Path(args.write or args.config)
-    new.save(out)
-    print(json.dumps(summary, indent=2))
+    out = Path(args.config) if args.in_place else (Path(args.write) if args.write else None)
+    if out is not None:
+        check_writable(out.parent, "--write" if args.write else "--in-place")
+    cal = calibrate(Path(args.source), config, node_map=node_map, headings=args.headings, fit_scale=args.scale)
+    if out is None:
+        sys.stdout.write(calibration_section(cal, text))
+        print(
+            f"relloc calibrate: nothing written; --in-place writes this into {args.config}, "
+            "--write FILE writes a calibrated copy to FILE (comments kept)",
+            file=sys.stderr,
+        )
+        return 0
+    out.write_text(edit_config_text(text, cal))
+    print(json.dumps(cal.summary(), indent=2))
     print(f"calibration from {args.source} written to {out}")
     return 0
+
+
+class _HelpFormatter(argparse.HelpFormatter):
+    """argparse's formatter, adding ``(default: X)`` to an option's help where the text does
+    not already say its default and the default is a value (not None, False or a flag's)."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        text = action.help or ""
+        default = action.default
+        if (
+            "default" in text.lower()
+            or any(default is v for v in (None, False, True, argparse.SUPPRESS))
+            or default == []
+            or not action.option_strings
+        ):
+            return text
+        return f"{text} (default: %(default)s)"
+
+
+def _every_parser(parser: argparse.ArgumentParser) -> list[argparse.ArgumentParser]:
+    """``parser`` and every (nested) subcommand parser below it."""
+    out = [parser]
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                out += _every_parser(sub)
+    return out
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="relloc",
-        description="Relative multi-robot localization: odometry + UWB ranges + cooperative detections.",
+        description="Relative multi-robot localization: odometry + UWB ranges + cooperative detections. "
+        "Run the commands from the repository root (configs/ and out/ are relative paths).",
+        epilog="relloc with no command prints this help (exit status 0). Errors print one line "
+        "'relloc <command>: error: ...' and exit with status 2.",
     )
     parser.add_argument("--version", action="version", version=f"relloc {__version__}")
     parser.add_argument("-v", "--verbose", action="store_true", help="log warnings and details")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
 
-    demo = sub.add_parser("demo", help="run the simulated scenarios with every method")
-    demo.add_argument("--seed", type=argtypes.seed, default=0)
-    demo.add_argument("--warmup", type=float, default=10.0, help="seconds excluded from APE")
+    demo = sub.add_parser(
+        "demo",
+        help="run the simulated scenarios with every method",
+        description="Run the simulated scenarios of the paper (multi: five robots; single: two "
+        "robots, one range; nav: closed-loop navigation on the estimate) through the engine, print "
+        "APE per method and robot, and write plots and JSON. Needs no data and no PyTorch.",
+    )
+    demo.add_argument("--seed", type=argtypes.seed, default=0, help="seed of the simulation and the filters")
+    demo.add_argument("--warmup", type=argtypes.non_negative, default=10.0, help="seconds excluded from APE")
     demo.add_argument("--particles", type=argtypes.count, default=None, help="override the particle count")
-    demo.add_argument("--methods", default="pf,multilateration")
-    demo.add_argument("--scenarios", default="multi,single,nav")
+    demo.add_argument("--methods", default="pf,multilateration", help=METHODS_HELP)
+    demo.add_argument("--scenarios", default="multi,single,nav", help="comma-separated: multi, single, nav")
     demo.add_argument("--out", type=Path, default=Path("out/demo"), help="folder for plots")
     demo.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE", help="write the figures as JSON")
-    demo.add_argument("--no-progress", dest="progress", action="store_false")
+    demo.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     _add_mode_flags(demo)
     demo.set_defaults(handler=_cmd_demo)
 
-    run = sub.add_parser("run", help="run methods over a rosbag2 recording and evaluate them")
+    run = sub.add_parser(
+        "run",
+        help="run methods over a rosbag2 recording and evaluate them",
+        description="Stream a rosbag2 recording through each method, evaluate against its motion "
+        "capture, print APE per method and robot, and write plots and TUM trajectories to "
+        "out/<recording>/ (or --out). The filter never sees the motion capture.",
+    )
     run.add_argument("bag", help="bag folder (metadata.yaml) or .db3/.mcap file")
     run.add_argument("--config", required=True, help="team config (TOML), e.g. configs/tiers/...")
-    run.add_argument("--methods", default="pf,multilateration")
-    run.add_argument("--seed", type=argtypes.seed, default=0)
-    run.add_argument("--warmup", type=float, default=5.0, help="seconds excluded from APE")
-    run.add_argument("--particles", type=argtypes.count, default=None)
+    run.add_argument("--methods", default="pf,multilateration", help=METHODS_HELP)
+    run.add_argument("--seed", type=argtypes.seed, default=0, help="seed of the filters")
+    run.add_argument("--warmup", type=argtypes.non_negative, default=5.0, help="seconds excluded from APE")
+    run.add_argument("--particles", type=argtypes.count, default=None, help="override the config's particle count")
     run.add_argument("--models", type=Path, default=None, help="trained range-error models (for pf_ul)")
-    run.add_argument("--out", type=Path, default=None, help="folder for plots and TUM trajectories")
-    run.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE")
-    run.add_argument("--no-progress", dest="progress", action="store_false")
+    run.add_argument(
+        "--out", type=Path, default=None,
+        help="folder for plots and TUM trajectories (default: out/<recording>/)",
+    )
+    run.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE", help="write the figures as JSON")
+    run.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     _add_mode_flags(run)
-    run.add_argument("--reference", default=None, metavar="ROBOT", help="another reference robot than the config's")
+    run.add_argument("--reference", default=None, metavar="ROBOT", help="another reference robot (default: the config's reference)")
     run.set_defaults(handler=_cmd_run)
 
-    cal = sub.add_parser("calibrate", help="estimate UWB pair biases (and heading offsets) into a config")
+    cal = sub.add_parser(
+        "calibrate",
+        help="estimate UWB pair biases (and heading offsets) for a config",
+        description="Estimate UWB node-pair biases (and optionally heading offsets) from a "
+        "recording with motion capture or a CSV of UWB errors. Writes nothing unless asked: "
+        "without --in-place or --write it prints the calibrated TOML section. Writing keeps the "
+        "config's comments and never adds per-pair sigmas the config leaves unset.",
+    )
     cal.add_argument("source", help="a bag with motion capture, or a CSV of UWB errors")
-    cal.add_argument("--config", required=True)
-    cal.add_argument("--write", default=None, help="write here instead of over --config")
-    cal.add_argument("--node-map", default=None, help="CSV robot numbers to nodes, e.g. 1=n_7,3=n_3")
+    cal.add_argument("--config", required=True, help="the team config to calibrate (TOML)")
+    where = cal.add_mutually_exclusive_group()
+    where.add_argument("--in-place", action="store_true", help="rewrite --config with the calibration")
+    where.add_argument("--write", default=None, metavar="FILE", help="write a calibrated copy of --config to FILE")
+    cal.add_argument("--node-map", default=None, help="CSV robot numbers to nodes, e.g. 1=n_7,3=n_3 (default: the TIERS map)")
     cal.add_argument("--headings", action="store_true", help="also heading offsets from the first mocap pose")
     cal.add_argument("--scale", action="store_true", help="also fit a range scale per pair")
     cal.set_defaults(handler=_cmd_calibrate)
 
     _register_optional(sub)
+    for p in _every_parser(parser):
+        p.formatter_class = _HelpFormatter
     return parser
 
 
@@ -130,15 +217,15 @@ def _add_mode_flags(parser: argparse.ArgumentParser) -> None:
 
     parser.add_argument(
         "--heading", choices=FilterConfig.choices("heading_mode"), default=None,
-        help="compass: heading offsets from the config; estimate: estimated online",
+        help="compass: heading offsets from the config; estimate: estimated online (default: the config's [filter] heading_mode)",
     )
     parser.add_argument(
         "--bias", choices=FilterConfig.choices("bias_mode"), default=None,
-        help="UWB pair biases from the config (calibrated) or estimated online",
+        help="UWB pair biases from the config (calibrated) or estimated online (default: the config's bias_mode)",
     )
     parser.add_argument(
         "--odom-scale", choices=FilterConfig.choices("odom_scale_mode"), default=None,
-        help="odometry scales from the config (fixed) or estimated online",
+        help="odometry scales from the config (fixed) or estimated online (default: the config's odom_scale_mode)",
     )
 
 
@@ -151,6 +238,9 @@ def _register_optional(sub: argparse._SubParsersAction) -> None:
 def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 0
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.ERROR,
         format="%(levelname)s %(name)s: %(message)s",

@@ -308,22 +308,36 @@ def _cmd_bench_resources(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``bench resources`` to the ``relloc`` command line."""
-    bench = sub.add_parser("bench", help="benchmarks of the live engine")
+    bench = sub.add_parser(
+        "bench",
+        help="benchmarks of the live engine",
+        description="Benchmarks of the live engine (docs/live.md).",
+    )
     bench_sub = bench.add_subparsers(dest="bench_command", required=True)
     res = bench_sub.add_parser(
-        "resources", help="CPU, peak RSS and latency of relloc serve on loopback"
+        "resources",
+        help="CPU, peak RSS and latency of relloc serve on loopback",
+        description="Start relloc serve and a publisher on loopback for each scenario and "
+        "particle count; measure CPU, peak RSS and estimate latency.",
     )
-    res.add_argument("--particles", default="400,4000")
+    res.add_argument("--particles", default="400,4000", help="comma-separated particle counts")
     res.add_argument(
         "--scenarios",
         default="sim5,shortbag",
         help="sim5 (5 simulated robots), shortbag (4 robots, TIERS)",
     )
     res.add_argument("--duration", dest="sim_duration", type=argtypes.positive, default=30.0, help="length of the simulated run (s)")
-    res.add_argument("--rate", type=argtypes.positive, default=1.0)
-    res.add_argument("--reorder-window", type=argtypes.non_negative, default=0.0, metavar="S")
-    res.add_argument("--seed", type=argtypes.seed, default=0)
+    res.add_argument("--rate", type=argtypes.positive, default=1.0, help="publishing speed factor")
+    res.add_argument(
+        "--reorder-window", type=argtypes.non_negative, default=0.0, metavar="S",
+        help="the server's --reorder-window",
+    )
+    res.add_argument("--seed", type=argtypes.seed, default=0, help="random seed")
     res.add_argument("--bag", type=Path, default=None, help=f"default ../shared/data/tiers/{SHORTBAG}")
-    res.add_argument("--bag-config", type=Path, default=None)
-    res.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE")
+    res.add_argument(
+        "--bag-config", type=Path, default=None, help=f"default configs/tiers/{SHORTBAG}.toml"
+    )
+    res.add_argument(
+        "--json", dest="json_path", type=Path, default=None, metavar="FILE", help="write the figures as JSON"
+    )
     res.set_defaults(handler=_cmd_bench_resources)

@@ -15,7 +15,9 @@
 from __future__ import annotations
 
 import argparse
+import datetime
 import signal
+import tempfile
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -28,6 +30,9 @@ from relloc.live.session import ZenohOptions, open_session
 __all__ = [
     "UserError",
     "add_zenoh_args",
+    "check_warmup",
+    "check_writable",
+    "format_stamp",
     "is_user_error",
     "open_command_session",
     "options_from_args",
@@ -74,6 +79,37 @@ def stop_on_signals(on_stop: Callable[[], None] | None = None) -> Iterator[threa
             signal.signal(sig, old)
 
 
+def check_writable(folder: Path, what: str = "--out") -> None:
+    """Create ``folder`` and write a file in it, or raise :class:`UserError` now: a run must not
+    fail on its outputs after minutes of work."""
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".relloc-write-check-"):
+            pass
+    except OSError as exc:
+        raise UserError(f"cannot write to {what} {folder}: {exc.strerror or exc}") from None
+
+
+def check_warmup(warmup: float, duration: float, name: str) -> None:
+    """A warm-up at least as long as the run leaves nothing to score: an error before the run."""
+    if warmup >= duration:
+        raise UserError(
+            f"--warmup {warmup:g} s is not shorter than {name} ({duration:.1f} s): every estimate "
+            "would fall in the warm-up and no APE would be scored"
+        )
+
+
+def format_stamp(t: float | None) -> str:
+    """A header time stamp for people: ISO 8601 (UTC) for wall-clock stamps, seconds for a
+    simulator's clock (which starts near zero), "never" for none."""
+    if t is None:
+        return "never"
+    if t > 1e8:  # after 1973: a wall clock
+        stamp = datetime.datetime.fromtimestamp(t, datetime.UTC).isoformat(timespec="milliseconds")
+        return f"at {stamp.replace('+00:00', 'Z')}"
+    return f"at t = {t:.2f} s"
+
+
 def options_from_args(cls: type[T], args: argparse.Namespace, **values: Any) -> T:
     """The dataclass ``cls`` with each field taken from the argument of its name.
 
@@ -89,7 +125,10 @@ def options_from_args(cls: type[T], args: argparse.Namespace, **values: Any) -> 
 def add_zenoh_args(p: argparse.ArgumentParser) -> None:
     """The Zenoh session options of every live command (``--mode``, ``--connect``, ...)."""
     g = p.add_argument_group("zenoh")
-    g.add_argument("--mode", choices=("peer", "client"), default="peer")
+    g.add_argument(
+        "--mode", choices=("peer", "client"), default="peer",
+        help="Zenoh mode: peer (talks to every peer) or client (through a router)",
+    )
     g.add_argument(
         "--connect",
         action="append",

@@ -19,6 +19,7 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
+from relloc.cli.common import check_warmup, check_writable
 from relloc.cli.progress import run_with_progress
 from relloc.config import TeamConfig
 from relloc.engine import Engine
@@ -128,6 +129,11 @@ def run_nav(opts: DemoOptions, console: Console) -> dict[str, Any]:
 
 def run_demo(opts: DemoOptions, console: Console | None = None) -> dict[str, Any]:
     console = console or make_console()
+    for name in opts.scenarios:  # before any scenario runs
+        if name in SCENARIOS:
+            check_warmup(opts.warmup, SCENARIOS[name](opts.seed).duration, name)
+    if opts.out is not None:
+        check_writable(opts.out)
     results: dict[str, Any] = {"seed": opts.seed, "scenarios": {}}
     for name in opts.scenarios:
         if name == "nav":

@@ -10,10 +10,12 @@ from typing import Any
 from relloc.cli import argtypes
 from relloc.cli.common import (
     add_zenoh_args,
+    format_stamp,
     open_command_session,
     options_from_args,
     stop_on_signals,
 )
+from relloc.cli.rejections import rejection_lines
 from relloc.config import TeamConfig
 from relloc.live.publish import ReplayOptions, replay_bag
 from relloc.live.server import LiveServer, ServeOptions
@@ -55,12 +57,16 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 def _print_summary(s: dict[str, Any]) -> None:
     src = s["source"]
     print(f"stopped after {s['uptime_s']:.1f} s: {src['messages']} messages, {s['events']} events")
-    print(f"  source rejected: {src['rejected'] or 'nothing'}; out of order: {src['out_of_order']}")
+    print(f"  out of order (passed on): {src['out_of_order']}")
+    for line in rejection_lines("source", src["rejected"]) or ["source dropped nothing"]:
+        print(f"  {line}")
     for name, m in s["methods"].items():
         print(
-            f"  {name}: {m['estimates']} estimates, last at t={m['last_estimate_t']}, ESS {m['ess']}, "
-            f"compute {m['compute_s']:.2f} s, rejected {m['rejected'] or 'nothing'}"
+            f"  {name}: {m['estimates']} estimates, last {format_stamp(m['last_estimate_t'])}, "
+            f"ESS {m['ess']}, compute {m['compute_s']:.2f} s"
         )
+        for line in rejection_lines(name, m["rejected"]):
+            print(f"    {line}")
     if s["engine_errors"]:
         print(f"  engine errors: {s['engine_errors']} (see the log)")
 
@@ -87,7 +93,12 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``serve`` and ``replay`` to the ``relloc`` command line."""
     serve = sub.add_parser(
-        "serve", help="run the localizer live on Zenoh (ROS 2 topics via a bridge)"
+        "serve",
+        help="run the localizer live on Zenoh (ROS 2 topics via a bridge)",
+        description="Subscribe to the team's odometry and UWB (and detection) topics on Zenoh as "
+        "zenoh-bridge-ros2dds publishes them, run the localizer on them live and publish each "
+        "robot's pose relative to the reference on <out-prefix>/<robot>/pose and a JSON status. "
+        "Ctrl-C or SIGTERM stops it and prints its figures (docs/live.md).",
     )
     serve.add_argument("--config", required=True, help="team config (TOML)")
     serve.add_argument(
@@ -95,7 +106,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="pf",
         help="comma-separated; the first one is published on relloc/<robot>/pose",
     )
-    serve.add_argument("--seed", type=argtypes.seed, default=0)
+    serve.add_argument("--seed", type=argtypes.seed, default=0, help="random seed of the filter")
     serve.add_argument(
         "--particles", type=argtypes.count, default=None, help="override the config's particle count"
     )
@@ -107,7 +118,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                        help="hold events up to S s of header time to put them in order (adds S s of latency)")  # fmt: skip
     serve.add_argument("--clock-rate", type=argtypes.positive, default=1.0,
                        help="header seconds per wall second (match relloc replay --rate)")  # fmt: skip
-    serve.add_argument("--status-period", type=argtypes.positive, default=1.0, metavar="S")
+    serve.add_argument("--status-period", type=argtypes.positive, default=1.0, metavar="S",
+                       help="seconds between two status messages")  # fmt: skip
     serve.add_argument(
         "--trace",
         action="store_true",
@@ -128,7 +140,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.set_defaults(handler=_cmd_serve)
 
     replay = sub.add_parser(
-        "replay", help="publish a rosbag2 recording on Zenoh as the robots would"
+        "replay",
+        help="publish a rosbag2 recording on Zenoh as the robots would",
+        description="Publish a rosbag2 recording's topics on Zenoh as CDR, on the keys the robots "
+        "behind zenoh-bridge-ros2dds would use, in real time (or --rate times faster).",
     )
     replay.add_argument("bag", help="bag folder (metadata.yaml) or .db3/.mcap file")
     replay.add_argument(
@@ -147,6 +162,6 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="wait up to S s for the server's subscribers",
     )
     replay.add_argument("--start", type=float, default=0.0, metavar="S", help="skip S s of the bag")
-    replay.add_argument("--duration", type=argtypes.positive, default=None, metavar="S")
+    replay.add_argument("--duration", type=argtypes.positive, default=None, metavar="S", help="publish only S s")
     add_zenoh_args(replay)
     replay.set_defaults(handler=_cmd_replay)

@@ -143,7 +143,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     sim.add_argument(
         "--robot", default=None, help="the commanded robot (nav: r2; other scenarios: none)"
     )
-    sim.add_argument("--seed", type=argtypes.seed, default=0)
+    sim.add_argument("--seed", type=argtypes.seed, default=0, help="random seed of the simulation")
     sim.add_argument("--rate", type=argtypes.positive, default=1.0, help="simulated seconds per wall second")
     sim.add_argument("--duration", type=argtypes.positive, default=600.0, metavar="S", help="simulated seconds")
     sim.add_argument(

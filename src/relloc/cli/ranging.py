@@ -25,7 +25,7 @@ from rich.console import Console
 from rich.table import Table
 
 from relloc.cli import argtypes
-from relloc.cli.common import options_from_args
+from relloc.cli.common import UserError, options_from_args
 from relloc.ranging.dataset import (
     DEFAULT_NODE_MAP,
     DEFAULT_SPLIT,
@@ -74,10 +74,6 @@ def _write_json(path: str | None, data: Any) -> None:
         Path(path).write_text(json.dumps(data, indent=2) + "\n")
 
 
-def _stderr() -> Console:
-    return Console(stderr=True)
-
-
 def _stdout() -> Console:
     """Console for tables: wide enough for one row per pair when output is not a terminal."""
     return Console() if sys.stdout.isatty() else Console(width=160)
@@ -91,17 +87,13 @@ def _train(args: argparse.Namespace) -> int:
         from relloc.ranging.models import Architecture
         from relloc.ranging.train import TrainConfig, train_directory
     except ImportError as exc:
-        _stderr().print(
-            f"[red]error:[/] training needs the optional extra relloc[train] (torch): {exc}"
-        )
-        return 2
+        raise UserError(f"training needs the optional extra relloc[train] (torch): {exc}") from None
     console = _stdout()
     try:
         arch = options_from_args(Architecture, args)
         config = options_from_args(TrainConfig, args, split=tuple(args.split))
     except ValueError as exc:
-        _stderr().print(f"[red]error:[/] {exc}")
-        return 2
+        raise UserError(str(exc)) from None
     pairs = [p.strip() for p in args.pairs.split(",")] if args.pairs else None
     progress = Progress(
         TextColumn("{task.description}"),
@@ -130,8 +122,7 @@ def _train(args: argparse.Namespace) -> int:
                 progress=on_epoch,
             )
     except (RangingDataError, ValueError) as exc:
-        _stderr().print(f"[red]error:[/] {exc}")
-        return 2
+        raise UserError(str(exc)) from None
     table = Table(title=f"{args.variant}: training report ({args.out})")
     for col in (
         "pair",
@@ -187,8 +178,7 @@ def _eval(args: argparse.Namespace) -> int:
             timing_samples=args.timing_samples,
         )
     except (RangingDataError, ModelDirError) as exc:
-        _stderr().print(f"[red]error:[/] {exc}")
-        return 2
+        raise UserError(str(exc)) from None
     pairs = report["pairs"]
     table = Table(
         title=f"MSE of the predicted ranging error (m²), part={report['part']}: {args.csv}"
@@ -224,13 +214,11 @@ def _export(args: argparse.Namespace) -> int:
     try:
         from relloc.ranging.export import reexport_dir
     except ImportError as exc:
-        _stderr().print(f"[red]error:[/] export needs the optional extra relloc[train]: {exc}")
-        return 2
+        raise UserError(f"export needs the optional extra relloc[train] (torch): {exc}") from None
     try:
         diffs = reexport_dir(args.dir, tolerance=args.tolerance)
     except (ModelDirError, FileNotFoundError, RuntimeError) as exc:
-        _stderr().print(f"[red]error:[/] {exc}")
-        return 2
+        raise UserError(str(exc)) from None
     for pair, diff in diffs.items():
         Console().print(f"{pair}: exported, max |onnx - torch| = {diff:.2e} m")
     return 0
@@ -243,8 +231,7 @@ def _bag_csv(args: argparse.Namespace) -> int:
     try:
         rows = bag_rows(args.bag, parse_bodies(args.bodies), args.mocap_topic)
     except RangingDataError as exc:
-        _stderr().print(f"[red]error:[/] {exc}")
-        return 2
+        raise UserError(str(exc)) from None
     write_csv(rows, args.out)
     Console().print(f"{len(rows)} rows -> {args.out}")
     return 0
@@ -264,9 +251,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         f"(default for train: {format_node_map(DEFAULT_NODE_MAP)})"
     )
 
-    train = sub.add_parser("train", help="train one model per node pair from a ranging CSV")
+    train = sub.add_parser(
+        "train",
+        help="train one model per node pair from a ranging CSV",
+        description="Train one range-error model per UWB node pair from a ranging CSV (needs the train extra: torch) and write a model directory with ONNX files and a manifest.",
+    )
     train.add_argument("csv", help="ranging CSV (columns of train_20221219.csv)")
-    train.add_argument("--variant", choices=VARIANT_CHOICES, default="stacked")
+    train.add_argument(
+        "--variant", choices=VARIANT_CHOICES, default="stacked",
+        help="network: stacked LSTM, bidirectional LSTM or ConvLSTM (docs/ranging.md)",
+    )
     train.add_argument("--out", required=True, help="model directory to write")
     train.add_argument("--n-steps", type=int, default=10, help="frames per window (default 10)")
     train.add_argument(
@@ -275,7 +269,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=(50, 50),
         help="units (filters) per recurrent layer (default 50,50)",
     )
-    train.add_argument("--dropout", type=float, default=0.3)
+    train.add_argument("--dropout", type=float, default=0.3, help="dropout between recurrent layers")
     train.add_argument(
         "--features",
         choices=FEATURE_CHOICES,
@@ -291,10 +285,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--conv-kernel", type=int, default=3, help="convlstm: kernel size")
     train.add_argument("--epochs", type=int, default=150, help="maximum epochs")
     train.add_argument("--patience", type=int, default=15, help="early-stopping patience")
-    train.add_argument("--batch-size", type=int, default=32)
-    train.add_argument("--lr", type=float, default=1e-3)
-    train.add_argument("--weight-decay", type=float, default=1e-4)
-    train.add_argument("--seed", type=argtypes.seed, default=0)
+    train.add_argument("--batch-size", type=int, default=32, help="windows per training batch")
+    train.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
+    train.add_argument("--weight-decay", type=float, default=1e-4, help="L2 weight decay")
+    train.add_argument("--seed", type=argtypes.seed, default=0, help="random seed of the weights and batches")
     train.add_argument(
         "--split",
         type=_floats,
@@ -343,7 +337,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--no-progress", action="store_true", help="no progress bar")
     train.set_defaults(handler=_train)
 
-    ev = sub.add_parser("eval", help="score models and the zero/bias baselines on a CSV")
+    ev = sub.add_parser(
+        "eval",
+        help="score models and the zero/bias baselines on a CSV",
+        description="Score trained model directories (onnxruntime) and the zero and constant-bias baselines on a ranging CSV: MSE of the predicted ranging error per pair.",
+    )
     ev.add_argument("csv", help="ranging CSV (any file with the training CSV's columns)")
     ev.add_argument(
         "--models",
@@ -373,14 +371,22 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     ev.set_defaults(handler=_eval)
 
-    ex = sub.add_parser("export", help="re-export a model directory's ONNX files from torch")
+    ex = sub.add_parser(
+        "export",
+        help="re-export a model directory's ONNX files from torch",
+        description="Re-export the ONNX files of a model directory from its torch checkpoints and check them against torch (needs the train extra).",
+    )
     ex.add_argument("dir", help="model directory written by `relloc ranging train`")
     ex.add_argument(
         "--tolerance", type=float, default=1e-5, help="largest accepted |onnx - torch| (m)"
     )
     ex.set_defaults(handler=_export)
 
-    bag = sub.add_parser("bag-csv", help="ranging CSV from a rosbag2 recording with mocap")
+    bag = sub.add_parser(
+        "bag-csv",
+        help="ranging CSV from a rosbag2 recording with mocap",
+        description="Write a ranging CSV (the training CSV's columns) from a rosbag2 recording with UWB ranges and motion capture.",
+    )
     bag.add_argument("bag", help="rosbag2 directory")
     bag.add_argument(
         "--bodies",
@@ -388,17 +394,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="UWB node -> motion-capture body, e.g. n_7=turtlebot1_cap,n_3=turtlebot3_cap",
     )
     bag.add_argument("--out", required=True, help="CSV to write")
-    bag.add_argument("--mocap-topic", default="/vrpn_client_node/{body}/pose")
+    bag.add_argument(
+        "--mocap-topic", default="/vrpn_client_node/{body}/pose", help="motion-capture topic template"
+    )
     bag.set_defaults(handler=_bag_csv)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Stand-alone entry point: ``python -m relloc.cli.ranging ranging train ...``."""
-    parser = argparse.ArgumentParser(prog="relloc")
-    sub = parser.add_subparsers(dest="command", required=True)
-    register(sub)
-    args = parser.parse_args(argv)
-    return int(args.handler(args))
+    """Stand-alone entry point: ``python -m relloc.cli.ranging ranging train ...``, the same as
+    ``relloc ranging train ...`` (same parser, same one-line errors)."""
+    from relloc.cli import main as relloc_main
+
+    return relloc_main(argv)
 
 
 if __name__ == "__main__":

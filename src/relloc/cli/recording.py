@@ -1,32 +1,38 @@
-"""``relloc run`` and ``relloc calibrate``: recorded rosbag2 data through the engine.
+"""``relloc run``: recorded rosbag2 data through the engine.
 
 ``run_recording`` streams a bag through every requested method (the same engine as the demo
 and the live server), evaluates against motion capture when the bag has it, prints the APE
-table, writes plots, TUM trajectories and a JSON with the demo's schema (the scenario named
-after the bag's folder). No ground truth ever reaches a localizer.
+table, writes plots, TUM trajectories (by default to ``out/<recording>/``) and a JSON with the
+demo's schema (the scenario named after the bag's folder). No ground truth ever reaches a
+localizer.
 
-``calibrate`` estimates what the config needs from a recording with motion capture (UWB
-node-pair biases from a bag or the error CSV; heading offsets from the first motion-capture
-pose) and writes it into the team config, saying which recording it came from.
+Everything that would make the run useless is checked before it starts, once the bag is open:
+a warm-up as long as the recording, a robot whose ``uwb_node`` matches no range topic (a
+warning), no range at all between the team's robots (an error: every method fuses ranges).
+``relloc calibrate`` lives in :mod:`relloc.cli.calibrate`.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
 
+from relloc.cli.common import UserError, check_warmup
 from relloc.cli.progress import run_with_progress
-from relloc.config import PairCalibration, TeamConfig
+from relloc.cli.rejections import rejection_lines
+from relloc.config import TeamConfig
 from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.methods import build_pipeline
 from relloc.sinks.tum import write_tum
+from relloc.sources.ingest import match_range_topics
 from relloc.sources.rosbag import RosbagSource, recording_name
 
 
@@ -61,6 +67,9 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
     source = RosbagSource(bag, config)
     name = recording_name(bag)
     pipelines = [build_pipeline(m, config, seed=opts.seed, models=opts.models) for m in opts.methods]
+    check_warmup(opts.warmup, source.duration, name)
+    for warning in [*source.warnings, *range_warnings(source)]:
+        console.print(f"[yellow]warning:[/] {escape(warning)}", soft_wrap=True)
     gt = GroundTruth(config.reference)
     engine = Engine(pipelines, truth_sinks=[gt.add])
     run_with_progress(
@@ -73,16 +82,13 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
         start=source.start_time,
     )
     bias_truth = _bag_bias_truth(bag, config) if config.filter.self_calibration.bias_mode == "online" else None
-    report = evaluate(engine, gt, name, opts.warmup, bias_truth=bias_truth)
+    report = evaluate(engine, gt, name, opts.warmup, bias_truth=bias_truth, truth_name="motion capture")
     print_table(report, console)
-    for warning in source.warnings:
-        console.print(f"[yellow]warning:[/] {warning}")
-    rejected = {k: v for k, v in source.stats.rejected.items() if v}
-    if rejected:
-        console.print(f"source rejected: {rejected}")
+    lines = rejection_lines("the source", source.stats.rejected)
     for p in engine.pipelines:
-        if p.localizer.rejected:
-            console.print(f"{p.name} rejected: {p.localizer.rejected}")
+        lines += rejection_lines(p.name, p.localizer.rejected)
+    for line in lines:
+        console.print(line, soft_wrap=True, highlight=False, markup=False)
     if opts.out is not None:
         write_outputs(report, engine, opts.out)
         console.print(f"plots and TUM trajectories written to {opts.out}/")
@@ -93,6 +99,30 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
         opts.json_path.write_text(json.dumps(payload, indent=2))
         console.print(f"figures written to {opts.json_path}")
     return report
+
+
+def range_warnings(source: RosbagSource) -> list[str]:
+    """Robots whose ``uwb_node`` matches no range topic of the bag (they get no range).
+
+    With no range between any two of the team's robots, raises :class:`UserError`: every
+    method fuses ranges (``pf_uv``/``pf_ulv`` add detections to them), so the run would only
+    say "no estimate" everywhere."""
+    template = source.config.uwb.range_topic
+    found = match_range_topics(source.topics, template)
+    ranged = {node for pair in found.values() for node in pair}
+    robots = [r for r in source.config.robots if r.uwb_node]
+    if len(robots) >= 2 and not found:
+        nodes = ", ".join(f"{r.name}={r.uwb_node}" for r in robots)
+        raise UserError(
+            f"no UWB range topic of the bag joins two of the team's nodes ({nodes}; template "
+            f"{template!r}): every method needs ranges; check uwb_node and uwb.range_topic"
+        )
+    return [
+        f"{r.name}: uwb_node {r.uwb_node!r} matches no range topic of the bag (template "
+        f"{template!r}): it gets no range, so only its odometry moves it from the uniform prior"
+        for r in robots
+        if found and r.uwb_node not in ranged
+    ]
 
 
 def _bag_bias_truth(bag: Path, config: TeamConfig) -> dict[str, float] | None:
@@ -119,33 +149,3 @@ def write_outputs(report: ScenarioReport, engine: Engine, out: Path) -> None:
                 write_tum(out / "tum" / f"{method}_{robot}.txt", p.t, p.est)
                 if method == next(iter(report.methods)):
                     write_tum(out / "tum" / f"groundtruth_{robot}.txt", p.t, p.gt)
-
-
-def calibrate(
-    source: Path,
-    config: TeamConfig,
-    *,
-    node_map: dict[int, str] | None = None,
-    headings: bool = False,
-    fit_scale: bool = False,
-) -> tuple[TeamConfig, dict[str, Any]]:
-    """A copy of ``config`` with UWB pair calibration (and optionally heading offsets) from
-    ``source``: a rosbag2 recording with motion capture, or a CSV of UWB errors."""
-    from relloc.evaluation import calibration
-
-    summary: dict[str, Any] = {"source": str(source)}
-    if source.suffix.lower() == ".csv":
-        pairs = calibration.pair_biases_from_csv(source, node_map or {1: "n_7", 3: "n_3", 4: "n_4", 5: "n_5"}, fit_scale=fit_scale)
-    else:
-        pairs = calibration.pair_biases_from_bag(source, config, fit_scale=fit_scale)
-    merged: dict[str, PairCalibration] = {**config.uwb.pairs, **pairs}
-    config = replace(config, uwb=replace(config.uwb, pairs=merged))
-    summary["pairs"] = {k: {"bias": v.bias, "scale": v.scale, "sigma": v.sigma} for k, v in pairs.items()}
-    if headings:
-        if source.suffix.lower() == ".csv":
-            raise ValueError("heading offsets need a bag with odometry and motion capture, not a CSV")
-        offsets = calibration.heading_offsets_from_bag(source, config)
-        for robot, deg in offsets.items():
-            config = config.with_robot(robot, heading_offset_deg=round(deg, 2))
-        summary["heading_offset_deg"] = offsets
-    return config, summary

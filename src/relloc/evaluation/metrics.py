@@ -213,8 +213,35 @@ def ate(p: Paired) -> float:
     return float(np.sqrt(np.mean(np.sum((p.est @ r.T + t - p.gt) ** 2, axis=1))))
 
 
-def convergence_time(paired: dict[str, Paired], threshold: float = 0.3, tolerance: float = 0.05) -> float:
-    """Seconds from the first estimate until the worst-robot APE stays (95 %) below threshold."""
+CONVERGENCE_THRESHOLD_M = 0.3
+"""Worst-robot APE under which a run counts as converged (m)."""
+CONVERGENCE_TOLERANCE = 0.05
+"""Fraction of the estimates after the convergence time allowed above the threshold."""
+CONVERGENCE_HOLD_S = 1.0
+"""The worst-robot APE must stay under the threshold for this long from the convergence time on
+(within the tolerance): one lucky estimate inside a bad first second is not convergence."""
+CONVERGENCE_MIN_REST = 0.1
+"""The convergence time must leave at least this fraction of the estimates' time span after it:
+a good last estimate alone says nothing."""
+
+
+def convergence_time(
+    paired: dict[str, Paired],
+    threshold: float = CONVERGENCE_THRESHOLD_M,
+    tolerance: float = CONVERGENCE_TOLERANCE,
+    start: float | None = None,
+    hold: float = CONVERGENCE_HOLD_S,
+    min_rest: float = CONVERGENCE_MIN_REST,
+) -> float:
+    """Seconds from ``start`` (default: the first estimate) to the convergence time: the first
+    estimate time from which the worst-robot APE stays under ``threshold`` for ``hold`` seconds
+    and for at least ``1 - tolerance`` of the estimates up to the end, with at least
+    ``min_rest`` of the estimates' time span still to come. NaN if that never happens.
+
+    The worst-robot APE at an estimate time is the largest error of any robot estimated then.
+    Counting only the rest of the run is not enough: a run whose robots are 4 m off during its
+    first second would "converge" at 0 s, because one second is under 5 % of a minute.
+    """
     if not paired:
         return math.nan
     times = np.array(sorted({float(t) for p in paired.values() for t in p.t}))
@@ -224,13 +251,18 @@ def convergence_time(paired: dict[str, Paired], threshold: float = 0.3, toleranc
     for p in paired.values():
         idx = np.searchsorted(times, p.t)
         np.maximum.at(worst, idx, p.errors)
-    bad = (worst > threshold).astype(float)
-    # fraction of bad estimates from each index to the end
-    tail_bad = np.cumsum(bad[::-1])[::-1] / np.arange(times.size, 0, -1)
-    ok = np.flatnonzero(tail_bad <= tolerance)
+    bad = worst > threshold
+    n_bad = np.concatenate(([0], np.cumsum(bad)))  # n_bad[i]: bad estimates before index i
+    index = np.arange(times.size)
+    tail_bad = (n_bad[-1] - n_bad[:-1]) / (times.size - index)
+    stop = np.searchsorted(times, times + hold, side="right")  # end of each hold window
+    hold_bad = (n_bad[stop] - n_bad[:-1]) / (stop - index)
+    early = times <= times[-1] - min_rest * (times[-1] - times[0])
+    ok = np.flatnonzero(~bad & (hold_bad <= tolerance) & (tail_bad <= tolerance) & early)
     if ok.size == 0:
         return math.nan
-    return float(times[ok[0]] - times[0])
+    origin = times[0] if start is None else start
+    return float(times[ok[0]] - origin)
 
 
 def after(p: Paired, t_start: float) -> Paired:

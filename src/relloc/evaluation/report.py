@@ -22,6 +22,10 @@ from rich.table import Table
 
 from relloc.engine import Engine
 from relloc.evaluation.metrics import (
+    CONVERGENCE_HOLD_S,
+    CONVERGENCE_MIN_REST,
+    CONVERGENCE_THRESHOLD_M,
+    CONVERGENCE_TOLERANCE,
     ApeStats,
     GroundTruth,
     HeadingPaired,
@@ -131,9 +135,14 @@ class ScenarioReport:
     methods: dict[str, MethodReport]
     t0: float = 0.0
     """Time of the run's first event; the warm-up window is ``[t0, t0 + warmup)``."""
+    reference: str = ""
+    """The reference robot: every position is relative to it."""
+    truth_name: str = "ground truth"
+    """What the estimates are scored against: the simulator's ground truth, or motion capture."""
 
     def to_json(self) -> dict[str, Any]:
         return {
+            "reference": self.reference,
             "warmup_s": self.warmup,
             "duration_s": round(self.duration, 3),
             "methods": {m: r.to_json() for m, r in self.methods.items()},
@@ -151,6 +160,7 @@ def evaluate(
     warmup: float,
     robots: list[str] | None = None,
     bias_truth: dict[str, float] | None = None,
+    truth_name: str = "ground truth",
 ) -> ScenarioReport:
     """APE/ATE/convergence of every pipeline of ``engine`` against ``truth`` after ``warmup`` s.
 
@@ -195,7 +205,7 @@ def evaluate(
             variants = [(p.name, "run"), (p.name + "_oracle", "step")]
         for method, mode in variants:
             aligned = align(paired, mode)
-            conv = convergence_time(aligned)
+            conv = convergence_time(aligned, start=t0)
             late = {r: after(q, t0 + warmup) for r, q in aligned.items()}
             methods[method] = MethodReport(
                 robots={r: ApeStats.of(q.errors) for r, q in late.items()},
@@ -207,7 +217,7 @@ def evaluate(
                 n_estimates=len(p.estimates),
                 **calibration,
             )
-    return ScenarioReport(name, warmup, duration, methods, t0)
+    return ScenarioReport(name, warmup, duration, methods, t0, truth.reference, truth_name)
 
 
 def _after_heading(h: HeadingPaired, t_start: float) -> HeadingPaired:
@@ -220,10 +230,22 @@ def make_console() -> Console:
     return Console() if sys.stdout.isatty() else Console(width=120)
 
 
+CONVERGENCE_CAPTION = (
+    "converged after: seconds from the start of the run to the first time from which the worst "
+    f"robot's APE stays under {CONVERGENCE_THRESHOLD_M:g} m for {CONVERGENCE_HOLD_S:g} s and for "
+    f"{100 * (1 - CONVERGENCE_TOLERANCE):g} % of the rest of the run (never: not before the last "
+    f"{100 * CONVERGENCE_MIN_REST:g} % of the run)"
+)
+
+
 def print_table(report: ScenarioReport, console: Console | None = None) -> None:
-    """One row per method and robot: APE median / RMSE / max (m), n, and convergence time."""
+    """One row per method and robot: APE median / RMSE / max (m), n, and convergence time; the
+    caption names the reference robot and defines "converged after"."""
     console = console or make_console()
-    table = Table(title=f"{report.name}: APE after {report.warmup:g} s warm-up ({report.duration:.1f} s run)")
+    title = f"{report.name}: APE after {report.warmup:g} s warm-up ({report.duration:.1f} s run)"
+    if report.reference:
+        title += f", positions relative to {report.reference}"
+    table = Table(title=title, caption=CONVERGENCE_CAPTION, caption_justify="left")
     for col in ("method", "robot", "APE median", "APE rmse", "APE max", "ATE", "n", "converged after"):
         table.add_column(col, justify="left" if col in ("method", "robot") else "right")
     for method, m in report.methods.items():
