@@ -10,6 +10,7 @@ from typing import Any
 from relloc.cli import argtypes
 from relloc.cli.common import (
     add_zenoh_args,
+    interface_from_args,
     open_command_session,
     options_from_args,
     stop_on_signals,
@@ -25,7 +26,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from relloc.methods import parse_methods
 
     config = TeamConfig.load(args.config)
-    opts = options_from_args(ServeOptions, args, methods=tuple(parse_methods(args.methods)))
+    opts = options_from_args(
+        ServeOptions,
+        args,
+        methods=tuple(parse_methods(args.methods)),
+        interface=interface_from_args(args, config),
+    )
     session = open_command_session(args)
     try:
         server = LiveServer(config, session, opts)
@@ -37,7 +43,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             server.start()
             print(
                 f"relloc serve: {config.name}, {', '.join(opts.methods)}, "
-                f"{server.config.filter.particles} particles; {len(server.source.keys)} keys in, "
+                f"{server.config.filter.particles} particles; {opts.interface.kind} interface, "
+                f"{len(server.source.keys)} topics in, "
                 f"estimates on {server.sink.key('<robot>', opts.methods[0])}",
                 flush=True,
             )
@@ -67,7 +74,7 @@ def _print_summary(s: dict[str, Any]) -> None:
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     config = TeamConfig.load(args.config)
-    opts = options_from_args(ReplayOptions, args)
+    opts = options_from_args(ReplayOptions, args, interface=interface_from_args(args, config))
     session = open_command_session(args)
     try:
         with stop_on_signals() as stop:

@@ -10,7 +10,7 @@ the recorded pace (times ``--rate``), so a recording stands in for the robots;
 end-to-end latency). ``docs/live.md`` tells the whole story and gives the measured figures.
 
 Latency is traced, not guessed: the replay attaches its send wall time to every message
-(:func:`~relloc.sources.zenoh_source.encode_sent_time`); the server, run with ``--trace``,
+(:func:`~relloc.ros.interfaces.encode_sent_time`, or the rmw_zenoh attachment); the server, run with ``--trace``,
 publishes for each estimate the message whose arrival produced it (its key, header stamp and
 send/receive times) and the estimate's publication time on ``relloc/trace``. Both ends share the
 host's wall clock on loopback.
