@@ -94,7 +94,7 @@ def _cmd_replay(args: argparse.Namespace) -> int:
 def register(sub: argparse._SubParsersAction) -> None:
     """Add ``serve`` and ``replay`` to the ``relloc`` command line."""
     serve = sub.add_parser(
-        "serve", help="run the localizer live on Zenoh (ROS 2 topics via a bridge)"
+        "serve", help="run the localizer live on Zenoh (ROS 2 via zenoh-bridge-ros2dds or rmw_zenoh)"
     )
     serve.add_argument("--config", required=True, help="team config (TOML)")
     serve.add_argument(
