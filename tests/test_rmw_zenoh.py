@@ -288,6 +288,8 @@ def test_served_over_rmw_zenoh_seen_by_a_subscriber_written_from_the_design_docu
     pubs = [t.split("/") for t in tokens if t.split("/")[5] == "MP" and t.split("/")[8] == "relloc"]
     topics = {p[9] for p in pubs}
     assert {f"%relloc%{r}%pose" for r in config.others} | {"%relloc%status"} <= topics
+    subs = {t.split("/")[9] for t in tokens if t.split("/")[5] == "MS" and t.split("/")[8] == "relloc"}
+    assert {"%r1%odom", "%uwb%tof%n_1%n_2%distance", "%uwb%tof%n_2%n_1%distance"} <= subs
     for p in pubs:
         assert p[:2] == ["@ros2_lv", "0"] and p[6:8] == ["%", "%"] and len(p) == 13
         if p[9].endswith("%pose"):

@@ -110,7 +110,7 @@ class LiveServer:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         """Subscribe to the team's keys."""
-        self.source.attach(self.session)
+        self.source.attach(self.session, self.sink.node)
         self.started = time.time()
         self._last_counts = (self.started, self._counts())
 

@@ -110,6 +110,12 @@ class ZenohNode:
         self._subscribers.append(sub)
         return sub
 
+    def announce_subscription(self, channel: Channel) -> None:
+        """Declare (rmw_zenoh) the ``MS`` token of a subscription made elsewhere on the session
+        (the live source's own subscribers), so that the ROS graph lists it."""
+        if self.interface.rmw:
+            self._declare_endpoint("MS", channel)
+
     def wait_matching(
         self, channels: list[Channel], timeout: float, stop: Callable[[], bool] = lambda: False
     ) -> list[str]:

@@ -71,6 +71,7 @@ from relloc.ros.interfaces import (
 )
 from relloc.ros.messages import typestore
 from relloc.ros.type_hash import type_hash
+from relloc.ros.zenoh_node import ZenohNode
 from relloc.sources.ingest import (
     Converter,
     HeaderClock,
@@ -271,11 +272,24 @@ class ZenohSource:
             return [self.interface.everything_expr(self.options.prefix)]
         return [self.interface.subscription_expr(k) for k in self.keys]
 
-    def attach(self, session: Any) -> None:
-        """Declare the subscribers on ``session`` (a ``zenoh.Session``)."""
+    def attach(self, session: Any, node: ZenohNode | None = None) -> None:
+        """Declare the subscribers on ``session`` (a ``zenoh.Session``); with rmw_zenoh and a
+        ``node``, also the subscriptions' liveliness tokens (the node undeclares them)."""
         exprs = self.expressions
         for expr in exprs:
             self._subscribers.append(session.declare_subscriber(expr, self.on_sample))
+        if node is not None and self.interface.rmw:
+            for route, scope in route_scopes(
+                self.config,
+                odometry=self.options.odometry,
+                ranges=self.options.ranges,
+                detections=self.options.detections,
+            ):
+                for msgtype in route.msgtypes:
+                    channel = self.interface.channel(
+                        route.topic, msgtype, prefix=self.options.prefix, scope=scope
+                    )
+                    node.announce_subscription(channel)
         log.info("subscribed to %d key expression(s): %s", len(exprs), ", ".join(exprs))
 
     def detach(self) -> None:
