@@ -252,6 +252,8 @@ def test_served_over_rmw_zenoh_seen_by_a_subscriber_written_from_the_design_docu
     finally:
         server.stop()
         thread.join(timeout=10)
+    n_own = len(server.pipelines[0].estimates)  # the last one was published as the server ended
+    assert wait_until(lambda: len(collector.estimates()) >= n_own and len(poses) >= 4 * n_own)
     estimates = collector.estimates()
     traces = collector.traces()
     server.close()
@@ -338,3 +340,15 @@ def test_malformed_attachments_and_foreign_types_over_zenoh(sessions: tuple[Any,
     assert source.stats.rejected == {"unknown_type": 1}
     tr = source.transport
     assert (tr.attachment_malformed, tr.attachment_missing, tr.unknown_type_hash.total()) == (1, 1, 1)
+
+
+def test_replay_on_rmw_zenoh_leaves_out_topics_whose_type_it_cannot_hash() -> None:
+    """A bag topic of a type relloc has no definition of has no rmw_zenoh key: skipped, logged."""
+    from relloc.live.publish import _topic_channels
+
+    _, config = simulated_team(seed=0, duration=5.0)
+    topics = {"/r1/odom": ODOMETRY, "/x/y": "foo_msgs/msg/Unknown"}
+    channels = _topic_channels(config, RMW, "", topics)
+    assert list(channels) == ["/r1/odom"]
+    assert channels["/r1/odom"] == RMW.channel("/r1/odom", ODOMETRY)
+    assert list(_topic_channels(config, RosInterface(), "", topics)) == ["/r1/odom", "/x/y"]

@@ -26,7 +26,7 @@ from typing import Any
 from relloc.config import RobotConfig, TeamConfig
 from relloc.events import Event, GroundTruthEvent, OdometryEvent, RangeEvent
 from relloc.ros.interfaces import Channel, RosInterface
-from relloc.ros.messages import ODOMETRY, POSE_STAMPED, RANGE, TWIST
+from relloc.ros.messages import ODOMETRY, POSE_STAMPED, RANGE, TWIST, MessageDecodeError
 from relloc.ros.zenoh_node import ZenohNode
 from relloc.sources.zenoh_source import route_scopes
 
@@ -114,10 +114,13 @@ def _topic_channels(
     """The channel each topic (name -> message type) is published on: the team's topics on the
     first key a server subscribes them on, others below ``prefix`` alone."""
     first = _first_scopes(config)
-    return {
-        t: interface.channel(t, msgtype, prefix=prefix, scope=first.get(t, ""))
-        for t, msgtype in topics.items()
-    }
+    channels: dict[str, Channel] = {}
+    for t, msgtype in topics.items():
+        try:
+            channels[t] = interface.channel(t, msgtype, prefix=prefix, scope=first.get(t, ""))
+        except MessageDecodeError as exc:  # rmw_zenoh needs the type's hash: its definition
+            log.warning("%s is not replayed: %s", t, exc)
+    return channels
 
 
 def _required(config: TeamConfig, channels: dict[str, Channel]) -> list[Channel]:
@@ -244,7 +247,7 @@ def replay_bag(
 
         def items() -> Iterator[tuple[float, Channel, bytes]]:
             for conn, recv_ns, raw in reader.messages(connections=conns):
-                if recv_ns < first_ns:
+                if recv_ns < first_ns or conn.topic not in channels:
                     continue
                 if recv_ns > last_ns:
                     return
