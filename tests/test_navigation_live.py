@@ -95,7 +95,7 @@ def write_team(tmp: Path, particles: int = 4000) -> Path:
     return team
 
 
-def start_sim_robots(tmp: Path, team: Path, port: int) -> subprocess.Popen[bytes]:
+def start_sim_robots(tmp: Path, team: Path, port: int, *extra: str) -> subprocess.Popen[bytes]:
     """``relloc sim-robots`` for the nav scenario at twice real time, listening on ``port``,
     writing its truth to ``tmp/sim.json``."""
     return relloc(
@@ -110,6 +110,7 @@ def start_sim_robots(tmp: Path, team: Path, port: int) -> subprocess.Popen[bytes
         "120",
         "--json",
         str(tmp / "sim.json"),
+        *extra,
         *zenoh_args(listen=port),
         log=tmp / "sim.log",
     )
@@ -138,40 +139,44 @@ def start_navigate(tmp: Path, team: Path, port: int, *extra: str) -> subprocess.
     )
 
 
-@pytest.mark.slow
-def test_sim_robots_serve_and_navigate_drive_a_small_rectangle_over_zenoh(tmp_path: Path) -> None:
-    team = write_team(tmp_path)
+def drive_small_rectangle(tmp: Path, *interface: str) -> tuple[dict[str, Any], dict[str, Any]]:
+    """sim-robots + serve + navigate (each given ``interface``, e.g. the rmw_zenoh flags) on
+    loopback until navigate ends; returns navigate's summary and sim-robots' (with the truth)."""
+    team = write_team(tmp)
     port = free_tcp_port()
     procs = []
     try:
-        procs.append(start_sim_robots(tmp_path, team, port))
+        procs.append(start_sim_robots(tmp, team, port, *interface))
         serve = relloc(
             "serve",
             "--config",
             str(team),
             "--clock-rate",
             "2",
+            *interface,
             *zenoh_args(connect=port),
-            log=tmp_path / "serve.log",
+            log=tmp / "serve.log",
         )
         procs.append(serve)
-        nav = start_navigate(tmp_path, team, port)
+        nav = start_navigate(tmp, team, port, *interface)
         procs.append(nav)
         try:
             code = nav.wait(timeout=75)
         except subprocess.TimeoutExpired:
             code = None
-        logs = {p.name: p.read_text() for p in tmp_path.glob("*.log")}
+        logs = {p.name: p.read_text() for p in tmp.glob("*.log")}
         assert code == 0, f"navigate ended with {code}:\n" + "\n".join(
             f"--- {k}\n{v}" for k, v in logs.items()
         )
     finally:
         for proc in reversed(procs):
             stop(proc)
-    summary = json.loads((tmp_path / "nav.json").read_text())
-    truth = json.loads((tmp_path / "sim.json").read_text())
+    return json.loads((tmp / "nav.json").read_text()), json.loads((tmp / "sim.json").read_text())
+
+
+def check_small_rectangle(summary: dict[str, Any], truth: dict[str, Any]) -> None:
+    """The path was completed, with the robot (the simulator's truth) close to it."""
     assert summary["completed"] is True and summary["ended"] == "goal reached"
-    assert summary["cmd_vel_key"] == "r2/cmd_vel" and summary["estimate_key"] == "relloc/r2/pose"
     assert [s["reason"] for s in summary["stops"]][-2:] == ["released", "goal reached"]
     assert truth["commands_received"] > 50
     # Tracking error: the robot's true position (the simulator's) against the planned path, from
@@ -188,6 +193,27 @@ def test_sim_robots_serve_and_navigate_drive_a_small_rectangle_over_zenoh(tmp_pa
     last = r2[r2[:, 0] > summary["end_t"] + 1.0]
     if len(last) > 1:
         assert np.ptp(last[:, 1]) < 1e-6 and np.ptp(last[:, 2]) < 1e-6
+
+
+@pytest.mark.slow
+def test_sim_robots_serve_and_navigate_drive_a_small_rectangle_over_zenoh(tmp_path: Path) -> None:
+    summary, truth = drive_small_rectangle(tmp_path)
+    assert summary["cmd_vel_key"] == "r2/cmd_vel" and summary["estimate_key"] == "relloc/r2/pose"
+    check_small_rectangle(summary, truth)
+
+
+@pytest.mark.slow
+def test_the_same_loop_on_rmw_zenoh(tmp_path: Path) -> None:
+    """The three processes as rmw_zenoh nodes on ROS domain 7: rmw_zenoh keys (type names and
+    RIHS01 hashes), attachments and liveliness tokens, no bridge."""
+    summary, truth = drive_small_rectangle(tmp_path, "--ros-interface", "rmw_zenoh", "--domain-id", "7")
+    twist = "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"
+    assert summary["cmd_vel_key"] == f"7/r2/cmd_vel/geometry_msgs::msg::dds_::Twist_/{twist}"
+    assert summary["estimate_key"].startswith(
+        "7/relloc/r2/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/RIHS01_"
+    )
+    assert summary["received"]["decode_error"] == 0 and summary["received"]["estimate"] > 100
+    check_small_rectangle(summary, truth)
 
 
 def test_ctrl_c_makes_navigate_send_zero_within_one_control_period(tmp_path: Path) -> None:

@@ -7,6 +7,7 @@ test on the shared shortbag is skipped without ``../shared/data``.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import signal
@@ -36,6 +37,7 @@ from relloc.live import (
     replay_bag,
     simulated_team,
 )
+from relloc.ros.interfaces import BRIDGE, RMW_ZENOH, RosInterface
 from relloc.ros.messages import encode, odometry_msg
 from relloc.sources.zenoh_source import ZenohSource, ZenohSourceOptions
 
@@ -203,33 +205,46 @@ def test_serve_command_shuts_down_cleanly_on_sigterm(
     assert summary["methods"]["pf"]["stats"]["odometry"] == 5
 
 
+@functools.cache
+def _offline_shortbag(bag: Path, particles: int, seed: int) -> Any:
+    from relloc.cli.recording import RunOptions, run_recording
+
+    config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")
+    return run_recording(
+        bag, config, RunOptions(methods=("pf",), particles=particles, seed=seed, progress=False)
+    )
+
+
 @pytest.mark.slow
 @pytest.mark.shared_data
-def test_replayed_shortbag_matches_relloc_run(shared_data: Path, sessions: tuple[Any, Any]) -> None:
-    """Replay the 17 s shortbag at 2x into the live engine: same APE as ``relloc run``.
+@pytest.mark.parametrize("kind", [BRIDGE, RMW_ZENOH])
+def test_replayed_shortbag_matches_relloc_run(
+    shared_data: Path, sessions: tuple[Any, Any], kind: str
+) -> None:
+    """Replay the 17 s shortbag at 2x into the live engine: same APE as ``relloc run``, on the
+    bridge and on rmw_zenoh (the same bytes under other keys, with rmw_zenoh attachments).
 
     Same particles, same seed; the reorder window (0.2 s of header time) restores the header
     order the rosbag source produces, so the filter sees the same event sequence.
     """
-    from relloc.cli.recording import RunOptions, run_recording
-
     bag = shared_data / "tiers" / SHORTBAG
     config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")
     particles, seed, rate = 4000, 0, 2.0
-    report = run_recording(
-        bag, config, RunOptions(methods=("pf",), particles=particles, seed=seed, progress=False)
-    )
+    interface = RosInterface(kind)
+    report = _offline_shortbag(bag, particles, seed)
     offline = report.methods["pf"]
 
     srv_session, client = sessions
-    collector = EstimateCollector(client, config)
+    collector = EstimateCollector(client, config, interface=interface)
     server = LiveServer(
         config,
         srv_session,
-        ServeOptions(particles=particles, seed=seed, reorder_window=0.2, clock_rate=rate),
+        ServeOptions(
+            particles=particles, seed=seed, reorder_window=0.2, clock_rate=rate, interface=interface
+        ),
     )
     with Running(server) as live:
-        stats = replay_bag(bag, config, client, ReplayOptions(rate=rate, wait=5.0))
+        stats = replay_bag(bag, config, client, ReplayOptions(rate=rate, wait=5.0, interface=interface))
         assert stats.unmatched == []
         expected = sum(n for k, n in stats.per_key.items() if k in live.source.routes)
         assert wait_until(lambda: sum(live.source.stats.messages.values()) >= expected)
@@ -237,8 +252,18 @@ def test_replayed_shortbag_matches_relloc_run(shared_data: Path, sessions: tuple
     collector.close()
 
     served = ape_against_bag(estimates, bag, config, warmup=report.warmup, t0=report.t0)
+    print(
+        f"{kind}: served mean APE median {served['mean_median']:.3f} m over {len(estimates)} "
+        f"estimates; relloc run {offline.mean_ape_median:.3f} m over {offline.n_estimates}"
+    )
     assert abs(len(estimates) - offline.n_estimates) <= 2
     assert served["mean_median"] == pytest.approx(offline.mean_ape_median, rel=0.10)
     for robot, s in offline.robots.items():
         assert served[robot]["n"] == pytest.approx(s.n, abs=2)
-    assert server.summary()["source"]["rejected"] == {}
+    summary = server.summary()
+    assert summary["source"]["rejected"] == {}
+    transport = summary["source"]["transport"]
+    assert transport["lost"] == {} and transport["unknown_type_hash"] == {}
+    assert transport["attachment_missing"] == transport["attachment_malformed"] == 0
+    if kind == RMW_ZENOH:
+        assert transport["publishers"] == len([k for k in stats.per_key if k in server.source.routes])

@@ -17,14 +17,12 @@ import pytest
 from relloc.config import ConfigError, RobotConfig, TeamConfig
 from relloc.events import OdometryEvent, RangeEvent
 from relloc.live import LiveServer, ServeOptions, event_messages, simulated_team
+from relloc.ros.interfaces import decode_sent_time, encode_sent_time, key_for_topic
 from relloc.ros.messages import encode, odometry_msg, range_msg
 from relloc.sources.zenoh_source import (
     ZenohSource,
     ZenohSourceOptions,
     build_routes,
-    decode_sent_time,
-    encode_sent_time,
-    key_for_topic,
 )
 
 T0 = 1_700_000_000.0
@@ -211,7 +209,8 @@ def test_a_robot_quiet_for_5_s_does_not_stop_the_others_and_recovers() -> None:
     quiet, gap = "r3", (20.0, 25.0)
     status: dict[float, dict[str, Any]] = {}
     nodes = {r.uwb_node: r.name for r in config.robots}
-    for t, key, payload in event_messages(sim.events(), config, time_base=T0):
+    for t, channel, payload in event_messages(sim.events(), config, time_base=T0):
+        key = channel.key
         route = src.routes[key]
         involved = {route.robot, route.robot_b} if route.robot_b else {route.robot}
         assert involved <= set(nodes.values())

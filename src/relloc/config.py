@@ -461,6 +461,9 @@ class TeamConfig(_Checked):
     mocap_topic: str = "/vrpn_client_node/{body}/pose"
     clock_offset: float | None = None
     """Header stamp minus receive time (s) for topics with zero stamps; ``None``: estimate it."""
+    ros_interface: Literal["bridge", "rmw_zenoh"] = "bridge"
+    """How the robots are on Zenoh live: zenoh-bridge-ros2dds or rmw_zenoh (``--ros-interface``
+    overrides it; see ``relloc.ros.interfaces``)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -7,7 +7,9 @@
   and an optional callback), so a long-running command ends cleanly and prints its figures;
   the previous handlers come back when the block ends.
 * :func:`add_zenoh_args` and :func:`open_command_session`: every live command (``serve``,
-  ``replay``, ``navigate``, ``sim-robots``) opens its Zenoh session from the same flags.
+  ``replay``, ``navigate``, ``sim-robots``) opens its Zenoh session from the same flags, and
+  :func:`interface_from_args` gives its ROS interface (``--ros-interface``, ``--domain-id``,
+  else the team config's ``ros_interface`` and ``ROS_DOMAIN_ID``).
 * :func:`options_from_args` builds a command's option dataclass from the parsed arguments by
   field name, so a new option is one ``add_argument`` whose ``dest`` is the field's name.
 """
@@ -16,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import os
 import signal
 import tempfile
 import threading
@@ -25,7 +28,9 @@ from dataclasses import fields
 from pathlib import Path
 from typing import Any, TypeVar
 
+from relloc.config import TeamConfig
 from relloc.live.session import ZenohOptions, open_session
+from relloc.ros.interfaces import ROS_INTERFACES, RosInterface
 
 __all__ = [
     "UserError",
@@ -33,6 +38,7 @@ __all__ = [
     "check_warmup",
     "check_writable",
     "format_stamp",
+    "interface_from_args",
     "is_user_error",
     "open_command_session",
     "options_from_args",
@@ -153,6 +159,36 @@ def add_zenoh_args(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--prefix", default="", help="key prefix of the robots' topics (the bridge namespace)"
     )
+    g.add_argument(
+        "--ros-interface",
+        choices=ROS_INTERFACES,
+        default=None,
+        help="how the robots are on Zenoh: zenoh-bridge-ros2dds keys (bridge) or rmw_zenoh's "
+        "keys, attachments and liveliness tokens (default: the config's ros_interface, bridge)",
+    )
+    g.add_argument(
+        "--domain-id",
+        type=int,
+        default=None,
+        metavar="N",
+        help="ROS domain id with rmw_zenoh (default: $ROS_DOMAIN_ID, else 0)",
+    )
+
+
+def interface_from_args(args: argparse.Namespace, config: TeamConfig) -> RosInterface:
+    """The :class:`RosInterface` of a command: its flags, else the config and the environment."""
+    kind = args.ros_interface or config.ros_interface
+    domain = args.domain_id
+    if domain is None:
+        env = os.environ.get("ROS_DOMAIN_ID", "").strip()
+        try:
+            domain = int(env) if env else 0
+        except ValueError:
+            raise UserError(f"ROS_DOMAIN_ID={env!r} is not an integer") from None
+    try:
+        return RosInterface(kind, domain)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
 
 
 def zenoh_options_from_args(args: argparse.Namespace) -> ZenohOptions:

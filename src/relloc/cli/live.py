@@ -11,6 +11,7 @@ from relloc.cli import argtypes
 from relloc.cli.common import (
     add_zenoh_args,
     format_stamp,
+    interface_from_args,
     open_command_session,
     options_from_args,
     stop_on_signals,
@@ -27,7 +28,12 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from relloc.methods import parse_methods
 
     config = TeamConfig.load(args.config)
-    opts = options_from_args(ServeOptions, args, methods=tuple(parse_methods(args.methods)))
+    opts = options_from_args(
+        ServeOptions,
+        args,
+        methods=tuple(parse_methods(args.methods)),
+        interface=interface_from_args(args, config),
+    )
     session = open_command_session(args)
     try:
         server = LiveServer(config, session, opts)
@@ -39,7 +45,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
             server.start()
             print(
                 f"relloc serve: {config.name}, {', '.join(opts.methods)}, "
-                f"{server.config.filter.particles} particles; {len(server.source.keys)} keys in, "
+                f"{server.config.filter.particles} particles; {opts.interface.kind} interface, "
+                f"{len(server.source.keys)} topics in, "
                 f"estimates on {server.sink.key('<robot>', opts.methods[0])}",
                 flush=True,
             )
@@ -73,7 +80,7 @@ def _print_summary(s: dict[str, Any]) -> None:
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     config = TeamConfig.load(args.config)
-    opts = options_from_args(ReplayOptions, args)
+    opts = options_from_args(ReplayOptions, args, interface=interface_from_args(args, config))
     session = open_command_session(args)
     try:
         with stop_on_signals() as stop:
@@ -94,11 +101,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     """Add ``serve`` and ``replay`` to the ``relloc`` command line."""
     serve = sub.add_parser(
         "serve",
-        help="run the localizer live on Zenoh (ROS 2 topics via a bridge)",
-        description="Subscribe to the team's odometry and UWB (and detection) topics on Zenoh as "
-        "zenoh-bridge-ros2dds publishes them, run the localizer on them live and publish each "
-        "robot's pose relative to the reference on <out-prefix>/<robot>/pose and a JSON status. "
-        "Ctrl-C or SIGTERM stops it and prints its figures (docs/live.md).",
+        help="run the localizer live on Zenoh (ROS 2 via zenoh-bridge-ros2dds or rmw_zenoh)",
+        description="Subscribe to the team's odometry and UWB (and detection) topics on Zenoh, as "
+        "zenoh-bridge-ros2dds publishes them or as robots on rmw_zenoh do (--ros-interface), run the "
+        "localizer on them live and publish each robot's pose relative to the reference on "
+        "<out-prefix>/<robot>/pose and a JSON status. Ctrl-C or SIGTERM stops it and prints its "
+        "figures (docs/live.md).",
     )
     serve.add_argument("--config", required=True, help="team config (TOML)")
     serve.add_argument(

@@ -16,6 +16,7 @@ from relloc.cli import argtypes
 from relloc.cli.common import (
     UserError,
     add_zenoh_args,
+    interface_from_args,
     open_command_session,
     options_from_args,
     stop_on_signals,
@@ -125,7 +126,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         description=(
             "Run a simulated team in real time and publish its odometry (nav_msgs/Odometry), UWB "
             "ranges (sensor_msgs/Range) and motion capture as CDR on the keys real robots behind "
-            "zenoh-bridge-ros2dds would use; commanded robots follow geometry_msgs/Twist on their "
+            "zenoh-bridge-ros2dds (or, with --ros-interface rmw_zenoh, rmw_zenoh) would use; "
+            "commanded robots follow geometry_msgs/Twist on their "
             "cmd_vel key. With relloc serve and relloc navigate: the whole live system on one machine."
         ),
     )
@@ -238,6 +240,7 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
         controller=controller,
         safety=safety,
         methods=tuple(parse_methods(args.methods)),
+        interface=interface_from_args(args, config),
     )
     session = open_command_session(args)
     try:
@@ -305,7 +308,7 @@ def _cmd_sim_robots(args: argparse.Namespace) -> int:
         if not args.write_config:
             raise UserError("--config-only needs --write-config FILE")
         return 0
-    opts = options_from_args(SimRobotsOptions, args)
+    opts = options_from_args(SimRobotsOptions, args, interface=interface_from_args(args, config))
     session = open_command_session(args)
     try:
         robots = SimRobots(sim, config, session, opts)

@@ -2,15 +2,16 @@
 
 ``serve`` runs the *same* :class:`~relloc.engine.Engine` and method pipelines as ``relloc run``
 and the demo, fed by :class:`~relloc.sources.zenoh_source.ZenohSource` (the robots' ROS 2
-topics as bridged by zenoh-bridge-ros2dds) and publishing through
+topics as bridged by zenoh-bridge-ros2dds, or as robots on rmw_zenoh publish them:
+:mod:`relloc.ros.interfaces`) and publishing through
 :class:`~relloc.sinks.zenoh_sink.ZenohSink`. One thread runs the engine; Zenoh's callbacks only
-enqueue. ``replay`` publishes a rosbag2 recording's raw CDR messages on the bridge's keys at
+enqueue. ``replay`` publishes a rosbag2 recording's raw CDR messages on the interface's keys at
 the recorded pace (times ``--rate``), so a recording stands in for the robots;
 ``relloc bench resources`` (:mod:`relloc.cli.bench_resources`) runs both on loopback and measures the server process (CPU, peak RSS,
 end-to-end latency). ``docs/live.md`` tells the whole story and gives the measured figures.
 
 Latency is traced, not guessed: the replay attaches its send wall time to every message
-(:func:`~relloc.sources.zenoh_source.encode_sent_time`); the server, run with ``--trace``,
+(:func:`~relloc.ros.interfaces.encode_sent_time`, or the rmw_zenoh attachment); the server, run with ``--trace``,
 publishes for each estimate the message whose arrival produced it (its key, header stamp and
 send/receive times) and the estimate's publication time on ``relloc/trace``. Both ends share the
 host's wall clock on loopback.

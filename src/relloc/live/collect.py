@@ -18,7 +18,10 @@ from typing import Any
 
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
-from relloc.sinks.zenoh_sink import pose_key
+from relloc.ros.interfaces import RosInterface
+from relloc.ros.messages import POSE_WITH_COVARIANCE_STAMPED
+from relloc.ros.zenoh_node import ZenohNode
+from relloc.sinks.zenoh_sink import STRING, pose_topic
 
 __all__ = ["SHORTBAG", "EstimateCollector", "ape_against_bag"]
 
@@ -29,10 +32,10 @@ SHORTBAG = "multi4_shortbag_20221011"
 
 
 class EstimateCollector:
-    """Subscribes to a server's pose (and trace) keys and rebuilds the estimates it published.
+    """Subscribes to a server's pose (and trace) topics and rebuilds the estimates it published.
 
-    For tests and benchmarks: the same messages any ROS consumer would get. Messages are decoded
-    on Zenoh's threads into lists guarded by a lock.
+    For tests and benchmarks: the same messages any ROS consumer would get, on the interface's
+    keys. Messages are decoded on Zenoh's threads into lists guarded by a lock.
     """
 
     def __init__(
@@ -43,24 +46,26 @@ class EstimateCollector:
         prefix: str = "relloc",
         method: str = "pf",
         primary: bool = True,
+        interface: RosInterface | None = None,
     ) -> None:
         self.config = config
         self.method = method
+        self.interface = iface = interface or RosInterface()
         self._lock = threading.Lock()
         self._poses: list[
             tuple[int, int, str, float, float, tuple[float, float, float, float]]
         ] = []
         self._traces: list[dict[str, Any]] = []
-        expr = pose_key(prefix, "*", None if primary else method)
-        self._subs = [
-            session.declare_subscriber(expr, self._on_pose),
-            session.declare_subscriber(f"{prefix.strip('/')}/trace", self._on_trace),
-        ]
+        self.node = ZenohNode(session, iface, "relloc_collector")
+        for robot in config.others:
+            topic = pose_topic(prefix, robot, None if primary else method)
+            channel = iface.channel(topic, POSE_WITH_COVARIANCE_STAMPED)
+            self.node.subscribe(channel, lambda s, robot=robot: self._on_pose(robot, s))
+        self.node.subscribe(iface.channel(f"{prefix.strip('/')}/trace", STRING), self._on_trace)
 
-    def _on_pose(self, sample: Any) -> None:
-        from relloc.ros.messages import POSE_WITH_COVARIANCE_STAMPED, decode
+    def _on_pose(self, robot: str, sample: Any) -> None:
+        from relloc.ros.messages import decode
 
-        robot = str(sample.key_expr).split("/")[-2]
         msg = decode(sample.payload.to_bytes(), POSE_WITH_COVARIANCE_STAMPED)
         c = msg.pose.covariance
         p = msg.pose.pose.position
@@ -76,7 +81,7 @@ class EstimateCollector:
             self._poses.append(item)
 
     def _on_trace(self, sample: Any) -> None:
-        record = json.loads(sample.payload.to_bytes())
+        record = json.loads(self.interface.decode_text(sample.payload.to_bytes()))
         record["received"] = time.time()
         with self._lock:
             self._traces.append(record)
@@ -108,12 +113,7 @@ class EstimateCollector:
             return list(self._traces)
 
     def close(self) -> None:
-        subs, self._subs = self._subs, []
-        for sub in subs:
-            try:
-                sub.undeclare()
-            except Exception as exc:
-                log.debug("undeclaring a subscriber failed: %s", exc)
+        self.node.close()
 
 
 def ape_against_bag(

@@ -1,12 +1,14 @@
 """Publishing robots' messages into Zenoh: a recording (``relloc replay``) or simulated robots.
 
-:func:`replay_bag` publishes a rosbag2 recording's raw CDR messages on the keys a bridge
-(zenoh-bridge-ros2dds) would use, at the recorded pace times ``rate``, so a recording stands in
-for live robots; :func:`publish_events` does the same for relloc events (the simulator's), as
-:class:`EventEncoder` encodes them (the simulated robots of ``relloc sim-robots``,
-:mod:`relloc.live.sim_robots`, use it too). Every message carries its send wall time as an attachment
-(:func:`~relloc.sources.zenoh_source.encode_sent_time`): the server's trace turns it into
-end-to-end latency.
+:func:`replay_bag` publishes a rosbag2 recording's raw CDR messages as robots would, at the
+recorded pace times ``rate``, so a recording stands in for live robots; :func:`publish_events`
+does the same for relloc events (the simulator's), as :class:`EventEncoder` encodes them (the
+simulated robots of ``relloc sim-robots``, :mod:`relloc.live.sim_robots`, use it too). The keys,
+attachments and (with rmw_zenoh) liveliness tokens are those of the interface
+(:class:`~relloc.ros.interfaces.RosInterface`), published by one
+:class:`~relloc.ros.zenoh_node.ZenohNode`: on the bridge every message carries its send wall
+time (:func:`~relloc.ros.interfaces.encode_sent_time`), with rmw_zenoh the rmw_zenoh attachment
+whose source timestamp is that time; the server's trace turns either into end-to-end latency.
 """
 
 from __future__ import annotations
@@ -23,7 +25,10 @@ from typing import Any
 
 from relloc.config import RobotConfig, TeamConfig
 from relloc.events import Event, GroundTruthEvent, OdometryEvent, RangeEvent
-from relloc.sources.zenoh_source import build_routes, encode_sent_time, key_for_topic
+from relloc.ros.interfaces import Channel, RosInterface
+from relloc.ros.messages import ODOMETRY, POSE_STAMPED, RANGE, TWIST, MessageDecodeError
+from relloc.ros.zenoh_node import ZenohNode
+from relloc.sources.zenoh_source import route_scopes
 
 __all__ = [
     "SIM_TIME_BASE",
@@ -31,8 +36,9 @@ __all__ = [
     "PublishStats",
     "Publishers",
     "ReplayOptions",
-    "cmd_vel_key",
+    "cmd_vel_channel",
     "event_messages",
+    "odom_channel",
     "publish_events",
     "replay_bag",
     "simulated_team",
@@ -71,71 +77,72 @@ class PublishStats:
 
 
 class Publishers:
-    """Publishers declared on demand, each put carrying its send time as an attachment."""
+    """The publishers of one process standing in for robots: a :class:`ZenohNode` (declaring
+    each channel's publisher on first use, attaching send times or rmw_zenoh attachments)."""
 
-    def __init__(self, session: Any) -> None:
+    def __init__(
+        self, session: Any, interface: RosInterface | None = None, node: str = "relloc_replay"
+    ) -> None:
         self.session = session
-        self._pubs: dict[str, Any] = {}
+        self.node = ZenohNode(session, interface or RosInterface(), node)
 
-    def get(self, key: str) -> Any:
-        pub = self._pubs.get(key)
-        if pub is None:
-            pub = self._pubs[key] = self.session.declare_publisher(key)
-        return pub
-
-    def put(self, key: str, payload: bytes) -> None:
-        self.get(key).put(payload, attachment=encode_sent_time(time.time()))
+    def put(self, channel: Channel, payload: bytes) -> None:
+        self.node.put(channel, payload)
 
     def wait_matching(
-        self, keys: Iterable[str], timeout: float, stop: Callable[[], bool]
+        self, channels: Iterable[Channel], timeout: float, stop: Callable[[], bool]
     ) -> list[str]:
-        """Wait until every key has a subscriber (or ``timeout``); returns those still without."""
-        pending = list(dict.fromkeys(keys))
-        end = time.time() + timeout
-        while pending and time.time() < end and not stop():
-            pending = [k for k in pending if not self.get(k).matching_status.matching]
-            if pending:
-                time.sleep(0.02)
-        return pending
+        """Wait until every channel has a subscriber (or ``timeout``); returns the keys of those
+        still without."""
+        return self.node.wait_matching(list(channels), timeout, stop)
 
     def close(self) -> None:
-        pubs, self._pubs = self._pubs, {}
-        for pub in pubs.values():
-            try:
-                pub.undeclare()
-            except Exception as exc:
-                log.debug("undeclaring a publisher failed: %s", exc)
+        self.node.close()
 
 
-def _required_keys(config: TeamConfig, prefix: str, topic_keys: dict[str, str]) -> list[str]:
-    """Keys, among those about to be published, that any server of ``config`` subscribes to
-    (odometry and ranges; detections only with detection methods)."""
-    kinds = {r.topic: r.kind for r in build_routes(config, prefix=prefix).values()}
-    return sorted(k for t, k in topic_keys.items() if kinds.get(t) in ("odometry", "range"))
-
-
-def _topic_keys(config: TeamConfig, prefix: str, topics: Iterable[str]) -> dict[str, str]:
-    """The key each topic is published on: the team's topics on the first key a server
-    subscribes them on (a range below its first robot's scope), others on ``prefix/<topic>``."""
+def _first_scopes(config: TeamConfig) -> dict[str, str]:
+    """Each team topic's first namespace (a range below its first robot's scope)."""
     first: dict[str, str] = {}
-    for key, route in build_routes(config, prefix=prefix).items():
-        first.setdefault(route.topic, key)
-    return {t: first.get(t) or key_for_topic(t, prefix=prefix) for t in topics}
+    for route, scope in route_scopes(config):
+        first.setdefault(route.topic, scope)
+    return first
+
+
+def _topic_channels(
+    config: TeamConfig, interface: RosInterface, prefix: str, topics: dict[str, str]
+) -> dict[str, Channel]:
+    """The channel each topic (name -> message type) is published on: the team's topics on the
+    first key a server subscribes them on, others below ``prefix`` alone."""
+    first = _first_scopes(config)
+    channels: dict[str, Channel] = {}
+    for t, msgtype in topics.items():
+        try:
+            channels[t] = interface.channel(t, msgtype, prefix=prefix, scope=first.get(t, ""))
+        except MessageDecodeError as exc:  # rmw_zenoh needs the type's hash: its definition
+            log.warning("%s is not replayed: %s", t, exc)
+    return channels
+
+
+def _required(config: TeamConfig, channels: dict[str, Channel]) -> list[Channel]:
+    """Channels, among those about to be published, that any server of ``config`` subscribes
+    to (odometry and ranges; detections only with detection methods)."""
+    kinds = {r.topic: r.kind for r, _ in route_scopes(config)}
+    return [c for t, c in sorted(channels.items()) if kinds.get(t) in ("odometry", "range")]
 
 
 def _run_schedule(
-    items: Iterable[tuple[float, str, bytes]],
+    items: Iterable[tuple[float, Channel, bytes]],
     pubs: Publishers,
     rate: float,
     stop: Callable[[], bool],
     stats: PublishStats,
     on_start: Callable[[], None] | None = None,
 ) -> None:
-    """Publish ``(time s, key, payload)`` items (time ascending) at ``rate`` times their pace;
+    """Publish ``(time s, channel, payload)`` items (time ascending) at ``rate`` times their pace;
     ``on_start`` is called once, just before the first message goes out."""
     start_wall: float | None = None
     first_t = 0.0
-    for t, key, payload in items:
+    for t, channel, payload in items:
         if stop():
             break
         if start_wall is None:
@@ -148,9 +155,9 @@ def _run_schedule(
             time.sleep(delay)
         else:
             stats.max_behind_s = max(stats.max_behind_s, -delay)
-        pubs.put(key, payload)
+        pubs.put(channel, payload)
         stats.messages += 1
-        stats.per_key[key] += 1
+        stats.per_key[channel.topic_key] += 1
     if start_wall is not None:
         stats.wall_s = time.time() - start_wall
 
@@ -161,6 +168,8 @@ class ReplayOptions:
 
     rate: float = 1.0
     prefix: str = ""
+    interface: RosInterface = field(default_factory=RosInterface)
+    """Publish as robots behind a bridge (``bridge``) or running ``rmw_zenoh``."""
     team_only: bool = False
     """Publish only the team's topics (odometry, UWB between its robots, detections)."""
     ground_truth: bool = False
@@ -181,13 +190,13 @@ def replay_bag(
     stop: Callable[[], bool] = lambda: False,
     on_start: Callable[[], None] | None = None,
 ) -> PublishStats:
-    """Publish a bag's messages (raw CDR as stored) on the bridge-convention keys.
+    """Publish a bag's messages (raw CDR as stored) as the robots would, on the interface's keys.
 
-    Messages go out in receive order at the recorded pace divided by ``rate``; each carries its
-    send wall time as an attachment. The team's topics are published on exactly the keys a
-    :class:`~relloc.sources.zenoh_source.ZenohSource` of ``config`` subscribes to (with robot
-    scopes and ``prefix``), every other topic on ``prefix/<topic>``; motion capture stays out
-    unless ``ground_truth``.
+    Messages go out in receive order at the recorded pace divided by ``rate``; each carries the
+    interface's attachment (the send wall time). The team's topics are published on exactly the
+    keys a :class:`~relloc.sources.zenoh_source.ZenohSource` of ``config`` subscribes to (with
+    robot scopes and ``prefix``), every other topic below ``prefix`` alone; motion capture stays
+    out unless ``ground_truth``.
     """
     from rosbags.rosbag2 import Reader
 
@@ -205,10 +214,9 @@ def replay_bag(
     except Exception as exc:
         raise BagError(f"cannot open bag {bag}: {exc}") from exc
     stats = PublishStats()
-    pubs = Publishers(session)
+    pubs = Publishers(session, opts.interface, "relloc_replay")
     try:
-        routes = build_routes(config, prefix=opts.prefix)
-        team_topics = {r.topic for r in routes.values()}
+        team_topics = {r.topic for r, _ in route_scopes(config)}
         mocap = re.compile(
             "^" + re.escape(config.mocap_topic).replace(re.escape("{body}"), "[^/]+") + "$"
         )
@@ -226,23 +234,24 @@ def replay_bag(
                 f"--start {opts.start:g} s is outside {bag}, which lasts "
                 f"{(reader.end_time - reader.start_time) * 1e-9:.1f} s"
             )
-        keys = _topic_keys(config, opts.prefix, {c.topic for c in conns})
-        required = _required_keys(config, opts.prefix, keys)
+        channels = _topic_channels(
+            config, opts.interface, opts.prefix, {c.topic: c.msgtype for c in conns}
+        )
         t_wait = time.time()
-        stats.unmatched = pubs.wait_matching(required, opts.wait, stop)
+        stats.unmatched = pubs.wait_matching(_required(config, channels), opts.wait, stop)
         stats.waited_s = time.time() - t_wait
         if stats.unmatched:
             log.warning("no subscriber yet for %s: publishing anyway", stats.unmatched)
         first_ns = reader.start_time + int(opts.start * 1e9)
         last_ns = math.inf if opts.duration is None else first_ns + opts.duration * 1e9
 
-        def items() -> Iterator[tuple[float, str, bytes]]:
+        def items() -> Iterator[tuple[float, Channel, bytes]]:
             for conn, recv_ns, raw in reader.messages(connections=conns):
-                if recv_ns < first_ns:
+                if recv_ns < first_ns or conn.topic not in channels:
                     continue
                 if recv_ns > last_ns:
                     return
-                yield recv_ns * 1e-9, keys[conn.topic], bytes(raw)
+                yield recv_ns * 1e-9, channels[conn.topic], bytes(raw)
 
         _run_schedule(items(), pubs, opts.rate, stop, stats, on_start)
     finally:
@@ -266,59 +275,99 @@ def simulated_team(seed: int = 0, duration: float = 30.0) -> tuple[Any, TeamConf
     return sim, config
 
 
-def cmd_vel_key(robot: RobotConfig, prefix: str = "") -> str:
-    """The key of a robot's velocity commands: ``cmd_vel_topic`` (default ``/<robot>/cmd_vel``)
-    under the bridge convention, e.g. ``tb1/cmd_vel``."""
+def cmd_vel_channel(
+    robot: RobotConfig, interface: RosInterface | None = None, prefix: str = ""
+) -> Channel:
+    """The channel of a robot's velocity commands: ``geometry_msgs/Twist`` on ``cmd_vel_topic``
+    (default ``/<robot>/cmd_vel``) below its scope, e.g. the key ``r2/cmd_vel`` on the bridge."""
     topic = robot.cmd_vel_topic or f"/{robot.name}/cmd_vel"
-    return key_for_topic(topic, prefix=prefix, scope=robot.zenoh_scope)
+    return (interface or RosInterface()).channel(topic, TWIST, prefix=prefix, scope=robot.zenoh_scope)
+
+
+def odom_channel(
+    robot: RobotConfig, interface: RosInterface | None = None, prefix: str = ""
+) -> Channel:
+    """The channel of a robot's odometry (``odom_topic``, default ``/<robot>/odom``)."""
+    topic = robot.odom_topic or f"/{robot.name}/odom"
+    return (interface or RosInterface()).channel(topic, ODOMETRY, prefix=prefix, scope=robot.zenoh_scope)
 
 
 class EventEncoder:
-    """Relloc events as the ROS 2 messages a team would publish, on the keys it would use.
+    """Relloc events as the ROS 2 messages a team would publish, on the channels it would use.
 
-    Odometry becomes ``nav_msgs/Odometry`` on the robot's odometry key, a range
-    ``sensor_msgs/Range`` on the key of its node pair (in the event's node order), and, with
+    Odometry becomes ``nav_msgs/Odometry`` on the robot's odometry topic, a range
+    ``sensor_msgs/Range`` on the topic of its node pair (in the event's node order), and, with
     ``ground_truth``, a ground-truth pose ``geometry_msgs/PoseStamped`` on the robot's
-    motion-capture key (``mocap_topic``); other events have no message. The keys are those a
-    server of ``config`` subscribes to (:func:`~relloc.sources.zenoh_source.build_routes`).
+    motion-capture topic (``mocap_topic``); other events have no message. The keys are those a
+    server of ``config`` on the same interface subscribes to
+    (:func:`~relloc.sources.zenoh_source.build_routes`).
     """
 
-    def __init__(self, config: TeamConfig, *, prefix: str = "", ground_truth: bool = False) -> None:
-        routes = build_routes(config, prefix=prefix, detections=False)
-        self.odom_keys = {r.robot: k for k, r in routes.items() if r.kind == "odometry"}
-        self.range_keys: dict[tuple[str, str], str] = {}
-        for k, r in routes.items():
-            if r.kind == "range":
-                self.range_keys.setdefault((r.node_a, r.node_b), k)
-        self.mocap_keys = {
-            r.name: key_for_topic(config.mocap_topic.format(body=r.mocap_body or r.name), prefix=prefix)
+    def __init__(
+        self,
+        config: TeamConfig,
+        *,
+        interface: RosInterface | None = None,
+        prefix: str = "",
+        ground_truth: bool = False,
+    ) -> None:
+        iface = interface or RosInterface()
+        self.odom_channels: dict[str, Channel] = {}
+        self.range_channels: dict[tuple[str, str], Channel] = {}
+        for route, scope in route_scopes(config, detections=False):
+            if route.kind == "odometry":
+                self.odom_channels.setdefault(
+                    route.robot, iface.channel(route.topic, ODOMETRY, prefix=prefix, scope=scope)
+                )
+            elif route.kind == "range":
+                self.range_channels.setdefault(
+                    (route.node_a, route.node_b),
+                    iface.channel(route.topic, RANGE, prefix=prefix, scope=scope),
+                )
+        self.mocap_channels = {
+            r.name: iface.channel(
+                config.mocap_topic.format(body=r.mocap_body or r.name), POSE_STAMPED, prefix=prefix
+            )
             for r in config.robots
         }
+        self.odom_keys = {r: c.key for r, c in self.odom_channels.items()}
+        self.range_keys = {p: c.key for p, c in self.range_channels.items()}
         self.ground_truth = ground_truth
 
-    def encode(self, ev: Event, time_base: float = 0.0) -> tuple[str, bytes] | None:
-        """``(key, CDR payload)`` of one event, ``None`` if it has no message. ``time_base`` is
-        added to the header stamp (the simulator starts at 0, and a zero stamp means "no stamp"
-        on the wire)."""
+    @property
+    def channels(self) -> list[Channel]:
+        """The odometry and range channels (what a server subscribes to)."""
+        return [*self.odom_channels.values(), *self.range_channels.values()]
+
+    def encode(self, ev: Event, time_base: float = 0.0) -> tuple[Channel, bytes] | None:
+        """``(channel, CDR payload)`` of one event, ``None`` if it has no message. ``time_base``
+        is added to the header stamp (the simulator starts at 0, and a zero stamp means "no
+        stamp" on the wire)."""
         from relloc.ros.messages import encode, odometry_msg, pose_stamped_msg, range_msg
 
         if isinstance(ev, OdometryEvent):
-            key = self.odom_keys.get(ev.robot)
-            return None if key is None else (key, encode(odometry_msg(replace(ev, t=ev.t + time_base))))
+            ch = self.odom_channels.get(ev.robot)
+            return None if ch is None else (ch, encode(odometry_msg(replace(ev, t=ev.t + time_base))))
         if isinstance(ev, RangeEvent):
-            key = self.range_keys.get((ev.node_a, ev.node_b))
-            return None if key is None else (key, encode(range_msg(replace(ev, t=ev.t + time_base))))
+            ch = self.range_channels.get((ev.node_a, ev.node_b))
+            return None if ch is None else (ch, encode(range_msg(replace(ev, t=ev.t + time_base))))
         if isinstance(ev, GroundTruthEvent) and self.ground_truth:
-            return self.mocap_keys[ev.robot], encode(pose_stamped_msg(replace(ev, t=ev.t + time_base)))
+            msg = pose_stamped_msg(replace(ev, t=ev.t + time_base))
+            return self.mocap_channels[ev.robot], encode(msg)
         return None
 
 
 def event_messages(
-    events: Iterable[Event], config: TeamConfig, *, prefix: str = "", time_base: float = 0.0
-) -> Iterator[tuple[float, str, bytes]]:
+    events: Iterable[Event],
+    config: TeamConfig,
+    *,
+    interface: RosInterface | None = None,
+    prefix: str = "",
+    time_base: float = 0.0,
+) -> Iterator[tuple[float, Channel, bytes]]:
     """Relloc events as the messages :class:`EventEncoder` makes of them (no ground truth):
-    ``(t, key, CDR payload)``, ``t`` the event's own time."""
-    encoder = EventEncoder(config, prefix=prefix)
+    ``(t, channel, CDR payload)``, ``t`` the event's own time."""
+    encoder = EventEncoder(config, interface=interface, prefix=prefix)
     for ev in events:
         out = encoder.encode(ev, time_base)
         if out is not None:
@@ -331,40 +380,25 @@ def publish_events(
     session: Any,
     *,
     rate: float = 1.0,
+    interface: RosInterface | None = None,
     prefix: str = "",
     time_base: float = 0.0,
     wait: float = 10.0,
     stop: Callable[[], bool] = lambda: False,
     on_start: Callable[[], None] | None = None,
 ) -> PublishStats:
-    """Publish relloc events (e.g. from the simulator) on a team's keys in real time (times
+    """Publish relloc events (e.g. from the simulator) on a team's channels in real time (times
     ``rate``), as :func:`event_messages` encodes them, after waiting up to ``wait`` s for
-    subscribers of every key."""
-    pubs = Publishers(session)
+    subscribers of every odometry and range channel."""
+    pubs = Publishers(session, interface, "relloc_events")
     stats = PublishStats()
-    routes = build_routes(config, prefix=prefix, detections=False)
-    keys = sorted(
-        {k for k, r in routes.items() if r.kind == "odometry"}
-        | {
-            _first_range_key(routes, r.node_a, r.node_b)
-            for r in routes.values()
-            if r.kind == "range"
-        }
-    )
+    encoder = EventEncoder(config, interface=interface, prefix=prefix)
     try:
         t_wait = time.time()
-        stats.unmatched = pubs.wait_matching(keys, wait, stop)
+        stats.unmatched = pubs.wait_matching(encoder.channels, wait, stop)
         stats.waited_s = time.time() - t_wait
-        items = event_messages(events, config, prefix=prefix, time_base=time_base)
+        items = event_messages(events, config, interface=interface, prefix=prefix, time_base=time_base)
         _run_schedule(items, pubs, rate, stop, stats, on_start)
     finally:
         pubs.close()
     return stats
-
-
-def _first_range_key(routes: dict[str, Any], node_a: str, node_b: str) -> str:
-    return next(
-        k
-        for k, r in routes.items()
-        if r.kind == "range" and (r.node_a, r.node_b) == (node_a, node_b)
-    )

@@ -12,13 +12,14 @@ import logging
 import math
 import time
 from collections.abc import Iterable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from relloc.config import TeamConfig
 from relloc.engine import Engine, Pipeline
 from relloc.methods import DETECTION_METHODS
+from relloc.ros.interfaces import RosInterface
 from relloc.sinks.zenoh_sink import ZenohSink
 from relloc.sources.zenoh_source import Arrival, ZenohSource, ZenohSourceOptions
 
@@ -37,6 +38,8 @@ class ServeOptions:
     models: Path | None = None
     prefix: str = ""
     """Key prefix of the robots' topics (the bridge's namespace)."""
+    interface: RosInterface = field(default_factory=RosInterface)
+    """How the robots' topics and relloc's own are on Zenoh: ``bridge`` or ``rmw_zenoh``."""
     out_prefix: str = "relloc"
     """Key prefix of what the server publishes."""
     reorder_window: float = 0.0
@@ -80,6 +83,7 @@ class LiveServer:
             config,
             ZenohSourceOptions(
                 prefix=opts.prefix,
+                interface=opts.interface,
                 reorder_window=opts.reorder_window,
                 clock_rate=opts.clock_rate,
                 detections=any(m in DETECTION_METHODS for m in opts.methods),
@@ -89,6 +93,7 @@ class LiveServer:
         self.sink = ZenohSink(
             session,
             config,
+            interface=opts.interface,
             prefix=opts.out_prefix,
             primary_method=opts.methods[0],
             trace=opts.trace,
@@ -105,7 +110,7 @@ class LiveServer:
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
         """Subscribe to the team's keys."""
-        self.source.attach(self.session)
+        self.source.attach(self.session, self.sink.node)
         self.started = time.time()
         self._last_counts = (self.started, self._counts())
 
@@ -219,6 +224,7 @@ class LiveServer:
             "uptime_s": round(now - self.started, 3),
             "team": self.config.name,
             "reference": self.config.reference,
+            "ros_interface": self.options.interface.kind,
             "particles": self.config.filter.particles,
             "methods": methods,
             "source": {
@@ -230,6 +236,7 @@ class LiveServer:
                 "rejected": dict(st.rejected),
                 "out_of_order": st.out_of_order,
                 "restamped": sum(st.restamped.values()),
+                "transport": self.source.transport.as_dict(),
                 "queue_depth": self.source.queue_depth,
                 "buffer_depth": len(self.source.buffer),
             },

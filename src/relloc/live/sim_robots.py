@@ -1,8 +1,9 @@
 """Simulated robots on Eclipse Zenoh (``relloc sim-robots``): a team that stands in for real ones.
 
 :class:`SimRobots` runs a simulated team (:mod:`relloc.simulator`) in real time (times
-``rate``) and publishes its odometry, UWB ranges and motion capture as the real robots behind
-zenoh-bridge-ros2dds would: the same keys and ROS 2 CDR payloads, encoded by the
+``rate``) and publishes its odometry, UWB ranges and motion capture as real robots behind
+zenoh-bridge-ros2dds, or running rmw_zenoh, would: the same keys, attachments (and liveliness
+tokens, for a node ``relloc_sim_robots``) and ROS 2 CDR payloads, encoded by the
 :class:`~relloc.live.publish.EventEncoder` that also publishes recorded and simulated events
 for ``relloc replay`` and the benchmarks. Commanded robots obey ``geometry_msgs/Twist`` on their
 ``cmd_vel`` key, and stop when no command has come for ``cmd_timeout`` simulated seconds, as a
@@ -19,12 +20,13 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from relloc.config import TeamConfig
 from relloc.events import GroundTruthEvent
-from relloc.live.publish import EventEncoder, Publishers, cmd_vel_key
+from relloc.live.publish import EventEncoder, Publishers, cmd_vel_channel
+from relloc.ros.interfaces import RosInterface
 from relloc.ros.messages import TWIST, MessageDecodeError, decode
 
 __all__ = ["SimRobots", "SimRobotsOptions", "sim_team_config"]
@@ -51,7 +53,10 @@ def sim_team_config(
                 f"{list(config.robot_names)} with reference {config.reference!r}"
             )
         config = replace(
-            config, filter=base.filter, uwb=replace(config.uwb, range_topic=base.uwb.range_topic)
+            config,
+            filter=base.filter,
+            uwb=replace(config.uwb, range_topic=base.uwb.range_topic),
+            ros_interface=base.ros_interface,
         )
     for r in config.robots:
         own = base.robot(r.name) if base is not None else None
@@ -78,6 +83,8 @@ class SimRobotsOptions:
     step: float = 0.05
     """Simulation step (s of simulated time): commands are applied and data published per step."""
     prefix: str = ""
+    interface: RosInterface = field(default_factory=RosInterface)
+    """Stand in for robots behind a bridge (``bridge``) or running ``rmw_zenoh``."""
     cmd_timeout: float = 0.5
     """A commanded robot stops when no ``cmd_vel`` arrived for this long (simulated s)."""
     ground_truth: bool = True
@@ -102,14 +109,17 @@ class SimRobots:
         self.options = opts = options or SimRobotsOptions()
         if not opts.rate > 0 or not opts.step > 0:
             raise ValueError("rate and step must be positive")
-        self.encoder = EventEncoder(config, prefix=opts.prefix, ground_truth=opts.ground_truth)
+        self.encoder = EventEncoder(
+            config, interface=opts.interface, prefix=opts.prefix, ground_truth=opts.ground_truth
+        )
         self.odom_keys = self.encoder.odom_keys
         self.range_keys = self.encoder.range_keys
-        self.cmd_keys = {
-            name: cmd_vel_key(config.robot(name), opts.prefix) for name in sim.commanded
+        self.cmd_channels = {
+            name: cmd_vel_channel(config.robot(name), opts.interface, opts.prefix)
+            for name in sim.commanded
         }
-        self._pubs = Publishers(session)
-        self._subs: list[Any] = []
+        self.cmd_keys = {name: c.key for name, c in self.cmd_channels.items()}
+        self._pubs = Publishers(session, opts.interface, "relloc_sim_robots")
         self._lock = threading.Lock()
         self._commands: dict[str, tuple[float, float, float]] = {}  # robot -> (v, w, sim time)
         self.t_sim = 0.0
@@ -121,19 +131,12 @@ class SimRobots:
         """True world poses ``(stamp, x, y, yaw)`` published, per robot."""
 
     def start(self) -> None:
-        """Subscribe to the commanded robots' ``cmd_vel`` keys."""
-        for robot, key in self.cmd_keys.items():
-            self._subs.append(
-                self.session.declare_subscriber(key, lambda s, robot=robot: self._on_cmd(robot, s))
-            )
+        """Subscribe to the commanded robots' ``cmd_vel`` topics."""
+        for robot, channel in self.cmd_channels.items():
+            self._pubs.node.subscribe(channel, lambda s, robot=robot: self._on_cmd(robot, s))
 
     def close(self) -> None:
-        for sub in self._subs:
-            try:
-                sub.undeclare()
-            except Exception as exc:
-                log.debug("undeclaring failed: %s", exc)
-        self._subs = []
+        """Undeclare subscribers, publishers and tokens."""
         self._pubs.close()
 
     def _on_cmd(self, robot: str, sample: Any) -> None:
@@ -154,8 +157,7 @@ class SimRobots:
         """Simulate and publish until ``stop``, ``duration`` or the end of the simulation."""
         stop = stop or threading.Event()
         opts = self.options
-        keys = [*self.odom_keys.values(), *self.range_keys.values()]
-        if self._pubs.wait_matching(keys, opts.wait, stop.is_set):
+        if self._pubs.wait_matching(self.encoder.channels, opts.wait, stop.is_set):
             log.warning("no subscriber yet for some of the team's keys, publishing anyway")
         end = min(self.sim.duration, opts.duration or math.inf)
         wall0 = time.time()

@@ -1,8 +1,11 @@
 """Navigation over Eclipse Zenoh (``relloc navigate``).
 
-Keys follow zenoh-bridge-ros2dds, as everywhere in relloc (:func:`relloc.sources.zenoh_source.key_for_topic`):
-a ROS topic ``/tb1/odom`` is the key ``tb1/odom``, below the global ``--prefix`` and the robot's
-``zenoh_scope``; payloads are ROS 2 CDR. So a TurtleBot 4 behind the bridge needs no change:
+Keys are the interface's (:class:`relloc.ros.interfaces.RosInterface`, ``--ros-interface``).
+On the bridge (the default) a ROS topic ``/tb1/odom`` is the key ``tb1/odom``, below the global
+``--prefix`` and the robot's ``zenoh_scope``; with rmw_zenoh it is
+``<domain>/tb1/odom/<type name>/<type hash>``, with the rmw_zenoh attachments and liveliness
+tokens of a node ``relloc_navigate``. Payloads are ROS 2 CDR. So a TurtleBot 4 behind the
+bridge or on rmw_zenoh needs no change (bridge keys shown):
 
 =================================  =========================================  ===============
 key                                message                                    who publishes
@@ -46,13 +49,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from relloc.config import RobotConfig, TeamConfig
+from relloc.config import TeamConfig
 from relloc.estimate import Estimate
-from relloc.live.publish import cmd_vel_key
+from relloc.live.publish import cmd_vel_channel, odom_channel
 from relloc.navigation.controller import Command, ControllerConfig
 from relloc.navigation.navigator import Navigator
 from relloc.navigation.path import WaypointPath
 from relloc.navigation.safety import SafetyConfig
+from relloc.ros.interfaces import RosInterface
 from relloc.ros.messages import (
     ODOMETRY,
     POSE_WITH_COVARIANCE_STAMPED,
@@ -63,7 +67,7 @@ from relloc.ros.messages import (
     stamp_to_sec,
     twist_msg,
 )
-from relloc.sources.zenoh_source import key_for_topic
+from relloc.ros.zenoh_node import ZenohNode
 
 __all__ = [
     "DataClock",
@@ -71,19 +75,12 @@ __all__ = [
     "NavigateOptions",
     "NavigationLoop",
     "decode_estimate",
-    "odom_key",
 ]
 
 log = logging.getLogger("relloc.navigation")
 
 
-# ============================================================================ keys and messages
-def odom_key(robot: RobotConfig, prefix: str = "") -> str:
-    """The key of a robot's odometry (its ``odom_topic``, default ``/<robot>/odom``)."""
-    topic = robot.odom_topic or f"/{robot.name}/odom"
-    return key_for_topic(topic, prefix=prefix, scope=robot.zenoh_scope)
-
-
+# ============================================================================ messages
 def decode_estimate(payload: bytes, robot: str, reference: str, method: str = "pf") -> Estimate:
     """A ``PoseWithCovarianceStamped`` published by ``relloc serve`` as a one-robot estimate."""
     msg = decode(payload, POSE_WITH_COVARIANCE_STAMPED)
@@ -232,6 +229,8 @@ class NavigateOptions:
     safety: SafetyConfig = field(default_factory=SafetyConfig)
     prefix: str = ""
     """Key prefix of the robots' topics (the bridge's namespace)."""
+    interface: RosInterface = field(default_factory=RosInterface)
+    """How the robots and the server are on Zenoh: ``bridge`` or ``rmw_zenoh``."""
     estimate_prefix: str = "relloc"
     """Key prefix of the estimates (``relloc serve --out-prefix``)."""
     clock_rate: float = 1.0
@@ -274,26 +273,32 @@ class LiveNavigation:
             max_odom_extrapolation=config.filter.odometry.max_odom_extrapolation,
         )
         self.clock = DataClock(opts.clock_rate)
-        self.cmd_key = cmd_vel_key(robot, opts.prefix)
-        self.odom_key = odom_key(robot, opts.prefix)
-        from relloc.sinks.zenoh_sink import pose_key
+        from relloc.sinks.zenoh_sink import pose_topic
 
-        self.pose_key = pose_key(opts.estimate_prefix, robot.name)
-        self._cmd_pub = session.declare_publisher(self.cmd_key)
+        iface = opts.interface
+        self.cmd_channel = cmd_vel_channel(robot, iface, opts.prefix)
+        self.odom_channel = odom_channel(robot, iface, opts.prefix)
+        self.pose_channel = iface.channel(
+            pose_topic(opts.estimate_prefix, robot.name), POSE_WITH_COVARIANCE_STAMPED
+        )
+        self.cmd_key = self.cmd_channel.key
+        self.odom_key = self.odom_channel.key
+        self.pose_key = self.pose_channel.key
+        self.node = ZenohNode(session, iface, "relloc_navigate")
+        self._cmd_pub = self.node.publisher(self.cmd_channel)
         self.loop = NavigationLoop(
             self.navigator, self._publish, self.clock.now, clock_rate=opts.clock_rate
         )
         self.received = {"odometry": 0, "estimate": 0, "decode_error": 0}
         self.t0: float | None = None
         """Stamp of the first odometry message (the printed times are relative to it)."""
-        self._subs: list[Any] = []
         self.server: Any = None
         self._server_thread: threading.Thread | None = None
 
     # ---------------------------------------------------------------- zenoh side
     def start(self) -> None:
         """Declare subscribers (and start the in-process server)."""
-        self._subs.append(self.session.declare_subscriber(self.odom_key, self._on_odom))
+        self.node.subscribe(self.odom_channel, self._on_odom)
         if self.options.in_process:
             from relloc.live import LiveServer, ServeOptions
 
@@ -306,6 +311,7 @@ class LiveNavigation:
                     seed=opts.seed,
                     particles=opts.particles,
                     prefix=opts.prefix,
+                    interface=opts.interface,
                     out_prefix=opts.estimate_prefix,
                     clock_rate=opts.clock_rate,
                 ),
@@ -317,7 +323,7 @@ class LiveNavigation:
             )
             self._server_thread.start()
         else:
-            self._subs.append(self.session.declare_subscriber(self.pose_key, self._on_pose))
+            self.node.subscribe(self.pose_channel, self._on_pose)
 
     def close(self) -> None:
         """Stop the in-process server, undeclare everything (the session stays open)."""
@@ -326,16 +332,7 @@ class LiveNavigation:
             if self._server_thread is not None:
                 self._server_thread.join(timeout=10)
             self.server.close()
-        for sub in self._subs:
-            try:
-                sub.undeclare()
-            except Exception as exc:
-                log.debug("undeclaring a subscriber failed: %s", exc)
-        self._subs = []
-        try:
-            self._cmd_pub.undeclare()
-        except Exception as exc:
-            log.debug("undeclaring the cmd_vel publisher failed: %s", exc)
+        self.node.close()
 
     def _publish(self, v: float, w: float) -> None:
         self._cmd_pub.put(encode(twist_msg(v, w)))

@@ -1,6 +1,10 @@
-"""Estimates out over Eclipse Zenoh, as ROS 2 messages a bridge can hand to ROS.
+"""Estimates out over Eclipse Zenoh, as ROS 2 messages a bridge or rmw_zenoh hands to ROS.
 
-Keys (``prefix`` defaults to ``relloc``):
+Topics (``prefix`` defaults to ``relloc``), on the keys of the interface
+(:class:`~relloc.ros.interfaces.RosInterface`: ``relloc/turtle01/pose`` on the bridge,
+``0/relloc/turtle01/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/RIHS01_...``
+with rmw_zenoh, published by a :class:`~relloc.ros.zenoh_node.ZenohNode` named ``relloc``
+with its liveliness tokens):
 
 ``<prefix>/<robot>/pose``
     Each non-reference robot's estimate as ``geometry_msgs/PoseWithCovarianceStamped`` CDR:
@@ -12,14 +16,16 @@ Keys (``prefix`` defaults to ``relloc``):
     ``<prefix>/<method>/<robot>/pose``.
 ``<prefix>/status``
     JSON, about once per ``status_period``: whatever the server's status function returns
-    (rates, rejected counts, ESS, last estimate time, quiet robots; see ``relloc.live``).
+    (rates, rejected counts, ESS, last estimate time, quiet robots; see ``relloc.live``). On the
+    bridge the UTF-8 text itself; with rmw_zenoh a ``std_msgs/msg/String`` holding it
+    (:meth:`RosInterface.text_payload <relloc.ros.interfaces.RosInterface.text_payload>`).
 ``<prefix>/trace``
-    JSON, one per estimate, only with ``trace=True``: the estimate time and the message that
-    triggered it (key, header stamp, send and receive wall time) and the publication wall time,
-    from which ``relloc bench resources`` measures end-to-end latency.
+    JSON (as the status), one per estimate, only with ``trace=True``: the estimate time and the
+    message that triggered it (key, header stamp, send and receive wall time) and the
+    publication wall time, from which ``relloc bench resources`` measures end-to-end latency.
 
 A zenoh-bridge-ros2dds on the receiving side turns ``relloc/turtle01/pose`` into the ROS topic
-``/relloc/turtle01/pose``.
+``/relloc/turtle01/pose``; with rmw_zenoh it is that topic already.
 """
 
 from __future__ import annotations
@@ -35,9 +41,12 @@ import numpy as np
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
 from relloc.ros.cdr import encode_pose_with_covariance_stamped
+from relloc.ros.interfaces import Channel, RosInterface
+from relloc.ros.messages import POSE_WITH_COVARIANCE_STAMPED
+from relloc.ros.zenoh_node import ZenohNode
 from relloc.sources.zenoh_source import Arrival
 
-__all__ = ["UNKNOWN_VARIANCE", "ZenohSink", "pose_key"]
+__all__ = ["STRING", "UNKNOWN_VARIANCE", "ZenohSink", "pose_topic"]
 
 log = logging.getLogger(__name__)
 
@@ -45,8 +54,13 @@ UNKNOWN_VARIANCE = 1e6
 """Yaw variance (rad^2) published with every pose: the filter estimates positions only."""
 
 
-def pose_key(prefix: str, robot: str, method: str | None = None) -> str:
-    """Key of a robot's estimate: ``<prefix>/<robot>/pose``, or with ``<method>/`` inserted."""
+STRING = "std_msgs/msg/String"
+
+
+def pose_topic(prefix: str, robot: str, method: str | None = None) -> str:
+    """Topic of a robot's estimate: ``<prefix>/<robot>/pose``, or with ``<method>/`` inserted
+    (its key is the interface's: :meth:`RosInterface.channel
+    <relloc.ros.interfaces.RosInterface.channel>` with ``POSE_WITH_COVARIANCE_STAMPED``)."""
     parts = [prefix.strip("/"), method or "", robot, "pose"]
     return "/".join(p for p in parts if p)
 
@@ -65,12 +79,15 @@ class ZenohSink:
         session: Any,
         config: TeamConfig,
         *,
+        interface: RosInterface | None = None,
         prefix: str = "relloc",
         primary_method: str = "pf",
         trace: bool = False,
     ) -> None:
         self.session = session
         self.config = config
+        self.interface = iface = interface or RosInterface()
+        self.node = ZenohNode(session, iface, "relloc")
         self.prefix = prefix.strip("/")
         self.primary_method = primary_method
         self.trace = trace
@@ -79,17 +96,28 @@ class ZenohSink:
         """Estimates published per method."""
         self.last: dict[str, Estimate] = {}
         """Last estimate published per method."""
-        self._publishers: dict[str, Any] = {}
+        self._channels: dict[tuple[str, str], Channel] = {}
         self._trigger: Arrival | None = None
-        self.status_key = f"{self.prefix}/status" if self.prefix else "status"
-        self.trace_key = f"{self.prefix}/trace" if self.prefix else "trace"
+        self.status_channel = iface.channel(f"{self.prefix}/status", STRING)
+        self.trace_channel = iface.channel(f"{self.prefix}/trace", STRING)
+        self.status_key = self.status_channel.key
+        self.trace_key = self.trace_channel.key
 
     def set_trigger(self, arrival: Arrival | None) -> None:
         """The message being fed now: estimates emitted while it is processed name it."""
         self._trigger = arrival
 
+    def channel(self, robot: str, method: str) -> Channel:
+        """The channel of ``robot``'s estimates by ``method``."""
+        channel = self._channels.get((robot, method))
+        if channel is None:
+            topic = pose_topic(self.prefix, robot, None if method == self.primary_method else method)
+            channel = self.interface.channel(topic, POSE_WITH_COVARIANCE_STAMPED)
+            self._channels[(robot, method)] = channel
+        return channel
+
     def key(self, robot: str, method: str) -> str:
-        return pose_key(self.prefix, robot, None if method == self.primary_method else method)
+        return self.channel(robot, method).key
 
     def __call__(self, estimate: Estimate) -> None:
         for robot, (x, y) in estimate.positions.items():
@@ -101,30 +129,21 @@ class ZenohSink:
             payload = encode_pose_with_covariance_stamped(
                 estimate.t, float(x), float(y), 0.0, cov, self.frame_id
             )
-            self._put(self.key(robot, estimate.method), payload)
+            self.node.put(self.channel(robot, estimate.method), payload)
         self.published[estimate.method] += 1
         self.last[estimate.method] = estimate
         if self.trace:
-            self._put(self.trace_key, json.dumps(self._trace(estimate)).encode())
+            text = json.dumps(self._trace(estimate))
+            self.node.put(self.trace_channel, self.interface.text_payload(text))
 
     def publish_status(self, status: dict[str, Any]) -> None:
         """Publish a status dict as JSON on ``<prefix>/status``."""
-        self._put(self.status_key, json.dumps(status, default=_jsonable).encode())
+        text = json.dumps(status, default=_jsonable)
+        self.node.put(self.status_channel, self.interface.text_payload(text))
 
     def close(self) -> None:
-        """Undeclare the publishers (idempotent)."""
-        pubs, self._publishers = self._publishers, {}
-        for pub in pubs.values():
-            try:
-                pub.undeclare()
-            except Exception as exc:  # the session may already be closed
-                log.debug("undeclaring a publisher failed: %s", exc)
-
-    def _put(self, key: str, payload: bytes) -> None:
-        pub = self._publishers.get(key)
-        if pub is None:
-            pub = self._publishers[key] = self.session.declare_publisher(key)
-        pub.put(payload)
+        """Undeclare the publishers and tokens (idempotent)."""
+        self.node.close()
 
     def _trace(self, estimate: Estimate) -> dict[str, Any]:
         trig = self._trigger

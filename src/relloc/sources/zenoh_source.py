@@ -7,21 +7,24 @@ clock, zero-stamp restamping, reorder buffer, counters) is the shared ingestion 
 
 Keys
 ----
-ROS 2 robots reach Zenoh through ``zenoh-bridge-ros2dds`` (or ``rmw_zenoh``); the bridge puts
-each message, serialised as ROS 2 CDR exactly as a rosbag2 file stores it, on the key
-expression named after the topic: ``/tb1/odom`` -> ``tb1/odom`` (the leading slash dropped), below
-the bridge's namespace if it has one. :func:`build_routes` puts the team's routes
-(:func:`~relloc.sources.ingest.team_routes`: odometry, UWB ranges of every pair in both node
-orders, and detections only when the methods use them, since decoding them costs CPU for
-nothing otherwise) on their keys: ``[<global prefix>/][<robot zenoh_scope>/]<topic without
-leading slash>``. A range topic belongs to no single robot, so it is subscribed below the scope
-of each of its two robots.
+The key format is the interface's (:class:`~relloc.ros.interfaces.RosInterface`, which owns
+both). With ``zenoh-bridge-ros2dds`` (the default) each message, serialised as ROS 2 CDR exactly
+as a rosbag2 file stores it, is on the key named after the topic: ``/tb1/odom`` -> ``tb1/odom``,
+below the bridge's namespace if it has one. With ``rmw_zenoh`` it is on
+``<domain>/tb1/odom/<type name>/<type hash>``, subscribed as ``<domain>/tb1/odom/*/*`` (any
+type, any hash: each sample's type name is checked against the route, its hash against the one
+relloc computes, and its attachment gives the source timestamp and, per publisher, the
+sequence numbers that count lost samples: :class:`TransportStats`). :func:`build_routes` puts
+the team's routes (:func:`~relloc.sources.ingest.team_routes`: odometry, UWB ranges of every
+pair in both node orders, and detections only when the methods use them, since decoding them
+costs CPU for nothing otherwise) on their topic keys (``[<global prefix>/][<robot
+zenoh_scope>/]<topic without leading slash>`` on the bridge). A range topic belongs to no single
+robot, so it is subscribed below the scope of each of its two robots.
 
 Threads
 -------
 Zenoh calls :meth:`ZenohSource.on_sample` on its own threads. That callback only copies the
-payload, notes the receive wall time (and the publisher's send time, when a relloc replay
-attached it) and puts it on a bounded queue; decoding, reordering and everything after happen
+payload and its attachment, notes the receive wall time and puts them on a bounded queue; decoding, reordering and everything after happen
 on the one engine thread that calls :meth:`ZenohSource.poll`. The filter state therefore never
 sees two threads, and a slow engine cannot block Zenoh's network threads (a full queue drops
 the sample and counts it as ``queue_full``).
@@ -41,7 +44,8 @@ Rejections
 ----------
 Nothing that arrives can crash the engine. Besides the ingestion layer's rejections
 (``decode_error``, unusable values), a key this source has no route for (``unknown_key``: only
-possible with the ``subscribe_all`` wildcard subscription) and a full queue (``queue_full``) are
+possible with the ``subscribe_all`` wildcard subscription), a type the route does not take
+(``unknown_type``, rmw_zenoh) and a full queue (``queue_full``) are
 dropped, counted per reason in :attr:`ZenohSource.stats` and logged (the first time and every
 1000th).
 """
@@ -50,15 +54,24 @@ from __future__ import annotations
 
 import logging
 import queue
-import struct
 import threading
 import time
-from dataclasses import dataclass
+from collections import Counter
+from dataclasses import dataclass, field
 from typing import Any
 
 from relloc.config import ConfigError, TeamConfig
 from relloc.events import Event
+from relloc.ros.interfaces import (
+    RmwAttachment,
+    RosInterface,
+    dds_type_name,
+    decode_sent_time,
+    ros_type_name,
+)
 from relloc.ros.messages import typestore
+from relloc.ros.type_hash import type_hash
+from relloc.ros.zenoh_node import ZenohNode
 from relloc.sources.ingest import (
     Converter,
     HeaderClock,
@@ -69,76 +82,63 @@ from relloc.sources.ingest import (
 )
 
 __all__ = [
-    "SENT_TIME_TAG",
     "Arrival",
+    "TransportStats",
     "ZenohSource",
     "ZenohSourceOptions",
     "build_routes",
-    "decode_sent_time",
-    "encode_sent_time",
-    "key_for_topic",
+    "route_scopes",
 ]
 
 log = logging.getLogger(__name__)
 
-SENT_TIME_TAG = b"rlst"
-"""Prefix of the 12-byte Zenoh attachment ``rlst`` + float64 (little endian) send wall time that
-``relloc replay`` puts on every message, so that end-to-end latency can be measured."""
 
-
-def encode_sent_time(t: float) -> bytes:
-    """The attachment carrying a publisher's send wall time (s since the epoch)."""
-    return SENT_TIME_TAG + struct.pack("<d", t)
-
-
-def decode_sent_time(attachment: bytes | None) -> float | None:
-    """The send wall time of an attachment made by :func:`encode_sent_time`, else ``None``."""
-    if attachment is None or len(attachment) != 12 or not attachment.startswith(SENT_TIME_TAG):
-        return None
-    return float(struct.unpack_from("<d", attachment, 4)[0])
-
-
-def key_for_topic(topic: str, *, prefix: str = "", scope: str = "") -> str:
-    """The Zenoh key of a ROS topic under the bridge convention.
-
-    ``key_for_topic("/tb1/odom") == "tb1/odom"``; ``prefix`` (global) and ``scope`` (the robot's
-    ``zenoh_scope``) are prepended in that order: ``key_for_topic("/odom", prefix="lab",
-    scope="tb1") == "lab/tb1/odom"``.
-    """
-    parts = [p.strip("/") for p in (prefix, scope, topic)]
-    key = "/".join(p for p in parts if p)
-    if not key or any(c in key for c in "*$?#") or "//" in key:
-        raise ConfigError(
-            f"topic {topic!r} (prefix {prefix!r}, scope {scope!r}) is not a valid key"
-        )
-    return key
+def route_scopes(
+    config: TeamConfig,
+    *,
+    odometry: bool = True,
+    ranges: bool = True,
+    detections: bool = True,
+) -> list[tuple[Route, str]]:
+    """Every route of the team with each namespace (robot ``zenoh_scope``) it arrives below:
+    a robot's topics below its own, a range topic below each of its two robots'."""
+    out: list[tuple[Route, str]] = []
+    for route in team_routes(config, odometry=odometry, ranges=ranges, detections=detections):
+        robots = (route.robot, route.robot_b) if route.robot_b else (route.robot,)
+        for scope in dict.fromkeys(config.robot(r).zenoh_scope for r in robots):
+            out.append((route, scope))
+    return out
 
 
 def build_routes(
     config: TeamConfig,
     *,
+    interface: RosInterface | None = None,
     prefix: str = "",
     odometry: bool = True,
     ranges: bool = True,
     detections: bool = True,
 ) -> dict[str, Route]:
-    """Every key the team's data arrives on, mapped to its :class:`~relloc.sources.ingest.Route`.
+    """Every topic key the team's data arrives on (:meth:`RosInterface.topic_key
+    <relloc.ros.interfaces.RosInterface.topic_key>`, the bridge's by default), mapped to its
+    :class:`~relloc.sources.ingest.Route`.
 
     Raises :class:`~relloc.config.ConfigError` if two routes would share one key (e.g. two robots
     configured with the same odometry topic and no scopes).
     """
+    iface = interface or RosInterface()
     routes: dict[str, Route] = {}
-    for route in team_routes(config, odometry=odometry, ranges=ranges, detections=detections):
-        robots = (route.robot, route.robot_b) if route.robot_b else (route.robot,)
-        for scope in dict.fromkeys(config.robot(r).zenoh_scope for r in robots):
-            key = key_for_topic(route.topic, prefix=prefix, scope=scope)
-            old = routes.get(key)
-            if old is not None and old != route:
-                raise ConfigError(
-                    f"Zenoh key {key!r} would carry both {old.kind} of {old.robot} and "
-                    f"{route.kind} of {route.robot}; give the robots a zenoh_scope"
-                )
-            routes[key] = route
+    for route, scope in route_scopes(
+        config, odometry=odometry, ranges=ranges, detections=detections
+    ):
+        key = iface.topic_key(route.topic, prefix=prefix, scope=scope)
+        old = routes.get(key)
+        if old is not None and old != route:
+            raise ConfigError(
+                f"Zenoh key {key!r} would carry both {old.kind} of {old.robot} and "
+                f"{route.kind} of {route.robot}; give the robots a zenoh_scope"
+            )
+        routes[key] = route
     return routes
 
 
@@ -151,7 +151,42 @@ class Arrival:
     received: float
     """Wall time (s since the epoch) the Zenoh callback got the message."""
     sent: float | None = None
-    """Wall time the publisher sent it, when a relloc replay attached it."""
+    """Wall time the publisher sent it: a relloc publisher's attachment on the bridge, the
+    source timestamp of the rmw_zenoh attachment."""
+
+
+@dataclass
+class TransportStats:
+    """What the interface's own envelope of the messages told (counted, never fatal).
+
+    With rmw_zenoh: samples without the attachment or with a malformed one (the message is
+    still used; only latency and loss cannot be known for it), samples whose key names a type
+    the topic's route does not take (dropped, and also counted as the rejection
+    ``unknown_type``), samples whose type hash is not the one relloc computes for the type
+    (decoded all the same: the layout decides, and a layout that does not fit is a
+    ``decode_error``), and samples lost: gaps in a publisher's sequence numbers.
+    """
+
+    attachment_missing: int = 0
+    attachment_malformed: int = 0
+    unknown_type_hash: Counter[str] = field(default_factory=Counter)
+    """Per ``<type name>/<hash>`` seen."""
+    lost: Counter[str] = field(default_factory=Counter)
+    """Samples missing from the sequence numbers, per topic key."""
+    sequence_restarts: int = 0
+    """A publisher's sequence number went back (it restarted, or duplicates)."""
+    publishers: int = 0
+    """Distinct publisher GIDs seen."""
+
+    def as_dict(self) -> dict[str, Any]:
+        return {
+            "attachment_missing": self.attachment_missing,
+            "attachment_malformed": self.attachment_malformed,
+            "unknown_type_hash": dict(self.unknown_type_hash),
+            "lost": dict(self.lost),
+            "sequence_restarts": self.sequence_restarts,
+            "publishers": self.publishers,
+        }
 
 
 @dataclass(frozen=True)
@@ -160,6 +195,8 @@ class ZenohSourceOptions:
 
     prefix: str = ""
     """Global key prefix (e.g. the bridge's namespace), before each robot's ``zenoh_scope``."""
+    interface: RosInterface = field(default_factory=RosInterface)
+    """The key format and attachments of the robots (``bridge`` or ``rmw_zenoh``)."""
     reorder_window: float = 0.0
     """Header-time window (s) of the reorder buffer; 0 passes events through as they come."""
     clock_rate: float = 1.0
@@ -188,8 +225,10 @@ class ZenohSource:
     def __init__(self, config: TeamConfig, options: ZenohSourceOptions | None = None) -> None:
         self.config = config
         self.options = opts = options or ZenohSourceOptions()
+        self.interface = opts.interface
         self.routes = build_routes(
             config,
+            interface=opts.interface,
             prefix=opts.prefix,
             odometry=opts.odometry,
             ranges=opts.ranges,
@@ -201,6 +240,12 @@ class ZenohSource:
             if missing:  # cannot happen with the shipped type store; guards a broken install
                 raise ConfigError(f"message type(s) {missing} of {key!r} are unknown")
         self.stats = IngestStats()
+        self.transport = TransportStats()
+        self._dds_types = {
+            key: {dds_type_name(t): type_hash(t) for t in route.msgtypes}
+            for key, route in self.routes.items()
+        }
+        self._last_sequence: dict[bytes, int] = {}
         self.clock = HeaderClock(opts.clock_rate, config.clock_offset)
         self.buffer: ReorderBuffer[Arrival] = ReorderBuffer(
             opts.reorder_window, hold=opts.reorder_window / opts.clock_rate
@@ -217,18 +262,34 @@ class ZenohSource:
     # ------------------------------------------------------------------ zenoh side
     @property
     def keys(self) -> list[str]:
-        """The keys subscribed to (sorted)."""
+        """The topic keys subscribed to (sorted)."""
         return sorted(self.routes)
 
-    def attach(self, session: Any) -> None:
-        """Declare the subscribers on ``session`` (a ``zenoh.Session``)."""
+    @property
+    def expressions(self) -> list[str]:
+        """The key expressions :meth:`attach` subscribes to."""
         if self.options.subscribe_all:
-            prefix = self.options.prefix.strip("/")
-            exprs = [f"{prefix}/**" if prefix else "**"]
-        else:
-            exprs = self.keys
+            return [self.interface.everything_expr(self.options.prefix)]
+        return [self.interface.subscription_expr(k) for k in self.keys]
+
+    def attach(self, session: Any, node: ZenohNode | None = None) -> None:
+        """Declare the subscribers on ``session`` (a ``zenoh.Session``); with rmw_zenoh and a
+        ``node``, also the subscriptions' liveliness tokens (the node undeclares them)."""
+        exprs = self.expressions
         for expr in exprs:
             self._subscribers.append(session.declare_subscriber(expr, self.on_sample))
+        if node is not None and self.interface.rmw:
+            for route, scope in route_scopes(
+                self.config,
+                odometry=self.options.odometry,
+                ranges=self.options.ranges,
+                detections=self.options.detections,
+            ):
+                for msgtype in route.msgtypes:
+                    channel = self.interface.channel(
+                        route.topic, msgtype, prefix=self.options.prefix, scope=scope
+                    )
+                    node.announce_subscription(channel)
         log.info("subscribed to %d key expression(s): %s", len(exprs), ", ".join(exprs))
 
     def detach(self) -> None:
@@ -244,9 +305,9 @@ class ZenohSource:
         """Zenoh callback (Zenoh's threads): copy, time and enqueue; nothing else."""
         received = time.time()
         attachment = sample.attachment
-        sent = decode_sent_time(attachment.to_bytes()) if attachment is not None else None
+        raw = attachment.to_bytes() if attachment is not None else None
         if self._queue.qsize() < self._max_queue:
-            self._queue.put((str(sample.key_expr), sample.payload.to_bytes(), received, sent))
+            self._queue.put((str(sample.key_expr), sample.payload.to_bytes(), received, raw))
         else:
             with self._lock:
                 self._queue_full += 1
@@ -298,17 +359,73 @@ class ZenohSource:
         return self.flush()
 
     def handle(
-        self, key: str, payload: bytes | bytearray | memoryview, received: float, sent: float | None = None
+        self,
+        key: str,
+        payload: bytes | bytearray | memoryview,
+        received: float,
+        attachment: bytes | None = None,
     ) -> None:
-        """Decode one message and put its event in the reorder buffer (or count why not)."""
-        route = self.routes.get(key)
+        """Decode one message (received on the data key ``key``, with its raw Zenoh
+        ``attachment``) and put its event in the reorder buffer (or count why not)."""
+        topic_key, dds_type, type_hash_ = self.interface.split_key(key)
+        route = self.routes.get(topic_key)
         if route is None:
             self._converter.reject("unknown_key", key)
             return
-        event = self._converter.convert(route, key, payload, received)
+        if self.interface.rmw:
+            sent = self._rmw_envelope(topic_key, dds_type, type_hash_, attachment)
+            if sent is False:
+                return
+        else:
+            sent = decode_sent_time(attachment)
+        event = self._converter.convert(route, topic_key, payload, received)
         if event is not None:
-            self.buffer.push(event.t, Arrival(event, key, received, sent), received)
+            self.buffer.push(event.t, Arrival(event, topic_key, received, sent), received)
             self.buffer.advance(event.t)
+
+    def _rmw_envelope(
+        self, topic_key: str, dds_type: str | None, hash_: str | None, attachment: bytes | None
+    ) -> float | bool | None:
+        """Check an rmw_zenoh sample's type and read its attachment: the source timestamp
+        (``None`` without a usable attachment), or ``False`` if the sample is to be dropped."""
+        expected = self._dds_types[topic_key]
+        if dds_type not in expected:
+            name = ros_type_name(dds_type or "") or dds_type
+            self._converter.reject("unknown_type", topic_key, f"type {name!r}")
+            return False
+        tr = self.transport
+        if hash_ != expected[dds_type]:
+            tr.unknown_type_hash[f"{dds_type}/{hash_}"] += 1
+            n = tr.unknown_type_hash.total()
+            if n == 1 or n % 1000 == 0:
+                log.warning(
+                    "%s: type hash %s is not relloc's %s for %s (%d so far); decoding anyway",
+                    topic_key, hash_, expected[dds_type], dds_type, n,
+                )  # fmt: skip
+        if attachment is None:
+            tr.attachment_missing += 1
+            if tr.attachment_missing == 1:
+                log.warning("%s: a sample without the rmw_zenoh attachment", topic_key)
+            return None
+        try:
+            att = RmwAttachment.decode(attachment)
+        except ValueError as exc:
+            tr.attachment_malformed += 1
+            if tr.attachment_malformed == 1 or tr.attachment_malformed % 1000 == 0:
+                log.warning(
+                    "%s: malformed rmw_zenoh attachment (%s; %d so far)",
+                    topic_key, exc, tr.attachment_malformed,
+                )  # fmt: skip
+            return None
+        last = self._last_sequence.get(att.gid)
+        if last is None:
+            tr.publishers += 1
+        elif att.sequence > last + 1:
+            tr.lost[topic_key] += att.sequence - last - 1
+        elif att.sequence <= last:
+            tr.sequence_restarts += 1
+        self._last_sequence[att.gid] = att.sequence
+        return att.timestamp
 
     def release(self, now: float) -> list[Arrival]:
         """Events due at wall time ``now`` (for callers driving :meth:`handle` themselves)."""

@@ -1,0 +1,295 @@
+"""How ROS 2 topics appear on Zenoh: the two interfaces relloc speaks, and their key formats.
+
+This module is the one place that knows the keys. The source, the sink, the publishers of
+``relloc replay`` and ``relloc sim-robots`` and ``relloc navigate`` all ask a
+:class:`RosInterface` for them.
+
+``bridge`` (zenoh-bridge-ros2dds, the default)
+    The robots run DDS and a bridge forwards each topic on the key named after it, the leading
+    slash dropped: ``/tb1/odom`` -> ``tb1/odom``, below the bridge's namespace if it has one
+    (:func:`key_for_topic`). Payloads are the CDR bytes. relloc's own publishers attach their
+    send wall time (:func:`encode_sent_time`), which the server turns into latency.
+
+``rmw_zenoh`` (rmw_zenoh_cpp, the ROS 2 middleware itself)
+    Every ROS 2 node speaks Zenoh; there is no bridge. Per the rmw_zenoh design document
+    (ros2/rmw_zenoh, ``docs/design.md``):
+
+    * a topic's data key is ``<domain_id>/<fully qualified name>/<type name>/<type hash>``,
+      e.g. ``0/tb1/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_3cc97dc7...``: the DDS type name
+      (:func:`dds_type_name`) and the RIHS01 hash of the type
+      (:func:`relloc.ros.type_hash.type_hash`);
+    * every sample carries a 33-byte attachment (:class:`RmwAttachment`): the publisher's
+      sequence number (int64), the source timestamp (int64 ns since the epoch), both little
+      endian, the GID length (one byte, 16) and the 16-byte publisher GID;
+    * nodes, publishers and subscriptions announce themselves with liveliness tokens:
+      ``@ros2_lv/<domain>/<session id>/<node id>/<node id>/NN/<enclave>/<namespace>/<node>``
+      for a node and ``@ros2_lv/<domain>/<session id>/<node id>/<entity id>/MP|MS/<enclave>/
+      <namespace>/<node>/<topic>/<type name>/<type hash>/<qos>`` for a publisher (``MP``) or a
+      subscription (``MS``), every name *mangled* (``/`` -> ``%``; an empty one is ``%``).
+
+    relloc subscribes to ``<domain>/<topic>/*/*``: the topic's samples whatever their type name
+    and hash (a robot on another distribution may hash a type differently), and checks the
+    type name and hash of each sample itself (:meth:`RosInterface.split_key`).
+
+In both interfaces a robot's ``zenoh_scope`` is a namespace in front of its topics, and
+``--prefix`` a prefix in front of every key of the robots: the bridge's namespace, or, with
+rmw_zenoh, a Zenoh namespace the robots' sessions are configured with (rarely used). A topic
+is identified by its *topic key* (:meth:`RosInterface.topic_key`): the data key without the
+type name and hash. Sources count messages per topic key.
+"""
+
+from __future__ import annotations
+
+import json
+import struct
+from dataclasses import dataclass
+from typing import Final
+
+from relloc.config import ConfigError
+
+__all__ = [
+    "BRIDGE",
+    "DEFAULT_QOS",
+    "RMW_ZENOH",
+    "ROS_INTERFACES",
+    "SENT_TIME_TAG",
+    "Channel",
+    "RmwAttachment",
+    "RosInterface",
+    "dds_type_name",
+    "decode_sent_time",
+    "encode_sent_time",
+    "key_for_topic",
+    "mangle",
+    "ros_name",
+    "ros_type_name",
+]
+
+BRIDGE: Final = "bridge"
+RMW_ZENOH: Final = "rmw_zenoh"
+ROS_INTERFACES: Final = (BRIDGE, RMW_ZENOH)
+
+LIVELINESS_PREFIX: Final = "@ros2_lv"
+DEFAULT_QOS: Final = "::,10:,:,:,,"
+"""The QoS part of a liveliness token for relloc's endpoints: reliable, volatile, keep last 10,
+no deadline, lifespan or liveliness lease (rmw_zenoh leaves default values empty and writes the
+history depth: ``listener`` in the design document has ``::,10:,:,:,,``)."""
+
+SENT_TIME_TAG = b"rlst"
+"""Prefix of the 12-byte bridge-mode attachment ``rlst`` + float64 (little endian) send wall
+time that relloc's publishers put on every message, so that end-to-end latency can be measured."""
+
+
+def encode_sent_time(t: float) -> bytes:
+    """The bridge-mode attachment carrying a publisher's send wall time (s since the epoch)."""
+    return SENT_TIME_TAG + struct.pack("<d", t)
+
+
+def decode_sent_time(attachment: bytes | None) -> float | None:
+    """The send wall time of an attachment made by :func:`encode_sent_time`, else ``None``."""
+    if attachment is None or len(attachment) != 12 or not attachment.startswith(SENT_TIME_TAG):
+        return None
+    return float(struct.unpack_from("<d", attachment, 4)[0])
+
+
+_ATTACHMENT = struct.Struct("<qqB16s")
+
+
+@dataclass(frozen=True, slots=True)
+class RmwAttachment:
+    """The attachment of every rmw_zenoh sample: ``<qqB16s>``, 33 bytes."""
+
+    sequence: int
+    """The publisher's sequence number: 1 for its first sample, then +1 per sample."""
+    timestamp_ns: int
+    """Source timestamp: the publisher's wall clock at publication, ns since the epoch."""
+    gid: bytes
+    """The publisher's 16-byte GID."""
+
+    def encode(self) -> bytes:
+        return _ATTACHMENT.pack(self.sequence, self.timestamp_ns, len(self.gid), self.gid)
+
+    @classmethod
+    def decode(cls, raw: bytes) -> RmwAttachment:
+        """Raises ``ValueError`` unless ``raw`` is exactly a well-formed attachment."""
+        if len(raw) != _ATTACHMENT.size:
+            raise ValueError(f"an rmw_zenoh attachment has {_ATTACHMENT.size} bytes, not {len(raw)}")
+        sequence, stamp, n, gid = _ATTACHMENT.unpack(raw)
+        if n != 16:
+            raise ValueError(f"GID length {n}, expected 16")
+        return cls(sequence, stamp, gid)
+
+    @property
+    def timestamp(self) -> float:
+        """The source timestamp in s since the epoch."""
+        return self.timestamp_ns * 1e-9
+
+
+def key_for_topic(topic: str, *, prefix: str = "", scope: str = "") -> str:
+    """The bridge-convention key of a ROS topic.
+
+    ``key_for_topic("/tb1/odom") == "tb1/odom"``; ``prefix`` (global) and ``scope`` (the robot's
+    ``zenoh_scope``) are prepended in that order: ``key_for_topic("/odom", prefix="lab",
+    scope="tb1") == "lab/tb1/odom"``.
+    """
+    parts = [p.strip("/") for p in (prefix, scope, topic)]
+    key = "/".join(p for p in parts if p)
+    if not key or any(c in key for c in "*$?#@") or "//" in key:
+        raise ConfigError(
+            f"topic {topic!r} (prefix {prefix!r}, scope {scope!r}) is not a valid key"
+        )
+    return key
+
+
+def ros_name(topic: str, scope: str = "") -> str:
+    """The fully qualified ROS name of ``topic`` below the namespace ``scope``:
+    ``ros_name("odom", "tb1") == "/tb1/odom"``."""
+    return "/" + key_for_topic(topic, scope=scope)
+
+
+def mangle(name: str) -> str:
+    """A ROS name as one liveliness-token chunk: ``/`` -> ``%``; empty or ``/`` -> ``%``."""
+    return name.replace("/", "%") if name.strip("/") else "%"
+
+
+def dds_type_name(msgtype: str) -> str:
+    """``"nav_msgs/msg/Odometry"`` -> ``"nav_msgs::msg::dds_::Odometry_"`` (the CDR type name)."""
+    pkg, kind, name = msgtype.split("/")
+    return f"{pkg}::{kind}::dds_::{name}_"
+
+
+def ros_type_name(dds_name: str) -> str | None:
+    """The inverse of :func:`dds_type_name`, or ``None`` if ``dds_name`` is not of that form."""
+    parts = dds_name.split("::")
+    if len(parts) != 4 or parts[2] != "dds_" or not parts[3].endswith("_") or len(parts[3]) < 2:
+        return None
+    return f"{parts[0]}/{parts[1]}/{parts[3][:-1]}"
+
+
+@dataclass(frozen=True, slots=True)
+class Channel:
+    """One topic with one message type, as published: everything an endpoint needs."""
+
+    key: str
+    """The data key samples are put on."""
+    topic_key: str
+    """The data key without type name and hash (equal to ``key`` on the bridge)."""
+    name: str
+    """The fully qualified ROS topic name (``/tb1/odom``)."""
+    msgtype: str
+    """``pkg/msg/Name``."""
+
+
+@dataclass(frozen=True)
+class RosInterface:
+    """Key formats, attachments and liveliness tokens of one interface (``bridge`` or
+    ``rmw_zenoh``) on one ROS domain."""
+
+    kind: str = BRIDGE
+    domain_id: int = 0
+    """``ROS_DOMAIN_ID`` (rmw_zenoh only: the first chunk of every key)."""
+
+    def __post_init__(self) -> None:
+        if self.kind not in ROS_INTERFACES:
+            raise ConfigError(f"ros_interface must be one of {ROS_INTERFACES}, got {self.kind!r}")
+        if isinstance(self.domain_id, bool) or not isinstance(self.domain_id, int) or self.domain_id < 0:
+            raise ConfigError(f"the ROS domain id must be a non-negative integer, got {self.domain_id!r}")
+
+    @property
+    def rmw(self) -> bool:
+        return self.kind == RMW_ZENOH
+
+    # ------------------------------------------------------------------ data keys
+    def topic_key(self, topic: str, *, prefix: str = "", scope: str = "") -> str:
+        """The key of ``topic`` (below the namespace ``scope`` and the key prefix ``prefix``)
+        without type name and hash: ``tb1/odom`` (bridge), ``0/tb1/odom`` (rmw_zenoh)."""
+        if not self.rmw:
+            return key_for_topic(topic, prefix=prefix, scope=scope)
+        name = key_for_topic(topic, scope=scope)
+        head = prefix.strip("/")
+        return f"{head}/{self.domain_id}/{name}" if head else f"{self.domain_id}/{name}"
+
+    def channel(self, topic: str, msgtype: str, *, prefix: str = "", scope: str = "") -> Channel:
+        """The :class:`Channel` of ``topic`` carrying ``msgtype``."""
+        from relloc.ros.type_hash import type_hash
+
+        topic_key = self.topic_key(topic, prefix=prefix, scope=scope)
+        key = f"{topic_key}/{dds_type_name(msgtype)}/{type_hash(msgtype)}" if self.rmw else topic_key
+        return Channel(key, topic_key, ros_name(topic, scope), msgtype)
+
+    def subscription_expr(self, topic_key: str) -> str:
+        """The key expression receiving a topic's samples: the topic key itself on the bridge,
+        ``<topic key>/*/*`` (any type name, any hash) with rmw_zenoh."""
+        return f"{topic_key}/*/*" if self.rmw else topic_key
+
+    def everything_expr(self, prefix: str = "") -> str:
+        """A key expression for every topic below ``prefix`` (on this domain)."""
+        head = prefix.strip("/")
+        if self.rmw:
+            head = f"{head}/{self.domain_id}" if head else str(self.domain_id)
+        return f"{head}/**" if head else "**"
+
+    def split_key(self, key: str) -> tuple[str, str | None, str | None]:
+        """A received data key as ``(topic key, DDS type name, type hash)``; the last two are
+        ``None`` on the bridge and for an rmw_zenoh key too short to have them."""
+        if not self.rmw:
+            return key, None, None
+        parts = key.rsplit("/", 2)
+        if len(parts) != 3:
+            return key, None, None
+        return parts[0], parts[1], parts[2]
+
+    # ------------------------------------------------------------------ text payloads
+    def text_payload(self, text: str) -> bytes:
+        """A text (relloc's JSON status) as published: UTF-8 on the bridge (a plain Zenoh key),
+        a ``std_msgs/msg/String`` with rmw_zenoh (a ROS topic ``ros2 topic echo`` shows)."""
+        if not self.rmw:
+            return text.encode()
+        data = text.encode() + b"\x00"
+        return b"\x00\x01\x00\x00" + struct.pack("<I", len(data)) + data
+
+    def decode_text(self, payload: bytes) -> str:
+        """The inverse of :meth:`text_payload` (``ValueError`` on a malformed payload)."""
+        if not self.rmw:
+            return payload.decode()
+        from relloc.ros.messages import decode
+
+        return str(decode(payload, "std_msgs/msg/String").data)
+
+    def decode_json(self, payload: bytes) -> object:
+        return json.loads(self.decode_text(payload))
+
+    # ------------------------------------------------------------------ liveliness tokens
+    def node_token(self, session_id: str, node_id: int, node: str, namespace: str = "") -> str:
+        """The liveliness token of a node (rmw_zenoh)."""
+        return (
+            f"{LIVELINESS_PREFIX}/{self.domain_id}/{session_id}/{node_id}/{node_id}/NN/%/"
+            f"{mangle(namespace)}/{node}"
+        )
+
+    def endpoint_token(
+        self,
+        session_id: str,
+        node_id: int,
+        entity_id: int,
+        kind: str,
+        node: str,
+        channel: Channel,
+        *,
+        namespace: str = "",
+        qos: str = DEFAULT_QOS,
+    ) -> str:
+        """The liveliness token of a publisher (``kind="MP"``) or subscription (``"MS"``)."""
+        from relloc.ros.type_hash import type_hash
+
+        if kind not in ("MP", "MS"):
+            raise ValueError(f"endpoint kind must be MP or MS, got {kind!r}")
+        return (
+            f"{LIVELINESS_PREFIX}/{self.domain_id}/{session_id}/{node_id}/{entity_id}/{kind}/%/"
+            f"{mangle(namespace)}/{node}/{mangle(channel.name)}/{dds_type_name(channel.msgtype)}/"
+            f"{type_hash(channel.msgtype)}/{qos}"
+        )
+
+    def liveliness_expr(self) -> str:
+        """Every liveliness token of this domain."""
+        return f"{LIVELINESS_PREFIX}/{self.domain_id}/**"
