@@ -210,3 +210,21 @@ def test_every_models_rows_are_the_gradient_of_its_log_likelihood(online: bool) 
 def test_models_say_which_symmetries_they_keep_and_which_frame_they_need() -> None:
     assert MODELS[RangeEvent].invariant and not MODELS[RangeEvent].needs_shared_heading
     assert not MODELS[RelativeObservation].invariant and MODELS[RelativeObservation].needs_shared_heading
+
+
+@pytest.mark.parametrize(("model_sigma", "expected"), [(None, 0.15), (0.05, 0.15), (0.4, 0.4)])
+def test_a_corrected_ranges_own_sigma_only_widens_its_noise(model_sigma: float | None, expected: float) -> None:
+    """A learned correction's sigma (RangeEvent.sigma) makes an unsure range weigh less; a
+    confident one never weighs more than the configured noise (sigma_uwb 0.15 m)."""
+    from relloc.filter.ranges import RangeBatch
+
+    config = _config()
+    layout = StateLayout(config.robot_names, config.reference)
+    events = [
+        RangeEvent(0.0, "r0", "r1", 3.0, corrected=True, sigma=model_sigma),
+        RangeEvent(0.05, "r0", "r1", 3.02, corrected=True, sigma=model_sigma),
+    ]
+    (model,) = RangeBatch.build(events, ModelContext(config, layout))
+    assert isinstance(model, RangeBatch)
+    assert model.sigma == pytest.approx([expected])
+    assert model.nlos_fraction == 0.0  # corrected ranges keep the symmetric likelihood

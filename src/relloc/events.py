@@ -57,8 +57,9 @@ class RangeEvent:
     ``distance - true distance - the pair's bias`` (the bias the filter still applies) when the
     stage removed only the orientation/motion part and left ``corrected`` False. Set by the
     stage from its model's uncertainty (or, for a pair whose model fell back to the constant,
-    the constant's validation RMSE); ``None``: no estimate, the filter uses its configured
-    sigma."""
+    the constant's validation RMSE); ``None``: no estimate. The range model takes the larger of
+    this and its configured sigma, so an unsure correction weighs less and a confident one never
+    more than an uncorrected range (:func:`relloc.filter.ranges.RangeBatch.build`)."""
 
     @property
     def node_pair(self) -> str:

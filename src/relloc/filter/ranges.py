@@ -107,6 +107,19 @@ def _range_mixture(
     return los, total
 
 
+def _model_sigma(group: Sequence[RangeEvent]) -> float:
+    """The learned correction's own standard deviation for a pair's ranges of one batch (the
+    median of their ``RangeEvent.sigma``), or 0 where no model gave one.
+
+    It can only *widen* the range noise the config sets (the caller takes the larger): the
+    model's sigma ranks ranges well but is not calibrated outside its training session
+    (docs/ranging.md), so a model that is unsure makes its ranges weigh less, while a confident
+    one never makes them weigh more than an uncorrected range of the same pair would.
+    """
+    sigmas = [ev.sigma for ev in group if ev.sigma is not None and finite(ev.sigma) and ev.sigma > 0.0]
+    return float(statistics.median(sigmas)) if sigmas else 0.0
+
+
 def pair_sigma(config: TeamConfig, node_pair: str, base: float) -> float:
     """Noise of a raw range of ``node_pair`` (after its scale is divided out): the pair's
     calibrated sigma, else ``base``, over its scale; an uncalibrated pair's ``base`` widened
@@ -172,7 +185,7 @@ class RangeBatch:
             groups.setdefault((min(a, b), max(a, b)), []).append(m)
         if not groups:
             return []
-        pairs, dist, bias, sigma, keys = [], [], [], [], []
+        pairs, dist, bias, sigma, keys, model_sigma = [], [], [], [], [], []
         for key, group in groups.items():
             nodes = config.range_nodes(group[0])
             node_pair = pair_key(*nodes)
@@ -189,6 +202,7 @@ class RangeBatch:
             bias.append(b)
             sigma.append(s)
             keys.append(node_pair)
+            model_sigma.append(_model_sigma(group))
         idx = np.array(pairs, dtype=np.intp)
         dist_a, bias_a, sigma_a = np.array(dist), np.array(bias), np.array(sigma)
         online = [k in layout.bias_pairs for k in keys]
@@ -208,6 +222,7 @@ class RangeBatch:
             else:
                 s = sigma_a[sel]
                 eps = fc.likelihood.outlier_fraction if context.robust else 0.0
+            s = np.maximum(s, np.array(model_sigma)[sel])  # an unsure correction weighs less
             rows = np.flatnonzero(sel)
             out.append(
                 cls(
