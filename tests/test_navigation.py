@@ -8,6 +8,7 @@ import json
 import math
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -266,6 +267,18 @@ def test_gate_waits_for_a_converged_estimate_before_starting() -> None:
     assert gate.evaluate(1.15, estimate(1.1, "r1", (0, 0)), 1.15) == "uncertain"
     assert gate.evaluate(1.2, estimate(1.15, "r1", (0, 0)), 1.2) is None
     assert [r.reason for r in gate.records] == ["uncertain", "released"]
+
+
+def test_gate_holds_on_an_unobservable_orientation_or_a_minor_mode() -> None:
+    gate = SafetyGate(SafetyConfig(settle_time=0.0, max_std=5.0), "r1")
+    ring = replace(estimate(0.0, "r1", (0, 0)), orientation_observable=False)
+    assert gate.evaluate(0.0, ring, 0.0) == "unobservable"
+    assert "drive any robot" in gate.records[-1].detail
+    split = replace(estimate(0.1, "r1", (0, 0)), mode_weight=0.7, n_modes=2)
+    assert gate.evaluate(0.1, split, 0.1) == "modes"
+    dominant = replace(estimate(0.2, "r1", (0, 0)), mode_weight=0.95, n_modes=2)
+    assert gate.evaluate(0.2, dominant, 0.2) is None
+    assert [r.reason for r in gate.records] == ["unobservable", "modes", "released"]
 
 
 def test_stale_estimate_stops_the_robot_within_one_control_period(
