@@ -70,10 +70,14 @@ class MethodReport:
     consistency: dict[str, Consistency] = field(default_factory=dict, repr=False)
     """Per robot, the NEES of every estimate after the warm-up (methods with covariances)."""
     shape_robots: dict[str, ApeStats] = field(default_factory=dict)
-    """Where the orientation was unobservable after the warm-up: the APE of the published
-    shapes after one rotation/reflection fitted for the run (multilateration's treatment)."""
+    """Where the orientation was unobservable after the warm-up: the APE of those estimates'
+    published shapes after one rotation/reflection fitted for them all (multilateration's
+    treatment)."""
     unobservable_fraction: float = math.nan
     """Fraction of the estimates after the warm-up with ``orientation_observable`` False."""
+    final_shape: dict[str, Any] = field(default_factory=dict)
+    """The last estimate's shape in its gauge, pairwise distances, flag and status (methods
+    that report a shape)."""
     observable_from_s: float = math.nan
     """Seconds from the start of the run to the estimate from which the orientation stays
     observable to the end (nan: never; 0 for methods that do not report it)."""
@@ -145,6 +149,8 @@ class MethodReport:
                 }
                 for pair, (mean, std) in self.final_biases.items()
             }
+        if self.final_shape:
+            out["final_shape"] = self.final_shape
         if math.isfinite(self.unobservable_fraction):
             out["orientation_unobservable_fraction"] = _num(self.unobservable_fraction)
             out["orientation_observable_from_s"] = _num(self.observable_from_s)
@@ -255,6 +261,18 @@ def _honesty(
     where it was unobservable the shape APE after one alignment for the run."""
     late = [e for e in estimates if e.t >= t0 + warmup]
     out: dict[str, Any] = {"consistency": consistency(estimates, truth, names, t0 + warmup, rotation)}
+    if estimates and estimates[-1].shape:
+        last = estimates[-1]
+        out["final_shape"] = {
+            "t": last.t,
+            "orientation_observable": last.orientation_observable,
+            "mode_weight": _num(last.mode_weight),
+            "n_modes": last.n_modes,
+            "gauge": last.shape_gauge,
+            "shape": {r: [_num(x), _num(y)] for r, (x, y) in last.shape.items()},
+            "distances": {p: [_num(m), _num(s)] for p, (m, s) in last.distances.items()},
+            "status": last.status,
+        }
     if not late:
         return out
     flags = np.array([e.orientation_observable for e in estimates])
@@ -265,7 +283,9 @@ def _honesty(
     elif bad[-1] + 1 < len(estimates):
         out["observable_from_s"] = float(estimates[bad[-1] + 1].t - t0)
     if out["unobservable_fraction"] > 0.0:
-        shaped = align(associate_shapes(estimates, truth, names, rotation), "run")
+        # Only where the orientation was unobservable: a moving formation's gauge turns with it.
+        hidden = [e for e in late if not e.orientation_observable]
+        shaped = align(associate_shapes(hidden, truth, names, rotation), "run")
         out["shape_robots"] = {r: ApeStats.of(after(q, t0 + warmup).errors) for r, q in shaped.items()}
     return out
 

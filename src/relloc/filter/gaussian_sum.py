@@ -270,6 +270,9 @@ class GaussianSumFilter(WeightedFilter):
         self.magnitude_count = 0
         self.evidence = Evidence(len(layout.robots))
         """What was fused that can resolve the formation's orientation (for ``estimate``)."""
+        self.covariance_floor = 0.0
+        """Variance (m^2) added per axis to the published covariances: the error the spread
+        of the hypotheses cannot show (:mod:`relloc.filter.summary`; set by the localizer)."""
         self.initialize(self.sample_positions(n_particles))
 
     @property
@@ -567,7 +570,7 @@ class GaussianSumFilter(WeightedFilter):
         rel = self.mean[:, : 2 * k].reshape(self.n, k, 2)
         idx = 2 * np.arange(k)
         covs = self.cov[:, idx[:, None, None] + np.arange(2)[None, :, None], idx[:, None, None] + np.arange(2)[None, None, :]]
-        summary = summarize(rel, self.weights(), covs, can_resolve=self.evidence.can_resolve)
+        summary = summarize(rel, self.weights(), covs, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor)
         headings = {robot: self.heading(robot) for robot in lay.robots} if lay.heading else {}
         biases = {pair: self.bias(pair) for pair in lay.bias_pairs}
         scales = {robot: self.scale(robot) for robot in lay.robots} if lay.scale else {}

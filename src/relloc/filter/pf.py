@@ -117,6 +117,9 @@ class ParticleFilter(WeightedFilter):
         self._mcmc_scale = 0.5
         self.evidence = Evidence(len(layout.robots))
         """What was fused that can resolve the formation's orientation (for ``estimate``)."""
+        self.covariance_floor = 0.0
+        """Variance (m^2) added per axis to the published covariances: the error the spread
+        of the hypotheses cannot show (:mod:`relloc.filter.summary`; set by the localizer)."""
 
     # ---------------------------------------------------------------- prior
     def sample_prior(self, m: int) -> FloatArray:
@@ -234,13 +237,14 @@ class ParticleFilter(WeightedFilter):
         w = np.exp(self.logw)
         m = self.particles.shape[0]
         rel = self.particles[:, : self.layout.dim].reshape(m, -1, 2)
-        summary = summarize(rel, w, can_resolve=self.evidence.can_resolve)
+        summary = summarize(rel, w, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor)
         biases = {}
         for pair in self.layout.bias_pairs:
             c, _ = self.layout.bias_columns(pair)
             biases[pair] = mixture_moments(w, self.particles[:, c], self.particles[:, c + 1])
         return FilterEstimate(
-            mean=summary.mean, cov=summary.cov, ess=float(1.0 / (w @ w)), biases=biases, summary=summary
+            mean=summary.mean, cov=summary.cov, ess=float(1.0 / np.einsum("m,m->", w, w)), biases=biases,
+            summary=summary,
         )
 
     # ---------------------------------------------------------------- initialisation
