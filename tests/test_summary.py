@@ -82,3 +82,49 @@ def test_the_shape_gauge_is_deterministic_and_blind_to_rotation_and_reflection()
         np.testing.assert_allclose(other.shape, first.shape, atol=1e-9)
         np.testing.assert_allclose(other.distances, first.distances, atol=1e-9)
     np.testing.assert_allclose(first.shape, gauge(FORMATION[None])[0], atol=0.01)
+
+
+def _run_pf(sim, particles: int):  # type: ignore[no-untyped-def]
+    from relloc.engine import Engine
+    from relloc.evaluation.metrics import GroundTruth
+    from relloc.methods import build_pipeline
+
+    config = sim.config.with_filter(particles=particles)
+    gt = GroundTruth(config.reference)
+    engine = Engine([build_pipeline(m, config, seed=0) for m in ("pf", "multilateration")], truth_sinks=[gt.add])
+    engine.run(sim.events())
+    return engine, gt
+
+
+def test_a_parked_team_reports_its_orientation_unobservable_and_its_shape() -> None:
+    from relloc.evaluation.report import evaluate
+    from relloc.simulator.scenarios import static_scenario
+
+    engine, gt = _run_pf(static_scenario(seed=1, duration=12.0), 4000)
+    estimates = engine.pipelines[0].estimates
+    assert len(estimates) > 80
+    assert not any(e.orientation_observable for e in estimates)
+    assert all("drive any robot" in e.status for e in estimates)
+    pf = evaluate(engine, gt, "static", warmup=4.0).methods["pf"]
+    assert pf.unobservable_fraction == 1.0
+    for robot, c in pf.consistency.items():
+        assert c.coverage >= 0.9, robot  # the ring's covariance covers the truth
+        assert pf.shape_robots[robot].median < 0.15, robot  # the shape is known
+    # The shape holds the pairwise distances the ranges measure.
+    last = estimates[-1]
+    s1, s2 = np.array(last.shape["r1"]), np.array(last.shape["r2"])
+    assert np.linalg.norm(s1 - s2) == pytest.approx(last.distances["r1-r2"][0], abs=0.05)
+
+
+def test_motion_resolves_the_orientation() -> None:
+    from relloc.simulator.scenarios import STATIC_THEN_MOVE_PARK_S, static_then_move_scenario
+
+    engine, gt = _run_pf(static_then_move_scenario(seed=0, duration=32.0), 4000)
+    estimates = engine.pipelines[0].estimates
+    flags = np.array([e.orientation_observable for e in estimates])
+    t = np.array([e.t for e in estimates])
+    assert not flags[t < STATIC_THEN_MOVE_PARK_S].any()
+    assert flags[t > STATIC_THEN_MOVE_PARK_S + 10.0].all()
+    late = [e for e in estimates if e.t > STATIC_THEN_MOVE_PARK_S + 5.0]
+    errors = [np.hypot(*np.subtract(e.positions[r], gt.relative_at(r, e.t))) for e in late for r in e.positions]
+    assert np.median(errors) < 0.2
