@@ -116,15 +116,18 @@ def test_a_parked_team_reports_its_orientation_unobservable_and_its_shape() -> N
     assert np.linalg.norm(s1 - s2) == pytest.approx(last.distances["r1-r2"][0], abs=0.05)
 
 
+@pytest.mark.slow
 def test_motion_resolves_the_orientation() -> None:
+    """With the simulated team's 20 000 particles (fewer let the ring collapse onto a few
+    inherited orientations while parked, and the first motion may then pick a wrong one)."""
     from relloc.simulator.scenarios import STATIC_THEN_MOVE_PARK_S, static_then_move_scenario
 
-    engine, gt = _run_pf(static_then_move_scenario(seed=0, duration=32.0), 4000)
+    engine, gt = _run_pf(static_then_move_scenario(seed=0, duration=30.0), 20000)
     estimates = engine.pipelines[0].estimates
     flags = np.array([e.orientation_observable for e in estimates])
     t = np.array([e.t for e in estimates])
     assert not flags[t < STATIC_THEN_MOVE_PARK_S].any()
-    assert flags[t > STATIC_THEN_MOVE_PARK_S + 10.0].all()
+    assert flags[t > STATIC_THEN_MOVE_PARK_S + 5.0].all()
     late = [e for e in estimates if e.t > STATIC_THEN_MOVE_PARK_S + 5.0]
     errors = [np.hypot(*np.subtract(e.positions[r], gt.relative_at(r, e.t))) for e in late for r in e.positions]
     assert np.median(errors) < 0.2

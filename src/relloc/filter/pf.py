@@ -117,14 +117,6 @@ class ParticleFilter(WeightedFilter):
         self._mcmc_scale = 0.5
         self.evidence = Evidence(len(layout.robots))
         """What was fused that can resolve the formation's orientation (for ``estimate``)."""
-        self.keep_symmetric = False
-        """Re-spread the particles over rotations and mirror images after every resampling
-        while nothing fused can have resolved them (an exact move for that symmetric
-        posterior): resampling alone would otherwise narrow the ring onto a few inherited
-        orientations, which the first motion would then pick from, wrong or right. Its draws
-        come from a stream of their own, so that the filter's other draws are unchanged."""
-        self._symmetry_rng = rng.spawn(1)[0]
-        self.symmetry_spread_count = 0
         self.covariance_floor = 0.0
         """Variance (m^2) added per axis to the published covariances: the error the spread
         of the hypotheses cannot show (:mod:`relloc.filter.summary`; set by the localizer)."""
@@ -196,19 +188,12 @@ class ParticleFilter(WeightedFilter):
             self.particles[slots, self.layout.dim :] = self.extra_prior
 
     def _after_resample(self) -> None:
-        """While nothing fused could have resolved the orientation (``keep_symmetric``), the
-        symmetric spread; then the orientation kernel (module docstring)."""
-        if self.keep_symmetric and not self.evidence.can_resolve:
-            self.spread_symmetries(rng=self._symmetry_rng)
-            self.symmetry_spread_count += 1
+        """The orientation kernel (module docstring)."""
         if self.rotation_kernel > 0.0 and self.rejuvenate_rotation(self.rotation_kernel):
             self.rotation_kernel_count += 1
 
     def counters(self) -> dict[str, int]:
-        out = {"rotation_kernel": self.rotation_kernel_count}
-        if self.symmetry_spread_count:
-            out["symmetry_spread"] = self.symmetry_spread_count
-        return out
+        return {"rotation_kernel": self.rotation_kernel_count}
 
     def orientations(self) -> FloatArray:
         """Each particle's formation angle (rad) about the reference, relative to the
@@ -344,17 +329,16 @@ class ParticleFilter(WeightedFilter):
                 self._mcmc_scale = min(self._mcmc_scale * 1.5, 1.0)
         return ll
 
-    def spread_symmetries(self, reflections: bool = True, rng: np.random.Generator | None = None) -> None:
+    def spread_symmetries(self, reflections: bool = True) -> None:
         """Rotate each particle's formation about the reference by a uniform random angle,
         and mirror it with probability 1/2: the symmetries that ranges alone cannot resolve."""
-        rng = self.rng if rng is None else rng
         m = self.particles.shape[0]
         rel = self.particles[:, : self.layout.dim].reshape(m, -1, 2).copy()
         if reflections:
-            flip = rng.random(m) < 0.5
+            flip = self.rng.random(m) < 0.5
             rel[flip, :, 1] *= -1.0
         self.particles[:, : self.layout.dim] = rel.reshape(m, -1)
-        self.rotate(rng.uniform(-np.pi, np.pi, m))
+        self.rotate(self.rng.uniform(-np.pi, np.pi, m))
 
     def rotate(self, theta: FloatArray) -> None:
         """Turn particle ``k``'s formation about the reference by ``theta[k]`` (rad)."""

@@ -93,7 +93,6 @@ class ParticleFilterLocalizer(FilterLocalizer):
         self.range_model = config.filter.likelihood.range_model  # online pairs keep the symmetric model
         self.filter = particle_filter(config, layout, prior, config.filter.particles, self.rng)
         self.filter.covariance_floor = covariance_floor(config, self.range_model)
-        self.filter.keep_symmetric = config.filter.spread_rotations
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
         if not annealed_start(self, self.filter, batch):
