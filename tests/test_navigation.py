@@ -476,8 +476,9 @@ def test_closed_loop_in_the_simulator_drives_a_small_rectangle() -> None:
     s = result.summary()
     assert s["completed"] is True
     assert s["tracking_median"] < 0.15 and s["ape_median"] < 0.2
-    # The gate held the robot until the estimate had converged, then released it once.
-    assert [x["reason"] for x in s["stops"]] == ["uncertain", "released", "goal reached"]
+    # The gate held the robot while the formation's orientation was unobservable (the team
+    # has just started to move) and until the estimate had converged, then released it once.
+    assert [x["reason"] for x in s["stops"]] == ["unobservable", "uncertain", "released", "goal reached"]
     first_move = result.t[np.flatnonzero(np.any(result.command != 0.0, axis=1))[0]]
     assert first_move == pytest.approx(result.start_time)
     assert s["start_s"] is not None and s["start_s"] > 1.0
