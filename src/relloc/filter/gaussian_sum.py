@@ -585,19 +585,6 @@ class GaussianSumFilter(WeightedFilter):
         w = np.exp(self.logw - top)
         return w / np.sum(w)
 
-    def position_moments(self) -> tuple[FloatArray, FloatArray]:
-        """Mixture mean ``(N-1, 2)`` and covariance ``(N-1, 2, 2)`` of the relative positions."""
-        w = self.weights()
-        k = self.layout.n_others
-        mu = self.mean[:, : 2 * k].reshape(self.n, k, 2)
-        mean = np.einsum("m,mkd->kd", w, mu)
-        c = mu - mean
-        cov = np.empty((k, 2, 2))
-        for j in range(k):
-            block = self.cov[:, 2 * j : 2 * j + 2, 2 * j : 2 * j + 2]
-            cov[j] = np.einsum("m,mab->ab", w, block) + np.einsum("m,ma,mb->ab", w, c[:, j], c[:, j])
-        return mean, cov
-
     def heading(self, robot: str) -> tuple[float, float]:
         """Circular mean and circular standard deviation (rad) of ``robot``'s relative heading.
 
