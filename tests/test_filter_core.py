@@ -147,17 +147,38 @@ def test_filter_rejects_bad_parameters() -> None:
         ParticleFilter(layout, 10, (-1, 1, -1, 1), rng=np.random.default_rng(0), resample="sometimes")
 
 
-def test_estimate_is_the_weighted_mean_and_covariance() -> None:
+def test_estimate_keeps_the_weighted_mean_and_publishes_the_ring_before_any_evidence() -> None:
     layout = StateLayout(("a", "b", "c"), "a")
     pf = ParticleFilter(layout, 3000, (-4, 4, -4.5, 4.5), rng=np.random.default_rng(0))
     pf.logw = log_normalize(np.log(np.random.default_rng(1).random(3000)))
     est = pf.estimate()
     w = np.exp(pf.logw)
+    assert est.summary is not None and not est.summary.orientation_observable
+    for k in range(2):
+        x = pf.particles[:, 2 * k : 2 * k + 2]
+        np.testing.assert_allclose(est.summary.weighted_mean[k], w @ x)
+        # Nothing fused can tell the orientation: the moments of the posterior symmetrised
+        # over rotations about the reference (mean there, E|p|^2 / 2 per axis).
+        np.testing.assert_allclose(est.mean[k], 0.0)
+        np.testing.assert_allclose(est.cov[k], 0.5 * (w @ np.sum(x * x, axis=1)) * np.eye(2))
+    assert est.ess == pytest.approx(ess(pf.logw))
+
+
+def test_estimate_is_the_weighted_mean_and_covariance_of_one_mode_once_resolved() -> None:
+    layout = StateLayout(("a", "b", "c"), "a")
+    pf = ParticleFilter(layout, 3000, (-4, 4, -4.5, 4.5), rng=np.random.default_rng(0))
+    rng = np.random.default_rng(1)
+    pf.particles[:] = np.array([2.0, 0.5, -1.0, 2.0]) + 0.1 * rng.standard_normal((3000, 4))
+    pf.logw = log_normalize(np.log(rng.random(3000)))
+    pf.evidence.moved(np.array([[0.0, 0.0], [0.5, 0.0], [0.0, 0.0]]))
+    est = pf.estimate()
+    w = np.exp(pf.logw)
+    assert est.summary is not None and est.summary.orientation_observable
+    assert est.summary.n_modes == 1 and est.summary.mode_weight == pytest.approx(1.0, abs=1e-3)
     for k in range(2):
         x = pf.particles[:, 2 * k : 2 * k + 2]
         np.testing.assert_allclose(est.mean[k], w @ x)
         np.testing.assert_allclose(est.cov[k], np.cov(x.T, aweights=w, bias=True))
-    assert est.ess == pytest.approx(ess(pf.logw))
 
 
 def test_robust_likelihood_matches_the_log_space_formula() -> None:

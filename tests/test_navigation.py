@@ -8,6 +8,7 @@ import json
 import math
 import threading
 import time
+from dataclasses import replace
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -268,6 +269,18 @@ def test_gate_waits_for_a_converged_estimate_before_starting() -> None:
     assert [r.reason for r in gate.records] == ["uncertain", "released"]
 
 
+def test_gate_holds_on_an_unobservable_orientation_or_a_minor_mode() -> None:
+    gate = SafetyGate(SafetyConfig(settle_time=0.0, max_std=5.0), "r1")
+    ring = replace(estimate(0.0, "r1", (0, 0)), orientation_observable=False)
+    assert gate.evaluate(0.0, ring, 0.0) == "unobservable"
+    assert "drive any robot" in gate.records[-1].detail
+    split = replace(estimate(0.1, "r1", (0, 0)), mode_weight=0.7, n_modes=2)
+    assert gate.evaluate(0.1, split, 0.1) == "modes"
+    dominant = replace(estimate(0.2, "r1", (0, 0)), mode_weight=0.95, n_modes=2)
+    assert gate.evaluate(0.2, dominant, 0.2) is None
+    assert [r.reason for r in gate.records] == ["unobservable", "modes", "released"]
+
+
 def test_stale_estimate_stops_the_robot_within_one_control_period(
     caplog: pytest.LogCaptureFixture,
 ) -> None:
@@ -463,8 +476,9 @@ def test_closed_loop_in_the_simulator_drives_a_small_rectangle() -> None:
     s = result.summary()
     assert s["completed"] is True
     assert s["tracking_median"] < 0.15 and s["ape_median"] < 0.2
-    # The gate held the robot until the estimate had converged, then released it once.
-    assert [x["reason"] for x in s["stops"]] == ["uncertain", "released", "goal reached"]
+    # The gate held the robot while the formation's orientation was unobservable (the team
+    # has just started to move) and until the estimate had converged, then released it once.
+    assert [x["reason"] for x in s["stops"]] == ["unobservable", "uncertain", "released", "goal reached"]
     first_move = result.t[np.flatnonzero(np.any(result.command != 0.0, axis=1))[0]]
     assert first_move == pytest.approx(result.start_time)
     assert s["start_s"] is not None and s["start_s"] > 1.0

@@ -98,6 +98,10 @@ def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
     status_sub = client.declare_subscriber(
         "relloc/status", lambda s: status.append(json.loads(s.payload.to_bytes()))
     )
+    shapes: list[dict[str, Any]] = []
+    shape_sub = client.declare_subscriber(
+        "relloc/shape", lambda s: shapes.append(json.loads(s.payload.to_bytes()))
+    )
     collector = EstimateCollector(client, config)
     server = LiveServer(
         config,
@@ -109,12 +113,22 @@ def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
         stats = publish_events(sim.events(), config, client, rate=rate, time_base=base, wait=5.0)
         assert stats.unmatched == []
         assert wait_until(lambda: live.source.stats.events.total() >= stats.messages)
+    # The last pose is published as the server ends: let it arrive (a loaded machine is slow).
+    wait_until(lambda: len(collector.estimates()) >= len(server.pipelines[0].estimates))
     collector_estimates = collector.estimates()
     traces = collector.traces()
     collector.close()
     status_sub.undeclare()
+    shape_sub.undeclare()
 
     own = server.pipelines[0].estimates
+    # The shape and distances, live on relloc/shape; the flag in the status.
+    assert wait_until(lambda: len(shapes) == len(own))
+    assert shapes[-1]["t"] == pytest.approx(own[-1].t, abs=1e-6) and shapes[-1]["gauge"] == "r1"
+    assert shapes[-1]["shape"]["r1"][1] == pytest.approx(0.0, abs=1e-9)
+    assert shapes[-1]["distances"]["r0-r1"][0] == pytest.approx(own[-1].distances["r0-r1"][0])
+    assert shapes[-1]["orientation_observable"] is own[-1].orientation_observable
+    assert not shapes[0]["orientation_observable"] and "drive any robot" in shapes[0]["status"]
     assert len(collector_estimates) == len(own) > 100
     last = collector_estimates[-1]
     assert last.positions.keys() == set(config.others)
@@ -132,6 +146,7 @@ def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
 
     assert server.summary()["source"]["rejected"] == {}
     assert status and status[-1]["methods"]["pf"]["estimates"] > 0
+    assert status[-1]["methods"]["pf"]["orientation_observable"] is own[-1].orientation_observable
     assert status[-1]["source"]["messages"] > 0 and "robots" in status[-1]
     timed = [r for r in traces if r["trigger_sent"] is not None]
     assert len(timed) >= len(own) - 2

@@ -12,6 +12,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+RESOLVE_HINT = (
+    "formation orientation unobservable: drive any robot but the reference about 0.5 m, "
+    "or give detections"
+)
+"""What the status says while the orientation is not observable."""
+DOMINANT_MODE_WEIGHT = 0.9
+"""A published mode lighter than this competes with others: not converged (navigation holds)."""
+
 
 @dataclass(frozen=True)
 class Estimate:
@@ -36,6 +44,36 @@ class Estimate:
     prior says the bias is unobservable so far (the pair's distance has not changed)."""
     scales: dict[str, tuple[float, float]] = field(default_factory=dict)
     """Online-scale mode: per robot, the odometry scale (mean, std)."""
+    orientation_observable: bool = True
+    """Whether the formation's rotation and reflection about the reference are resolved
+    (:mod:`relloc.filter.summary`). While False, ``positions`` and ``covariances`` are the
+    moments of the posterior over the whole ring of orientations (the covariance covers the
+    truth, the positions alone mean little): use ``shape`` and ``distances``."""
+    mode_weight: float = 1.0
+    """Posterior weight of the mode that ``positions`` summarise (1 for a unimodal posterior)."""
+    n_modes: int = 1
+    """How many orientation/handedness modes the posterior has."""
+    weighted_mean: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """Diagnostic: the weighted mean over every hypothesis, modes mixed (not an estimate)."""
+    shape: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """The formation's shape relative to the reference in the declared gauge: turned so that
+    ``shape_gauge`` lies on the reference's +x axis, mirrored so that the next robot (in the
+    config's order) lies on the +y side. Known even when the orientation is not."""
+    shape_gauge: str = ""
+    """The robot put on the reference's +x axis in ``shape``."""
+    distances: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """Every pair's distance (mean, std) in m, keyed by :func:`relloc.events.pair_key`; the
+    reference's pairs included."""
+
+    @property
+    def status(self) -> str:
+        """One line on what the estimate means: what would resolve the orientation, or that
+        the posterior has competing modes, or ``ok``."""
+        if not self.orientation_observable:
+            return RESOLVE_HINT
+        if self.mode_weight < DOMINANT_MODE_WEIGHT:
+            return f"{self.n_modes} modes: the published one holds {self.mode_weight:.0%} of the posterior"
+        return "ok"
 
     def std(self, robot: str) -> float:
         """Position standard deviation of ``robot``: sqrt of the covariance's largest eigenvalue."""

@@ -156,7 +156,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--warmup", type=argtypes.non_negative, default=10.0, help="seconds excluded from APE")
     demo.add_argument("--particles", type=argtypes.count, default=None, help="override the particle count")
     demo.add_argument("--methods", default="pf,multilateration", help=METHODS_HELP)
-    demo.add_argument("--scenarios", default="multi,single,nav", help="comma-separated: multi, single, nav")
+    demo.add_argument("--scenarios", default="multi,single,nav", help="comma-separated: multi, single, nav, static, static_then_move")
     demo.add_argument("--out", type=Path, default=Path("out/demo"), help="folder for plots")
     demo.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE", help="write the figures as JSON")
     demo.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")

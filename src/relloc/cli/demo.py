@@ -3,6 +3,8 @@
 Runs the ``multi`` scenario (five robots: triangle, X, circle, rectangle and a static
 reference) and the ``single`` scenario (two robots, one range) through the same engine that
 processes real recordings, and evaluates each method against the simulator's ground truth.
+``static`` (the multi team parked) and ``static_then_move`` (parked for 20 s, then driving) show
+the estimate reporting an unobservable formation orientation, and the shape it still knows.
 The ``nav`` scenario is the paper's closed-loop experiment: one robot drives a rectangle around
 the static reference robot with the particle filter's estimate as its only position feedback
 (:mod:`relloc.navigation.closed_loop`); it reports positioning APE and path-tracking error.
@@ -28,6 +30,7 @@ from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajector
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.methods import DETECTION_METHODS, build_pipeline
 from relloc.simulator import Simulation, multi_scenario, single_scenario
+from relloc.simulator.scenarios import static_scenario, static_then_move_scenario
 
 
 @dataclass(frozen=True)
@@ -48,7 +51,14 @@ class DemoOptions:
     """``fixed|online``."""
 
 
-SCENARIOS: dict[str, Callable[..., Simulation]] = {"multi": multi_scenario, "single": single_scenario}
+SCENARIOS: dict[str, Callable[..., Simulation]] = {
+    "multi": multi_scenario,
+    "single": single_scenario,
+    "static": static_scenario,
+    "static_then_move": static_then_move_scenario,
+}
+"""The open-loop scenarios (``nav`` is run apart). ``static`` and ``static_then_move`` are not in
+the default set: they show how the estimate reports an unobservable orientation."""
 
 
 MOVING_REFERENCE: dict[str, str] = {"multi": "r1", "single": "r1"}

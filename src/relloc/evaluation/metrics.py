@@ -22,7 +22,7 @@ from __future__ import annotations
 import bisect
 import math
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -356,3 +356,76 @@ def bias_errors(estimates: Sequence[Estimate], truth: dict[str, float], t_start:
             if pair in truth:
                 out.setdefault(pair, []).append(abs(mean - truth[pair]))
     return {k: np.array(v) for k, v in out.items()}
+
+
+CHI2_2D_95 = 5.991464547107979
+"""95 % quantile of the chi-square distribution with 2 degrees of freedom: the squared
+Mahalanobis radius of a 2D 95 % ellipse."""
+
+
+@dataclass
+class Consistency:
+    """Whether the published covariances cover the error: per estimate the normalised
+    estimation error squared ``NEES = e^T C^-1 e`` (2 degrees of freedom: mean 2 for a
+    consistent filter) and whether the truth lies in the 95 % ellipse (``NEES <= 5.99``)."""
+
+    t: FloatArray
+    nees: FloatArray
+
+    @property
+    def coverage(self) -> float:
+        """Fraction of the estimates whose 95 % ellipse holds the truth."""
+        return float(np.mean(self.nees <= CHI2_2D_95)) if self.nees.size else math.nan
+
+    @property
+    def nees_median(self) -> float:
+        return float(np.median(self.nees)) if self.nees.size else math.nan
+
+    @property
+    def nees_mean(self) -> float:
+        return float(np.mean(self.nees)) if self.nees.size else math.nan
+
+
+def consistency(
+    estimates: Sequence[Estimate],
+    gt: GroundTruth,
+    robots: Iterable[str],
+    t_start: float,
+    rotation: float = 0.0,
+) -> dict[str, Consistency]:
+    """NEES of every estimate from ``t_start`` on that carries a covariance, per robot, against
+    interpolated relative ground truth (turned by ``-rotation`` as in :func:`associate`).
+    Methods without covariances (multilateration) get none."""
+    out: dict[str, Consistency] = {}
+    c, s_ = math.cos(rotation), math.sin(rotation)
+    for robot in robots:
+        t, nees = [], []
+        for est in estimates:
+            if est.t < t_start or robot not in est.positions or robot not in est.covariances:
+                continue
+            truth = gt.relative_at(robot, est.t)
+            if truth is None:
+                continue
+            truth = (c * truth[0] + s_ * truth[1], -s_ * truth[0] + c * truth[1])
+            e = np.subtract(est.positions[robot], truth)
+            cov = np.array(est.covariances[robot], float)
+            if not np.all(np.isfinite(cov)) or np.linalg.det(cov) <= 0.0:
+                continue
+            t.append(est.t)
+            nees.append(float(e @ np.linalg.solve(cov, e)))
+        if t:
+            out[robot] = Consistency(np.array(t), np.array(nees))
+    return out
+
+
+def associate_shapes(
+    estimates: Sequence[Estimate],
+    gt: GroundTruth,
+    robots: Iterable[str],
+    rotation: float = 0.0,
+) -> dict[str, Paired]:
+    """Like :func:`associate`, for the published shapes (the formation in its declared gauge,
+    :attr:`Estimate.shape`) instead of the positions: align these once for the run
+    (:func:`align` ``"run"``), as multilateration's formation is, for the shape APE."""
+    shaped = [replace(est, positions=dict(est.shape)) for est in estimates if est.shape]
+    return associate(shaped, gt, robots, rotation)

@@ -27,6 +27,7 @@ from relloc.evaluation.metrics import (
     CONVERGENCE_THRESHOLD_M,
     CONVERGENCE_TOLERANCE,
     ApeStats,
+    Consistency,
     GroundTruth,
     HeadingPaired,
     Paired,
@@ -34,8 +35,10 @@ from relloc.evaluation.metrics import (
     align,
     associate,
     associate_headings,
+    associate_shapes,
     ate,
     bias_errors,
+    consistency,
     convergence_time,
     odometry_frame_rotation,
 )
@@ -64,6 +67,20 @@ class MethodReport:
     """Heading-estimate mode: rotation of the reference's odometry frame in the mocap frame (its
     mocap yaw minus odometry yaw at its first odometry message), by which the ground truth is
     turned for evaluation (evaluation only)."""
+    consistency: dict[str, Consistency] = field(default_factory=dict, repr=False)
+    """Per robot, the NEES of every estimate after the warm-up (methods with covariances)."""
+    shape_robots: dict[str, ApeStats] = field(default_factory=dict)
+    """Where the orientation was unobservable after the warm-up: the APE of those estimates'
+    published shapes after one rotation/reflection fitted for them all (multilateration's
+    treatment)."""
+    unobservable_fraction: float = math.nan
+    """Fraction of the estimates after the warm-up with ``orientation_observable`` False."""
+    final_shape: dict[str, Any] = field(default_factory=dict)
+    """The last estimate's shape in its gauge, pairwise distances, flag and status (methods
+    that report a shape)."""
+    observable_from_s: float = math.nan
+    """Seconds from the start of the run to the estimate from which the orientation stays
+    observable to the end (nan: never; 0 for methods that do not report it)."""
 
     @property
     def mean_ape_median(self) -> float:
@@ -100,6 +117,16 @@ class MethodReport:
             entry = robots.setdefault(r, {})
             entry["heading_median_deg"] = _num(self.heading_median_deg(r))
             entry["heading_spread_deg"] = _num(self.heading_spread_deg(r))
+        for r, c in self.consistency.items():
+            entry = robots.setdefault(r, {})
+            entry["nees_median"] = _num(c.nees_median)
+            entry["nees_mean"] = _num(c.nees_mean)
+            entry["coverage95"] = _num(c.coverage)
+        for r, s in self.shape_robots.items():
+            entry = robots.setdefault(r, {})
+            entry["shape_ape_median"] = _num(s.median)
+            entry["shape_ape_rmse"] = _num(s.rmse)
+            entry["shape_ape_max"] = _num(s.max)
         for r, (mean, std) in self.final_scales.items():
             entry = robots.setdefault(r, {})
             entry["odom_scale"] = _num(mean)
@@ -122,6 +149,11 @@ class MethodReport:
                 }
                 for pair, (mean, std) in self.final_biases.items()
             }
+        if self.final_shape:
+            out["final_shape"] = self.final_shape
+        if math.isfinite(self.unobservable_fraction):
+            out["orientation_unobservable_fraction"] = _num(self.unobservable_fraction)
+            out["orientation_observable_from_s"] = _num(self.observable_from_s)
         if self.frame_rotation_deg is not None:
             out["frame_rotation_deg"] = _num(self.frame_rotation_deg)
         return out
@@ -200,6 +232,7 @@ def evaluate(
             "final_scales": dict(last.scales) if last is not None else {},
             "frame_rotation_deg": frame_deg,
         }
+        honest = _honesty(p.estimates, truth, names, t0, warmup, rotation)
         variants = [(p.name, "none")]
         if p.name.startswith("multilateration"):
             variants = [(p.name, "run"), (p.name + "_oracle", "step")]
@@ -216,8 +249,45 @@ def evaluate(
                 compute_s=p.compute_s,
                 n_estimates=len(p.estimates),
                 **calibration,
+                **(honest if mode == "none" else {}),
             )
     return ScenarioReport(name, warmup, duration, methods, t0, truth.reference, truth_name)
+
+
+def _honesty(
+    estimates: list[Any], truth: GroundTruth, names: list[str], t0: float, warmup: float, rotation: float
+) -> dict[str, Any]:
+    """Consistency (NEES, 95 % coverage) after the warm-up, the orientation flag's history, and
+    where it was unobservable the shape APE after one alignment for the run."""
+    late = [e for e in estimates if e.t >= t0 + warmup]
+    out: dict[str, Any] = {"consistency": consistency(estimates, truth, names, t0 + warmup, rotation)}
+    if estimates and estimates[-1].shape:
+        last = estimates[-1]
+        out["final_shape"] = {
+            "t": last.t,
+            "orientation_observable": last.orientation_observable,
+            "mode_weight": _num(last.mode_weight),
+            "n_modes": last.n_modes,
+            "gauge": last.shape_gauge,
+            "shape": {r: [_num(x), _num(y)] for r, (x, y) in last.shape.items()},
+            "distances": {p: [_num(m), _num(s)] for p, (m, s) in last.distances.items()},
+            "status": last.status,
+        }
+    if not late:
+        return out
+    flags = np.array([e.orientation_observable for e in estimates])
+    out["unobservable_fraction"] = float(np.mean([not e.orientation_observable for e in late]))
+    bad = np.flatnonzero(~flags)
+    if bad.size == 0:
+        out["observable_from_s"] = 0.0
+    elif bad[-1] + 1 < len(estimates):
+        out["observable_from_s"] = float(estimates[bad[-1] + 1].t - t0)
+    if out["unobservable_fraction"] > 0.0:
+        # Only where the orientation was unobservable: a moving formation's gauge turns with it.
+        hidden = [e for e in late if not e.orientation_observable]
+        shaped = align(associate_shapes(hidden, truth, names, rotation), "run")
+        out["shape_robots"] = {r: ApeStats.of(after(q, t0 + warmup).errors) for r, q in shaped.items()}
+    return out
 
 
 def _after_heading(h: HeadingPaired, t_start: float) -> HeadingPaired:
@@ -246,7 +316,7 @@ def print_table(report: ScenarioReport, console: Console | None = None) -> None:
     if report.reference:
         title += f", positions relative to {report.reference}"
     table = Table(title=title, caption=CONVERGENCE_CAPTION, caption_justify="left")
-    for col in ("method", "robot", "APE median", "APE rmse", "APE max", "ATE", "n", "converged after"):
+    for col in ("method", "robot", "APE median", "APE rmse", "APE max", "ATE", "n", "converged after", "NEES", "95 % cov."):
         table.add_column(col, justify="left" if col in ("method", "robot") else "right")
     for method, m in report.methods.items():
         conv = "never" if not math.isfinite(m.convergence_s) else f"{m.convergence_s:.1f} s"
@@ -255,9 +325,43 @@ def print_table(report: ScenarioReport, console: Console | None = None) -> None:
                 cells = ["no estimate", "", "", "", "0"]
             else:
                 cells = [f"{s.median:.3f}", f"{s.rmse:.3f}", f"{s.max:.3f}", f"{m.ate.get(robot, math.nan):.3f}", str(s.n)]
-            table.add_row(method if k == 0 else "", robot, *cells, conv if k == 0 else "", end_section=k == len(m.robots) - 1)
+            c = m.consistency.get(robot)
+            honest = ["", ""] if c is None else [f"{c.nees_median:.2f}", f"{100 * c.coverage:.0f} %"]
+            table.add_row(
+                method if k == 0 else "", robot, *cells, conv if k == 0 else "", *honest,
+                end_section=k == len(m.robots) - 1,
+            )
     console.print(table)
+    console.print(NEES_CAPTION)
+    print_shape_table(report, console)
     print_calibration_table(report, console)
+
+
+NEES_CAPTION = (
+    "NEES: median normalised estimation error squared of the published covariance after the "
+    "warm-up (2 when consistent); 95 % cov.: estimates whose 95 % ellipse holds the truth"
+)
+
+
+def print_shape_table(report: ScenarioReport, console: Console | None = None) -> None:
+    """Methods whose orientation was unobservable after the warm-up: the share of such
+    estimates and the shape APE (one rotation/reflection fitted for the run)."""
+    console = console or make_console()
+    for method, m in report.methods.items():
+        if not m.shape_robots:
+            continue
+        table = Table(
+            title=(
+                f"{report.name} / {method}: formation orientation unobservable in "
+                f"{100 * m.unobservable_fraction:.0f} % of the estimates after the warm-up; "
+                "shape APE after one rotation/reflection for the run"
+            )
+        )
+        for col in ("robot", "shape APE median", "rmse", "max", "n"):
+            table.add_column(col, justify="left" if col == "robot" else "right")
+        for robot, s in sorted(m.shape_robots.items()):
+            table.add_row(robot, f"{s.median:.3f}", f"{s.rmse:.3f}", f"{s.max:.3f}", str(s.n))
+        console.print(table)
 
 
 UNOBSERVABLE_SPREAD_DEG = 45.0

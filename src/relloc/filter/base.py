@@ -35,6 +35,7 @@ from relloc.filter.measurement import MeasurementModel
 from relloc.filter.motion import PriorBox
 from relloc.filter.resampling import ess, log_normalize, resample_with_reinjection
 from relloc.filter.state import TeamLayout
+from relloc.filter.summary import ModeSummary
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -53,6 +54,9 @@ class FilterEstimate:
     headings: dict[str, tuple[float, float]] = field(default_factory=dict)
     biases: dict[str, tuple[float, float]] = field(default_factory=dict)
     scales: dict[str, tuple[float, float]] = field(default_factory=dict)
+    summary: ModeSummary | None = None
+    """The dominant mode, observability and shape (:mod:`relloc.filter.summary`); ``mean`` and
+    ``cov`` are then its published moments."""
 
 
 def renormalized(logw: FloatArray) -> FloatArray | None:

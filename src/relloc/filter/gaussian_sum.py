@@ -94,6 +94,7 @@ from relloc.filter.measurement import MeasurementModel, robust_gaussian
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.resampling import mixture_moments
 from relloc.filter.state import TeamLayout
+from relloc.filter.summary import Evidence, summarize
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -267,6 +268,11 @@ class GaussianSumFilter(WeightedFilter):
         self.cov = np.zeros((n_particles, layout.width, layout.width))
         self.magnitude_done = np.zeros((n_particles, layout.n_others), dtype=bool)
         self.magnitude_count = 0
+        self.evidence = Evidence(len(layout.robots))
+        """What was fused that can resolve the formation's orientation (for ``estimate``)."""
+        self.covariance_floor = 0.0
+        """Variance (m^2) added per axis to the published covariances: the error the spread
+        of the hypotheses cannot show (:mod:`relloc.filter.summary`; set by the localizer)."""
         self.initialize(self.sample_positions(n_particles))
 
     @property
@@ -368,6 +374,7 @@ class GaussianSumFilter(WeightedFilter):
         odometry frame in heading mode, else in the shared frame; ``sigma`` (N,): its standard
         deviation per axis.
         """
+        self.evidence.moved(disp)
         lay, nz = self.layout, self.noise
         ref = lay.index(lay.reference)
         others = [lay.index(r) for r in lay.others]
@@ -461,6 +468,7 @@ class GaussianSumFilter(WeightedFilter):
         the rows before it; then (heading mode) the ``|u|`` pseudo-measurements that have
         become due, and normalise. False (weights kept) if no Gaussian has any support."""
         before = self.logw
+        self.evidence.fused(models)
         for model in models:
             for k in range(model.rows):
                 row = model.row(k, self.mean)
@@ -554,13 +562,19 @@ class GaussianSumFilter(WeightedFilter):
 
     # ---------------------------------------------------------------- estimates
     def estimate(self) -> FilterEstimate:
-        """Mixture moments of the positions, and of every estimated heading, bias and scale."""
+        """The positions' honest summary (:func:`relloc.filter.summary.summarize` over the
+        Gaussians, their own covariances included), and the mixture moments of every
+        estimated heading, bias and scale."""
         lay = self.layout
-        mean, cov = self.position_moments()
+        k = lay.n_others
+        rel = self.mean[:, : 2 * k].reshape(self.n, k, 2)
+        idx = 2 * np.arange(k)
+        covs = self.cov[:, idx[:, None, None] + np.arange(2)[None, :, None], idx[:, None, None] + np.arange(2)[None, None, :]]
+        summary = summarize(rel, self.weights(), covs, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor)
         headings = {robot: self.heading(robot) for robot in lay.robots} if lay.heading else {}
         biases = {pair: self.bias(pair) for pair in lay.bias_pairs}
         scales = {robot: self.scale(robot) for robot in lay.robots} if lay.scale else {}
-        return FilterEstimate(mean, cov, self.ess(), headings, biases, scales)
+        return FilterEstimate(summary.mean, summary.cov, self.ess(), headings, biases, scales, summary)
 
     def weights(self) -> FloatArray:
         """Normalised weights (the log-weights are normalised by :meth:`update`; weights set
@@ -570,19 +584,6 @@ class GaussianSumFilter(WeightedFilter):
             return np.full(self.n, 1.0 / self.n)
         w = np.exp(self.logw - top)
         return w / np.sum(w)
-
-    def position_moments(self) -> tuple[FloatArray, FloatArray]:
-        """Mixture mean ``(N-1, 2)`` and covariance ``(N-1, 2, 2)`` of the relative positions."""
-        w = self.weights()
-        k = self.layout.n_others
-        mu = self.mean[:, : 2 * k].reshape(self.n, k, 2)
-        mean = np.einsum("m,mkd->kd", w, mu)
-        c = mu - mean
-        cov = np.empty((k, 2, 2))
-        for j in range(k):
-            block = self.cov[:, 2 * j : 2 * j + 2, 2 * j : 2 * j + 2]
-            cov[j] = np.einsum("m,mab->ab", w, block) + np.einsum("m,ma,mb->ab", w, c[:, j], c[:, j])
-        return mean, cov
 
     def heading(self, robot: str) -> tuple[float, float]:
         """Circular mean and circular standard deviation (rad) of ``robot``'s relative heading.

@@ -57,6 +57,7 @@ from relloc.filter.measurement import MeasurementModel, stacked
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.resampling import ess, log_normalize, mixture_moments, systematic_resample
 from relloc.filter.state import StateLayout
+from relloc.filter.summary import Evidence, summarize
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -114,6 +115,11 @@ class ParticleFilter(WeightedFilter):
         self._reference = layout.index(layout.reference)
         self.particles = self.sample_prior(n_particles)
         self._mcmc_scale = 0.5
+        self.evidence = Evidence(len(layout.robots))
+        """What was fused that can resolve the formation's orientation (for ``estimate``)."""
+        self.covariance_floor = 0.0
+        """Variance (m^2) added per axis to the published covariances: the error the spread
+        of the hypotheses cannot show (:mod:`relloc.filter.summary`; set by the localizer)."""
 
     # ---------------------------------------------------------------- prior
     def sample_prior(self, m: int) -> FloatArray:
@@ -135,6 +141,7 @@ class ParticleFilter(WeightedFilter):
         """Move particles by every robot's displacement ``disp`` (N, 2) with std ``sigma`` (N,),
         turn each formation by ``rotation_noise`` and walk the online bias beliefs."""
         self.motion.propagate(self.particles, self._others, self._reference, disp, sigma, dt, self.rng)
+        self.evidence.moved(disp)
         if self.rotation_noise > 0.0 and dt > 0.0:
             self.rotate(self.rng.normal(0.0, self.rotation_noise * np.sqrt(dt), self.n))
         if self.layout.bias_pairs and dt > 0.0:
@@ -146,6 +153,7 @@ class ParticleFilter(WeightedFilter):
         support."""
         if not models:
             return True
+        self.evidence.fused(models)
         loglik = models[0].log_likelihood if len(models) == 1 else stacked(models)
         logw = renormalized(self.logw + self.log_likelihood(loglik, self.particles))
         if logw is not None:
@@ -222,28 +230,22 @@ class ParticleFilter(WeightedFilter):
         return True
 
     def estimate(self) -> FilterEstimate:
-        """Weighted mean and covariance of each robot's relative position (and the mixture
-        moments of each online bias).
-
-        Only the 2x2 blocks are computed (variances and the x-y covariance of each robot), from
-        weighted second moments: no (D, D) product and no centred copy of the cloud.
-        """
+        """The posterior's honest summary (:func:`relloc.filter.summary.summarize`): the
+        dominant mode's mean and covariance of each robot's relative position (the ring's
+        moments while the orientation cannot have been resolved), with the mode's weight, the
+        shape and the pairwise distances; and the mixture moments of each online bias."""
         w = np.exp(self.logw)
-        rel = self.particles[:, : self.layout.dim]
-        mean = w @ rel
-        # Second moments minus the squared mean: no centred copy of the cloud. Positions are
-        # metres and variances at least ~1e-4 m^2, far above float64 cancellation (~1e-14).
-        var = (w @ (rel * rel) - mean * mean).reshape(-1, 2)  # (k, 2): xx, yy
-        cxy = w @ (rel[:, 0::2] * rel[:, 1::2]) - mean[0::2] * mean[1::2]  # (k,)
-        var = np.maximum(var, 0.0)
-        cov = np.empty((var.shape[0], 2, 2))
-        cov[:, 0, 0], cov[:, 1, 1] = var[:, 0], var[:, 1]
-        cov[:, 0, 1] = cov[:, 1, 0] = cxy
+        m = self.particles.shape[0]
+        rel = self.particles[:, : self.layout.dim].reshape(m, -1, 2)
+        summary = summarize(rel, w, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor)
         biases = {}
         for pair in self.layout.bias_pairs:
             c, _ = self.layout.bias_columns(pair)
             biases[pair] = mixture_moments(w, self.particles[:, c], self.particles[:, c + 1])
-        return FilterEstimate(mean=mean.reshape(-1, 2), cov=cov, ess=float(1.0 / (w @ w)), biases=biases)
+        return FilterEstimate(
+            mean=summary.mean, cov=summary.cov, ess=float(1.0 / np.einsum("m,m->", w, w)), biases=biases,
+            summary=summary,
+        )
 
     # ---------------------------------------------------------------- initialisation
     def initialize_annealed(

@@ -40,6 +40,7 @@ from relloc.filter.measurement import MeasurementModel, ModelContext, finite
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.registry import MODELS, model_for
 from relloc.filter.state import StateLayout, TeamLayout
+from relloc.filter.summary import estimate_fields
 from relloc.odometry import OdometryTrack
 
 log = logging.getLogger(__name__)
@@ -230,8 +231,10 @@ class Localizer:
             if not self.tracks[robot].empty:
                 yaws = self.odometry_yaws.setdefault(robot, deque(maxlen=_YAW_LOG))
                 yaws.append((t, self.tracks[robot].pose_at(t)[2]))
+        honest = {} if fe.summary is None else estimate_fields(fe.summary, self.layout.reference, self.layout.others)
         est = Estimate(
-            t, self.method, self.layout.reference, positions, covs, fe.ess, fe.headings, fe.biases, fe.scales
+            t, self.method, self.layout.reference, positions, covs, fe.ess, fe.headings, fe.biases, fe.scales,
+            **honest,
         )
         self.last_estimate = est
         return est

@@ -70,6 +70,16 @@ def particle_filter(
     )
 
 
+def covariance_floor(config: TeamConfig, range_model: str) -> float:
+    """Variance (m^2) per axis the filter adds to what it publishes: one range's noise under
+    the localizer's range model (``los_sigma``, or ``sigma_uwb`` for the symmetric model). Range
+    errors are correlated in time, so fusing many cannot average them below that
+    (:mod:`relloc.filter.summary`)."""
+    lk = config.filter.likelihood
+    sigma = lk.los_sigma if range_model == "nlos" else lk.sigma_uwb
+    return float(sigma) ** 2
+
+
 class ParticleFilterLocalizer(FilterLocalizer):
     """Odometry + UWB ranges (+ relative observations from detections) in a particle filter."""
 
@@ -82,6 +92,7 @@ class ParticleFilterLocalizer(FilterLocalizer):
         self.method = method
         self.range_model = config.filter.likelihood.range_model  # online pairs keep the symmetric model
         self.filter = particle_filter(config, layout, prior, config.filter.particles, self.rng)
+        self.filter.covariance_floor = covariance_floor(config, self.range_model)
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
         if not annealed_start(self, self.filter, batch):

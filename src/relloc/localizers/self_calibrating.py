@@ -25,7 +25,7 @@ from relloc.filter.motion import OdometryMotion
 from relloc.filter.pf import ParticleFilter
 from relloc.filter.resampling import normalize, systematic_resample
 from relloc.localizers.base import FilterLocalizer, Measurement
-from relloc.localizers.sampled import bias_layout, particle_filter
+from relloc.localizers.sampled import bias_layout, covariance_floor, particle_filter
 from relloc.localizers.start import annealed_start
 
 
@@ -56,6 +56,7 @@ class SelfCalibratingLocalizer(FilterLocalizer):
         self.method = method
         fc = config.filter
         self.filter = self._gaussian_sum(np.array(prior))
+        self.filter.covariance_floor = covariance_floor(config, self.range_model)
         # the annealed start: a sampled filter over positions (and bias beliefs)
         n_start = max(fc.self_calibration.selfcal_init_particles, fc.self_calibration.selfcal_particles)
         self.start_filter: ParticleFilter | None = particle_filter(config, layout, prior, n_start, self.rng)

@@ -10,6 +10,10 @@ velocity) as soon as one of them fails:
 ``uncertain``          the estimate's position std exceeds ``max_std`` (the filter has not
                        converged yet, or has diverged: e.g. its particles split between a
                        formation and its mirror image)
+``unobservable``       the formation's orientation about the reference is not observable yet
+                       (a team at rest: the position is the middle of a ring of candidates)
+``modes``              the published mode holds less than ``min_mode_weight`` of the
+                       posterior (a formation and its mirror image, or rotations, compete)
 ``no_odometry``        no odometry of this robot yet (the controller's heading comes from it)
 ``stale_odometry``     the robot's odometry is older than ``max_age``
 ``interrupted``        Ctrl-C or an explicit stop (terminal)
@@ -33,7 +37,7 @@ from dataclasses import dataclass, fields
 from typing import Any
 
 from relloc.config import ConfigError, with_numeric_overrides
-from relloc.estimate import Estimate
+from relloc.estimate import DOMINANT_MODE_WEIGHT, Estimate
 
 __all__ = ["SafetyConfig", "SafetyGate", "StopRecord"]
 
@@ -52,6 +56,8 @@ class SafetyConfig:
     """Largest acceptable position standard deviation of the estimate (m)."""
     settle_time: float = 2.0
     """Every check must pass this long in a row before the robot (re)starts (s)."""
+    min_mode_weight: float = DOMINANT_MODE_WEIGHT
+    """Smallest posterior weight of the published mode (the rest competes with it)."""
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -101,6 +107,10 @@ class SafetyGate:
         age = now - estimate.t
         if age > cfg.max_age:
             return "stale_estimate", f"estimate is {age:.2f} s old (max {cfg.max_age:g} s)"
+        if not estimate.orientation_observable:
+            return "unobservable", estimate.status
+        if estimate.mode_weight < cfg.min_mode_weight:
+            return "modes", f"{estimate.status} (min {cfg.min_mode_weight:g})"
         std = estimate.std(robot)
         if not math.isfinite(std) or std > cfg.max_std:
             return "uncertain", f"estimate std {std:.3f} m > {cfg.max_std:g} m"

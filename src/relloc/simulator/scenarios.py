@@ -3,13 +3,17 @@
 :func:`multi_scenario` is the paper's five-robot experiment in the 8 m x 9 m arena (a static
 reference robot and four robots on a triangle, an X, a circle and a rectangle),
 :func:`single_scenario` the two-robot single-range experiment, and :func:`nav_scenario` the
-multi team with one robot driven by velocity commands.
+multi team with one robot driven by velocity commands. :func:`static_scenario` parks the multi
+team for the whole run and :func:`static_then_move_scenario` parks it for 20 s before the
+robots drive their patterns: at rest the formation's orientation about the reference is not
+observable from ranges, and these scenarios test that the estimate says so.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Literal
 
 from relloc.simulator.error_models import (
@@ -247,3 +251,64 @@ def nav_scenario(
         actuation=actuation,
     )
 
+
+
+def _parked_multi(
+    seed: int, park: float, duration: float, name: str, detections: bool, heading_offsets: Literal["start", "random"],
+    uwb: UwbErrorModel | None, odometry: OdometryErrorModel | None,
+) -> Simulation:
+    """The multi team, each robot at its seeded start pose, parked for ``park`` s (the whole run
+    if ``park >= duration``) and then driving its pattern as in :func:`multi_scenario`."""
+    base = multi_scenario(seed, duration=duration + park, detections=detections, heading_offsets=heading_offsets)
+    motions = [
+        replace(m, segments=(), pattern="parked")
+        if park >= duration or not m.segments
+        else replace(m, segments=((park, 0.0, 0.0), *m.segments))
+        for m in base.motions
+    ]
+    return Simulation(
+        motions,
+        reference="r0",
+        seed=seed,
+        duration=duration,
+        name=name,
+        objects=_place_objects(seed, MULTI_OBJECTS),
+        detections=detections,
+        uwb=uwb,
+        odometry=odometry,
+    )
+
+
+def static_scenario(
+    seed: int = 0,
+    *,
+    duration: float = 30.0,
+    detections: bool = False,
+    heading_offsets: Literal["start", "random"] = "start",
+    uwb: UwbErrorModel | None = None,
+    odometry: OdometryErrorModel | None = None,
+) -> Simulation:
+    """The multi team's five robots parked for the whole run (each at the seeded start of its
+    pattern), ranges between all of them: the shape is known, the orientation of the formation
+    about the reference (and its mirror image) is not."""
+    return _parked_multi(seed, duration, duration, "sim_static", detections, heading_offsets, uwb, odometry)
+
+
+STATIC_THEN_MOVE_PARK_S = 20.0
+"""How long :func:`static_then_move_scenario` keeps the team parked before it drives (s)."""
+
+
+def static_then_move_scenario(
+    seed: int = 0,
+    *,
+    duration: float = 60.0,
+    detections: bool = False,
+    heading_offsets: Literal["start", "random"] = "start",
+    uwb: UwbErrorModel | None = None,
+    odometry: OdometryErrorModel | None = None,
+) -> Simulation:
+    """The multi team parked for ``STATIC_THEN_MOVE_PARK_S`` (20 s), then every robot but the
+    reference drives its pattern: the motion resolves the orientation."""
+    return _parked_multi(
+        seed, STATIC_THEN_MOVE_PARK_S, duration, "sim_static_then_move", detections, heading_offsets, uwb, odometry
+    )

@@ -14,6 +14,17 @@ with its liveliness tokens):
     yaw variance :data:`UNKNOWN_VARIANCE` so that no consumer mistakes it for a measurement.
     Estimates of the primary (first) method use this key; other methods publish on
     ``<prefix>/<method>/<robot>/pose``.
+    While the formation's orientation about the reference is unobservable (a team at rest) the
+    position is the middle of the ring of candidates and its covariance spans that ring
+    (:attr:`Estimate.orientation_observable <relloc.estimate.Estimate.orientation_observable>`):
+    honest, but the shape below is what is known.
+``<prefix>/shape``
+    JSON (text as the status), one per estimate of the primary method (other methods:
+    ``<prefix>/<method>/shape``): the estimate time, the reference, whether the orientation is
+    observable, the published mode's weight and the number of modes, the formation's shape in
+    its declared gauge (``gauge``: the robot on the reference's +x axis; the next robot on the
+    +y side), every pair's distance (mean, std) and the status line saying what would resolve
+    the orientation.
 ``<prefix>/status``
     JSON, about once per ``status_period``: whatever the server's status function returns
     (rates, rejected counts, ESS, last estimate time, quiet robots; see ``relloc.live``). On the
@@ -46,7 +57,7 @@ from relloc.ros.messages import POSE_WITH_COVARIANCE_STAMPED
 from relloc.ros.zenoh_node import ZenohNode
 from relloc.sources.zenoh_source import Arrival
 
-__all__ = ["STRING", "UNKNOWN_VARIANCE", "ZenohSink", "pose_topic"]
+__all__ = ["STRING", "UNKNOWN_VARIANCE", "ZenohSink", "pose_topic", "shape_message"]
 
 log = logging.getLogger(__name__)
 
@@ -116,6 +127,15 @@ class ZenohSink:
             self._channels[(robot, method)] = channel
         return channel
 
+    def shape_channel(self, method: str) -> Channel:
+        """The channel of the shapes by ``method``: ``<prefix>/shape`` for the primary one."""
+        channel = self._channels.get(("", method))
+        if channel is None:
+            parts = [self.prefix, "" if method == self.primary_method else method, "shape"]
+            channel = self.interface.channel("/".join(p for p in parts if p), STRING)
+            self._channels[("", method)] = channel
+        return channel
+
     def key(self, robot: str, method: str) -> str:
         return self.channel(robot, method).key
 
@@ -130,6 +150,9 @@ class ZenohSink:
                 estimate.t, float(x), float(y), 0.0, cov, self.frame_id
             )
             self.node.put(self.channel(robot, estimate.method), payload)
+        if estimate.shape:
+            text = json.dumps(shape_message(estimate))
+            self.node.put(self.shape_channel(estimate.method), self.interface.text_payload(text))
         self.published[estimate.method] += 1
         self.last[estimate.method] = estimate
         if self.trace:
@@ -156,6 +179,22 @@ class ZenohSink:
             "trigger_received": trig.received if trig else None,
             "published": time.time(),
         }
+
+
+def shape_message(estimate: Estimate) -> dict[str, Any]:
+    """What ``<prefix>/shape`` carries for ``estimate`` (see the module docstring)."""
+    return {
+        "t": estimate.t,
+        "method": estimate.method,
+        "reference": estimate.reference,
+        "orientation_observable": estimate.orientation_observable,
+        "mode_weight": estimate.mode_weight,
+        "n_modes": estimate.n_modes,
+        "gauge": estimate.shape_gauge,
+        "shape": {r: list(xy) for r, xy in estimate.shape.items()},
+        "distances": {pair: list(d) for pair, d in estimate.distances.items()},
+        "status": estimate.status,
+    }
 
 
 def _jsonable(value: Any) -> Any:

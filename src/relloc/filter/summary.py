@@ -1,0 +1,349 @@
+"""An honest summary of a posterior over formations: its dominant mode, what is observable, and
+the shape that is known even when the orientation is not.
+
+Both filters hold ``M`` weighted hypotheses about the team's relative positions (particles, or
+the means of Gaussians with their covariances). The weighted mean of all of them is a poor
+estimate whenever the posterior has several modes: ranges alone cannot tell a formation from
+its rotations about the reference robot or its mirror image, so a team at rest has a posterior
+spread over a ring (two rings, one per handedness), and before motion has resolved them the
+mirror images are separate modes. The mean of separated modes is a place where no mode is.
+
+The method (:func:`summarize`), vectorised over hypotheses:
+
+1. **Gauge.** Each hypothesis's formation ``P_m`` (``K`` robots x 2) is put in the declared
+   gauge: turned about the reference so that the gauge robot (the first non-reference robot)
+   lies on the reference's +x axis, then mirrored (``y -> -y``) if the next robot lies on the
+   -y side. Two formations that differ only by a rotation/reflection about the reference have
+   the same gauge form. The weighted mean of the gauge forms of an even stride through the
+   cloud (``SUMMARY_SAMPLE`` hypotheses) is the template ``S``.
+2. **Orientation and handedness** of every hypothesis relative to ``S`` by an orthogonal
+   Procrustes (Kabsch) fit about the reference, which uses every robot, not only the gauge
+   robot: with ``H = sum_k s_k p_k^T`` (2x2 per hypothesis) the best proper rotation has angle
+   ``atan2(H01 - H10, H00 + H11)`` and the best reflection explains the formation better
+   exactly when ``det H < 0`` (handedness ``-1``). With a single non-reference robot there is
+   no handedness (``H`` has rank one): only the bearing's angle.
+3. **Modes.** The angles are binned on the circle (``MODE_BINS`` bins, separately per
+   handedness); the bins holding more than ``MODE_MIN_BIN_WEIGHT`` of the weight, and their
+   neighbours (a mode's tails), are joined into circular runs, each run one mode. Hypotheses re-drawn from the prior (a percent of the
+   cloud, spread over every bin) stay below the threshold. A ring is one run all round.
+4. **Summary.** The dominant (heaviest) mode's weighted mean and covariance (for Gaussians,
+   plus the members' own covariances), its weight, its angular spread and the number of modes
+   are reported; the weighted mean of everything stays available as a diagnostic.
+5. **Shape.** The hypotheses of the stride are turned and mirrored onto ``S`` (their fits from
+   step 2), averaged (a Procrustes mean, less noisy than the single-robot gauge), and the mean
+   put back into the declared gauge exactly. Pairwise distances (reference included) are
+   weighted moments over the same stride; they need no gauge.
+
+Observability of the orientation is decided from both sides (:class:`Evidence`,
+:func:`summarize`): the filter must have fused something that is not invariant under the
+symmetry (a detection vector) or seen some robot move ``MOTION_TO_RESOLVE`` from where it
+started, *and* the dominant mode's orientation must be concentrated (circular std below
+``ORIENTATION_MAX_STD``). While nothing that could break the symmetry has been fused, the exact
+posterior is invariant under rotations about the reference whatever the cloud looks like (a
+cloud narrows by resampling alone, a hypothesis "hitchhiking" on the ancestors that fitted the
+shape), so the published moments are those of the posterior symmetrised over the ring: mean at
+the reference, covariance ``E|p|^2 / 2 I`` per robot. That covariance covers the truth (its
+NEES is about 2 against a 95 % bound of 5.99) and the estimate says what it is.
+
+A covariance floor. The hypotheses' spread is the posterior of a model whose range errors are
+independent from one range to the next; real errors are not (a pair's residual bias, its
+antenna pattern at the robots' headings change slowly), so after many ranges the cloud is far
+narrower than the error it carries (simulated multi team: cloud std about 0.03 m, errors about
+0.1 m). Fusing correlated errors cannot average them below one range's noise, so the filters
+add one range's noise variance per axis (``floor``, set by the localizer from its range model)
+to what they publish. The estimate itself does not change.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from relloc.events import pair_key
+from relloc.filter.measurement import MeasurementModel
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+MODE_BINS = 36
+"""Bins of the orientation circle (10 degrees each) per handedness."""
+MODE_MIN_BIN_WEIGHT = 0.005
+"""A bin belongs to a mode when it holds more than this fraction of the weight: above the
+share of the hypotheses re-drawn from the prior (1 % over 72 bins), below any real mode."""
+MODE_MIN_WEIGHT = 0.01
+"""Modes lighter than this are not counted in ``n_modes``."""
+ORIENTATION_MAX_STD = 0.3
+"""Circular std (rad) of the dominant mode's orientation under which it counts as resolved."""
+MOTION_TO_RESOLVE = 0.3
+"""Net displacement (m) of some robot from where it started after which motion may have told
+the orientation (the particles then decide)."""
+
+
+class Evidence:
+    """What a filter has fused that can break the rotation/reflection symmetry: measurement
+    models that are not invariant to it, and each robot's net odometry displacement."""
+
+    def __init__(self, n_robots: int) -> None:
+        self.non_invariant = 0
+        self.offset = np.zeros((n_robots, 2))
+        self.max_offset = 0.0
+
+    def moved(self, disp: FloatArray) -> None:
+        """Add one step's displacements ``(N, 2)``."""
+        self.offset += np.nan_to_num(disp)
+        self.max_offset = max(self.max_offset, float(np.max(np.hypot(self.offset[:, 0], self.offset[:, 1]))))
+
+    def fused(self, models: Sequence[MeasurementModel]) -> None:
+        self.non_invariant += sum(1 for m in models if not getattr(m, "invariant", True))
+
+    def reset(self) -> None:
+        """Forget the motion (the filter restarted from the symmetric start)."""
+        self.offset[:] = 0.0
+        self.max_offset = 0.0
+        self.non_invariant = 0
+
+    @property
+    def can_resolve(self) -> bool:
+        return self.non_invariant > 0 or self.max_offset >= MOTION_TO_RESOLVE
+
+
+@dataclass(frozen=True)
+class ModeSummary:
+    """The honest summary of a posterior over formations (see the module docstring)."""
+
+    mean: FloatArray  # (K, 2) published positions
+    cov: FloatArray  # (K, 2, 2) published covariances
+    weighted_mean: FloatArray  # (K, 2) mean over every hypothesis (diagnostic)
+    mode_weight: float
+    n_modes: int
+    orientation_std: float  # circular std (rad) of the dominant mode's orientation
+    orientation_observable: bool
+    shape: FloatArray  # (K, 2) in the declared gauge
+    shape_cov: FloatArray  # (K, 2, 2)
+    distances: FloatArray  # (K+1, K+1, 2): mean and std of each pair's distance, reference first
+    members: NDArray[np.bool_] = field(repr=False)  # (M,) hypotheses of the dominant mode
+
+
+def estimate_fields(summary: ModeSummary, reference: str, others: Sequence[str]) -> dict[str, Any]:
+    """The :class:`~relloc.estimate.Estimate` fields of ``summary`` (robots ``others`` in state
+    order; pairs keyed by :func:`~relloc.events.pair_key`)."""
+    names = (reference, *others)
+    distances = {
+        pair_key(a, b): (float(summary.distances[i, j, 0]), float(summary.distances[i, j, 1]))
+        for i, a in enumerate(names)
+        for j, b in enumerate(names)
+        if j > i
+    }
+    return {
+        "orientation_observable": summary.orientation_observable,
+        "mode_weight": summary.mode_weight,
+        "n_modes": summary.n_modes,
+        "weighted_mean": {r: (float(summary.weighted_mean[k, 0]), float(summary.weighted_mean[k, 1])) for k, r in enumerate(others)},
+        "shape": {r: (float(summary.shape[k, 0]), float(summary.shape[k, 1])) for k, r in enumerate(others)},
+        "shape_gauge": others[0],
+        "distances": distances,
+    }
+
+
+def gauge(rel: FloatArray) -> FloatArray:
+    """Formations ``(M, K, 2)`` in the declared gauge: robot 0 on the +x axis, robot 1 (if any)
+    on the +y side. Deterministic; a formation with robot 0 at the reference keeps its angle."""
+    rel = np.asarray(rel, float)
+    ang = np.arctan2(rel[:, 0, 1], rel[:, 0, 0])
+    out = _rotate(rel, -ang)
+    if rel.shape[1] > 1:
+        flip = out[:, 1, 1] < 0.0
+        out[flip, :, 1] *= -1.0
+    return out
+
+
+def _rotate(rel: FloatArray, theta: FloatArray) -> FloatArray:
+    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
+    x, y = rel[:, :, 0], rel[:, :, 1]
+    return np.stack([c * x - s * y, s * x + c * y], axis=-1)
+
+
+def procrustes_fit(x: FloatArray, y: FloatArray, template: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Rotation and handedness of each formation (coordinate planes ``x``, ``y`` ``(K, M)``)
+    relative to ``template`` ``(K, 2)``: formation ``m`` is best explained as ``template``
+    mirrored (if the handedness is -1: ``y -> -y``) and then turned about the reference by the
+    angle whose cosine and sine are returned, with the handedness: ``(cos, sin, hand)``."""
+    # H = sum_k t_k p_k^T per hypothesis; entries Hab = sum_k t_k[a] p_k[b].
+    h00, h01 = np.einsum("k,km->m", template[:, 0], x), np.einsum("k,km->m", template[:, 0], y)
+    h10, h11 = np.einsum("k,km->m", template[:, 1], x), np.einsum("k,km->m", template[:, 1], y)
+    hand = np.where(h00 * h11 - h01 * h10 < 0.0, -1.0, 1.0) if x.shape[0] > 1 else np.ones(x.shape[1])
+    # proper: p = R(a) t -> (cos, sin) ~ (h00 + h11, h01 - h10); mirrored: p = R(a) F t with
+    # F = diag(1, -1) -> (h00 - h11, h01 + h10).
+    c = h00 + hand * h11
+    s = h01 - hand * h10
+    norm = np.sqrt(c * c + s * s)
+    norm[norm == 0.0] = 1.0
+    return c / norm, s / norm, hand
+
+
+def _modes(angle: FloatArray, hand: FloatArray, w: FloatArray) -> IntArray:
+    """Mode label of every hypothesis (-1: in no mode), labels ordered by decreasing weight."""
+    b = np.floor((angle + np.pi) / (2.0 * np.pi) * MODE_BINS).astype(np.intp) % MODE_BINS
+    cell = b + np.where(hand < 0, MODE_BINS, 0)
+    hist = np.bincount(cell, weights=w, minlength=2 * MODE_BINS)
+    label_of_cell = np.full(2 * MODE_BINS, -1, dtype=np.intp)
+    runs: list[list[int]] = []
+    for h in range(2):
+        occ = hist[h * MODE_BINS : (h + 1) * MODE_BINS] > MODE_MIN_BIN_WEIGHT
+        occ = occ | np.roll(occ, 1) | np.roll(occ, -1)  # a mode's tails: its neighbour bins
+        if not occ.any():
+            continue
+        if occ.all():
+            runs.append([h * MODE_BINS + i for i in range(MODE_BINS)])
+            continue
+        start = int(np.flatnonzero(~occ)[0])  # walk the circle from an empty bin
+        current: list[int] = []
+        for j in range(1, MODE_BINS + 1):
+            i = (start + j) % MODE_BINS
+            if occ[i]:
+                current.append(h * MODE_BINS + i)
+            elif current:
+                runs.append(current)
+                current = []
+        if current:
+            runs.append(current)
+    runs.sort(key=lambda r: -float(hist[r].sum()))
+    for k, run in enumerate(runs):
+        label_of_cell[run] = k
+    return label_of_cell[cell]
+
+
+SUMMARY_SAMPLE = 1024
+"""Hypotheses (an even stride through the cloud) from which the template formation, the shape
+and the distances are computed: the template only needs to be roughly right (the angles of
+every hypothesis are exact fits to it), the shape and distances are means whose Monte Carlo
+error over 1024 hypotheses is about 3 % of the posterior's spread."""
+
+
+def _normalised(w: FloatArray) -> FloatArray:
+    total = float(w.sum())
+    return w / total if total > 0 else np.full(w.shape, 1.0 / w.size)
+
+
+def _wsum(a: FloatArray, w: FloatArray) -> FloatArray:
+    """``a @ w`` for planes ``(K, M)``, by einsum: BLAS's matrix-vector product of a single row
+    (one robot) stalls for tens of milliseconds on a busy machine."""
+    return np.einsum("km,m->k", a, w)
+
+
+def _moments(
+    x: FloatArray, y: FloatArray, w: FloatArray, covs: FloatArray | None
+) -> tuple[FloatArray, FloatArray]:
+    """Weighted mean ``(K, 2)`` and per-robot covariance ``(K, 2, 2)`` of the coordinate planes
+    ``x``, ``y`` ``(K, M)`` under normalised weights ``w`` (plus the weighted member covariances
+    ``covs`` ``(M, K, 2, 2)``, if any). Second moments minus the squared mean: no centred copy;
+    positions are metres, far above float64 cancellation."""
+    mx, my = _wsum(x, w), _wsum(y, w)
+    cov = np.empty((x.shape[0], 2, 2))
+    cov[:, 0, 0] = np.maximum(_wsum(x * x, w) - mx * mx, 0.0)
+    cov[:, 1, 1] = np.maximum(_wsum(y * y, w) - my * my, 0.0)
+    cov[:, 0, 1] = cov[:, 1, 0] = _wsum(x * y, w) - mx * my
+    if covs is not None:
+        cov += np.einsum("m,mkab->kab", w, covs)
+    return np.stack([mx, my], axis=1), cov
+
+
+def _onto(
+    x: FloatArray, y: FloatArray, c: FloatArray, s: FloatArray, hand: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Formations (planes ``(K, M)``) turned back by their angle (``c``, ``s``) and un-mirrored:
+    onto the template."""
+    return c * x + s * y, hand * (c * y - s * x)
+
+
+def summarize(
+    rel: FloatArray,
+    w: FloatArray,
+    covs: FloatArray | None = None,
+    *,
+    can_resolve: bool = True,
+    floor: float = 0.0,
+) -> ModeSummary:
+    """The honest summary of hypotheses ``rel`` ``(M, K, 2)`` (relative positions of the
+    non-reference robots) with normalised weights ``w`` ``(M,)`` and, for Gaussians, their
+    per-robot position covariances ``covs`` ``(M, K, 2, 2)``. ``can_resolve``: whether what was
+    fused could have broken the rotation/reflection symmetry (:class:`Evidence`). ``floor``
+    (m^2) is added to every published and shape variance: the share of the error that the
+    hypotheses' spread cannot show (:attr:`relloc.filter.pf.ParticleFilter.covariance_floor`)."""
+    rel = np.asarray(rel, float)
+    w = np.asarray(w, float)
+    w = _normalised(w)
+    m, k, _ = rel.shape
+    x, y = np.ascontiguousarray(rel[:, :, 0].T), np.ascontiguousarray(rel[:, :, 1].T)  # (K, M)
+    weighted_mean, all_cov = _moments(x, y, w, covs)
+
+    # A first template: the weighted mean gauge form of an even stride through the cloud.
+    sub = np.arange(0, m, max(1, m // SUMMARY_SAMPLE))
+    ws = _normalised(w[sub])
+    template = np.einsum("m,mkd->kd", ws, gauge(rel[sub]))
+    c, s, hand = procrustes_fit(x, y, template)
+    labels = _modes(np.arctan2(s, c), hand, w)
+    members = labels == 0 if (labels >= 0).any() else np.ones(m, dtype=bool)
+    mode_w = np.bincount(labels[labels >= 0], weights=w[labels >= 0])
+    n_modes = max(1, int(np.sum(mode_w >= MODE_MIN_WEIGHT)))
+    mode_weight = float(np.sum(w, where=members))
+    everything = bool(members.all())
+    wm = w if everything else w * members / max(mode_weight, 1e-300)
+
+    # The dominant mode's circular spread of orientation (about the template: an offset
+    # does not change it).
+    rbar = math.hypot(float(np.einsum("m,m->", wm, c)), float(np.einsum("m,m->", wm, s)))
+    orientation_std = math.pi if rbar <= math.exp(-0.5 * math.pi**2) else min(math.sqrt(-2.0 * math.log(rbar)), math.pi)
+
+    if can_resolve:
+        mean, cov = (weighted_mean, all_cov) if everything else _moments(x, y, wm, covs)
+    else:
+        # The exact posterior is invariant under rotations about the reference: its moments.
+        r2 = np.diagonal(all_cov, axis1=1, axis2=2).sum(axis=1) + np.sum(weighted_mean**2, axis=1)
+        mean = np.zeros((k, 2))
+        cov = 0.5 * r2[:, None, None] * np.eye(2)[None]
+    cov = cov + floor * np.eye(2)[None]
+
+    # Shape and distances from the even stride through the cloud (a deterministic sample: its
+    # Monte Carlo error is a few percent of the posterior's spread), which keeps them cheap.
+    ax, ay = _onto(x[:, sub], y[:, sub], c[sub], s[sub], hand[sub])
+    shape_mean, shape_cov = _moments(ax, ay, ws, None)
+    if covs is not None:  # a member's own covariance turns with it; its trace is what survives
+        shape_cov += 0.5 * np.einsum("m,mk->k", ws, np.trace(covs[sub], axis1=2, axis2=3))[:, None, None] * np.eye(2)
+    g = gauge(shape_mean[None])[0]
+    a0 = math.atan2(shape_mean[0, 1], shape_mean[0, 0])  # the same map for the covariance
+    rot = np.array([[math.cos(a0), math.sin(a0)], [-math.sin(a0), math.cos(a0)]])
+    if k > 1 and (rot @ shape_mean[1])[1] < 0.0:
+        rot = np.diag([1.0, -1.0]) @ rot
+    shape_cov = np.einsum("ab,kbc,dc->kad", rot, shape_cov, rot) + floor * np.eye(2)[None]
+
+    # Pairwise distances, the reference (index 0) included.
+    i, j = np.triu_indices(k + 1, 1)
+    px = np.concatenate([np.zeros((1, sub.size)), x[:, sub]])
+    py = np.concatenate([np.zeros((1, sub.size)), y[:, sub]])
+    dx, dy = px[i] - px[j], py[i] - py[j]
+    dd = dx * dx + dy * dy
+    dm = _wsum(np.sqrt(dd), ws)
+    ds = np.sqrt(np.maximum(_wsum(dd, ws) - dm * dm, 0.0))
+    distances = np.zeros((k + 1, k + 1, 2))
+    distances[i, j, 0] = distances[j, i, 0] = dm
+    distances[i, j, 1] = distances[j, i, 1] = ds
+
+    return ModeSummary(
+        mean=mean,
+        cov=cov,
+        weighted_mean=weighted_mean,
+        mode_weight=mode_weight,
+        n_modes=n_modes,
+        orientation_std=orientation_std,
+        orientation_observable=bool(can_resolve and orientation_std < ORIENTATION_MAX_STD),
+        shape=g,
+        shape_cov=shape_cov,
+        distances=distances,
+        members=members,
+    )

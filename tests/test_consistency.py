@@ -1,0 +1,54 @@
+"""Consistency figures: NEES and 95 % ellipse coverage of the published covariances, and the
+shape APE after one alignment for the run."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from relloc.estimate import Estimate
+from relloc.evaluation.metrics import CHI2_2D_95, GroundTruth, align, associate_shapes, consistency
+from relloc.events import GroundTruthEvent
+
+
+def _truth() -> GroundTruth:
+    gt = GroundTruth("r0")
+    for t in np.arange(0.0, 10.01, 0.5):
+        gt.add(GroundTruthEvent(float(t), "r0", 1.0, 1.0))
+        gt.add(GroundTruthEvent(float(t), "r1", 3.0, 1.0))  # r1 at (2, 0) relative to r0
+        gt.add(GroundTruthEvent(float(t), "r2", 1.0, 2.0))  # r2 at (0, 1)
+    return gt
+
+
+def test_nees_and_coverage_of_known_errors() -> None:
+    # r1: error (0.3, 0) with variance 0.01 on x: NEES 9 (outside); then error 0.1: NEES 1.
+    ests = [
+        Estimate(float(t), "pf", "r0", {"r1": (2.0 + (0.3 if t < 5 else 0.1), 0.0)}, {"r1": ((0.01, 0.0), (0.0, 0.04))})
+        for t in range(10)
+    ]
+    c = consistency(ests, _truth(), ["r1"], t_start=2.0)["r1"]
+    np.testing.assert_allclose(c.nees, [9.0] * 3 + [1.0] * 5)
+    assert c.coverage == pytest.approx(5 / 8)
+    assert c.nees_median == pytest.approx(1.0)
+    assert 1.0 < CHI2_2D_95 < 9.0
+    # Estimates without covariances (multilateration) give no figure.
+    assert consistency([Estimate(3.0, "m", "r0", {"r1": (2.0, 0.0)})], _truth(), ["r1"], 0.0) == {}
+
+
+def test_shape_ape_fits_one_rotation_and_reflection_for_the_run() -> None:
+    # The published shape: the true formation mirrored and turned by 1 rad, as a gauge would.
+    c, s = math.cos(1.0), math.sin(1.0)
+
+    def turned(x: float, y: float) -> tuple[float, float]:
+        return (c * x + s * y, s * x - c * y)  # mirror y, then rotate
+
+    ests = [
+        Estimate(float(t), "pf", "r0", {"r1": (0.0, 0.0), "r2": (0.0, 0.0)}, orientation_observable=False,
+                 shape={"r1": turned(2.0, 0.0), "r2": turned(0.0, 1.0)}, shape_gauge="r1")
+        for t in range(10)
+    ]
+    shaped = align(associate_shapes(ests, _truth(), ["r1", "r2"]), "run")
+    for p in shaped.values():
+        np.testing.assert_allclose(p.errors, 0.0, atol=1e-9)
