@@ -1,0 +1,174 @@
+"""Teammate sightings: the model's likelihood and bearing wrap, its validation, both filters
+fusing it (compass and estimated headings), and the MRCLAM reader on files written here."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from relloc.config import RobotConfig, TeamConfig
+from relloc.events import GroundTruthEvent, OdometryEvent, SightingEvent
+from relloc.filter.gaussian_sum import CalibrationLayout, GaussianSumFilter
+from relloc.filter.measurement import ModelContext
+from relloc.filter.pf import ParticleFilter
+from relloc.filter.registry import model_for
+from relloc.filter.sightings import SightingBatch, wrap
+from relloc.filter.state import StateLayout
+from relloc.sources.mrclam import MrclamSource, integrate_odometry, is_mrclam
+
+
+def _config(n: int = 2) -> TeamConfig:
+    return TeamConfig(tuple(RobotConfig(f"r{i}") for i in range(n)), "r0", area=(-5.0, 5.0, -5.0, 5.0))
+
+
+class _Validation:
+    def __init__(self, config: TeamConfig) -> None:
+        self.config = config
+        self.layout = StateLayout(config.robot_names, config.reference)
+
+    def is_late(self, t: float) -> bool:
+        return t < 0.0
+
+    def memory(self, model: type) -> dict:
+        return {}
+
+
+def test_the_registry_gives_sightings_their_model() -> None:
+    assert model_for(SightingEvent(0.0, "r0", "r1", 1.0, 0.0)) is SightingBatch
+
+
+@pytest.mark.parametrize(
+    ("event", "reason"),
+    [
+        (SightingEvent(0.0, "r0", "r9", 1.0, 0.0), "unknown_robot"),
+        (SightingEvent(0.0, "r0", "r0", 1.0, 0.0), "self_observation"),
+        (SightingEvent(0.0, "r0", "r1", math.nan, 0.0), "invalid_sighting"),
+        (SightingEvent(0.0, "r0", "r1", 1.0, math.inf), "invalid_sighting"),
+        (SightingEvent(0.0, "r0", "r1", None, None), "invalid_sighting"),
+        (SightingEvent(0.0, "r0", "r1", -1.0, 0.0), "invalid_sighting"),
+        (SightingEvent(0.0, "r0", "r1", 1.0, 0.0, sigma_range=0.0), "invalid_sighting"),
+        (SightingEvent(0.0, "r0", "r1", 1.0, 3.5), "bearing_out_of_range"),
+        (SightingEvent(-1.0, "r0", "r1", 1.0, 0.0), "late_measurement"),
+        (SightingEvent(0.0, "r0", "r1", None, -math.pi), None),
+        (SightingEvent(0.0, "r0", "r1", 2.0, None), None),
+    ],
+)
+def test_bad_sightings_are_named(event: SightingEvent, reason: str | None) -> None:
+    assert SightingBatch.rejection(event, _Validation(_config())) == reason
+
+
+def test_the_bearing_residual_wraps_at_pi() -> None:
+    """r1 straight behind the reference (heading 0): a bearing of +179 deg and one of -179 deg
+    are both 1 deg off; the likelihood does not see 358 deg."""
+    config = _config()
+    layout = StateLayout(config.robot_names, config.reference)
+    x = np.array([[-2.0, 0.0]])
+    context = ModelContext(config, layout, robust=False, yaws={"r0": 0.0, "r1": 0.0})
+    lls = []
+    for b in (math.radians(179.0), math.radians(-179.0)):
+        (model,) = SightingBatch.build([SightingEvent(0.0, "r0", "r1", None, b, 0.1, math.radians(1.0))], context)
+        lls.append(float(model.log_likelihood(layout.positions(x), x)[0]))
+    expected = -0.5 - math.log(math.radians(1.0)) - 0.5 * math.log(2 * math.pi)
+    assert lls == pytest.approx([expected, expected], abs=1e-9)
+    assert wrap(math.radians(358.0)) == pytest.approx(math.radians(-2.0))
+
+
+def test_a_range_and_bearing_sighting_fixes_a_position_in_the_particle_filter() -> None:
+    """The reference (heading 90 deg in the shared frame) sees r1 at 2 m, 30 deg left: r1 is
+    at 2 (cos 120, sin 120)."""
+    config = _config()
+    layout = StateLayout(config.robot_names, config.reference)
+    pf = ParticleFilter(layout, 40_000, config.area, rng=np.random.default_rng(0))
+    context = ModelContext(config, layout, robust=False, yaws={"r0": math.pi / 2, "r1": 0.0})
+    sighting = SightingEvent(0.0, "r0", "r1", 2.0, math.radians(30.0), 0.2, math.radians(5.0))
+    before = pf.estimate().mean[0]
+    assert pf.update(SightingBatch.build([sighting], context))
+    est = pf.estimate().mean[0]
+    truth = [2 * math.cos(math.radians(120)), 2 * math.sin(math.radians(120))]
+    assert np.hypot(*(before - truth)) > 1.0
+    assert est == pytest.approx(truth, abs=0.1)
+
+
+def test_without_a_heading_the_particle_filter_gets_the_range_only() -> None:
+    config = _config()
+    layout = StateLayout(config.robot_names, config.reference)
+    context = ModelContext(config, layout, yaws={"r0": 0.0, "r1": 0.0}, shared_heading=False)
+    (model,) = SightingBatch.build([SightingEvent(0.0, "r0", "r1", 2.0, 0.3)], context)
+    assert isinstance(model, SightingBatch)
+    assert [row.kind for row in model.items] == ["range"]
+
+
+def test_a_sighting_turns_an_unknown_heading_in_the_gaussian_sum_filter() -> None:
+    """Headings estimated: r1 (its odometry frame turned by 70 deg from the reference's, odometry
+    yaw 0) sees the reference at 3 m. Each Gaussian starts at the true position with its
+    heading unknown (u ~ N(0, I/2)); the sightings turn u to 70 deg."""
+    config = _config()
+    layout = CalibrationLayout(config.robot_names, config.reference, heading=True)
+    gsf = GaussianSumFilter(layout, 20, config.area, rng=np.random.default_rng(0), position_sigma=0.05)
+    theta = math.radians(70.0)
+    p1 = np.array([1.0, 2.0])
+    gsf.initialize(np.tile(p1, (20, 1)))
+    # the reference as r1 sees it: -p1 turned into r1's body frame (r1's heading is theta)
+    c, s = math.cos(theta), math.sin(theta)
+    body = np.array([c * -p1[0] + s * -p1[1], -s * -p1[0] + c * -p1[1]])
+    sighting = SightingEvent(0.0, "r1", "r0", float(np.hypot(*body)), math.atan2(body[1], body[0]), 0.05, 0.01)
+    context = ModelContext(config, layout, yaws={"r0": 0.0, "r1": 0.0}, shared_heading=False)
+    for _ in range(5):
+        assert gsf.update(SightingBatch.build([sighting], context))
+    mean, spread = gsf.heading("r1")
+    assert math.degrees(mean) == pytest.approx(70.0, abs=2.0)
+    assert math.degrees(spread) < 5.0
+
+
+# ---------------------------------------------------------------------------- MRCLAM reader
+_HEADER = "# UTIAS Multi-Robot Cooperative Localization and Mapping Dataset\n# a test file\n"
+
+
+def _write_dataset(folder: Path) -> None:
+    folder.mkdir()
+    (folder / "Barcodes.dat").write_text(_HEADER + "  1 \t 5\n  2 \t 14\n  3 \t 41\n  6 \t 90\n")
+    # robot1 drives straight at 0.1 m/s for 2 s, then turns in place at 0.5 rad/s for 1 s
+    (folder / "Robot1_Odometry.dat").write_text(
+        _HEADER + "100.0 \t 0.1 \t 0.0\n101.0 \t 0.1 \t 0.0\n102.0 \t 0.0 \t 0.5\n103.0 \t 0.0 \t 0.0\n"
+    )
+    (folder / "Robot2_Odometry.dat").write_text(_HEADER + "100.5 \t 0.0 \t 0.0\n102.5 \t 0.0 \t 0.0\n")
+    # robot1 sees robot2 (barcode 14), a landmark (90) and an unknown barcode (77)
+    (folder / "Robot1_Measurement.dat").write_text(
+        _HEADER + "100.2 \t 14 \t 2.0 \t 0.1\n100.4 \t 90 \t 3.0 \t -0.2\n101.1 \t 77 \t 1.0 \t 0.0\n"
+    )
+    (folder / "Robot2_Measurement.dat").write_text(_HEADER + "101.5 \t 5 \t 1.9 \t 3.0\n")
+    for i in (1, 2):
+        (folder / f"Robot{i}_Groundtruth.dat").write_text(_HEADER + f"100.0 \t {i}.0 \t 0.5 \t 0.1\n103.0 \t {i}.5 \t 0.5 \t 0.2\n")
+
+
+def test_the_mrclam_reader_turns_a_data_set_into_events(tmp_path: Path) -> None:
+    folder = tmp_path / "MRCLAM_Test"
+    _write_dataset(folder)
+    assert is_mrclam(folder) and not is_mrclam(tmp_path)
+    config = TeamConfig((RobotConfig("robot1"), RobotConfig("robot2")), "robot1")
+    source = MrclamSource(folder, config)
+    assert source.duration == pytest.approx(3.0)
+    events = list(source)
+    assert [e.t for e in events] == sorted(e.t for e in events)
+    odo = [e for e in events if isinstance(e, OdometryEvent) and e.robot == "robot1"]
+    assert [(round(e.x, 9), round(e.y, 9), round(e.yaw, 9)) for e in odo] == [
+        (0.0, 0.0, 0.0), (0.1, 0.0, 0.0), (0.2, 0.0, 0.0), (0.2, 0.0, 0.5),
+    ]
+    sightings = [e for e in events if isinstance(e, SightingEvent)]
+    assert [(s.observer, s.target, s.range, s.bearing) for s in sightings] == [
+        ("robot1", "robot2", 2.0, 0.1), ("robot2", "robot1", 1.9, 3.0),
+    ]
+    assert sightings[0].sigma_range == pytest.approx(0.06 + 0.02 * 2.0)
+    assert source.stats.counts["landmark_sightings"] == 1
+    assert source.stats.rejected == {"unknown_barcode": 1}
+    truth = [e for e in events if isinstance(e, GroundTruthEvent)]
+    assert len(truth) == 4 and truth[0].x == 1.0
+
+
+def test_odometry_integration_follows_arcs() -> None:
+    """A quarter circle of radius 1 m (v pi/2 m/s, w pi/2 rad/s for 1 s) ends at (1, 1)."""
+    poses = integrate_odometry(np.array([[0.0, math.pi / 2, math.pi / 2], [1.0, 0.0, 0.0]]))
+    assert poses[-1] == pytest.approx([1.0, 1.0, math.pi / 2])
