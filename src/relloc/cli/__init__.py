@@ -185,6 +185,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     _add_mode_flags(run)
     run.add_argument("--reference", default=None, metavar="ROBOT", help="another reference robot (default: the config's reference)")
+    run.add_argument(
+        "--sightings", choices=("both", "range", "bearing"), default="both",
+        help="what of each teammate sighting to fuse (MRCLAM data sets): range and bearing, or one of them",
+    )
     run.set_defaults(handler=_cmd_run)
 
     cal = sub.add_parser(

@@ -55,6 +55,8 @@ class RunOptions:
     """``fixed|online``."""
     reference: str | None = None
     """Another reference robot than the config's."""
+    sightings: str = "both"
+    """What of each teammate sighting the source passes on: ``both``, ``range``, ``bearing``."""
 
 
 def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Console | None = None) -> ScenarioReport:
@@ -66,9 +68,12 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
     if opts.particles:
         config = config.with_filter(particles=opts.particles, selfcal_particles=opts.particles)
     mrclam = is_mrclam(bag)
-    source: RosbagSource | MrclamSource = MrclamSource(bag, config) if mrclam else RosbagSource(bag, config)
+    source: RosbagSource | MrclamSource = MrclamSource(bag, config, sightings=opts.sightings) if mrclam else RosbagSource(bag, config)
     name = recording_name(bag)
-    pipelines = [build_pipeline(m, config, seed=opts.seed, models=opts.models) for m in opts.methods]
+    oracle = source.initial_poses() if isinstance(source, MrclamSource) else None
+    pipelines = [
+        build_pipeline(m, config, seed=opts.seed, models=opts.models, oracle_start=oracle) for m in opts.methods
+    ]
     check_warmup(opts.warmup, source.duration, name)
     warnings = source.warnings if isinstance(source, MrclamSource) else [*source.warnings, *range_warnings(source)]
     for warning in warnings:

@@ -112,8 +112,14 @@ class MrclamStats:
 class MrclamSource:
     """An MRCLAM data set folder as time-ordered events for ``config``'s robots."""
 
-    def __init__(self, folder: str | Path, config: TeamConfig, *, ground_truth: bool = True) -> None:
+    def __init__(
+        self, folder: str | Path, config: TeamConfig, *, ground_truth: bool = True, sightings: str = "both"
+    ) -> None:
+        if sightings not in ("both", "range", "bearing"):
+            raise ValueError(f"sightings must be both, range or bearing, not {sightings!r}")
         self.folder = Path(folder)
+        self.use = sightings
+        """What of each sighting to pass on: ``both``, ``range`` (bearing left out) or ``bearing``."""
         if not is_mrclam(self.folder):
             raise MrclamError(f"{self.folder} is not an MRCLAM data set (no Barcodes.dat / Robot1_Odometry.dat)")
         self.config = config
@@ -132,6 +138,16 @@ class MrclamSource:
             raise MrclamError(f"{self.folder}: no odometry")
         self.start_time = float(min(starts))
         self.end_time = float(max(ends))
+
+    def initial_poses(self) -> dict[str, tuple[float, float, float]]:
+        """Every robot's Vicon pose at its first odometry sample: the start of an oracle
+        baseline (``ekf_oracle``), never given to relloc's filters."""
+        out = {}
+        for i, name in self.robots.items():
+            truth, t = self.truth[i], self.odometry[i][0, 0]
+            k = min(int(np.searchsorted(truth[:, 0], t)), len(truth) - 1)
+            out[name] = (float(truth[k, 1]), float(truth[k, 2]), float(truth[k, 3]))
+        return out
 
     @staticmethod
     def _subject(name: str) -> int:
@@ -173,7 +189,8 @@ class MrclamSource:
                 continue
             self.stats.counts["sightings"] += 1
             yield SightingEvent(
-                t, name, self.robots[target], r, b, RANGE_SIGMA + RANGE_SIGMA_PER_M * r, BEARING_SIGMA, "camera"
+                t, name, self.robots[target], None if self.use == "bearing" else r,
+                None if self.use == "range" else b, RANGE_SIGMA + RANGE_SIGMA_PER_M * r, BEARING_SIGMA, "camera",
             )
 
     def _truth(self, subject: int) -> Iterator[GroundTruthEvent]:
