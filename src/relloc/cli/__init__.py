@@ -31,7 +31,8 @@ always listed; a module that fails to import is a bug and raises."""
 METHODS_HELP = (
     "comma-separated methods: pf (particle filter: odometry + UWB ranges), "
     "pf_ul (pf on learned-corrected ranges, needs --models), pf_uv (pf + cooperative detections), "
-    "pf_ulv (both), multilateration (least squares on each step's ranges)"
+    "pf_ulv (both), multilateration (least squares on each step's ranges), "
+    "ekf_oracle (centralised EKF over all poses started at the ground truth: MRCLAM data sets)"
 )
 
 
@@ -165,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser(
         "run",
-        help="run methods over a rosbag2 recording and evaluate them",
+        help="run methods over a rosbag2 recording (or an MRCLAM data set folder) and evaluate them",
         description="Stream a rosbag2 recording through each method, evaluate against its motion "
         "capture, print APE per method and robot, and write plots and TUM trajectories to "
         "out/<recording>/ (or --out). The filter never sees the motion capture.",
