@@ -172,3 +172,54 @@ def test_odometry_integration_follows_arcs() -> None:
     """A quarter circle of radius 1 m (v pi/2 m/s, w pi/2 rad/s for 1 s) ends at (1, 1)."""
     poses = integrate_odometry(np.array([[0.0, math.pi / 2, math.pi / 2], [1.0, 0.0, 0.0]]))
     assert poses[-1] == pytest.approx([1.0, 1.0, math.pi / 2])
+
+
+# ---------------------------------------------------------------------------- simulator, EKF
+def test_simulated_aoa_sightings_leave_the_other_draws_alone() -> None:
+    """UWB angle of arrival beside the ranges: bearings in the observer's body frame within
+    its field of view, 5 deg noise; the scenario's ranges and odometry are drawn as before."""
+    from relloc.events import RangeEvent
+    from relloc.odometry import wrap_angle
+    from relloc.simulator import multi_scenario
+    from relloc.simulator.error_models import UWB_AOA
+
+    plain = [e for e in multi_scenario(0, duration=10.0).events() if not isinstance(e, SightingEvent)]
+    sim = multi_scenario(0, duration=10.0, sightings=(UWB_AOA,))
+    events = list(sim.events())
+    assert [e for e in events if not isinstance(e, SightingEvent)] == plain
+    sightings = [e for e in events if isinstance(e, SightingEvent)]
+    assert len(sightings) > 500 and all(e.range is None and e.sensor == "uwb_aoa" for e in sightings)
+    assert any(isinstance(e, RangeEvent) for e in events)
+    errors = []
+    for e in sightings:
+        xo, yo, yaw = sim.true_pose(e.observer, e.t)
+        xt, yt, _ = sim.true_pose(e.target, e.t)
+        errors.append(float(wrap_angle(e.bearing - (math.atan2(yt - yo, xt - xo) - yaw))))
+    errors_deg = np.degrees(np.abs(errors))
+    assert np.all(np.abs([e.bearing for e in sightings]) <= math.radians(60.0 + 4 * 5.0))  # field of view + noise
+    assert np.median(errors_deg) == pytest.approx(5.0 * 0.674, rel=0.15)  # median |N(0, 5 deg)|
+
+
+def test_the_oracle_ekf_tracks_a_team_from_camera_sightings() -> None:
+    """Three simulated robots with teammate cameras; the EKF starts at their true poses."""
+    from relloc.evaluation.metrics import GroundTruth, associate, body_frame_paired
+    from relloc.localizers.ekf import EkfOracleLocalizer
+    from relloc.simulator import multi_scenario
+    from relloc.simulator.error_models import TEAMMATE_CAMERA
+
+    sim = multi_scenario(1, duration=30.0, sightings=(TEAMMATE_CAMERA,))
+    start = {r: sim.true_pose(r, 0.0) for r in sim.robots}
+    loc = EkfOracleLocalizer(sim.config, start)
+    gt = GroundTruth(sim.config.reference)
+    estimates = []
+    for ev in sim.events():
+        if isinstance(ev, GroundTruthEvent):
+            gt.add(ev)
+        estimates += loc.process(ev)
+    estimates += loc.flush()
+    assert loc.stats["sighting"] > 200
+    paired = associate(estimates, gt, loc.layout.others)
+    body = body_frame_paired(estimates, gt, loc.layout.others, loc.odometry_yaws[sim.config.reference])
+    for robot in loc.layout.others:
+        assert np.median(paired[robot].errors) < 0.15
+        assert np.median(body[robot].errors) < 0.15
