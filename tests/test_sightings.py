@@ -247,3 +247,33 @@ def test_the_self_calibrating_filter_tracks_drifting_headings_with_sightings() -
     assert set(body) == set(config.robot_names) - {config.reference}
     assert all(s.n > 300 and s.median < 0.15 for s in body.values())
     assert pipeline.localizer.stats["sighting"] > 1000
+
+
+# ---------------------------------------------------------------------------- ROS 2
+def test_sightings_arrive_as_point_stamped_in_the_observers_body_frame() -> None:
+    """``geometry_msgs/PointStamped`` of a teammate in the observer's base_link, one topic per
+    ordered pair from the observer's ``sighting_topic`` template, through the shared ingestion
+    layer (the rosbag and Zenoh sources) to a range-and-bearing sighting."""
+    from relloc.ros.messages import POINT_STAMPED, encode, sighting_msg
+    from relloc.sources.ingest import Converter, HeaderClock, IngestStats, team_routes
+
+    config = TeamConfig(
+        (
+            RobotConfig("tb1", sighting_topic="/tb1/teammates/{target}", sighting_sigma_bearing_deg=2.0),
+            RobotConfig("tb2"),
+            RobotConfig("tb3"),
+        ),
+        "tb1",
+    )
+    routes = [r for r in team_routes(config) if r.kind == "sighting"]
+    assert [(r.topic, r.robot, r.robot_b, r.msgtypes) for r in routes] == [
+        ("/tb1/teammates/tb2", "tb1", "tb2", (POINT_STAMPED,)),
+        ("/tb1/teammates/tb3", "tb1", "tb3", (POINT_STAMPED,)),
+    ]
+    sent = SightingEvent(12.5, "tb1", "tb3", 2.5, -2.8, 0.1, math.radians(2.0))
+    payload = encode(sighting_msg(sent, frame_id="tb1/base_link"), POINT_STAMPED)
+    got = Converter(IngestStats(), HeaderClock()).convert(routes[1], routes[1].topic, payload, 12.6)
+    assert isinstance(got, SightingEvent)
+    assert (got.t, got.observer, got.target, got.sensor) == (12.5, "tb1", "tb3", "ros")
+    assert got.range == pytest.approx(2.5) and got.bearing == pytest.approx(-2.8)
+    assert (got.sigma_range, got.sigma_bearing) == pytest.approx((0.1, math.radians(2.0)))
