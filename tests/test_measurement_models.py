@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from relloc.config import TeamConfig
-from relloc.events import GroundTruthEvent, RangeEvent, RelativeObservation
+from relloc.events import GroundTruthEvent, RangeEvent, RelativeObservation, SightingEvent
 from relloc.filter.gaussian_sum import CalibrationLayout, GaussianSumFilter
 from relloc.filter.measurement import (
     LinearRow,
@@ -165,11 +165,14 @@ def _events(config: TeamConfig) -> dict[type, list[object]]:
                      RangeEvent(0.0, "r0", "r2", 4.0, corrected=True)],
         RelativeObservation: [RelativeObservation(0.0, "r1", "r2", 1.0, -2.0, 0.2),
                               RelativeObservation(0.0, "r2", "r0", -0.5, 0.7, 0.3)],
+        SightingEvent: [SightingEvent(0.0, "r1", "r2", 2.0, 0.4, 0.1, 0.02),
+                        SightingEvent(0.0, "r0", "r1", None, -2.9, 0.1, 0.05),
+                        SightingEvent(0.0, "r2", "r0", 1.5, None, 0.2, 0.05)],
     }
 
 
-@pytest.mark.parametrize("online", [False, True])
-def test_every_models_rows_are_the_gradient_of_its_log_likelihood(online: bool) -> None:
+@pytest.mark.parametrize(("online", "heading"), [(False, False), (True, False), (False, True)])
+def test_every_models_rows_are_the_gradient_of_its_log_likelihood(online: bool, heading: bool) -> None:
     """navlie's Jacobian check: for the plain (outlier-free) models, the log-likelihood of a
     state is the sum of its rows' Gaussian densities, and its gradient ``sum r h / var`` (all
     columns, online bias columns included) matches central finite differences."""
@@ -179,12 +182,13 @@ def test_every_models_rows_are_the_gradient_of_its_log_likelihood(online: bool) 
     names = config.robot_names[:3]
     config = TeamConfig(tuple(config.robot(n) for n in names), names[0], uwb=config.uwb)
     pairs = ("n_0-n_1", "n_0-n_2", "n_1-n_2") if online else ()
-    layout = CalibrationLayout(names, names[0], bias_pairs=pairs)
+    layout = CalibrationLayout(names, names[0], bias_pairs=pairs, heading=heading)
     samples = _events(config)
     assert set(MODELS) <= set(samples), "give every registered model sample events here"
     rng = np.random.default_rng(0)
     x = rng.normal(0.0, 2.0, (4, layout.width))  # four states, one per row
-    context = ModelContext(config, layout, robust=False, range_model="symmetric")
+    yaws = {"r0": 0.3, "r1": -2.0, "r2": 3.1}  # the observers' odometry yaws (sightings' bearings)
+    context = ModelContext(config, layout, robust=False, range_model="symmetric", yaws=yaws, shared_heading=not heading)
     checked = 0
     for event_type, cls in MODELS.items():
         for model in cls.build(samples[event_type], context):
@@ -205,7 +209,7 @@ def test_every_models_rows_are_the_gradient_of_its_log_likelihood(online: bool) 
                 fd = (model.log_likelihood(layout.positions(up), up) - model.log_likelihood(layout.positions(down), down)) / (2 * h)
                 np.testing.assert_allclose(grad[:, c], fd, rtol=1e-5, atol=1e-6)
             checked += 1
-    assert checked == 2
+    assert checked == len(MODELS)
 
 
 def test_models_say_which_symmetries_they_keep_and_which_frame_they_need() -> None:

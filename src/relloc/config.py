@@ -101,6 +101,14 @@ class RobotConfig(_Checked):
     zenoh_scope: str = ""
     """Optional key prefix for this robot's topics in Zenoh (e.g. ``tb1``)."""
     cmd_vel_topic: str = ""
+    sighting_topic: str = ""
+    """Teammates this robot sees (a camera reading markers, UWB angle of arrival): a topic
+    template with ``{target}`` (the teammate's name), ``geometry_msgs/PointStamped`` of the
+    teammate in this robot's body frame (docs/mrclam.md, "Sightings over ROS 2")."""
+    sighting_sigma_range: float = 0.1
+    """Range noise of those sightings (m)."""
+    sighting_sigma_bearing_deg: float = 1.0
+    """Bearing noise of those sightings (deg)."""
 
     @property
     def heading_offset(self) -> float:

@@ -14,6 +14,9 @@ Frames
   transceivers, not to the robot names.
 * ``DetectionEvent`` carries object positions in the robot's body frame (``base_link``, x
   forward, y left, z up); the source applies the camera extrinsics from the team config.
+* ``SightingEvent`` carries a teammate seen in the observer's body frame (x forward, bearing
+  counter-clockwise from x): a camera reading a teammate's marker, or a UWB radio's angle of
+  arrival. Its noise is the source's (each sensor sets its own).
 * ``GroundTruthEvent`` is motion capture in the world frame, for evaluation only: the localizer
   ignores it.
 """
@@ -115,7 +118,24 @@ class RelativeObservation:
     sigma: float
 
 
-Event = OdometryEvent | RangeEvent | DetectionEvent | GroundTruthEvent | RelativeObservation
+@dataclass(frozen=True, slots=True)
+class SightingEvent:
+    """``observer`` sees ``target`` at ``range`` (m) and ``bearing`` (rad, in ``(-pi, pi]``,
+    counter-clockwise from the observer's forward axis): both, or one of them (the other
+    ``None``). ``sigma_range`` and ``sigma_bearing`` are the sensor's noise for this sighting;
+    ``sensor`` names it (``camera``, ``uwb_aoa``), for counting and reports."""
+
+    t: float
+    observer: str
+    target: str
+    range: float | None
+    bearing: float | None
+    sigma_range: float = 0.1
+    sigma_bearing: float = 0.01
+    sensor: str = "camera"
+
+
+Event = OdometryEvent | RangeEvent | DetectionEvent | GroundTruthEvent | RelativeObservation | SightingEvent
 
 
 def pair_key(a: str, b: str) -> str:

@@ -6,6 +6,8 @@
 ``pf_uv``          ``pf`` with cooperative detections (association stage in front)
 ``pf_ulv``         both (PF_ULV)
 ``multilateration``  least squares on the ranges present (the paper's Multi)
+``ekf_oracle``     the classical centralised cooperative-localization EKF over all poses
+                   (Roumeliotis and Bekey), started at the ground truth: an oracle start
 =================  ==========================================================================
 """
 
@@ -20,7 +22,7 @@ from relloc.localizers.multilateration import MultilaterationLocalizer
 from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
 
-METHODS = ("pf", "pf_ul", "pf_uv", "pf_ulv", "multilateration")
+METHODS = ("pf", "pf_ul", "pf_uv", "pf_ulv", "multilateration", "ekf_oracle")
 
 DETECTION_METHODS: frozenset[str] = frozenset({"pf_uv", "pf_ulv"})
 """Methods that fuse cooperative detections: only for them do sources read (and simulators
@@ -39,8 +41,23 @@ def parse_methods(text: str) -> list[str]:
     return names
 
 
-def build_pipeline(method: str, config: TeamConfig, *, seed: int = 0, models: Path | None = None) -> Pipeline:
-    """The pipeline (stages + localizer) of one named method."""
+def build_pipeline(
+    method: str,
+    config: TeamConfig,
+    *,
+    seed: int = 0,
+    models: Path | None = None,
+    oracle_start: dict[str, tuple[float, float, float]] | None = None,
+) -> Pipeline:
+    """The pipeline (stages + localizer) of one named method. ``oracle_start``: every robot's
+    true start pose (world frame), which only ``ekf_oracle`` takes."""
+    if method == "ekf_oracle":
+        if oracle_start is None:
+            raise MethodError("method ekf_oracle starts at the ground truth: the source has none to give it")
+        from relloc.localizers.ekf import EkfOracleLocalizer
+
+        compass = config.with_modes(heading="compass", odom_scale="fixed")
+        return Pipeline(method, EkfOracleLocalizer(compass, oracle_start))
     if method == "multilateration":
         return Pipeline(method, MultilaterationLocalizer(config, seed=seed))
     if method not in METHODS:

@@ -31,7 +31,8 @@ always listed; a module that fails to import is a bug and raises."""
 METHODS_HELP = (
     "comma-separated methods: pf (particle filter: odometry + UWB ranges), "
     "pf_ul (pf on learned-corrected ranges, needs --models), pf_uv (pf + cooperative detections), "
-    "pf_ulv (both), multilateration (least squares on each step's ranges)"
+    "pf_ulv (both), multilateration (least squares on each step's ranges), "
+    "ekf_oracle (centralised EKF over all poses started at the ground truth: MRCLAM data sets)"
 )
 
 
@@ -165,7 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser(
         "run",
-        help="run methods over a rosbag2 recording and evaluate them",
+        help="run methods over a rosbag2 recording (or an MRCLAM data set folder) and evaluate them",
         description="Stream a rosbag2 recording through each method, evaluate against its motion "
         "capture, print APE per method and robot, and write plots and TUM trajectories to "
         "out/<recording>/ (or --out). The filter never sees the motion capture.",
@@ -185,6 +186,10 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     _add_mode_flags(run)
     run.add_argument("--reference", default=None, metavar="ROBOT", help="another reference robot (default: the config's reference)")
+    run.add_argument(
+        "--sightings", choices=("both", "range", "bearing"), default="both",
+        help="what of each teammate sighting to fuse (MRCLAM data sets): range and bearing, or one of them",
+    )
     run.set_defaults(handler=_cmd_run)
 
     cal = sub.add_parser(

@@ -1,4 +1,4 @@
-"""``relloc run``: recorded rosbag2 data through the engine.
+"""``relloc run``: recorded data (a rosbag2 folder, or an MRCLAM data set folder) through the engine.
 
 ``run_recording`` streams a bag through every requested method (the same engine as the demo
 and the live server), evaluates against motion capture when the bag has it, prints the APE
@@ -33,6 +33,7 @@ from relloc.evaluation.report import ScenarioReport, evaluate, make_console, pri
 from relloc.methods import build_pipeline
 from relloc.sinks.tum import write_tum
 from relloc.sources.ingest import match_range_topics
+from relloc.sources.mrclam import MrclamSource, is_mrclam
 from relloc.sources.rosbag import RosbagSource, recording_name
 
 
@@ -54,6 +55,8 @@ class RunOptions:
     """``fixed|online``."""
     reference: str | None = None
     """Another reference robot than the config's."""
+    sightings: str = "both"
+    """What of each teammate sighting the source passes on: ``both``, ``range``, ``bearing``."""
 
 
 def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Console | None = None) -> ScenarioReport:
@@ -64,11 +67,16 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
     )
     if opts.particles:
         config = config.with_filter(particles=opts.particles, selfcal_particles=opts.particles)
-    source = RosbagSource(bag, config)
+    mrclam = is_mrclam(bag)
+    source: RosbagSource | MrclamSource = MrclamSource(bag, config, sightings=opts.sightings) if mrclam else RosbagSource(bag, config)
     name = recording_name(bag)
-    pipelines = [build_pipeline(m, config, seed=opts.seed, models=opts.models) for m in opts.methods]
+    oracle = source.initial_poses() if isinstance(source, MrclamSource) else None
+    pipelines = [
+        build_pipeline(m, config, seed=opts.seed, models=opts.models, oracle_start=oracle) for m in opts.methods
+    ]
     check_warmup(opts.warmup, source.duration, name)
-    for warning in [*source.warnings, *range_warnings(source)]:
+    warnings = source.warnings if isinstance(source, MrclamSource) else [*source.warnings, *range_warnings(source)]
+    for warning in warnings:
         console.print(f"[yellow]warning:[/] {escape(warning)}", soft_wrap=True)
     gt = GroundTruth(config.reference)
     engine = Engine(pipelines, truth_sinks=[gt.add])
@@ -81,7 +89,8 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
         enabled=opts.progress,
         start=source.start_time,
     )
-    bias_truth = _bag_bias_truth(bag, config) if config.filter.self_calibration.bias_mode == "online" else None
+    online = config.filter.self_calibration.bias_mode == "online"
+    bias_truth = _bag_bias_truth(bag, config) if online and not mrclam else None
     report = evaluate(engine, gt, name, opts.warmup, bias_truth=bias_truth, truth_name="motion capture")
     print_table(report, console)
     lines = rejection_lines("the source", source.stats.rejected)

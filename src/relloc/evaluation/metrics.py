@@ -429,3 +429,47 @@ def associate_shapes(
     (:func:`align` ``"run"``), as multilateration's formation is, for the shape APE."""
     shaped = [replace(est, positions=dict(est.shape)) for est in estimates if est.shape]
     return associate(shaped, gt, robots, rotation)
+
+
+def body_frame_paired(
+    estimates: Sequence[Estimate],
+    gt: GroundTruth,
+    robots: Iterable[str],
+    reference_yaws: Iterable[tuple[float, float]],
+) -> dict[str, Paired]:
+    """Every robot's estimated position in the *reference robot's body frame* (where robot j
+    is as the reference would see it: x forward, y left) paired with the same in the truth.
+
+    This is the gauge-free relative position: no shared heading frame, no alignment. The
+    estimate's frame turns into the body frame by the reference's heading in it, its odometry
+    yaw at the estimate's time (``reference_yaws``: ``(t, yaw)`` in its odometry track's frame,
+    :attr:`relloc.localizers.base.Localizer.odometry_yaws`) plus, where the method estimates
+    headings, the published heading of the reference's odometry frame (its drift); the truth
+    by the reference's motion-capture yaw. Estimates without a recorded yaw are left out.
+    """
+    yaw_at = dict(reference_yaws)
+    out: dict[str, Paired] = {}
+    ref = gt.reference
+    for robot in robots:
+        t, e, g, s = [], [], [], []
+        for est in estimates:
+            if robot not in est.positions or est.t not in yaw_at:
+                continue
+            truth = gt.relative_at(robot, est.t)
+            pose = gt.pose_at(ref, est.t)
+            if truth is None or pose is None:
+                continue
+            heading = yaw_at[est.t] + (est.headings[ref][0] if ref in est.headings else 0.0)
+            t.append(est.t)
+            e.append(_to_body(est.positions[robot], heading))
+            g.append(_to_body(truth, pose[2]))
+            s.append(est.std(robot))
+        out[robot] = Paired(np.array(t), np.array(e).reshape(-1, 2), np.array(g).reshape(-1, 2), np.array(s))
+    return out
+
+
+def _to_body(v: tuple[float, float], heading: float) -> tuple[float, float]:
+    """``v`` turned by ``-heading``: a vector of the frame into the body frame of a robot whose
+    heading in that frame is ``heading``."""
+    c, s = math.cos(heading), math.sin(heading)
+    return (c * v[0] + s * v[1], -s * v[0] + c * v[1])

@@ -51,7 +51,7 @@ def _reference(report: ScenarioReport) -> str:
 
 def plot_trajectories(report: ScenarioReport, path: Path, methods: list[str] | None = None) -> Path:
     """One panel per method: each robot's estimated relative trajectory over the truth."""
-    names = methods or [m for m in report.methods if not m.endswith("_oracle")]
+    names = methods or [m for m in report.methods if not m.endswith("_oracle")] or list(report.methods)
     fig, axes = plt.subplots(1, len(names), figsize=(5.5 * len(names), 5.4), squeeze=False)
     robots = sorted({r for m in report.methods.values() for r in m.paired})
     colors = robot_colors(robots)

@@ -38,6 +38,7 @@ from relloc.evaluation.metrics import (
     associate_shapes,
     ate,
     bias_errors,
+    body_frame_paired,
     consistency,
     convergence_time,
     odometry_frame_rotation,
@@ -63,6 +64,10 @@ class MethodReport:
     """Online bias: the last published (mean, std) per node pair."""
     bias_truth: dict[str, float] = field(default_factory=dict)
     final_scales: dict[str, tuple[float, float]] = field(default_factory=dict)
+    body_frame: dict[str, ApeStats] = field(default_factory=dict)
+    """APE in the reference robot's body frame after the warm-up
+    (:func:`relloc.evaluation.metrics.body_frame_paired`); empty where the method has no
+    heading of the reference (multilateration)."""
     frame_rotation_deg: float | None = None
     """Heading-estimate mode: rotation of the reference's odometry frame in the mocap frame (its
     mocap yaw minus odometry yaw at its first odometry message), by which the ground truth is
@@ -113,6 +118,10 @@ class MethodReport:
             }
             for r, s in self.robots.items()
         }
+        for r, b in self.body_frame.items():
+            entry = robots.setdefault(r, {})
+            entry["body_ape_median"] = _num(b.median)
+            entry["body_ape_rmse"] = _num(b.rmse)
         for r in self.headings:
             entry = robots.setdefault(r, {})
             entry["heading_median_deg"] = _num(self.heading_median_deg(r))
@@ -221,6 +230,11 @@ def evaluate(
                 yaws = getattr(loc, "odometry_yaws", {})
                 heading_pairs = associate_headings(p.estimates, truth, yaws, rotation)
         paired = associate(p.estimates, truth, names, rotation)
+        ref_yaws = getattr(loc, "odometry_yaws", {}).get(loc.layout.reference)
+        body = {}
+        if ref_yaws:
+            body_pairs = body_frame_paired(p.estimates, truth, names, ref_yaws)
+            body = {r: ApeStats.of(after(q, t0 + warmup).errors) for r, q in body_pairs.items()}
         last = p.estimates[-1] if p.estimates else None
         calibration: dict[str, Any] = {
             "headings": {
@@ -248,6 +262,7 @@ def evaluate(
                 stats=p.stats(),
                 compute_s=p.compute_s,
                 n_estimates=len(p.estimates),
+                body_frame=body if mode == "none" else {},
                 **calibration,
                 **(honest if mode == "none" else {}),
             )
@@ -316,15 +331,17 @@ def print_table(report: ScenarioReport, console: Console | None = None) -> None:
     if report.reference:
         title += f", positions relative to {report.reference}"
     table = Table(title=title, caption=CONVERGENCE_CAPTION, caption_justify="left")
-    for col in ("method", "robot", "APE median", "APE rmse", "APE max", "ATE", "n", "converged after", "NEES", "95 % cov."):
+    for col in ("method", "robot", "APE median", "APE rmse", "APE max", "ATE", "body APE median", "n", "converged after", "NEES", "95 % cov."):
         table.add_column(col, justify="left" if col in ("method", "robot") else "right")
     for method, m in report.methods.items():
         conv = "never" if not math.isfinite(m.convergence_s) else f"{m.convergence_s:.1f} s"
         for k, (robot, s) in enumerate(sorted(m.robots.items())):
+            b = m.body_frame.get(robot)
+            body = f"{b.median:.3f}" if b is not None and b.n else ""
             if s.n == 0:
-                cells = ["no estimate", "", "", "", "0"]
+                cells = ["no estimate", "", "", "", "", "0"]
             else:
-                cells = [f"{s.median:.3f}", f"{s.rmse:.3f}", f"{s.max:.3f}", f"{m.ate.get(robot, math.nan):.3f}", str(s.n)]
+                cells = [f"{s.median:.3f}", f"{s.rmse:.3f}", f"{s.max:.3f}", f"{m.ate.get(robot, math.nan):.3f}", body, str(s.n)]
             c = m.consistency.get(robot)
             honest = ["", ""] if c is None else [f"{c.nees_median:.2f}", f"{100 * c.coverage:.0f} %"]
             table.add_row(

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import math
 import numbers
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
@@ -73,6 +73,14 @@ class ModelContext:
     range_model: str = "nlos"
     """``nlos`` or ``symmetric`` (:class:`relloc.config.FilterConfig`): which range likelihood
     the localizer's filter uses."""
+    yaws: Mapping[str, float] | None = None
+    """Each robot's odometry yaw (rad) at the batch time, in the frame of its odometry track:
+    the shared heading frame where the filter has one, the robot's own odometry frame where
+    the filter estimates the headings. Models of measurements in a robot's body frame (a
+    sighting's bearing) turn them with it; ``None``: not known (such a model falls back to
+    what needs no heading)."""
+    shared_heading: bool = True
+    """Whether the localizer's filter works in a shared (compass) heading frame."""
 
 
 class ValidationContext(Protocol):

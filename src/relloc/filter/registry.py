@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from relloc.filter.measurement import MeasurementModel
 from relloc.filter.ranges import RangeBatch
+from relloc.filter.sightings import SightingBatch
 from relloc.filter.vectors import RelativePositionBatch
 
 MODELS: dict[type, type[MeasurementModel]] = {}
@@ -36,3 +37,4 @@ def model_for(event: object) -> type[MeasurementModel] | None:
 
 register(RangeBatch)
 register(RelativePositionBatch)
+register(SightingBatch)

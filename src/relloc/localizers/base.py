@@ -77,8 +77,9 @@ class Localizer:
         self.first_odometry: dict[str, tuple[float, float]] = {}
         """Per robot, ``(t, yaw)`` of its first odometry sample (in its track's frame)."""
         self.odometry_yaws: dict[str, deque[tuple[float, float]]] = {}
-        """Where headings are estimated: each robot's odometry yaw at every estimate time (for
-        evaluating the published headings; the filter does not use it). Bounded, for live runs."""
+        """Each robot's odometry yaw at every estimate time where headings are estimated, and the
+        reference robot's always (for evaluating the published headings and the body-frame
+        positions; the filter does not use it). Bounded, for live runs."""
         self.stats: Counter[str] = Counter()
         self.last_estimate: Estimate | None = None
         self._memory: dict[type, dict[Any, Any]] = {}
@@ -227,7 +228,7 @@ class Localizer:
             positions[robot] = (float(fe.mean[k, 0]), float(fe.mean[k, 1]))
             c = fe.cov[k]
             covs[robot] = ((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1])))
-        for robot in fe.headings:
+        for robot in {*fe.headings, self.layout.reference}:  # the reference's: body-frame evaluation
             if not self.tracks[robot].empty:
                 yaws = self.odometry_yaws.setdefault(robot, deque(maxlen=_YAW_LOG))
                 yaws.append((t, self.tracks[robot].pose_at(t)[2]))
@@ -299,7 +300,10 @@ class FilterLocalizer(Localizer):
             cls = model_for(m)
             if cls is not None:
                 groups.setdefault(cls, []).append(m)
-        context = ModelContext(self.config, target.layout, robust, self.range_model)
+        yaws = {r: self._odometry_pose(r, max(m.t for m in batch))[2] for r in self.layout.robots} if batch else None
+        context = ModelContext(
+            self.config, target.layout, robust, self.range_model, yaws, self.filter.shared_heading
+        )
         out: list[MeasurementModel] = []
         for cls in dict.fromkeys(MODELS.values()):
             events = groups.get(cls)

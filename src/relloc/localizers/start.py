@@ -31,7 +31,8 @@ def annealed_start(localizer: FilterLocalizer, pf: ParticleFilter, batch: list[M
     """Start ``pf`` from ``batch`` (module docstring); False if the batch gives it nothing to
     anneal on. Counts the tempering stages and any resampling in ``localizer.stats``."""
     fc = localizer.config.filter
-    invariant = [m for m in batch if _invariant(m)]
+    shared = localizer.filter.shared_heading
+    invariant = [m for m in batch if _invariant(m, shared)]
     spread = fc.spread_rotations and bool(localizer.models(invariant, pf, count=False))
     anneal_on = invariant if spread else batch
     models = localizer.models(anneal_on, pf, count=False)
@@ -42,7 +43,7 @@ def annealed_start(localizer: FilterLocalizer, pf: ParticleFilter, batch: list[M
     localizer.stats["anneal_stages"] = stages
     if spread:
         pf.spread_symmetries()
-        rest = localizer.models([m for m in batch if not _invariant(m)], pf, count=False)
+        rest = localizer.models([m for m in batch if not _invariant(m, shared)], pf, count=False)
         if rest:
             pf.update(rest)
             if pf.maybe_resample():
@@ -50,6 +51,10 @@ def annealed_start(localizer: FilterLocalizer, pf: ParticleFilter, batch: list[M
     return True
 
 
-def _invariant(event: object) -> bool:
+def _invariant(event: object, shared_heading: bool) -> bool:
+    """Whether ``event``'s model is invariant; a model that needs a heading only for its
+    non-invariant part (a sighting's bearing) is invariant where the filter has none."""
     model = model_for(event)
-    return model is not None and model.invariant
+    if model is None:
+        return False
+    return model.invariant or (not shared_heading and getattr(model, "invariant_without_shared_heading", False))

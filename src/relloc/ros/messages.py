@@ -46,12 +46,14 @@ from relloc.events import (
     ObjectDetection,
     OdometryEvent,
     RangeEvent,
+    SightingEvent,
 )
 from relloc.ros.cdr import split_stamp, yaw_from_xyzw
 
 __all__ = [
     "MSG_DIR",
     "ODOMETRY",
+    "POINT_STAMPED",
     "POSE_ARRAY",
     "POSE_STAMPED",
     "POSE_WITH_COVARIANCE_STAMPED",
@@ -68,6 +70,7 @@ __all__ = [
     "header_stamp_from_cdr",
     "odometry_msg",
     "odometry_to_event",
+    "point_to_sighting",
     "pose_stamped_msg",
     "pose_to_ground_truth",
     "pose_with_covariance_msg",
@@ -75,6 +78,7 @@ __all__ = [
     "range_msg",
     "range_rejection",
     "range_to_event",
+    "sighting_msg",
     "stamp_to_sec",
     "time_msg",
     "twist_msg",
@@ -85,6 +89,7 @@ __all__ = [
 ODOMETRY = "nav_msgs/msg/Odometry"
 RANGE = "sensor_msgs/msg/Range"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+POINT_STAMPED = "geometry_msgs/msg/PointStamped"
 POSE_ARRAY = "geometry_msgs/msg/PoseArray"
 POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TWIST = "geometry_msgs/msg/Twist"
@@ -438,3 +443,26 @@ def pose_stamped_msg(event: GroundTruthEvent, *, frame_id: str = "world") -> Any
     """A :class:`GroundTruthEvent` as ``geometry_msgs/PoseStamped`` (what a motion-capture
     bridge publishes; the inverse of :func:`pose_to_ground_truth`)."""
     return typestore().types[POSE_STAMPED](header=_header(event.t, frame_id), pose=_pose(event.x, event.y, event.yaw))
+
+
+def point_to_sighting(
+    msg: Any, observer: str, target: str, sigma_range: float, sigma_bearing: float, *, t: float | None = None
+) -> SightingEvent:
+    """A ``geometry_msgs/PointStamped`` of ``target`` in ``observer``'s body frame (REP 103:
+    x forward, y left, the point's z ignored) as a range-and-bearing sighting."""
+    x, y = float(msg.point.x), float(msg.point.y)
+    return SightingEvent(
+        _msg_time(msg, t), observer, target, math.hypot(x, y), math.atan2(y, x), sigma_range, sigma_bearing, "ros"
+    )
+
+
+def sighting_msg(event: SightingEvent, *, frame_id: str = "") -> Any:
+    """A range-and-bearing sighting as ``geometry_msgs/PointStamped`` in the observer's body
+    frame (the inverse of :func:`point_to_sighting`)."""
+    if event.range is None or event.bearing is None:
+        raise ValueError("a PointStamped sighting needs both a range and a bearing")
+    types = typestore().types
+    point = types["geometry_msgs/msg/Point"](
+        x=event.range * math.cos(event.bearing), y=event.range * math.sin(event.bearing), z=0.0
+    )
+    return types[POINT_STAMPED](header=_header(event.t, frame_id), point=point)

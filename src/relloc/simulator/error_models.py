@@ -8,6 +8,10 @@
   bias make odometry drift like real wheel odometry.
 * :class:`DetectionErrorModel`: a forward camera's field of view and range
   (:func:`camera_view`, :func:`in_view`), depth noise growing with distance, misses.
+* :class:`SightingSensorModel`: a sensor that sees teammates in the observer's body frame
+  (UWB angle of arrival beside the ranges, :data:`UWB_AOA`; a camera with a field of view,
+  :data:`TEAMMATE_CAMERA`): field of view, range limit, Gaussian range and bearing noise and
+  a share of gross outliers (a reflection, a misread marker).
 * :class:`ActuationModel`: how a commanded robot's motion differs from its command.
 """
 
@@ -183,3 +187,38 @@ def in_view(d: FloatArray, bearing: FloatArray, cam: CameraConfig, min_range: fl
     half_fov = 0.5 * math.radians(cam.fov_deg)
     return (d <= cam.max_range) & (d >= min_range) & (np.abs(bearing) <= half_fov)
 
+
+@dataclass(frozen=True)
+class SightingSensorModel:
+    """A sensor on every robot that sees its teammates in its body frame.
+
+    At ``rate_hz`` (its own phase per ordered pair) the observer reports each teammate inside
+    its field of view (``fov_deg`` wide, centred on its forward axis) and ``max_range``: the
+    bearing with ``N(0, sigma_bearing^2)`` noise and, if ``ranges``, the range with
+    ``N(0, sigma_range^2)``; with ``outlier_probability`` the bearing is instead uniform over
+    the field of view (a reflection, a misread marker). Seen a teammate is missed with
+    ``miss_probability``. Occlusion by other robots is not simulated.
+    """
+
+    sensor: str = "uwb_aoa"
+    rate_hz: float = 10.0
+    fov_deg: float = 120.0
+    max_range: float = 10.0
+    ranges: bool = False
+    """Whether it measures the range too (a camera); UWB AoA is bearing only here, its range
+    is the UWB range beside it."""
+    sigma_range: float = 0.05
+    sigma_bearing: float = math.radians(5.0)
+    outlier_probability: float = 0.02
+    miss_probability: float = 0.05
+
+
+UWB_AOA = SightingSensorModel()
+"""Phase-difference angle of arrival of a DW3000-class UWB radio: bearing only, 5 deg noise,
+a 120 deg field of view in front of the antenna pair, at the UWB rate."""
+
+TEAMMATE_CAMERA = SightingSensorModel(
+    "camera", rate_hz=5.0, fov_deg=70.0, max_range=6.0, ranges=True, sigma_range=0.08,
+    sigma_bearing=math.radians(1.0), outlier_probability=0.01, miss_probability=0.1,
+)
+"""A forward camera reading teammates' markers: range and bearing, 70 deg field of view."""

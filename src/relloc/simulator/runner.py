@@ -41,6 +41,7 @@ from relloc.events import (
     ObjectDetection,
     OdometryEvent,
     RangeEvent,
+    SightingEvent,
     pair_key,
 )
 from relloc.odometry import wrap_angle
@@ -48,6 +49,7 @@ from relloc.simulator.error_models import (
     ActuationModel,
     DetectionErrorModel,
     OdometryErrorModel,
+    SightingSensorModel,
     UwbErrorModel,
     UwbPair,
     camera_view,
@@ -114,6 +116,7 @@ class Simulation:
         actuation: ActuationModel | None = None,
         camera_config: CameraConfig | None = None,
         area: tuple[float, float, float, float] = ARENA,
+        sightings: Sequence[SightingSensorModel] = (),
     ) -> None:
         if duration <= 0:
             raise ValueError(f"duration must be positive, got {duration}")
@@ -151,6 +154,8 @@ class Simulation:
         self._build_uwb()
         self._build_camera()
         self._build_actuation()
+        self.sighting_models: tuple[SightingSensorModel, ...] = tuple(sightings)
+        self._build_sightings()
         self._gt_times = np.arange(0.0, self.duration + 1e-9, 0.05)
 
         robot_cfgs = tuple(
@@ -266,6 +271,30 @@ class Simulation:
                 "score": rng.uniform(0.5, 0.95, size=shape),
             }
 
+    def _build_sightings(self) -> None:
+        """Per sensor and ordered pair: sample times and noise, each from its own stream (so a
+        scenario without them draws exactly what it drew before they existed)."""
+        self._sight: list[tuple[SightingSensorModel, str, str, dict[str, FloatArray]]] = []
+        for sm in self.sighting_models:
+            period = 1.0 / sm.rate_hz
+            for obs in self.robots:
+                for tgt in self.robots:
+                    if obs == tgt:
+                        continue
+                    rng_t = stream(self.seed, "sighting-time", sm.sensor, obs, tgt)
+                    times = np.arange(rng_t.uniform(0.0, period), self.duration + 1e-9, period)
+                    rng = stream(self.seed, "sighting-noise", sm.sensor, obs, tgt)
+                    n = times.size
+                    draws = {
+                        "t": times,
+                        "nr": rng.standard_normal(n),
+                        "nb": rng.standard_normal(n),
+                        "outlier": rng.uniform(size=n) < sm.outlier_probability,
+                        "wild": rng.uniform(-0.5, 0.5, size=n),
+                        "miss": rng.uniform(size=n) < sm.miss_probability,
+                    }
+                    self._sight.append((sm, obs, tgt, draws))
+
     def _build_actuation(self) -> None:
         am = self.actuation_model
         n = math.ceil(self.duration / am.dt) + 2
@@ -372,6 +401,7 @@ class _Runner:
         self._odometry(t0, t_until, out)
         self._ranges(t0, t_until, out)
         self._detections(t0, t_until, out)
+        self._sightings(t0, t_until, out)
         out.sort(key=attrgetter("t"))
         self.t_done = t_until
         return out
@@ -515,6 +545,30 @@ class _Runner:
                     for j in np.flatnonzero(visible[f])
                 )
                 out.append(DetectionEvent(t, name, objs))
+
+
+    def _sightings(self, t0: float, t1: float, out: list[Event]) -> None:
+        for sm, obs, tgt, d in self.sim._sight:
+            i0, i1 = np.searchsorted(d["t"], [t0, t1], side="right")
+            if i1 <= i0:
+                continue
+            times = d["t"][i0:i1]
+            xo, yo, yaw, _ = self.traj[obs].evaluate(times)
+            xt, yt, _, _ = self.traj[tgt].evaluate(times)
+            dist = np.hypot(xt - xo, yt - yo)
+            bearing = wrap_angle(np.arctan2(yt - yo, xt - xo) - yaw)
+            half = math.radians(sm.fov_deg) / 2.0
+            seen = (np.abs(bearing) <= half) & (dist <= sm.max_range) & ~d["miss"][i0:i1]
+            b_m = np.where(d["outlier"][i0:i1], 2.0 * half * d["wild"][i0:i1], bearing + sm.sigma_bearing * d["nb"][i0:i1])
+            b_m = wrap_angle(b_m)
+            r_m = np.maximum(dist + sm.sigma_range * d["nr"][i0:i1], 0.01)
+            for k in np.flatnonzero(seen):
+                out.append(
+                    SightingEvent(
+                        float(times[k]), obs, tgt, float(r_m[k]) if sm.ranges else None, float(b_m[k]),
+                        sm.sigma_range, sm.sigma_bearing, sm.sensor,
+                    )
+                )
 
 
 def _window(times: FloatArray, t0: float, t1: float) -> FloatArray:

@@ -20,6 +20,7 @@ from relloc.simulator.error_models import (
     ActuationModel,
     DetectionErrorModel,
     OdometryErrorModel,
+    SightingSensorModel,
     UwbErrorModel,
 )
 from relloc.simulator.kinematics import (
@@ -85,8 +86,12 @@ def multi_scenario(
     odometry: OdometryErrorModel | None = None,
     camera: DetectionErrorModel | None = None,
     actuation: ActuationModel | None = None,
+    sightings: Sequence[SightingSensorModel] = (),
 ) -> Simulation:
     """The paper's five-robot experiment in the 8 m x 9 m arena.
+
+    ``sightings``: sensors that see teammates (UWB angle of arrival beside the ranges, a
+    camera; :mod:`relloc.simulator.error_models`), drawn from their own streams.
 
     ``r0`` (node ``n_0``) is static and the reference; ``r1`` drives a triangle, ``r2`` an X
     (both diagonals of a square joined by two of its sides), ``r3`` a circle and ``r4`` a
@@ -156,6 +161,7 @@ def multi_scenario(
         odometry=odometry,
         camera=camera,
         actuation=actuation,
+        sightings=sightings,
     )
 
 

@@ -91,6 +91,7 @@ from relloc.events import DetectionEvent, Event, GroundTruthEvent, OdometryEvent
 from relloc.ros.cdr import decode_odometry, decode_range
 from relloc.ros.messages import (
     ODOMETRY,
+    POINT_STAMPED,
     POSE_ARRAY,
     POSE_STAMPED,
     RANGE,
@@ -99,6 +100,7 @@ from relloc.ros.messages import (
     decode,
     detections_to_event,
     odometry_to_event,
+    point_to_sighting,
     pose_to_ground_truth,
     range_rejection,
     stamp_to_sec,
@@ -114,10 +116,11 @@ __all__ = [
     "Route",
     "event_kind",
     "match_range_topics",
+    "sighting_routes",
     "team_routes",
 ]
 
-Kind = Literal["odometry", "range", "detection", "ground_truth"]
+Kind = Literal["odometry", "range", "detection", "ground_truth", "sighting"]
 
 DETECTION_TYPES: dict[str, tuple[str, ...]] = {
     "depthai": (SPATIAL_DETECTION_ARRAY,),
@@ -149,6 +152,8 @@ class Route:
     camera: CameraConfig | None = None
     zero_stamps: bool = False
     """Stamp every message from its receive time (``odom_zero_stamps``)."""
+    sigma: tuple[float, float] = (0.0, 0.0)
+    """A sighting's range (m) and bearing (rad) noise."""
 
 
 def _check_range_template(template: str) -> None:
@@ -200,6 +205,8 @@ def team_routes(
                     camera=robot.camera,
                 )
             )
+    if detections:  # the teammates each robot sees: one topic per ordered pair
+        routes += sighting_routes(config)
     for body in objects:
         topic = config.mocap_topic.format(body=body)
         what = f"motion capture of object {body}"
@@ -224,6 +231,24 @@ def team_routes(
                         node_b=second.uwb_node,
                     )
                 )
+    return routes
+
+
+def sighting_routes(config: TeamConfig) -> list[Route]:
+    """Per observer with a ``sighting_topic`` template and per teammate, the route of its
+    ``geometry_msgs/PointStamped`` sightings (a pair without a topic has none)."""
+    routes = []
+    for robot in config.robots:
+        if not robot.sighting_topic:
+            continue
+        if "{target}" not in robot.sighting_topic:
+            raise ConfigError(f"{robot.name}: sighting_topic {robot.sighting_topic!r} must contain {{target}}")
+        sigma = (robot.sighting_sigma_range, math.radians(robot.sighting_sigma_bearing_deg))
+        for other in config.robots:
+            if other.name != robot.name:
+                topic = robot.sighting_topic.format(target=other.name)
+                what = f"sightings of {other.name} by {robot.name}"
+                routes.append(Route(topic, "sighting", (POINT_STAMPED,), robot.name, what, robot_b=other.name, sigma=sigma))
     return routes
 
 
@@ -552,6 +577,8 @@ class Converter:
             )
         if kind == "ground_truth":
             return pose_to_ground_truth(msg, route.robot, t=stamp)
+        if kind == "sighting":
+            return point_to_sighting(msg, route.robot, route.robot_b, *route.sigma, t=stamp)
         assert route.camera is not None
         det, rejected = detections_to_event(msg, route.robot, route.camera, t=stamp)
         for reason, n in rejected.items():

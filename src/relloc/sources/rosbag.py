@@ -258,8 +258,8 @@ class RosbagSource:
                     self.warnings.append(f"{robot.name} has no odom_topic: no odometry for it")
         resolved: dict[str, Route] = {}
         for route in routes:
-            if route.kind == "range" and route.topic not in self.bag_topics:
-                continue  # a pair without a topic simply has no ranges
+            if route.kind in ("range", "sighting") and route.topic not in self.bag_topics:
+                continue  # a pair without a topic simply has no ranges (sightings)
             if route.topic not in self.bag_topics:
                 raise self._missing(route)
             msgtype, count = self.bag_topics[route.topic]

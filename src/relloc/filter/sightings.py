@@ -1,0 +1,266 @@
+"""The sighting model: a teammate seen in the observer's body frame, at a range and a bearing.
+
+A camera that reads a teammate's marker, or a UWB radio with angle of arrival, measures where
+robot ``j`` is as robot ``i`` sees it: a range ``r`` and a bearing ``b`` (counter-clockwise from
+``i``'s forward axis), both or one of them. With ``v = p_j - p_i`` in the filter's frame and
+``psi_i`` the observer's heading in that frame::
+
+    r = |v| + n_r,          b = atan2(v_y, v_x) - psi_i + n_b   (wrapped to (-pi, pi])
+
+each with a Gaussian-plus-uniform density (a misread marker, a reflection):
+``(1 - eps) N(res; 0, sigma^2) + eps / support``, the bearing's residual wrapped at +-pi before
+it is scored (a bearing of 179 deg and a prediction of -179 deg are 2 deg apart), its floor
+uniform over the circle.
+
+Where the heading comes from
+----------------------------
+* **Compass** (the sampled filter; the Gaussian-sum filter without heading estimation): the
+  observer's odometry yaw in the shared heading frame (``ModelContext.yaws``) is ``psi_i``. A
+  bearing then fixes the formation's orientation: the model is not invariant.
+* **Headings estimated** (the Gaussian-sum filter's heading mode): the frame is the reference
+  robot's odometry frame and the observer's odometry frame is turned from it by the unknown
+  ``theta_i``, held in the state as ``u_i = s_i (cos theta_i, sin theta_i)``. The measured
+  direction in the observer's odometry frame, ``w = (cos(b + yaw_i), sin(b + yaw_i))`` (``yaw_i``
+  its own odometry yaw), is ``A(w) u_i / s_i`` in the filter's frame, linear in ``u_i``
+  (:func:`relloc.filter.gaussian_sum._rotation_jacobian`). So a range-and-bearing sighting is
+  fused as two rows, bilinear in ``(u_i, v)`` and linearised at each Gaussian's mean:
+
+      along:  (A(w) u_i) . v  = r     (noise sigma_r)
+      cross:  (A(w) u_i) x v  = 0     (noise r sigma_b)
+
+  (with ``|u_i| = s_i``, the odometry scale, held near the configured scale). While ``u_i`` is
+  still at its prior (zero mean: heading unknown) the rows are linear in ``u_i`` at the
+  particle's positions, so one sighting already turns ``u_i`` towards the right heading: a
+  bearing pins the relative heading directly, where odometry and ranges reveal it only as the
+  robots move. A bearing-only sighting is the cross row divided by ``|v|`` (noise sigma_b).
+* **No heading** (the sampled start of the heading-estimating localizer: its particles hold
+  positions only): the range alone, which is invariant under rotations and reflections of the
+  formation (:attr:`SightingBatch.invariant_without_shared_heading`); bearings are left to the
+  Gaussian-sum filter.
+
+Every row is one scalar measurement with a fixed variance; the sampled filter's log-likelihood
+is the sum of the rows' robust densities, so the two filters fuse the same model (the test
+suite checks the rows against finite differences of it).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from relloc.events import SightingEvent
+from relloc.filter.measurement import (
+    LinearRow,
+    MeasurementModel,
+    ModelContext,
+    ValidationContext,
+    finite,
+    robust_gaussian,
+)
+from relloc.filter.state import TeamLayout
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+OUTLIER_FRACTION = 0.02
+"""Weight of the uniform floor of every row: misread markers, reflections, a wrong robot."""
+MAX_RANGE = 15.0
+"""Support (m) of the uniform floor of ranges and of the along/cross rows."""
+
+KINDS = ("range", "bearing", "along", "cross", "cross_unit")
+
+
+def wrap(angle: FloatArray | float) -> FloatArray:
+    """``angle`` wrapped to ``[-pi, pi)``, elementwise."""
+    return np.remainder(np.asarray(angle, float) + math.pi, 2.0 * math.pi) - math.pi
+
+
+@dataclass(frozen=True)
+class _Row:
+    """One scalar row of a sighting: which kind (module docstring), the sighting's robots and
+    its measured value, noise, and the direction ``w`` (heading mode)."""
+
+    kind: str
+    observer: int
+    target: int
+    z: float
+    variance: float
+    psi: float = 0.0
+    """Compass: the observer's heading in the shared frame (bearing rows)."""
+    w: tuple[float, float] = (1.0, 0.0)
+    """Heading mode: the measured direction in the observer's odometry frame."""
+    support: float = MAX_RANGE
+
+
+@dataclass(frozen=True)
+class SightingBatch:
+    """The sightings of one batch as scalar rows, for one filter's state layout."""
+
+    events: ClassVar[tuple[type, ...]] = (SightingEvent,)
+    stat: ClassVar[str] = "sighting"
+    invariant: ClassVar[bool] = False
+    invariant_without_shared_heading: ClassVar[bool] = True
+    """Built for a filter with no heading at all (a sampled start under heading estimation)
+    the model is ranges only, which a rotation or reflection of the formation leaves
+    unchanged: the annealed start may spread over those symmetries."""
+    needs_shared_heading: ClassVar[bool] = False
+    conditions: ClassVar[bool] = False
+
+    layout: TeamLayout
+    items: tuple[_Row, ...]
+    outlier_fraction: float = OUTLIER_FRACTION
+    u_columns: dict[int, tuple[int, int]] = field(default_factory=dict)
+    """Heading mode: the state columns of each observer's ``u`` (team index -> columns)."""
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    # ---------------------------------------------------------------- building, validation
+    @classmethod
+    def build(cls, events: Sequence[SightingEvent], context: ModelContext) -> list[MeasurementModel]:
+        """The rows of ``events`` for ``context``'s filter: heading mode where the layout
+        estimates headings, compass where the filter has a shared frame and the observers'
+        yaws are known, ranges only otherwise."""
+        if not events:
+            return []
+        layout = context.layout
+        yaws = context.yaws or {}
+        heading = bool(getattr(layout, "heading", False))
+        compass = not heading and context.shared_heading and context.yaws is not None
+        rows: list[_Row] = []
+        ucols: dict[int, tuple[int, int]] = {}
+        for ev in events:
+            i, j = layout.index(ev.observer), layout.index(ev.target)
+            yaw = yaws.get(ev.observer, math.nan)
+            has_r = ev.range is not None
+            has_b = ev.bearing is not None and finite(yaw) and (heading or compass)
+            if heading and has_b:
+                ucols[i] = layout.u_columns(ev.observer)  # type: ignore[attr-defined]
+                a = float(ev.bearing) + yaw  # type: ignore[arg-type]
+                w = (math.cos(a), math.sin(a))
+                if has_r:
+                    r = float(ev.range)  # type: ignore[arg-type]
+                    rows.append(_Row("along", i, j, r, ev.sigma_range**2, w=w))
+                    rows.append(_Row("cross", i, j, 0.0, (r * ev.sigma_bearing) ** 2, w=w))
+                else:
+                    rows.append(_Row("cross_unit", i, j, 0.0, ev.sigma_bearing**2, w=w, support=2.0))
+                continue
+            if has_r:
+                rows.append(_Row("range", i, j, float(ev.range), ev.sigma_range**2))  # type: ignore[arg-type]
+            if has_b:
+                rows.append(_Row("bearing", i, j, float(ev.bearing), ev.sigma_bearing**2, psi=yaw,  # type: ignore[arg-type]
+                                 support=2.0 * math.pi))
+        if not rows:
+            return []
+        eps = OUTLIER_FRACTION if context.robust else 0.0
+        return [cls(layout, tuple(rows), eps, ucols)]
+
+    @classmethod
+    def rejection(cls, event: SightingEvent, context: ValidationContext) -> str | None:
+        """Unknown or identical robots, no value at all, non-finite or impossible values (a
+        range not above zero, a bearing beyond +-pi, a noise not above zero): counted, never
+        fused."""
+        names = context.layout.robots
+        if event.observer not in names or event.target not in names:
+            return "unknown_robot"
+        if event.observer == event.target:
+            return "self_observation"
+        if event.range is None and event.bearing is None:
+            return "invalid_sighting"
+        values = [v for v in (event.range, event.bearing) if v is not None]
+        if not all(map(finite, (*values, event.sigma_range, event.sigma_bearing))):
+            return "invalid_sighting"
+        if event.sigma_range <= 0.0 or event.sigma_bearing <= 0.0:
+            return "invalid_sighting"
+        if event.range is not None and event.range <= 0.0:
+            return "invalid_sighting"
+        if event.bearing is not None and abs(event.bearing) > math.pi + 1e-9:
+            return "bearing_out_of_range"
+        if context.is_late(event.t):
+            return "late_measurement"
+        return None
+
+    # ---------------------------------------------------------------- the rows
+    def _relative(self, x: FloatArray, row: _Row) -> tuple[FloatArray, FloatArray]:
+        """``v = p_target - p_observer`` of every state ``(M, D)`` (the reference at 0)."""
+        n = x.shape[0]
+        so, st = self.layout.slot_of(row.observer), self.layout.slot_of(row.target)
+        po = x[:, 2 * so : 2 * so + 2] if so >= 0 else np.zeros((n, 2))
+        pt = x[:, 2 * st : 2 * st + 2] if st >= 0 else np.zeros((n, 2))
+        d = pt - po
+        return d[:, 0], d[:, 1]
+
+    def _evaluate(self, x: FloatArray, row: _Row) -> tuple[FloatArray, dict[int, FloatArray]]:
+        """Residual ``z - h(x)`` (wrapped for a bearing) and ``dh/dx`` by state column."""
+        vx, vy = self._relative(x, row)
+        grad_v: tuple[FloatArray, FloatArray]
+        grad_u: tuple[FloatArray, FloatArray] | None = None
+        if row.kind == "range":
+            dist = np.maximum(np.hypot(vx, vy), 1e-9)
+            residual = row.z - dist
+            grad_v = (vx / dist, vy / dist)
+        elif row.kind == "bearing":
+            r2 = np.maximum(vx * vx + vy * vy, 1e-18)
+            residual = wrap(row.z - (np.arctan2(vy, vx) - row.psi))
+            grad_v = (-vy / r2, vx / r2)
+        else:
+            c0, c1 = self.u_columns[row.observer]
+            ux, uy = x[:, c0], x[:, c1]
+            wx, wy = row.w
+            dx, dy = wx * ux - wy * uy, wy * ux + wx * uy  # A(w) u
+            if row.kind == "along":
+                h = dx * vx + dy * vy
+                grad_v = (dx, dy)
+                ax, ay = vx, vy  # dh/dd
+            else:
+                h = dx * vy - dy * vx
+                grad_v = (-dy, dx)
+                ax, ay = vy, -vx
+                if row.kind == "cross_unit":
+                    norm = np.maximum(np.hypot(vx, vy), 1e-9)
+                    h = h / norm
+                    grad_v = (grad_v[0] / norm - h * vx / norm**2, grad_v[1] / norm - h * vy / norm**2)
+                    ax, ay = ax / norm, ay / norm
+            # d = A(w) u: dd/du = A(w), so dh/du = A(w)^T dh/dd
+            grad_u = (wx * ax + wy * ay, -wy * ax + wx * ay)
+            residual = row.z - h
+        grads: dict[int, FloatArray] = {}
+        so, st = self.layout.slot_of(row.observer), self.layout.slot_of(row.target)
+        if st >= 0:
+            grads[2 * st], grads[2 * st + 1] = grad_v
+        if so >= 0:
+            grads[2 * so] = grads.get(2 * so, 0.0) - grad_v[0]
+            grads[2 * so + 1] = grads.get(2 * so + 1, 0.0) - grad_v[1]
+        if grad_u is not None:
+            c0, c1 = self.u_columns[row.observer]
+            grads[c0], grads[c1] = grad_u
+        return residual, grads
+
+    def log_likelihood(self, positions: FloatArray, particles: FloatArray) -> FloatArray:
+        """Sum of the rows' robust densities at every particle ``(M,)``."""
+        total = np.zeros(particles.shape[0])
+        for row in self.items:
+            residual, _ = self._evaluate(particles, row)
+            ll, _ = robust_gaussian(residual, np.full_like(residual, row.variance), self.outlier_fraction, row.support)
+            total += ll
+        return total
+
+    @property
+    def rows(self) -> int:
+        return len(self.items)
+
+    def row(self, k: int, mean: FloatArray) -> LinearRow:
+        """Row ``k`` linearised at every Gaussian's mean ``(M, D)``."""
+        item = self.items[k]
+        residual, grads = self._evaluate(mean, item)
+        cols = np.array(sorted(grads), dtype=np.intp)
+        jac = np.stack([np.broadcast_to(grads[c], residual.shape) for c in cols], axis=1)
+        return LinearRow(cols, jac, residual, item.variance, self.outlier_fraction, item.support)
+
+    def condition(self, positions: FloatArray, particles: FloatArray) -> None:
+        """No sufficient statistics in the state."""

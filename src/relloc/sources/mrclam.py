@@ -1,0 +1,199 @@
+"""The UTIAS MRCLAM data sets as an event source: wheel odometry, teammate sightings, Vicon.
+
+MRCLAM (Leung, Halpern, Barfoot, Liu, IJRR 2011) is the standard benchmark of cooperative
+localization: five iRobot Creates, a monocular camera each that reads the barcodes of the
+teammates and of static landmarks, and Vicon ground truth. A data set folder holds, per robot
+``i``, whitespace-separated text files with ``#`` comment lines:
+
+* ``Robot{i}_Odometry.dat``: ``time, forward velocity, angular velocity`` (about 70 Hz). The
+  source integrates it (each command holds until the next sample) into a pose in the robot's
+  own odometry frame, starting at the origin with yaw 0: nothing comes from the ground truth.
+* ``Robot{i}_Measurement.dat``: ``time, barcode, range, bearing`` in the observer's body
+  frame. ``Barcodes.dat`` maps subject numbers to barcodes; subjects ``1..5`` are the robots,
+  the others static landmarks, which relloc ignores (it is infrastructure-free; counted as
+  ``landmark_sightings``).
+* ``Robot{i}_Groundtruth.dat``: ``time, x, y, orientation`` (Vicon, about 65 Hz), for
+  evaluation only.
+
+The team config (``configs/mrclam/``) names the robots ``robot1`` .. ``robot5`` after the
+subject numbers. Each sighting carries the camera's noise, a range sigma that grows with the
+distance and a bearing sigma (:data:`RANGE_SIGMA`, :data:`RANGE_SIGMA_PER_M`,
+:data:`BEARING_SIGMA`): docs/mrclam.md says where the values come from.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import NDArray
+
+from relloc.config import TeamConfig
+from relloc.events import Event, GroundTruthEvent, OdometryEvent, SightingEvent
+
+FloatArray = NDArray[np.float64]
+
+RANGE_SIGMA = 0.06
+"""Range noise of the MRCLAM camera at zero distance (m)."""
+RANGE_SIGMA_PER_M = 0.02
+"""Growth of the range noise with the distance (m per m): 0.08 m at 1 m, 0.14 m at 4 m."""
+BEARING_SIGMA = math.radians(1.0)
+"""Bearing noise (rad): the barcode's bearing is good to 0.4 deg, the rest covers the time
+stamp of a sighting taken while the robots turn."""
+
+ROBOT_SUBJECTS = range(1, 6)
+"""Subject numbers of the robots in ``Barcodes.dat``."""
+
+
+class MrclamError(Exception):
+    """The folder is not an MRCLAM data set (the message says what is missing)."""
+
+
+def is_mrclam(path: str | Path) -> bool:
+    """Whether ``path`` is a folder that holds an MRCLAM data set."""
+    p = Path(path)
+    return p.is_dir() and (p / "Barcodes.dat").is_file() and (p / "Robot1_Odometry.dat").is_file()
+
+
+def read_table(path: Path, columns: int) -> FloatArray:
+    """The numeric rows of an MRCLAM ``.dat`` file as ``(n, columns)`` (comments skipped)."""
+    if not path.is_file():
+        raise MrclamError(f"{path} is missing")
+    rows = np.loadtxt(path, comments="#", ndmin=2)
+    if rows.size == 0:
+        return np.zeros((0, columns))
+    if rows.shape[1] != columns:
+        raise MrclamError(f"{path}: expected {columns} columns, found {rows.shape[1]}")
+    return rows
+
+
+def integrate_odometry(table: FloatArray) -> FloatArray:
+    """Poses ``(n, 3)`` (x, y, yaw) at each sample's time from velocity commands ``(n, 3)``
+    (time, v, w): each command holds until the next sample (exact arcs, not Euler steps)."""
+    t, v, w = table[:, 0], table[:, 1], table[:, 2]
+    n = len(t)
+    out = np.zeros((n, 3))
+    dt = np.diff(t)
+    x = y = yaw = 0.0
+    for k in range(1, n):  # one robot's samples, not particles: a plain loop
+        d, vk, wk = dt[k - 1], v[k - 1], w[k - 1]
+        turn = wk * d
+        if abs(turn) < 1e-9:
+            x += vk * d * math.cos(yaw + 0.5 * turn)
+            y += vk * d * math.sin(yaw + 0.5 * turn)
+        else:
+            radius = vk / wk
+            x += radius * (math.sin(yaw + turn) - math.sin(yaw))
+            y -= radius * (math.cos(yaw + turn) - math.cos(yaw))
+        yaw = math.remainder(yaw + turn, math.tau)
+        out[k] = (x, y, yaw)
+    return out
+
+
+@dataclass
+class MrclamStats:
+    """What the source read and left out."""
+
+    counts: Counter[str]
+
+    @property
+    def rejected(self) -> dict[str, int]:
+        return {k.removeprefix("rejected_"): v for k, v in self.counts.items() if k.startswith("rejected_")}
+
+    def as_dict(self) -> dict[str, int]:
+        return dict(self.counts)
+
+
+class MrclamSource:
+    """An MRCLAM data set folder as time-ordered events for ``config``'s robots."""
+
+    def __init__(
+        self, folder: str | Path, config: TeamConfig, *, ground_truth: bool = True, sightings: str = "both"
+    ) -> None:
+        if sightings not in ("both", "range", "bearing"):
+            raise ValueError(f"sightings must be both, range or bearing, not {sightings!r}")
+        self.folder = Path(folder)
+        self.use = sightings
+        """What of each sighting to pass on: ``both``, ``range`` (bearing left out) or ``bearing``."""
+        if not is_mrclam(self.folder):
+            raise MrclamError(f"{self.folder} is not an MRCLAM data set (no Barcodes.dat / Robot1_Odometry.dat)")
+        self.config = config
+        self.ground_truth = ground_truth
+        self.warnings: list[str] = []
+        self.stats = MrclamStats(Counter())
+        self.robots = {self._subject(r.name): r.name for r in config.robots}
+        barcodes = read_table(self.folder / "Barcodes.dat", 2)
+        self.barcode_subject = {int(b): int(s) for s, b in barcodes}
+        self.odometry = {i: read_table(self.folder / f"Robot{i}_Odometry.dat", 3) for i in self.robots}
+        self.measurements = {i: read_table(self.folder / f"Robot{i}_Measurement.dat", 4) for i in self.robots}
+        self.truth = {i: read_table(self.folder / f"Robot{i}_Groundtruth.dat", 4) for i in self.robots}
+        starts = [t[0, 0] for t in self.odometry.values() if len(t)]
+        ends = [t[-1, 0] for t in self.odometry.values() if len(t)]
+        if not starts:
+            raise MrclamError(f"{self.folder}: no odometry")
+        self.start_time = float(min(starts))
+        self.end_time = float(max(ends))
+
+    def initial_poses(self) -> dict[str, tuple[float, float, float]]:
+        """Every robot's Vicon pose at its first odometry sample: the start of an oracle
+        baseline (``ekf_oracle``), never given to relloc's filters."""
+        out = {}
+        for i, name in self.robots.items():
+            truth, t = self.truth[i], self.odometry[i][0, 0]
+            k = min(int(np.searchsorted(truth[:, 0], t)), len(truth) - 1)
+            out[name] = (float(truth[k, 1]), float(truth[k, 2]), float(truth[k, 3]))
+        return out
+
+    @staticmethod
+    def _subject(name: str) -> int:
+        digits = name.removeprefix("robot")
+        if not digits.isdigit() or int(digits) not in ROBOT_SUBJECTS:
+            raise MrclamError(f"MRCLAM robots are named robot1 .. robot5 (subject numbers), not {name!r}")
+        return int(digits)
+
+    @property
+    def duration(self) -> float:
+        return self.end_time - self.start_time
+
+    def __iter__(self) -> Iterator[Event]:
+        streams = [self._odometry(i) for i in self.robots]
+        streams += [self._sightings(i) for i in self.robots]
+        if self.ground_truth:
+            streams += [self._truth(i) for i in self.robots]
+        yield from heapq.merge(*streams, key=lambda ev: ev.t)
+
+    def _odometry(self, subject: int) -> Iterator[OdometryEvent]:
+        table, name = self.odometry[subject], self.robots[subject]
+        poses = integrate_odometry(table)
+        for (t, v, w), (x, y, yaw) in zip(table.tolist(), poses.tolist(), strict=True):
+            self.stats.counts["odometry"] += 1
+            yield OdometryEvent(t, name, x, y, yaw, v, w)
+
+    def _sightings(self, subject: int) -> Iterator[SightingEvent]:
+        name = self.robots[subject]
+        for t, code, r, b in self.measurements[subject].tolist():
+            target = self.barcode_subject.get(int(code))
+            if target is None:
+                self.stats.counts["rejected_unknown_barcode"] += 1
+                continue
+            if target not in ROBOT_SUBJECTS:
+                self.stats.counts["landmark_sightings"] += 1
+                continue
+            if target not in self.robots:
+                self.stats.counts["rejected_robot_not_in_team"] += 1
+                continue
+            self.stats.counts["sightings"] += 1
+            yield SightingEvent(
+                t, name, self.robots[target], None if self.use == "bearing" else r,
+                None if self.use == "range" else b, RANGE_SIGMA + RANGE_SIGMA_PER_M * r, BEARING_SIGMA, "camera",
+            )
+
+    def _truth(self, subject: int) -> Iterator[GroundTruthEvent]:
+        name = self.robots[subject]
+        for t, x, y, yaw in self.truth[subject].tolist():
+            yield GroundTruthEvent(t, name, x, y, yaw)
