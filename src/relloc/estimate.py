@@ -36,6 +36,9 @@ class Estimate:
     prior says the bias is unobservable so far (the pair's distance has not changed)."""
     scales: dict[str, tuple[float, float]] = field(default_factory=dict)
     """Online-scale mode: per robot, the odometry scale (mean, std)."""
+    recovering: bool = False
+    """The localizer found itself lost (most of a robot's ranges disagree with the estimate)
+    and is re-injecting hypotheses: the positions are not to be trusted until it clears."""
 
     def std(self, robot: str) -> float:
         """Position standard deviation of ``robot``: sqrt of the covariance's largest eigenvalue."""
