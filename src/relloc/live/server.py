@@ -216,6 +216,7 @@ class LiveServer:
                 "last_estimate_t": None if last_est is None else last_est.t,
                 "ess": None if last_est is None or last_est.ess is None else round(last_est.ess, 1),
                 "rejected": dict(p.localizer.rejected),
+                "faults": p.localizer.fault_counters(),
                 "compute_s": round(p.compute_s, 4),
                 "stats": {k: v for k, v in p.stats().items() if not k.startswith("rejected_")},
             }

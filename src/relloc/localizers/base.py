@@ -338,6 +338,17 @@ class Localizer:
         if n == 1 or n % 1000 == 0:
             log.warning("rejected %s (%s, %d so far): %r", type(event).__name__, reason, n, event)
 
+    def fault_counters(self) -> dict[str, Any]:
+        """What the faults did (for the status and ``--json``): whether the filter is
+        recovering now, how often it was found lost and re-started, clock steps followed and
+        stamps rejected as outliers, odometry resets or jumps per robot, batches forced."""
+        keys = ("divergence_detected", "recovery_injections", "clock_jumps_followed", "batches_forced",
+                "odometry_reanchored", "rejected_time_jump", "rejected_time_jump_backward")
+        out: dict[str, Any] = {k.removeprefix("rejected_"): self.stats.get(k, 0) for k in keys}
+        out["recovering"] = self.recovering
+        out["odometry_faults"] = dict(self.odometry_faults)
+        return out
+
     @property
     def rejected(self) -> dict[str, int]:
         return {k.removeprefix("rejected_"): v for k, v in self.stats.items() if k.startswith("rejected_")}
