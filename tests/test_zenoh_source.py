@@ -180,6 +180,7 @@ def test_late_events_reach_the_localizer_which_rejects_what_is_too_late() -> Non
     src.handle("a/odom", odom_payload("a", T0 + 0.08, 0.08), 50.35)  # later than the window
     server.feed(src.release(50.35))
     server.feed(src.flush())
+    server.engine.finish()  # five events of one robot: the team clock is set at the end
     loc = server.pipelines[0].localizer
     assert loc.stats["odometry"] == 4
     assert loc.rejected == {"out_of_order_odometry": 1}
@@ -280,3 +281,12 @@ def test_the_shortbag_fed_live_gives_the_bag_sources_events(shared_data: Path) -
     assert src.stats.repeated_ranges == 111
     assert src.stats.rejected == {"detection_zero_position": 80}
     assert src.stats.out_of_order == 1368  # detections come 0.3 s late, past the 0.2 s window
+
+
+def test_own_outputs_are_counted_not_rejected() -> None:
+    """With ``--subscribe-all`` the server receives its own poses and status: counted apart."""
+    src = ZenohSource(team(), ZenohSourceOptions(own_prefix="relloc"))
+    src.handle("relloc/status", b"{}", T0)
+    src.handle("relloc/b/pose", b"\x00", T0)
+    src.handle("someone/else/odom", odom_payload("a", T0), T0)
+    assert src.own_outputs == 2 and src.stats.rejected == {"unknown_key": 1}

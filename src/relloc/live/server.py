@@ -88,6 +88,7 @@ class LiveServer:
                 clock_rate=opts.clock_rate,
                 detections=any(m in DETECTION_METHODS for m in opts.methods),
                 subscribe_all=opts.subscribe_all,
+                own_prefix=opts.out_prefix,
             ),
         )
         self.sink = ZenohSink(
@@ -239,6 +240,7 @@ class LiveServer:
                 "restamped": sum(st.restamped.values()),
                 "transport": self.source.transport.as_dict(),
                 "queue_depth": self.source.queue_depth,
+                "own_outputs": self.source.own_outputs,
                 "buffer_depth": len(self.source.buffer),
             },
             "robots": robots,

@@ -209,6 +209,9 @@ class ZenohSourceOptions:
     ``unknown_key``): shows what else is published, at the cost of receiving it."""
     queue_size: int = 10000
     """Samples waiting for the engine thread; beyond that new ones are dropped (``queue_full``)."""
+    own_prefix: str = ""
+    """Key prefix of what this process publishes itself (the server's poses and status): with
+    ``subscribe_all`` those keys come back, and are counted ``own_output``, not rejected."""
 
 
 _WAKE = object()
@@ -226,6 +229,8 @@ class ZenohSource:
         self.config = config
         self.options = opts = options or ZenohSourceOptions()
         self.interface = opts.interface
+        self.own_outputs = 0
+        """Messages received on this process's own output keys (``own_prefix``)."""
         self.routes = build_routes(
             config,
             interface=opts.interface,
@@ -370,6 +375,11 @@ class ZenohSource:
         topic_key, dds_type, type_hash_ = self.interface.split_key(key)
         route = self.routes.get(topic_key)
         if route is None:
+            own = self.options.own_prefix.strip("/").split("/")
+            parts = topic_key.strip("/").split("/")
+            if own != [""] and own in (parts[: len(own)], parts[1 : 1 + len(own)]):  # rmw: after the domain
+                self.own_outputs += 1
+                return
             self._converter.reject("unknown_key", key)
             return
         if self.interface.rmw:
