@@ -2,8 +2,9 @@
 
 A fault is a function of the event stream, not of a source, so the same faults serve the
 simulator, a bag run and a live replay alike (the commands apply :func:`inject` to whatever
-their source yields). Every fault is seeded and deterministic; a stream with no fault passes
-through unchanged.
+their source yields; ``relloc serve`` applies a :class:`FaultInjector` to every event it
+receives, which covers a live replay). Every fault is seeded and deterministic; a stream with
+no fault passes through unchanged.
 
 * ``drop``: each measurement (odometry, range, detection) is lost with a probability;
 * ``silence``: one robot sends nothing in a time window (its odometry, its ranges, its
@@ -83,19 +84,41 @@ class _State:
     truth: dict[str, tuple[float, float]] = field(default_factory=dict)
 
 
+class FaultInjector:
+    """The faults applied one event at a time, for a stream that is not an iterable (the live
+    server's arrivals): ``injector(event)`` is the event as faulted, or ``None`` if lost. The
+    counters say what was done (``dropped``, ``silenced``, ``shifted``, ...)."""
+
+    def __init__(self, faults: Faults) -> None:
+        self.faults = faults
+        self.state = _State(np.random.default_rng(faults.seed))
+        self.index = 0
+        self.counts: dict[str, int] = {}
+        self._shifts = dict(faults.stamp_shift)
+
+    def __call__(self, ev: Event) -> Event | None:
+        f = self.faults
+        index, self.index = self.index, self.index + 1
+        out = _transform(ev, f, self.state, self.counts)
+        if out is None:
+            return None
+        dt = self._shifts.get(index, 0.0) + sum(d for t0, d in f.stream_jump if ev.t >= t0)
+        if dt:
+            self.counts["shifted"] = self.counts.get("shifted", 0) + 1
+            return dataclasses.replace(out, t=out.t + dt)
+        return out
+
+
 def inject(events: Iterable[Event], faults: Faults) -> Iterator[Event]:
     """``events`` with ``faults`` applied (times are the original stream's)."""
     if not faults.active:
         yield from events
         return
-    state = _State(np.random.default_rng(faults.seed))
-    shifts = dict(faults.stamp_shift)
-    for index, ev in enumerate(events):
-        out = _transform(ev, faults, state)
-        if out is None:
-            continue
-        dt = shifts.get(index, 0.0) + sum(d for t0, d in faults.stream_jump if ev.t >= t0)
-        yield dataclasses.replace(out, t=out.t + dt) if dt else out
+    injector = FaultInjector(faults)
+    for ev in events:
+        out = injector(ev)
+        if out is not None:
+            yield out
 
 
 def _robots(ev: Event) -> tuple[str, ...]:
@@ -104,16 +127,18 @@ def _robots(ev: Event) -> tuple[str, ...]:
     return (getattr(ev, "robot", ""),)
 
 
-def _transform(ev: Event, f: Faults, s: _State) -> Event | None:
+def _transform(ev: Event, f: Faults, s: _State, counts: dict[str, int]) -> Event | None:
     if isinstance(ev, GroundTruthEvent):
         dx, dy = _kidnap_offset(f, ev.robot, ev.t)
         s.truth[ev.robot] = (ev.x, ev.y)  # the untouched truth: ranges are corrected from it
         return dataclasses.replace(ev, x=ev.x + dx, y=ev.y + dy) if dx or dy else ev
     if isinstance(ev, OdometryEvent | RangeEvent | DetectionEvent):
         if f.drop > 0.0 and s.rng.random() < f.drop:
+            counts["dropped"] = counts.get("dropped", 0) + 1
             return None
         robots = _robots(ev)
         if any(w.covers(ev.t) and (not w.robot or w.robot in robots) for w in f.silence):
+            counts["silenced"] = counts.get("silenced", 0) + 1
             return None
     if isinstance(ev, RangeEvent):
         d = ev.distance + sum(off for w, off in f.range_burst if w.covers(ev.t))
@@ -228,7 +253,8 @@ def parse(
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The fault-injection options of the commands that run a stream (``relloc demo``,
-    ``relloc run``, ``relloc serve``); times are the stream's (s)."""
+    ``relloc run``, ``relloc serve``: a replayed bag is faulted where it is received); times
+    are the stream's (s)."""
     g = parser.add_argument_group("fault injection (for testing robustness)")
     g.add_argument("--drop", type=float, default=0.0, metavar="P", help="lose each measurement with probability P")
     g.add_argument("--silence", action="append", default=[], metavar="ROBOT:START:END", help="a robot sends nothing then")

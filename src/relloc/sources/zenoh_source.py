@@ -215,6 +215,9 @@ class ZenohSourceOptions:
 
 
 _WAKE = object()
+_FUTURE_SLACK = 0.0
+"""How far (s) a stamp may lead the header clock's estimate of now and still advance the
+reorder buffer (what a future stamp can move the buffer's time by)."""
 
 
 class ZenohSource:
@@ -391,7 +394,13 @@ class ZenohSource:
         event = self._converter.convert(route, topic_key, payload, received)
         if event is not None:
             self.buffer.push(event.t, Arrival(event, topic_key, received, sent), received)
-            self.buffer.advance(event.t)
+            # The buffer's time advances with the stamps, but never past the header clock's now
+            # (plus a slack): one message stamped in the future must not release everything
+            # held, and make every later message late, for the rest of the run.
+            t = event.t
+            if self.buffer.window > 0.0:
+                t = min(t, self.clock.offset(route.kind) + self.clock.rate * received + _FUTURE_SLACK)
+            self.buffer.advance(t)
 
     def _rmw_envelope(
         self, topic_key: str, dds_type: str | None, hash_: str | None, attachment: bytes | None
