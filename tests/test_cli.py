@@ -7,6 +7,7 @@ Fast: tiny configs, a 3 s synthetic bag (``test_rosbag_source``) and small CSVs;
 from __future__ import annotations
 
 import argparse
+import time
 import tomllib
 from collections.abc import Callable
 from pathlib import Path
@@ -294,3 +295,18 @@ def test_serve_summary_in_sentences_and_iso_times(capsys: pytest.CaptureFixture[
     assert "source dropped 2 messages that could not be decoded [decode_error]" in out
     assert "pf dropped 539 ranges equal to their pair's previous one [repeated_range]" in out
     assert "{" not in out
+
+
+def test_a_second_interrupt_exits_at_once_with_130() -> None:
+    import os
+    import signal
+
+    from relloc.cli.common import stop_on_signals
+
+    with pytest.raises(SystemExit) as info, stop_on_signals() as stop:
+        os.kill(os.getpid(), signal.SIGINT)
+        assert stop.wait(1.0)
+        os.kill(os.getpid(), signal.SIGINT)
+        for _ in range(100):  # the handler runs between bytecodes of this thread
+            time.sleep(0.01)
+    assert info.value.code == 130

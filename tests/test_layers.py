@@ -16,7 +16,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "relloc"
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("events", "config", "estimate", "odometry"),
     ("filter",),
-    ("localizers", "stages", "ranging", "ros", "simulator"),
+    ("localizers", "stages", "ranging", "ros", "simulator", "faults"),
     ("sources",),
     ("engine", "methods"),
     ("sinks", "evaluation"),

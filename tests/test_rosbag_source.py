@@ -374,7 +374,7 @@ def _copy_bag(shared_data: Path, tmp_path: Path, folder: str) -> Path:
 
 @pytest.mark.shared_data
 @pytest.mark.parametrize("damage", ["truncate", "garble"])
-def test_damaged_bag_is_a_bag_error(shared_data: Path, tmp_path: Path, damage: str) -> None:
+def test_damaged_bag_is_read_as_far_as_readable(shared_data: Path, tmp_path: Path, damage: str) -> None:
     folder = "pair_chair_moving_20220923"
     bag = _copy_bag(shared_data, tmp_path, folder)
     (db3,) = bag.glob("*.db3")
@@ -387,8 +387,25 @@ def test_damaged_bag_is_a_bag_error(shared_data: Path, tmp_path: Path, damage: s
             fh.seek(size // 3)
             fh.write(bytes(range(256)) * 400)
     cfg = TeamConfig.load(CONFIGS / f"{folder}.toml")
-    with pytest.raises(BagError, match="corrupted or truncated"):
-        list(RosbagSource(bag, cfg))
+    if damage == "truncate":  # sqlite reads no message row of the half file: nothing to salvage
+        with pytest.raises(BagError, match="corrupted or truncated"):
+            list(RosbagSource(bag, cfg))
+        return
+    # garbled pages: the rows before them are read, with a warning that says how much was lost
+    source = RosbagSource(bag, cfg)
+    events = list(source)
+    assert source.warnings[-1].endswith("3230 of its 8923 messages readable, 5693 (64 %) lost; reading what is readable")
+    assert len(events) == 2476 and source.stats.rejected["bag_damaged"] == 1
+
+
+@pytest.mark.parametrize(
+    "text", ["this: is: [not yaml\n\x00\xff", "a: [1, 2\n", "rosbag2_bagfile_information:\n  version: 5\n", "42\n"]
+)
+def test_garbage_metadata_is_a_bag_error_naming_the_file(tmp_path: Path, text: str) -> None:
+    (tmp_path / "metadata.yaml").write_bytes(text.encode("latin-1"))
+    with pytest.raises(BagError, match=r"its metadata\.yaml is not rosbag2 metadata") as info:
+        RosbagSource(tmp_path, TeamConfig.load(CONFIGS / "multi4_shortbag_20221011.toml"))
+    assert "\n" not in str(info.value)
 
 
 @pytest.mark.shared_data

@@ -180,6 +180,7 @@ def test_late_events_reach_the_localizer_which_rejects_what_is_too_late() -> Non
     src.handle("a/odom", odom_payload("a", T0 + 0.08, 0.08), 50.35)  # later than the window
     server.feed(src.release(50.35))
     server.feed(src.flush())
+    server.engine.finish()  # five events of one robot: the team clock is set at the end
     loc = server.pipelines[0].localizer
     assert loc.stats["odometry"] == 4
     assert loc.rejected == {"out_of_order_odometry": 1}
@@ -280,3 +281,52 @@ def test_the_shortbag_fed_live_gives_the_bag_sources_events(shared_data: Path) -
     assert src.stats.repeated_ranges == 111
     assert src.stats.rejected == {"detection_zero_position": 80}
     assert src.stats.out_of_order == 1368  # detections come 0.3 s late, past the 0.2 s window
+
+
+def test_own_outputs_are_counted_not_rejected() -> None:
+    """With ``--subscribe-all`` the server receives its own poses and status: counted apart."""
+    src = ZenohSource(team(), ZenohSourceOptions(own_prefix="relloc"))
+    src.handle("relloc/status", b"{}", T0)
+    src.handle("relloc/b/pose", b"\x00", T0)
+    src.handle("someone/else/odom", odom_payload("a", T0), T0)
+    assert src.own_outputs == 2 and src.stats.rejected == {"unknown_key": 1}
+
+
+def test_the_server_injects_faults_and_reports_them_in_the_status() -> None:
+    from relloc.faults import Faults, Window
+
+    opts = ServeOptions(faults=Faults(drop=0.3, silence=(Window(T0 + 1.0, T0 + 2.0, "a"),), seed=1))
+    server = LiveServer(team(), _Nothing(), opts)
+    src = server.source
+    for k in range(40):
+        src.handle("a/odom", odom_payload("a", T0 + 0.1 * k, 0.01 * k), 50.0 + 0.1 * k)
+    server.feed(src.flush())
+    server.engine.finish()
+    status = server.status()
+    injected = status["injected_faults"]
+    assert injected["silenced"] + injected["dropped"] + server.pipelines[0].localizer.stats["odometry"] == 40
+    assert injected["silenced"] >= 5 and injected["dropped"] >= 5
+    faults = status["methods"]["pf"]["faults"]
+    assert faults["recovering"] is False and faults["odometry_reanchored"] == 0
+    assert set(faults) >= {"divergence_detected", "clock_jumps_followed", "time_jump", "time_jump_backward"}
+
+
+def test_one_future_stamp_does_not_disable_the_reorder_window() -> None:
+    """A message stamped an hour ahead neither releases what is held nor makes later messages
+    late (the buffer's time follows the header clock, not the newest stamp): the swapped
+    messages after it are still put in order."""
+    src = ZenohSource(team(), ZenohSourceOptions(reorder_window=0.2))
+    out = []
+    for k in range(20):
+        src.handle("a/odom", odom_payload("a", T0 + 0.1 * k), T0 + 0.1 * k + 0.01)
+        out += src.release(T0 + 0.1 * k + 0.01)
+    src.handle("a/odom", odom_payload("a", T0 + 3600.0), T0 + 2.0)
+    for k in range(20, 40, 2):  # each pair arrives swapped
+        src.handle("a/odom", odom_payload("a", T0 + 0.1 * (k + 1)), T0 + 0.1 * k + 0.01)
+        src.handle("a/odom", odom_payload("a", T0 + 0.1 * k), T0 + 0.1 * k + 0.02)
+        out += src.release(T0 + 0.1 * k + 0.02)
+    out += src.flush()
+    stamps = [a.event.t for a in out]
+    assert len(stamps) == 41 and T0 + 3600.0 in stamps  # let out after its hold (the localizer rejects it)
+    normal = [t for t in stamps if t < T0 + 10.0]
+    assert normal == sorted(normal) and src.stats.out_of_order == 0

@@ -222,12 +222,18 @@ class OdometryConfig(_Checked):
     the shared heading (a model of the compass, unlike ``rotation_kernel``)."""
     max_odom_extrapolation: float = 0.5
     """How far past a robot's last odometry message its motion is extrapolated (s)."""
+    max_speed: float = 1.5
+    """Fastest a robot's odometry may move it (m/s; ground robots): a faster step between two
+    messages (beyond a 0.25 m jitter slack) is a reset or jump, and re-anchors that robot's
+    odometry track instead of moving it (counted ``odometry_reanchored``)."""
+    max_yaw_rate: float = 4.0
+    """Fastest a robot's odometry may turn it (rad/s; 0.3 rad of slack), as ``max_speed``."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         _require(self, "filter.odometry", non_negative=(
             "odom_noise_per_m", "odom_noise_per_rad", "process_noise", "rotation_noise", "max_odom_extrapolation",
-        ))
+        ), positive=("max_speed", "max_yaw_rate"))
 
 
 @dataclass(frozen=True)
@@ -368,9 +374,12 @@ class FilterConfig(_Checked):
     """After the annealed start, spread particles over rotations/reflections about the reference
     (exact while only ranges have been seen); odometry motion then selects the right one."""
     max_time_jump: float = 5.0
-    """An event stamped more than this (s) after the newest accepted one is rejected
-    (``time_jump``) unless three events in a row agree on the new time: one corrupted stamp
-    must not drag the filter's clock away; a real gap in a recording costs two events."""
+    """The team clock's tolerance (s): an event stamped more than this after the newest
+    accepted one (or before it, where it could no longer be used) is rejected (``time_jump``,
+    ``time_jump_backward``) unless agreeing stamps from two sources outvote the events
+    accepted meanwhile (:mod:`relloc.localizers.base`): one corrupted stamp, or one robot's
+    wrong clock, must not drag the filter's clock away; a real step of the whole stream is
+    followed after three events."""
     likelihood: LikelihoodConfig = field(default_factory=LikelihoodConfig)
     odometry: OdometryConfig = field(default_factory=OdometryConfig)
     resampling: ResamplingConfig = field(default_factory=ResamplingConfig)

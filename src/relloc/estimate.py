@@ -64,11 +64,16 @@ class Estimate:
     distances: dict[str, tuple[float, float]] = field(default_factory=dict)
     """Every pair's distance (mean, std) in m, keyed by :func:`relloc.events.pair_key`; the
     reference's pairs included."""
+    recovering: bool = False
+    """The localizer found itself lost (most of a robot's ranges disagree with the estimate)
+    and is re-injecting hypotheses: the positions are not to be trusted until it clears."""
 
     @property
     def status(self) -> str:
         """One line on what the estimate means: what would resolve the orientation, or that
-        the posterior has competing modes, or ``ok``."""
+        the posterior has competing modes, that the localizer is recovering, or ``ok``."""
+        if self.recovering:
+            return "recovering: the measurements stopped fitting the estimate; hypotheses are being re-injected"
         if not self.orientation_observable:
             return RESOLVE_HINT
         if self.mode_weight < DOMINANT_MODE_WEIGHT:

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import bisect
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -62,6 +62,42 @@ class OdometryTrack:
         self._t: list[float] = []
         self._s: list[_Sample] = []
         self._last_event: OdometryEvent | None = None
+        self._correction = (0.0, 0.0, 0.0)  # (angle, dx, dy) applied after a re-anchoring
+        self._hold_twist = False
+        self.reanchors = 0
+
+    @property
+    def last_event(self) -> OdometryEvent | None:
+        """The last message added, as given (``None`` before the first)."""
+        return self._last_event
+
+    def reanchor(self, ev: OdometryEvent) -> None:
+        """The next message, ``ev``, jumps (a driver restart, a corrupted integrator): from it
+        on, poses are mapped so that ``ev`` continues the track where its last velocity would
+        have taken it, instead of moving the robot. Twist mode integrates ``ev`` with the last
+        message's velocities instead of its own."""
+        self.reanchors += 1
+        if self.mode == "twist" or self.empty:
+            self._hold_twist = True
+            return
+        x, y, yaw = self._frame(ev)
+        tx, ty, tyaw, _ = self.pose_at(ev.t)
+        angle = math.remainder(tyaw - yaw, math.tau)
+        c, s = math.cos(angle), math.sin(angle)
+        self._correction = (angle, tx - (c * x - s * y), ty - (s * x + c * y))
+
+    def shift_time(self, dt: float) -> None:
+        """Every time held moved by ``dt`` (the team's clock stepped)."""
+        self._t = [t + dt for t in self._t]
+        for sample in self._s:
+            sample.t += dt
+        if self._last_event is not None:
+            self._last_event = replace(self._last_event, t=self._last_event.t + dt)
+
+    def _frame(self, ev: OdometryEvent) -> tuple[float, float, float]:
+        """``ev``'s pose in the shared frame, before any re-anchoring."""
+        c, s = math.cos(self.heading_offset), math.sin(self.heading_offset)
+        return self.scale * (c * ev.x - s * ev.y), self.scale * (s * ev.x + c * ev.y), ev.yaw + self.heading_offset
 
     @property
     def empty(self) -> bool:
@@ -73,13 +109,18 @@ class OdometryTrack:
 
     def add(self, ev: OdometryEvent) -> None:
         """Append a message; its time must be later than the last one's (the caller checks)."""
-        c, s = math.cos(self.heading_offset), math.sin(self.heading_offset)
         prev = self._last_event
         if self.mode == "pose" or prev is None:
-            x = self.scale * (c * ev.x - s * ev.y)
-            y = self.scale * (s * ev.x + c * ev.y)
-            sample = _Sample(ev.t, x, y, ev.yaw + self.heading_offset)
+            x, y, yaw = self._frame(ev)
+            angle, dx, dy = self._correction
+            if angle or dx or dy:
+                c, s = math.cos(angle), math.sin(angle)
+                x, y, yaw = c * x - s * y + dx, s * x + c * y + dy, yaw + angle
+            sample = _Sample(ev.t, x, y, yaw)
         else:
+            if self._hold_twist:
+                ev = replace(ev, v=prev.v, w=prev.w)
+                self._hold_twist = False
             last = self._s[-1]
             dt = ev.t - prev.t
             w = 0.5 * (prev.w + ev.w)

@@ -17,10 +17,12 @@ import logging
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from relloc import __version__
 from relloc.cli import argtypes
 from relloc.cli.common import UserError, check_writable, is_user_error, options_from_args
+from relloc.faults import add_arguments as add_fault_arguments
 
 _COMMAND_MODULES = ("relloc.cli.ranging", "relloc.cli.live", "relloc.cli.bench_resources", "relloc.cli.navigation")
 """Command families with a ``register(subparsers)`` of their own. None imports an optional
@@ -53,11 +55,21 @@ def _cmd_demo(args: argparse.Namespace) -> int:
         if name not in known:
             raise UserError(f"unknown scenario {name!r}; known: {', '.join(known)}")
     opts = options_from_args(
-        DemoOptions, args, methods=tuple(parse_methods(args.methods)), scenarios=tuple(args.scenarios.split(","))
+        DemoOptions, args, methods=tuple(parse_methods(args.methods)), scenarios=tuple(args.scenarios.split(",")),
+        faults=_faults(args),
     )
     _check_outputs(args)
     run_demo(opts)
     return 0
+
+
+def _faults(args: argparse.Namespace) -> Any:
+    from relloc import faults
+
+    try:
+        return faults.from_args(args)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
@@ -69,7 +81,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     config = TeamConfig.load(args.config)
     if args.out is None:
         args.out = Path("out") / recording_name(args.bag)
-    opts = options_from_args(RunOptions, args, methods=tuple(parse_methods(args.methods)))
+    opts = options_from_args(RunOptions, args, methods=tuple(parse_methods(args.methods)), faults=_faults(args))
     _check_outputs(args)
     run_recording(Path(args.bag), config, opts)
     return 0
@@ -161,6 +173,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--out", type=Path, default=Path("out/demo"), help="folder for plots")
     demo.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE", help="write the figures as JSON")
     demo.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+    add_fault_arguments(demo)
     _add_mode_flags(demo)
     demo.set_defaults(handler=_cmd_demo)
 
@@ -184,6 +197,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE", help="write the figures as JSON")
     run.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+    add_fault_arguments(run)
     _add_mode_flags(run)
     run.add_argument("--reference", default=None, metavar="ROBOT", help="another reference robot (default: the config's reference)")
     run.add_argument(

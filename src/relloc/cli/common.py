@@ -67,10 +67,14 @@ def is_user_error(exc: Exception) -> bool:
 
 @contextmanager
 def stop_on_signals(on_stop: Callable[[], None] | None = None) -> Iterator[threading.Event]:
-    """An event set by SIGINT/SIGTERM while the block runs (``on_stop`` is called too)."""
+    """An event set by SIGINT/SIGTERM while the block runs (``on_stop`` is called too). A
+    second signal, while the first one's shutdown is still running, exits at once with the
+    shell's code for an interrupt (130), the ``finally`` blocks still run."""
     stop = threading.Event()
 
     def handler(*_: Any) -> None:
+        if stop.is_set():
+            raise SystemExit(130)
         stop.set()
         if on_stop is not None:
             on_stop()

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -28,6 +28,7 @@ from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
+from relloc.faults import Faults, inject
 from relloc.methods import DETECTION_METHODS, build_pipeline
 from relloc.simulator import Simulation, multi_scenario, single_scenario
 from relloc.simulator.scenarios import static_scenario, static_then_move_scenario
@@ -49,6 +50,8 @@ class DemoOptions:
     """``calibrated|online``: online biases are not told to the filter."""
     odom_scale: str | None = None
     """``fixed|online``."""
+    faults: Faults = field(default_factory=Faults)
+    """Faults injected into every scenario's event stream (:mod:`relloc.faults`)."""
 
 
 SCENARIOS: dict[str, Callable[..., Simulation]] = {
@@ -109,7 +112,8 @@ def run_scenario(name: str, opts: DemoOptions, console: Console) -> ScenarioRepo
     gt = GroundTruth(config.reference)
     engine = Engine(pipelines, truth_sinks=[gt.add])
     run_with_progress(
-        engine, sim.events(), label=name, duration=sim.duration, console=console, enabled=opts.progress
+        engine, inject(sim.events(), opts.faults), label=name, duration=sim.duration, console=console,
+        enabled=opts.progress,
     )
     return evaluate(engine, gt, name, opts.warmup, bias_truth=bias_truth)
 

@@ -9,6 +9,7 @@ from typing import Any
 
 from relloc.cli import argtypes
 from relloc.cli.common import (
+    UserError,
     add_zenoh_args,
     format_stamp,
     interface_from_args,
@@ -18,6 +19,9 @@ from relloc.cli.common import (
 )
 from relloc.cli.rejections import rejection_lines
 from relloc.config import TeamConfig
+from relloc.faults import Faults
+from relloc.faults import add_arguments as add_fault_arguments
+from relloc.faults import from_args as faults_from_args
 from relloc.live.publish import ReplayOptions, replay_bag
 from relloc.live.server import LiveServer, ServeOptions
 
@@ -33,6 +37,7 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         args,
         methods=tuple(parse_methods(args.methods)),
         interface=interface_from_args(args, config),
+        faults=_faults(args),
     )
     session = open_command_session(args)
     try:
@@ -59,6 +64,13 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(summary, indent=2))
     return 0
+
+
+def _faults(args: argparse.Namespace) -> Faults:
+    try:
+        return faults_from_args(args)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
 
 
 def _print_summary(s: dict[str, Any]) -> None:
@@ -115,6 +127,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="comma-separated; the first one is published on relloc/<robot>/pose",
     )
     serve.add_argument("--seed", type=argtypes.seed, default=0, help="random seed of the filter")
+    add_fault_arguments(serve)
     serve.add_argument(
         "--particles", type=argtypes.count, default=None, help="override the config's particle count"
     )

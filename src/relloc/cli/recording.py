@@ -15,7 +15,7 @@ warning), no range at all between the team's robots (an error: every method fuse
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +30,7 @@ from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
+from relloc.faults import Faults, inject
 from relloc.methods import build_pipeline
 from relloc.sinks.tum import write_tum
 from relloc.sources.ingest import match_range_topics
@@ -57,6 +58,8 @@ class RunOptions:
     """Another reference robot than the config's."""
     sightings: str = "both"
     """What of each teammate sighting the source passes on: ``both``, ``range``, ``bearing``."""
+    faults: Faults = field(default_factory=Faults)
+    """Faults injected into the recording's event stream (:mod:`relloc.faults`)."""
 
 
 def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Console | None = None) -> ScenarioReport:
@@ -82,7 +85,7 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
     engine = Engine(pipelines, truth_sinks=[gt.add])
     run_with_progress(
         engine,
-        source,
+        inject(source, opts.faults),
         label=name,
         duration=source.duration,
         console=console,
@@ -104,6 +107,7 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
     if opts.json_path is not None:
         payload: dict[str, Any] = {"seed": opts.seed, "scenarios": {name: report.to_json()}}
         payload["scenarios"][name]["source"] = source.stats.as_dict()
+        payload["scenarios"][name]["faults"] = {p.name: p.localizer.fault_counters() for p in engine.pipelines}
         opts.json_path.parent.mkdir(parents=True, exist_ok=True)
         opts.json_path.write_text(json.dumps(payload, indent=2))
         console.print(f"figures written to {opts.json_path}")

@@ -23,6 +23,7 @@ REASONS: dict[str, tuple[str, str]] = {
         "detections at exactly (0, 0, 0)",
         "harmless: the camera's value for a box without depth",
     ),
+    "bag_damaged": ("times the bag's storage was found damaged (the rest read as far as readable)", "matters: messages lost"),
     "detection_nonfinite": ("detections with NaN or infinite positions", "harmless"),
     "detection_behind_camera": ("detections with depth <= 0", "harmless: impossible positions"),
     # ------------------------------------------------------------------ localizers
@@ -31,7 +32,8 @@ REASONS: dict[str, tuple[str, str]] = {
         "expected on the TIERS recordings: a stale sample re-published is not new evidence",
     ),
     "late_measurement": ("measurements older than the filter's time", "matters if many: raise --reorder-window"),
-    "time_jump": ("events far ahead of or behind the filter's time", "matters: a clock problem"),
+    "time_jump": ("events stamped far ahead of the team's clock", "matters: a clock problem"),
+    "time_jump_backward": ("events stamped far behind the team's clock", "matters: a clock problem"),
     "invalid_time": ("events with a NaN or infinite time stamp", "matters: a driver problem"),
     "invalid_range": ("ranges that are NaN, infinite or negative", "harmless if few"),
     "invalid_odometry": ("odometry with NaN or infinite values", "matters if many"),

@@ -17,6 +17,9 @@ a Kalman filter) and run the same cycle, which is all a localizer calls:
     ``ess_threshold * M``), re-drawing a ``reinject_fraction`` of the hypotheses from the
     uniform prior box so that a filter locked on a wrong mode can still find the right one.
 
+``inject(formations)`` (recovery) restarts some hypotheses at given formations, for a
+localizer that found the filter lost (:class:`relloc.localizers.base.DivergenceMonitor`).
+
 :class:`WeightedFilter` implements the weights, the resampling schedule and the re-injection
 once; a filter supplies how to copy hypotheses (``_select``) and how to re-draw some from its
 prior (``_reinject``).
@@ -140,6 +143,21 @@ class WeightedFilter:
         self.logw = np.full(self.n, -math.log(self.n))
         self.resample_count += 1
         self._after_resample()
+
+    def inject(self, formations: FloatArray) -> IntArray:
+        """Recovery: resample, then restart ``len(formations)`` hypotheses, chosen at random,
+        at the given formations (relative positions ``(K, 2(N-1))``, further state at its
+        prior); equal weights. What a localizer calls when it finds the filter lost: the
+        measurements then weigh the injected hypotheses against the kept ones. Returns the
+        slots re-drawn."""
+        k = min(len(formations), self.n)
+        idx, _ = resample_with_reinjection(self.logw, self.rng, 0.0)
+        self._select(idx)
+        slots = self.rng.choice(self.n, size=k, replace=False).astype(np.intp)
+        self._reinject(slots, np.asarray(formations[:k], dtype=float))
+        self.logw = np.full(self.n, -math.log(self.n))
+        self.resample_count += 1
+        return slots
 
     def _select(self, idx: IntArray) -> None:
         """Keep hypotheses ``idx`` (with repetitions), in that order."""

@@ -18,6 +18,7 @@ from typing import Any
 
 from relloc.config import TeamConfig
 from relloc.engine import Engine, Pipeline
+from relloc.faults import FaultInjector, Faults
 from relloc.methods import DETECTION_METHODS
 from relloc.ros.interfaces import RosInterface
 from relloc.sinks.zenoh_sink import ZenohSink
@@ -42,6 +43,8 @@ class ServeOptions:
     """How the robots' topics and relloc's own are on Zenoh: ``bridge`` or ``rmw_zenoh``."""
     out_prefix: str = "relloc"
     """Key prefix of what the server publishes."""
+    faults: Faults = field(default_factory=Faults)
+    """Faults injected into the received events (testing; :mod:`relloc.faults`)."""
     reorder_window: float = 0.0
     """Reorder-buffer window (s of header time); 0: lowest latency (see ``docs/live.md``)."""
     clock_rate: float = 1.0
@@ -88,6 +91,7 @@ class LiveServer:
                 clock_rate=opts.clock_rate,
                 detections=any(m in DETECTION_METHODS for m in opts.methods),
                 subscribe_all=opts.subscribe_all,
+                own_prefix=opts.out_prefix,
             ),
         )
         self.sink = ZenohSink(
@@ -99,6 +103,8 @@ class LiveServer:
             trace=opts.trace,
         )
         self.engine = Engine(self.pipelines, [self.sink], keep_estimates=opts.keep_estimates)
+        self.faults = FaultInjector(opts.faults) if opts.faults.active else None
+        """What the server injects into its events (``None``: nothing)."""
         self.engine_errors = 0
         self.engine_thread_cpu_s = 0.0
         """CPU time of the thread that ran :meth:`run` (the rest is Zenoh's threads)."""
@@ -158,9 +164,12 @@ class LiveServer:
     def feed(self, arrivals: Iterable[Arrival]) -> None:
         """Run the engine on released events (what :meth:`run` does with each poll)."""
         for arrival in arrivals:
+            event = self.faults(arrival.event) if self.faults is not None else arrival.event
+            if event is None:
+                continue
             self.sink.set_trigger(arrival)
             try:
-                self.engine.feed(arrival.event)
+                self.engine.feed(event)
             except Exception:
                 self.engine_errors += 1
                 log.exception("the engine failed on %r; skipped", arrival.event)
@@ -220,6 +229,7 @@ class LiveServer:
                 "n_modes": None if last_est is None else last_est.n_modes,
                 "estimate_status": None if last_est is None else last_est.status,
                 "rejected": dict(p.localizer.rejected),
+                "faults": p.localizer.fault_counters(),
                 "compute_s": round(p.compute_s, 4),
                 "stats": {k: v for k, v in p.stats().items() if not k.startswith("rejected_")},
             }
@@ -242,10 +252,12 @@ class LiveServer:
                 "restamped": sum(st.restamped.values()),
                 "transport": self.source.transport.as_dict(),
                 "queue_depth": self.source.queue_depth,
+                "own_outputs": self.source.own_outputs,
                 "buffer_depth": len(self.source.buffer),
             },
             "robots": robots,
             "engine_errors": self.engine_errors,
+            "injected_faults": {} if self.faults is None else dict(self.faults.counts),
         }
 
     def summary(self) -> dict[str, Any]:

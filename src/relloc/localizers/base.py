@@ -24,6 +24,7 @@ models, estimate, maybe resample.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 from collections import Counter, deque
@@ -34,13 +35,22 @@ from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
-from relloc.events import DetectionEvent, Event, GroundTruthEvent, OdometryEvent
-from relloc.filter.base import FilterEstimate, WeightedFilter
+from relloc.events import (
+    DetectionEvent,
+    Event,
+    GroundTruthEvent,
+    OdometryEvent,
+    RangeEvent,
+    pair_key,
+)
+from relloc.filter.base import FilterEstimate, WeightedFilter, renormalized
 from relloc.filter.measurement import MeasurementModel, ModelContext, finite
 from relloc.filter.motion import OdometryMotion
+from relloc.filter.pf import ParticleFilter
 from relloc.filter.registry import MODELS, model_for
 from relloc.filter.state import StateLayout, TeamLayout
 from relloc.filter.summary import estimate_fields
+from relloc.localizers.start import annealed_start
 from relloc.odometry import OdometryTrack
 
 log = logging.getLogger(__name__)
@@ -51,7 +61,32 @@ Measurement = Any
 
 _TIME_TOLERANCE = 1e-9
 _JUMP_VOTES = 3
-"""Events in a row that must agree on a time far ahead before the clock follows them."""
+"""Agreeing votes (from two sources at least) before the clock follows a jump."""
+_WARMUP_EVENTS = 5
+"""Events (from two sources, or twice as many from one) whose median stamp sets the clock."""
+_MAX_PENDING = 5000
+"""A batch this large is fused at once (counted ``batches_forced``): a batch never grows."""
+_SPEED_SLACK = 0.25
+"""Odometry displacement (m) allowed beyond ``max_speed * dt`` (jitter over short intervals)."""
+_YAW_SLACK = 0.3
+"""Odometry turn (rad) allowed beyond ``max_yaw_rate * dt``."""
+
+
+def _source(event: Event) -> tuple[str, ...]:
+    """Which stream an event belongs to (one robot's odometry, one pair's ranges, ...)."""
+    if isinstance(event, RangeEvent):
+        return ("range", *sorted((event.robot_a, event.robot_b)))
+    return (type(event).__name__, str(getattr(event, "robot", getattr(event, "observer", ""))))
+
+_CONFIDENT_STD = 0.5
+"""Largest position std (m) of an estimate kept as a reference formation for recovery."""
+_REFERENCE_SIGMA = 1.0
+"""How far (m per coordinate) a re-annealed formation may be from the last one estimated before
+the loss and still be taken as its orientation."""
+_RECOVERY_FRACTION = 0.5
+"""Share of the hypotheses re-injected at each recovery."""
+_RECOVERY_SIGMA = 1.5
+"""Spread (m) of a lost robot's re-injected positions about the estimate."""
 
 _YAW_LOG = 200_000
 """Odometry yaws kept per robot for evaluating estimated headings: 5.5 h at 10 Hz."""
@@ -87,9 +122,15 @@ class Localizer:
         self._batch_start = math.nan
         self._closed_until = -math.inf  # measurements older than this come too late
         self._last_emit = -math.inf
-        self._clock = -math.inf  # newest accepted stamp
-        self._jump_candidate = math.nan  # stamp of the last event rejected as a time jump
-        self._jump_votes = 0  # consecutive rejected events that agree with it
+        self._clock = -math.inf  # newest accepted stamp (-inf: not set yet)
+        self._warmup: list[Event] = []  # the first events, until they agree on a time
+        self._sources: set[tuple[str, ...]] = set()  # sources whose events were accepted
+        self._jump_candidate = math.nan  # stamp of the last vote for a clock jump
+        self._jump_ahead = True  # whether that vote is for a jump forward
+        self._votes = 0  # agreeing votes, less the events accepted since
+        self._vote_sources: set[tuple[str, ...]] = set()
+        self.odometry_faults: dict[str, int] = {}
+        """Per robot, how many odometry resets or jumps re-anchored its track."""
 
     @property
     def layout(self) -> TeamLayout:
@@ -110,31 +151,159 @@ class Localizer:
         if reason is not None:
             self._reject(reason, event)
             return []
+        if model is None and not isinstance(event, OdometryEvent):
+            self.stats["ignored_" + type(event).__name__] += 1
+            return []
+        if self._clock == -math.inf:
+            # The first events cannot set the clock alone: they wait until enough of them
+            # (from more than one source) agree on a time (see the module docstring).
+            self._warmup.append(event)
+            if not self._warmup_ready():
+                return []
+            return self._end_warmup()
+        return self._timed(event, model)
+
+    def _timed(self, event: Event, model: type[MeasurementModel] | None) -> list[Estimate]:
+        """An event past the checks of its own: the team clock's check, then into the filter."""
+        out: list[Estimate] = []
+        reason = self._clock_check(event)
+        if reason == "follow":
+            out += self._follow_jump(event.t - self._clock)
+        elif reason is not None:
+            self._reject(reason, event)
+            return []
+        return out + self._accept(event, model)
+
+    def _accept(self, event: Event, model: type[MeasurementModel] | None) -> list[Estimate]:
+        if self._votes:
+            self._votes -= 1  # normal events wear a jump candidate down
+            if not self._votes:
+                self._vote_sources.clear()
+        self._sources.add(_source(event))
         if isinstance(event, OdometryEvent):
-            self._clock = max(self._clock, event.t)
             track = self.tracks[event.robot]
+            if event.t <= track.last_time + _TIME_TOLERANCE:
+                self._reject("out_of_order_odometry", event)
+                return []
+            self._clock = max(self._clock, event.t)
+            if not track.empty and self._implausible(track, event):
+                track.reanchor(event)
+                self.stats["odometry_reanchored"] += 1
+                self.odometry_faults[event.robot] = self.odometry_faults.get(event.robot, 0) + 1
+                log.warning("odometry of %s jumped at t=%.3f (reset or step): track re-anchored", event.robot, event.t)
             first = track.empty
             track.add(event)
             if first:
                 self.first_odometry[event.robot] = (event.t, track.pose_at(event.t)[2])
             self.stats["odometry"] += 1
             return self._advance(event.t)
-        if model is not None:
-            self._clock = max(self._clock, event.t)
-            out: list[Estimate] = []
-            if self._pending and self._cell(event.t) > self._cell(self._batch_start):
-                out += self._run_batch()
-            if not self._pending:
-                self._batch_start = event.t
-            self._pending.append(event)
-            self.stats[model.stat] += 1
-            return out
-        self.stats["ignored_" + type(event).__name__] += 1
-        return []
+        assert model is not None
+        self._clock = max(self._clock, event.t)
+        out: list[Estimate] = []
+        if self._pending and (
+            self._cell(event.t) > self._cell(self._batch_start) or len(self._pending) >= _MAX_PENDING
+        ):
+            if len(self._pending) >= _MAX_PENDING:
+                self.stats["batches_forced"] += 1
+            out += self._run_batch()
+        if not self._pending:
+            self._batch_start = event.t
+        self._pending.append(event)
+        self.stats[model.stat] += 1
+        return out
 
     def flush(self) -> list[Estimate]:
         """Fuse what is still pending (end of a recording)."""
-        return self._run_batch() if self._pending else []
+        out = self._end_warmup() if self._warmup else []
+        return out + (self._run_batch() if self._pending else [])
+
+    # ---------------------------------------------------------------- the team clock
+    def _warmup_ready(self) -> bool:
+        sources = {_source(e) for e in self._warmup}
+        n = len(self._warmup)
+        return n >= _WARMUP_EVENTS and (len(sources) >= 2 or n >= 2 * _WARMUP_EVENTS)
+
+    def _end_warmup(self) -> list[Estimate]:
+        """Set the clock at the median stamp of the first events, then take each of them
+        through the clock's check in arrival order (an outlier among them is rejected)."""
+        events, self._warmup = self._warmup, []
+        self._clock = float(np.median([e.t for e in events]))
+        out: list[Estimate] = []
+        for ev in events:
+            out += self._timed(ev, model_for(ev))
+        return out
+
+    def _clock_check(self, event: Event) -> str | None:
+        """``None`` to accept ``event``'s stamp, ``"follow"`` when it completes the vote for a
+        jump of the whole stream, else the rejection reason.
+
+        A stamp more than ``max_time_jump`` ahead of the clock (the newest accepted stamp), or
+        behind it where the event could no longer be used anyway, votes for a jump to its
+        time. The clock follows once ``_JUMP_VOTES`` agreeing votes came from at least two
+        sources (robots' odometry, range pairs; one if the team has only one), each event
+        accepted meanwhile taking one vote away: one robot's wrong clock, or stray stamps
+        minutes apart, never move it, a jump of the whole team does (either way).
+        """
+        t = event.t
+        limit = self.config.filter.max_time_jump
+        ahead = t > self._clock + limit
+        if not ahead and t >= self._clock - limit:
+            return None
+        if not ahead and not self._unusable(event):
+            return None  # a late source, not a clock step: the event's own checks apply
+        if self._votes and abs(t - self._jump_candidate) <= limit and ahead == self._jump_ahead:
+            self._votes += 1
+        else:
+            self._votes, self._vote_sources = 1, set()
+            self._jump_ahead = ahead
+        self._jump_candidate = t
+        self._vote_sources.add(_source(event))
+        if self._votes >= _JUMP_VOTES and len(self._vote_sources) >= min(2, max(len(self._sources), 1)):
+            return "follow"
+        return "time_jump" if ahead else "time_jump_backward"
+
+    def _unusable(self, event: Event) -> bool:
+        if isinstance(event, OdometryEvent):
+            return event.t <= self.tracks[event.robot].last_time + _TIME_TOLERANCE
+        return self.is_late(event.t)
+
+    def _follow_jump(self, dt: float) -> list[Estimate]:
+        """The whole stream's clock stepped by ``dt``: fuse what is pending, then move the
+        times the filter holds by ``dt`` (its clock, the fused horizon, the last emission), so
+        that the next batch predicts over the step's real length, not over the step."""
+        out = self._run_batch() if self._pending else []
+        log.warning("the team's clock stepped by %+.3f s: followed", dt)
+        self.stats["clock_jumps_followed"] += 1
+        self._votes, self._vote_sources, self._jump_candidate = 0, set(), math.nan
+        self._clock += dt
+        self._closed_until += dt
+        self._last_emit += dt
+        if dt < 0:
+            # Back in time: the tracks' history moves with the clock (new odometry must come
+            # after it). Forward, they stay: the first odometry after the step then spans it,
+            # and a real gap in a recording keeps the motion made meanwhile.
+            for track in self.tracks.values():
+                track.shift_time(dt)
+        self._shift_time(dt)
+        return out
+
+    def _shift_time(self, dt: float) -> None:
+        """A subclass's own times moved by ``dt`` (a followed clock jump)."""
+
+    def _implausible(self, track: OdometryTrack, event: OdometryEvent) -> bool:
+        """Whether ``event`` moves its robot faster than a ground robot can (a reset, a step
+        of the integrator): ``max_speed`` and ``max_yaw_rate`` of ``[filter.odometry]``, with
+        a slack for jitter over short intervals."""
+        oc = self.config.filter.odometry
+        last = track.last_event
+        if last is None:
+            return False
+        dt = max(event.t - last.t, 0.0)
+        if track.mode == "twist":
+            return abs(event.v) > oc.max_speed or abs(event.w) > oc.max_yaw_rate
+        dist = math.hypot(event.x - last.x, event.y - last.y) * track.scale
+        turn = abs(math.remainder(event.yaw - last.yaw, math.tau))
+        return dist > oc.max_speed * dt + _SPEED_SLACK or turn > oc.max_yaw_rate * dt + _YAW_SLACK
 
     # ---------------------------------------------------------------- validation
     def _rejection(self, event: Event, model: type[MeasurementModel] | None) -> str | None:
@@ -144,17 +313,13 @@ class Localizer:
             return "unknown_event_type"
         if not finite(event.t):
             return "invalid_time"
-        if self._time_jump(event.t):
-            return "time_jump"
         if model is not None:
             return model.rejection(event, self)
         if event.robot not in self.layout.robots:
             return "unknown_robot"
         if not all(map(finite, (event.x, event.y, event.yaw, event.v, event.w))):
             return "invalid_odometry"
-        if event.t <= self.tracks[event.robot].last_time + _TIME_TOLERANCE:
-            return "out_of_order_odometry"
-        return None
+        return None  # the time checks come after (the team clock, then the track's order)
 
     def is_late(self, t: float) -> bool:
         """Whether a measurement stamped ``t`` is older than the filter's time (it can no
@@ -169,26 +334,22 @@ class Localizer:
         """Index of the batching grid cell that holds time ``t``."""
         return math.floor(t / self.update_period)
 
-    def _time_jump(self, t: float) -> bool:
-        """Whether ``t`` jumps ahead of the clock by more than ``max_time_jump`` without
-        ``_JUMP_VOTES`` events in a row agreeing on the new time (see
-        :class:`relloc.config.FilterConfig`)."""
-        limit = self.config.filter.max_time_jump
-        if self._clock == -math.inf or t <= self._clock + limit:
-            return False  # the first event sets the clock
-        agrees = abs(t - self._jump_candidate) <= limit
-        self._jump_votes = self._jump_votes + 1 if agrees else 1
-        self._jump_candidate = t
-        if self._jump_votes < _JUMP_VOTES:
-            return True
-        self._jump_votes, self._jump_candidate = 0, math.nan
-        return False
-
     def _reject(self, reason: str, event: Event) -> None:
         self.stats["rejected_" + reason] += 1
         n = self.stats["rejected_" + reason]
         if n == 1 or n % 1000 == 0:
             log.warning("rejected %s (%s, %d so far): %r", type(event).__name__, reason, n, event)
+
+    def fault_counters(self) -> dict[str, Any]:
+        """What the faults did (for the status and ``--json``): whether the filter is
+        recovering now, how often it was found lost and re-started, clock steps followed and
+        stamps rejected as outliers, odometry resets or jumps per robot, batches forced."""
+        keys = ("divergence_detected", "recovery_injections", "clock_jumps_followed", "batches_forced",
+                "odometry_reanchored", "rejected_time_jump", "rejected_time_jump_backward")
+        out: dict[str, Any] = {k.removeprefix("rejected_"): self.stats.get(k, 0) for k in keys}
+        out["recovering"] = self.recovering
+        out["odometry_faults"] = dict(self.odometry_faults)
+        return out
 
     @property
     def rejected(self) -> dict[str, int]:
@@ -219,6 +380,12 @@ class Localizer:
     def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
         raise NotImplementedError
 
+    @property
+    def recovering(self) -> bool:
+        """Whether the localizer judges itself lost and is recovering (see
+        :class:`DivergenceMonitor`); never for a method without one."""
+        return False
+
     # ---------------------------------------------------------------- emission
     def _emit(self, t: float, fe: FilterEstimate) -> Estimate:
         """The :class:`Estimate` of a filter's moments at ``t`` (and, where it estimates
@@ -236,6 +403,7 @@ class Localizer:
         est = Estimate(
             t, self.method, self.layout.reference, positions, covs, fe.ess, fe.headings, fe.biases, fe.scales,
             **honest,
+            recovering=self.recovering,
         )
         self.last_estimate = est
         return est
@@ -259,6 +427,20 @@ class FilterLocalizer(Localizer):
         self.t = math.nan
         self._anchor: dict[str, tuple[float, float, float]] = {}
         self._init_batch: list[Measurement] = []
+        self.monitor = DivergenceMonitor()
+        self._recent: deque[Measurement] = deque()
+        self._formations: deque[tuple[float, FloatArray]] = deque()
+
+    @property
+    def recovering(self) -> bool:
+        return self.monitor.lost
+
+    def _shift_time(self, dt: float) -> None:
+        self.t += dt
+        self._recent.clear()
+        self._formations = deque((tf + dt, f) for tf, f in self._formations)
+        self.monitor.shift_time(dt)
+        self._init_batch = [dataclasses.replace(m, t=m.t + dt) for m in self._init_batch]
 
     def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
         if not self.initialized:
@@ -272,12 +454,67 @@ class FilterLocalizer(Localizer):
         models = self.models(batch, self.filter)
         if not self.filter.update(models):
             self.stats["update_no_support"] += 1
-        est = self._emit(t, self.filter.estimate())
+        fe = self.filter.estimate()
+        lost = self.monitor.observe(t, batch, fe, self)
+        self._remember(t, batch, fe)
+        if lost:
+            self._recover(t, fe, lost)
+            fe = self.filter.estimate()
+        est = self._emit(t, fe)
         if self.filter.maybe_resample():
             self.stats["resampled"] += 1
         for name, count in self.filter.counters().items():
             self.stats[name] = count
         return est
+
+    def _recover(self, t: float, fe: FilterEstimate, lost: set[str]) -> None:
+        """The filter is lost: start it again from the last ``init_window`` of measurements
+        (the annealed start of :mod:`relloc.localizers.start`, whose formation is known only
+        up to rotations and mirror images about the reference), and pick among those images
+        by closeness to the last formation estimated before the loss (``_REFERENCE_SIGMA``):
+        the ranges fix the shape, the recent past the orientation. A filter that cannot be
+        re-annealed instead gets hypotheses re-injected about its estimate, the lost robots'
+        positions scattered ``_RECOVERY_SIGMA`` wide. Either way the monitor then judges the
+        new filter on fresh ranges only."""
+        self.stats["recovery_injections"] += 1
+        reference = self._good_formation(t - self.monitor.window)
+        if isinstance(self.filter, ParticleFilter) and self._recent and annealed_start(
+            self, self.filter, list(self._recent)
+        ):
+            if reference is not None:
+                d2 = ((self.filter.particles[:, : self.layout.dim] - reference) ** 2).sum(axis=1)
+                logw = renormalized(-0.5 * d2 / _REFERENCE_SIGMA**2)
+                if logw is not None:
+                    self.filter.logw = logw
+                    self.filter.resample()
+        else:
+            others = self.layout.others
+            cols = [k for k, r in enumerate(others) if r in lost or self.layout.reference in lost]
+            k = max(1, int(_RECOVERY_FRACTION * self.filter.n))
+            formations = np.repeat((fe.mean if reference is None else reference).reshape(1, -1), k, axis=0)
+            for c in cols:
+                formations[:, 2 * c : 2 * c + 2] += self.rng.normal(0.0, _RECOVERY_SIGMA, (k, 2))
+            self.filter.inject(formations)
+        self.monitor.restart()
+
+    def _remember(self, t: float, batch: list[Measurement], fe: FilterEstimate) -> None:
+        """Keep the last ``init_window`` of measurements (for a re-annealed start) and, while
+        the monitor sees few outliers and the estimate is confident (every robot's std under
+        ``_CONFIDENT_STD``: a filter that has just jumped is wide, and sees no outliers), the
+        recent formations."""
+        self._recent.extend(batch)
+        horizon = t - max(self.config.filter.init_window, self.update_period)
+        while self._recent and self._recent[0].t < horizon:
+            self._recent.popleft()
+        confident = float(np.linalg.eigvalsh(fe.cov).max(initial=0.0)) < _CONFIDENT_STD**2
+        if self.monitor.healthy and confident:
+            self._formations.append((t, fe.mean.reshape(-1).copy()))
+            while self._formations and self._formations[0][0] < t - 2 * self.monitor.window - 1.0:
+                self._formations.popleft()
+
+    def _good_formation(self, before: float) -> FloatArray | None:
+        good = [f for tf, f in self._formations if tf <= before]
+        return good[-1] if good else (self._formations[0][1] if self._formations else None)
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
         raise NotImplementedError
@@ -345,3 +582,95 @@ class FilterLocalizer(Localizer):
         dt = max(t - self.t, 0.0)
         self.t = t
         return disp, sigma, dt
+
+
+class DivergenceMonitor:
+    """Says when the filter is lost: the share of ranges that its own estimate calls outliers.
+
+    After each update, every range of the batch is compared with the distance between its
+    robots' estimated positions (less the pair's bias): a residual beyond
+    ``max(_GATE_M, 3 sigma)``, sigma the range noise and the two estimates' spreads together,
+    is an outlier. A filter that tracks the team sees a few (NLOS, gross errors); a lost one
+    sees most of a robot's ranges disagree. Over the last ``window`` seconds, a robot whose
+    ranges are outliers in more than ``lost_fraction`` of ``min_ranges`` or more is lost (the
+    reference, when most of everyone's are); the state clears once every robot is under
+    ``clear_fraction``. Tracking ranges keeps the rule independent of the filter (particles
+    or Gaussians) and of how the likelihood is robustified.
+    """
+
+    def __init__(
+        self, window: float = 1.0, lost_fraction: float = 0.6, clear_fraction: float = 0.25, min_ranges: int = 5
+    ) -> None:
+        self.window = window
+        self.lost_fraction = lost_fraction
+        self.clear_fraction = clear_fraction
+        self.min_ranges = min_ranges
+        self.lost = False
+        self.healthy = True
+        """Whether the last batches had few outliers (under ``clear_fraction``)."""
+        self.episodes = 0
+        """Times the filter was found lost."""
+        self._seen: dict[str, deque[tuple[float, bool]]] = {}
+
+    def restart(self) -> None:
+        """Forget the ranges seen (the filter was restarted: judge it on fresh ones); the
+        lost state stays until they clear it."""
+        self._seen.clear()
+
+    def shift_time(self, dt: float) -> None:
+        for q in self._seen.values():
+            for i, (t, out) in enumerate(q):
+                q[i] = (t + dt, out)
+
+    def observe(self, t: float, batch: list[Measurement], fe: FilterEstimate, loc: Localizer) -> set[str]:
+        """Record ``batch``'s ranges against ``fe``; the robots judged lost (empty if none)."""
+        layout, config = loc.layout, loc.config
+        index = {r: k for k, r in enumerate(layout.others)}
+        for m in batch:
+            if not isinstance(m, RangeEvent):
+                continue
+            pa, va = self._position(m.robot_a, index, fe)
+            pb, vb = self._position(m.robot_b, index, fe)
+            nodes = config.range_nodes(m)
+            bias, scale, sigma = (0.0, 1.0, None) if m.corrected else config.uwb.calibration(*nodes)
+            pair_bias = fe.biases.get(pair_key(*nodes))
+            if pair_bias is not None and not m.corrected:
+                bias = pair_bias[0]
+            sig = sigma if sigma is not None else config.filter.likelihood.sigma_uwb
+            residual = (m.distance - bias) / scale - math.hypot(pa[0] - pb[0], pa[1] - pb[1])
+            outlier = abs(residual) > max(_GATE_M, 3.0 * math.sqrt(sig**2 + va + vb))
+            for r in (m.robot_a, m.robot_b):
+                self._seen.setdefault(r, deque()).append((m.t, outlier))
+        lost: set[str] = set()
+        worst = 0.0
+        for r, q in self._seen.items():
+            while q and q[0][0] < t - self.window:
+                q.popleft()
+            if len(q) < self.min_ranges:
+                continue
+            frac = sum(o for _, o in q) / len(q)
+            worst = max(worst, frac)
+            if frac > self.lost_fraction:
+                lost.add(r)
+        if lost and not self.lost:
+            self.lost = True
+            self.episodes += 1
+            loc.stats["divergence_detected"] += 1
+            log.warning("filter lost at t=%.2f (ranges of %s disagree with the estimate): recovering", t, sorted(lost))
+        elif self.lost and not lost and worst < self.clear_fraction:
+            self.lost = False
+            log.info("filter recovered at t=%.2f", t)
+        self.healthy = not self.lost and worst < self.clear_fraction
+        return lost
+
+    @staticmethod
+    def _position(robot: str, index: dict[str, int], fe: FilterEstimate) -> tuple[tuple[float, float], float]:
+        k = index.get(robot)
+        if k is None:
+            return (0.0, 0.0), 0.0  # the reference
+        c = fe.cov[k]
+        return (float(fe.mean[k, 0]), float(fe.mean[k, 1])), float(0.5 * (c[0, 0] + c[1, 1]))
+
+
+_GATE_M = 0.5
+"""Smallest residual (m) the divergence monitor calls an outlier."""

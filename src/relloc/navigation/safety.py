@@ -104,6 +104,8 @@ class SafetyGate:
         robot = self.robot
         if estimate is None or robot not in estimate.positions:
             return "no_estimate", f"no estimate of {robot} yet"
+        if estimate.recovering:
+            return "recovering", "the localizer found itself lost and is recovering"
         age = now - estimate.t
         if age > cfg.max_age:
             return "stale_estimate", f"estimate is {age:.2f} s old (max {cfg.max_age:g} s)"

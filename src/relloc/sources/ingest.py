@@ -499,7 +499,9 @@ class ReorderBuffer(Generic[T]):
             if self.drop_late:
                 return
         else:
-            self.last_released = t
+            # Never past the buffer's own time: an item stamped ahead of it (a future stamp
+            # let out by ``hold``) must not make every later item late.
+            self.last_released = max(self.last_released, min(t, self._newest))
         out.append(entry[3])
 
 

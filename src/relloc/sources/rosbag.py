@@ -37,7 +37,10 @@ skipped and counted (``decode_error``).
 
 from __future__ import annotations
 
-from collections.abc import Collection, Iterator
+import logging
+import shutil
+import tempfile
+from collections.abc import Callable, Collection, Iterator
 from contextlib import contextmanager, suppress
 from dataclasses import replace
 from pathlib import Path
@@ -60,6 +63,8 @@ from relloc.sources.ingest import (
 
 __all__ = ["BagError", "RosbagSource", "read_messages", "recording_name"]
 
+log = logging.getLogger(__name__)
+
 _CLOCK_WINDOW_S = 5.0
 """How much of the bag's beginning the clock estimate looks at (receive time, s)."""
 _CLOCK_SAMPLES = 200
@@ -81,7 +86,80 @@ def recording_name(path: str | Path) -> str:
 
 
 @contextmanager
-def _open_reader(path: Path) -> Iterator[Reader]:
+def _open_reader(path: Path, on_damage: Callable[[str], None] | None = None) -> Iterator[Reader]:
+    """Open a bag, turning every way it can fail into a :class:`BagError`. With ``on_damage``,
+    a ``.db3`` bag whose database cannot be opened is salvaged instead (:func:`_salvaged`):
+    the reader reads what is readable, and ``on_damage`` gets a line saying how much was lost."""
+    folder: Path | None = None
+    try:
+        reader = _opened(path)
+    except BagError as exc:
+        salvage = _salvaged(path) if on_damage is not None and "corrupted or truncated" in str(exc) else None
+        if salvage is None:
+            raise
+        folder, line = salvage
+        assert on_damage is not None
+        on_damage(f"bag {path} is damaged: {line}; reading what is readable")
+        reader = _opened(folder)
+    try:
+        yield reader
+    finally:
+        # closing a half-broken database must not hide the real error
+        with suppress(Exception):
+            reader.close()
+        if folder is not None:
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _salvaged(path: Path) -> tuple[Path, str] | None:
+    """A copy of a damaged ``.db3`` bag folder holding every message row sqlite can still read
+    (in storage order, up to the first unreadable page of each file), with how many of the
+    messages its metadata lists that is; ``None`` when nothing can be read."""
+    import sqlite3
+
+    if not path.is_dir() or not (path / "metadata.yaml").exists():
+        return None
+    folder = Path(tempfile.mkdtemp(prefix="relloc-salvage-"))
+    shutil.copy(path / "metadata.yaml", folder / "metadata.yaml")
+    kept = 0
+    for db in sorted(path.glob("*.db3")):
+        try:
+            src = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+            dst = sqlite3.connect(folder / db.name)
+            tables = src.execute("SELECT name, sql FROM sqlite_master WHERE type = 'table'").fetchall()
+        except sqlite3.Error:
+            continue
+        for name, sql in tables:
+            dst.execute(sql)
+            try:
+                for row in src.execute(f'SELECT * FROM "{name}"'):
+                    dst.execute(f'INSERT INTO "{name}" VALUES ({", ".join("?" * len(row))})', row)
+                    kept += name == "messages"
+            except sqlite3.Error:
+                pass  # the first damaged page: what came before it is kept
+        dst.commit()
+        dst.close()
+        src.close()
+    if not kept:
+        shutil.rmtree(folder, ignore_errors=True)
+        return None
+    listed = _listed_messages(path / "metadata.yaml")
+    lost = max(listed - kept, 0)
+    return folder, f"{kept} of its {listed} messages readable, {lost} ({100.0 * lost / max(listed, 1):.0f} %) lost"
+
+
+def _listed_messages(metadata: Path) -> int:
+    """The message count a bag's metadata lists (0 if it cannot say)."""
+    from ruamel.yaml import YAML
+
+    try:
+        info = YAML(typ="safe").load(metadata.read_text())["rosbag2_bagfile_information"]
+        return int(info["message_count"])
+    except Exception:
+        return 0
+
+
+def _opened(path: Path) -> Reader:
     """Open a bag, turning every way it can fail into a :class:`BagError`."""
     if not path.exists():
         raise BagError(f"bag not found: {path}")
@@ -101,13 +179,23 @@ def _open_reader(path: Path) -> Iterator[Reader]:
     except BagError:
         raise
     except Exception as exc:  # rosbags/apsw/yaml raise many types for bad files
+        if path.is_dir() and _metadata_problem(exc):
+            raise BagError(
+                f"cannot open bag {path}: its metadata.yaml is not rosbag2 metadata (a YAML file with a "
+                f"rosbag2_bagfile_information table, as ros2 bag record writes it): {' '.join(_reason(exc).split())}"
+            ) from exc
         raise BagError(f"cannot open bag {path}: {_reason(exc)}") from exc
-    try:
-        yield reader
-    finally:
-        # closing a half-broken database must not hide the real error
-        with suppress(Exception):
-            reader.close()
+    return reader
+
+
+def _metadata_problem(exc: BaseException) -> bool:
+    """Whether opening failed on the bag's ``metadata.yaml`` (undecodable, not YAML, or without
+    the keys rosbag2 writes) rather than on its storage."""
+    text = str(exc).lower()
+    if "database" in text:
+        return False
+    name = type(exc).__name__.lower()
+    return isinstance(exc, UnicodeDecodeError | KeyError) or "metadata" in text or "yaml" in name or "scanner" in name or "parser" in name
 
 
 def _reason(exc: BaseException) -> str:
@@ -119,22 +207,62 @@ def _reason(exc: BaseException) -> str:
 
 
 def _messages(
-    reader: Reader, path: Path, topics: Collection[str]
+    reader: Reader, path: Path, topics: Collection[str], on_damage: Callable[[str], None] | None = None
 ) -> Iterator[tuple[Any, int, bytes]]:
-    """``(connection, receive time in ns, raw CDR)`` of some topics in receive order; storage
-    errors re-raised as :class:`BagError`."""
+    """``(connection, receive time in ns, raw CDR)`` of some topics in receive order. A
+    storage error is a :class:`BagError`, or, with ``on_damage``, the end of what is readable:
+    ``on_damage`` gets a line saying how many of the messages the metadata lists were read."""
     conns = [c for c in reader.connections if c.topic in topics]
     if not conns:  # an empty connection list would make rosbags read every topic
         return
     messages = reader.messages(conns)
+    read = 0
     while True:
         try:
             item = next(messages)
         except StopIteration:
             return
         except Exception as exc:  # apsw, sqlite, mcap, zstd: a damaged file
-            raise BagError(f"cannot read bag {path}: {_reason(exc)}") from exc
+            if on_damage is None:
+                raise BagError(f"cannot read bag {path}: {_reason(exc)}") from exc
+            rest = _readable_rows(path, conns, after=read)
+            listed = sum(c.msgcount for c in conns)
+            lost = max(listed - read - len(rest), 0)
+            on_damage(
+                f"bag {path} is damaged: read {read + len(rest)} of the {listed} messages of the team's "
+                f"topics, {lost} ({100.0 * lost / max(listed, 1):.0f} %) lost ({_reason(exc)})"
+            )
+            yield from rest
+            return
+        read += 1
         yield item
+
+
+def _readable_rows(path: Path, conns: list[Any], after: int) -> list[tuple[Any, int, bytes]]:
+    """What sqlite can still read of a damaged ``.db3`` bag: its message rows in storage order
+    up to the first unreadable page, for ``conns``' topics, in receive order, less the first
+    ``after`` (already read in order). Empty for other storage."""
+    import sqlite3
+
+    files = [path] if path.suffix == ".db3" else sorted(path.glob("*.db3"))
+    by_topic = {c.topic: c for c in conns}
+    rows: list[tuple[Any, int, bytes]] = []
+    for db in files:
+        try:
+            con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+        except sqlite3.Error:
+            continue
+        try:
+            topics = {i: by_topic[n] for i, n in con.execute("SELECT id, name FROM topics") if n in by_topic}
+            for topic_id, stamp, data in con.execute("SELECT topic_id, timestamp, data FROM messages"):
+                if topic_id in topics:
+                    rows.append((topics[topic_id], int(stamp), bytes(data)))
+        except sqlite3.Error:
+            pass  # the first damaged page: what came before it is kept
+        finally:
+            con.close()
+    rows.sort(key=lambda r: r[1])
+    return rows[after:]
 
 
 def read_messages(path: str | Path, topics: Collection[str]) -> Iterator[tuple[str, float, Any]]:
@@ -192,7 +320,7 @@ class RosbagSource:
         """Non-fatal problems found when opening the bag (empty topics, odd clocks...)."""
         self.ignored_range_topics: list[str] = []
         """UWB topics of the bag involving a node that no robot of the team carries."""
-        with _open_reader(self.path) as reader:
+        with _open_reader(self.path, self._damaged) as reader:
             self.bag_topics: dict[str, tuple[str, int]] = {
                 name: (info.msgtype or "?", info.msgcount) for name, info in reader.topics.items()
             }
@@ -295,6 +423,12 @@ class RosbagSource:
         )
 
     # ------------------------------------------------------------------ clock
+    def _damaged(self, line: str) -> None:
+        """A damaged bag read as far as readable: warned once (and logged)."""
+        if line not in self.warnings:
+            log.warning("%s", line)
+            self.warnings.append(line)
+
     def _scan_clock(self, reader: Reader) -> HeaderClock:
         """The header clock learnt from the first header stamps of every read topic, frozen."""
         clock = HeaderClock(fixed_offset=self.config.clock_offset)
@@ -341,8 +475,12 @@ class RosbagSource:
             return events
 
         typestore()  # build the type store before the first message
-        with _open_reader(self.path) as reader:
-            for conn, recv_ns, raw in _messages(reader, self.path, self._routes):
+        def damaged(line: str) -> None:
+            self._damaged(line)
+            stats.rejected["bag_damaged"] += 1
+
+        with _open_reader(self.path, damaged) as reader:
+            for conn, recv_ns, raw in _messages(reader, self.path, self._routes, damaged):
                 recv = recv_ns * 1e-9
                 event = converter.convert(self._routes[conn.topic], conn.topic, raw, recv)
                 if event is not None:

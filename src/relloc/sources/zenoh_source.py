@@ -209,9 +209,15 @@ class ZenohSourceOptions:
     ``unknown_key``): shows what else is published, at the cost of receiving it."""
     queue_size: int = 10000
     """Samples waiting for the engine thread; beyond that new ones are dropped (``queue_full``)."""
+    own_prefix: str = ""
+    """Key prefix of what this process publishes itself (the server's poses and status): with
+    ``subscribe_all`` those keys come back, and are counted ``own_output``, not rejected."""
 
 
 _WAKE = object()
+_FUTURE_SLACK = 0.0
+"""How far (s) a stamp may lead the header clock's estimate of now and still advance the
+reorder buffer (what a future stamp can move the buffer's time by)."""
 
 
 class ZenohSource:
@@ -226,6 +232,8 @@ class ZenohSource:
         self.config = config
         self.options = opts = options or ZenohSourceOptions()
         self.interface = opts.interface
+        self.own_outputs = 0
+        """Messages received on this process's own output keys (``own_prefix``)."""
         self.routes = build_routes(
             config,
             interface=opts.interface,
@@ -370,6 +378,11 @@ class ZenohSource:
         topic_key, dds_type, type_hash_ = self.interface.split_key(key)
         route = self.routes.get(topic_key)
         if route is None:
+            own = self.options.own_prefix.strip("/").split("/")
+            parts = topic_key.strip("/").split("/")
+            if own != [""] and own in (parts[: len(own)], parts[1 : 1 + len(own)]):  # rmw: after the domain
+                self.own_outputs += 1
+                return
             self._converter.reject("unknown_key", key)
             return
         if self.interface.rmw:
@@ -381,7 +394,13 @@ class ZenohSource:
         event = self._converter.convert(route, topic_key, payload, received)
         if event is not None:
             self.buffer.push(event.t, Arrival(event, topic_key, received, sent), received)
-            self.buffer.advance(event.t)
+            # The buffer's time advances with the stamps, but never past the header clock's now
+            # (plus a slack): one message stamped in the future must not release everything
+            # held, and make every later message late, for the rest of the run.
+            t = event.t
+            if self.buffer.window > 0.0:
+                t = min(t, self.clock.offset(route.kind) + self.clock.rate * received + _FUTURE_SLACK)
+            self.buffer.advance(t)
 
     def _rmw_envelope(
         self, topic_key: str, dds_type: str | None, hash_: str | None, attachment: bytes | None

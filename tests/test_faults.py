@@ -1,0 +1,198 @@
+"""Faults injected into the simulated team (:mod:`relloc.faults`): the clock, odometry resets
+and jumps, range bursts, kidnapping, loss and silence never leave the localizer stuck or wrong.
+
+Each run is the five-robot simulation (seeded) with a small particle count; the error of an
+estimate is the mean over robots of its distance to the true relative position, smoothed over
+1 s (the ambient error of a run is 0.1-0.17 m, so single estimates touch 0.2 m)."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+
+from relloc.evaluation.metrics import GroundTruth
+from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent
+from relloc.faults import Faults, Window, inject, parse
+from relloc.localizers.sampled import ParticleFilterLocalizer
+from relloc.navigation.safety import SafetyGate
+from relloc.simulator import multi_scenario
+
+PARTICLES = 3000
+
+
+def _run(seed: int, faults: Faults, duration: float = 40.0, particles: int = PARTICLES):
+    sim = multi_scenario(seed=seed, duration=duration)
+    config = sim.config.with_filter(particles=particles)
+    loc = ParticleFilterLocalizer(config, seed=seed)
+    gt = GroundTruth(config.reference)
+    for ev in inject(sim.events(), dataclasses.replace(faults, stamp_shift=(), stream_jump=())):
+        if isinstance(ev, GroundTruthEvent):
+            gt.add(ev)  # the truth on the stream's own clock: a kidnapping moves it
+    ests = []
+    for ev in inject(sim.events(), faults):
+        if not isinstance(ev, GroundTruthEvent):
+            ests += loc.process(ev)
+    ests += loc.flush()
+    return ests, gt, loc
+
+
+def _errors(ests, gt: GroundTruth, shift: float = 0.0) -> np.ndarray:
+    """(t, mean error over robots, recovering) per estimate, ``shift`` taken off its time."""
+    rows = []
+    for e in ests:
+        t = e.t - shift
+        errs = [math.hypot(p[0] - q[0], p[1] - q[1]) for r, p in e.positions.items() if (q := gt.relative_at(r, t))]
+        if errs:
+            rows.append((t, float(np.mean(errs)), float(e.recovering)))
+    return np.array(rows)
+
+
+def _smoothed(err: np.ndarray, width: float = 1.0) -> np.ndarray:
+    t = err[:, 0]
+    return np.array([err[(t > x - width) & (t <= x), 1].mean() for x in t])
+
+
+def _back_under(err: np.ndarray, start: float, bound: float = 0.2) -> float:
+    """Seconds after ``start`` from which the smoothed error stays under ``bound``."""
+    smooth = _smoothed(err)
+    after = err[:, 0] > start
+    bad = err[after & (smooth >= bound), 0]
+    return float(bad.max() - start) if bad.size else 0.0
+
+
+def _kidnapped(kind: str) -> Faults:
+    return {
+        "burst1": Faults(range_burst=((Window(20.0, 22.0), 1.0),)),
+        "burst3": Faults(range_burst=((Window(20.0, 22.0), 3.0),)),
+        "reset": Faults(odom_reset=(("r2", 20.0),)),
+        "step": Faults(odom_jump=(("r2", 20.0, 1000.0, 0.0),)),
+        "kidnap": Faults(kidnap=(("r2", 20.0, 2.0, 0.0),)),
+    }[kind]
+
+
+# ---------------------------------------------------------------- the fault transforms
+def test_faults_transform_the_stream_and_none_leaves_it_unchanged() -> None:
+    sim = multi_scenario(seed=0, duration=3.0)
+    events = list(sim.events())
+    assert list(inject(events, Faults())) == events
+    f = parse(
+        drop=0.3, silence=["r1:1:2"], range_burst=["0.5:1:1.5"], odom_reset=["r2:1"], odom_jump=["r3:1:5:0"],
+        kidnap=["r4:1:2:0"], stamp_shift=["10:3600"], seed=1,
+    )
+    out = list(inject(events, f))
+    measured = [e for e in events if not isinstance(e, GroundTruthEvent)]
+    kept = [e for e in out if not isinstance(e, GroundTruthEvent)]
+    assert 0.6 * len(measured) < len(kept) < 0.72 * len(measured)
+    assert not any("r1" in (getattr(e, "robot", ""), getattr(e, "robot_a", ""), getattr(e, "robot_b", ""))
+                   and 1.0 <= e.t < 2.0 for e in kept if not isinstance(e, GroundTruthEvent))
+    r2 = [e for e in kept if isinstance(e, OdometryEvent) and e.robot == "r2" and e.t >= 1.0]
+    assert r2 and math.hypot(r2[0].x, r2[0].y) < 0.05  # restarted at the origin
+    r3 = [e for e in kept if isinstance(e, OdometryEvent) and e.robot == "r3" and e.t >= 1.0]
+    assert all(e.x > 4.0 for e in r3)
+    burst = [e for e in kept if isinstance(e, RangeEvent) and 0.5 <= e.t < 1.0]
+    clean = {(e.t, e.robot_a, e.robot_b): e.distance for e in measured if isinstance(e, RangeEvent)}
+    assert all(abs(e.distance - clean[(e.t, e.robot_a, e.robot_b)] - 1.5) < 1e-9 for e in burst)
+    with pytest.raises(ValueError, match="silence"):
+        parse(silence=["r1:1"])
+
+
+# ---------------------------------------------------------------- the clock
+def _feed(config, events, seed: int = 0):
+    loc = ParticleFilterLocalizer(config, seed=seed)
+    ests = []
+    for ev in events:
+        if not isinstance(ev, GroundTruthEvent):
+            ests += loc.process(ev)
+    return ests + loc.flush(), loc
+
+
+@pytest.mark.parametrize(
+    "shifts",
+    [
+        {400: 3600.0},  # one message an hour ahead
+        {400: -3600.0},  # one an hour behind
+        {300: 120.0, 400: 300.0, 500: 480.0},  # three ahead, minutes apart
+        {0: 3600.0},  # the first measurement in the future
+    ],
+    ids=["future", "past", "three_future", "first_future"],
+)
+def test_stamp_outliers_are_rejected_and_change_nothing_else(shifts: dict[int, float]) -> None:
+    """A message with a wrong stamp is rejected (counted) and has no other effect: the
+    estimates are exactly those of the run without that message."""
+    sim = multi_scenario(seed=0, duration=20.0)
+    config = sim.config.with_filter(particles=PARTICLES)
+    events = [e for e in sim.events() if not isinstance(e, GroundTruthEvent)]
+    shifted = [dataclasses.replace(e, t=e.t + shifts[i]) if i in shifts else e for i, e in enumerate(events)]
+    without = [e for i, e in enumerate(events) if i not in shifts]
+    ests, loc = _feed(config, shifted)
+    ref, _ = _feed(config, without)
+    assert [(e.t, e.positions) for e in ests] == [(e.t, e.positions) for e in ref]
+    assert sum(loc.rejected.values()) == len(shifts)
+    assert set(loc.rejected) <= {"time_jump", "time_jump_backward", "out_of_order_odometry", "late_measurement"}
+    assert "clock_jumps_followed" not in loc.stats
+
+
+@pytest.mark.parametrize("dt", [3600.0, -3600.0])
+def test_a_whole_stream_clock_step_is_followed_within_a_second(dt: float) -> None:
+    ests, gt, loc = _run(0, Faults(stream_jump=((15.0, dt),)), duration=25.0)
+    assert loc.stats["clock_jumps_followed"] == 1
+    after = [e.t - dt for e in ests if e.t - dt >= 15.0 and abs(e.t - dt) < 100]
+    assert after and after[0] < 16.0
+    err = _errors([e for e in ests if e.t - dt >= 15.0], gt, shift=dt)
+    assert err[:, 1].mean() < 0.2
+
+
+# ---------------------------------------------------------------- odometry
+@pytest.mark.parametrize("kind", ["reset", "step"])
+def test_odometry_reset_or_jump_re_anchors_the_track(kind: str) -> None:
+    ests, gt, loc = _run(1, _kidnapped(kind), duration=30.0)
+    assert loc.stats["odometry_reanchored"] == 1 and loc.odometry_faults == {"r2": 1}
+    assert _back_under(_errors(ests, gt), 20.0) <= 5.0
+
+
+# ---------------------------------------------------------------- divergence and recovery
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["burst1", "burst3", "kidnap"])
+def test_divergence_is_flagged_and_recovered(kind: str) -> None:
+    """All ranges 1 m or 3 m long for 2 s, or r2 moved 2 m unseen, on seeds 0-2: the loss is
+    flagged within 2 s every time and counted; the error is back under 0.2 m within 10 s on
+    two seeds of three (measured: seed 2 takes 10.6-14 s, its error creeping down from
+    0.3 m; docs/results.md), and under 0.3 m by the end of every run."""
+    end = 22.0 if kind.startswith("burst") else 20.0
+    recovered = 0
+    for seed in (0, 1, 2):
+        ests, gt, loc = _run(seed, _kidnapped(kind))
+        err = _errors(ests, gt)
+        flagged = err[err[:, 2] > 0, 0]
+        assert flagged.size and 0.0 <= flagged.min() - 20.0 <= 2.0, seed
+        assert loc.stats["divergence_detected"] >= 1 and loc.fault_counters()["recovery_injections"] >= 1
+        recovered += _back_under(err, end) <= 10.0
+        assert err[err[:, 0] > 35.0, 1].mean() < 0.3, seed
+    assert recovered >= 2
+
+
+def test_the_navigation_gate_holds_while_recovering() -> None:
+    ests, _, _ = _run(0, _kidnapped("kidnap"), duration=25.0)
+    recovering = next(e for e in ests if e.recovering)
+    gate = SafetyGate(robot="r2")
+    assert gate.check(recovering.t, recovering, recovering.t) == (
+        "recovering", "the localizer found itself lost and is recovering"
+    )
+
+
+# ---------------------------------------------------------------- loss and silence
+def test_loss_and_a_silence_cost_little_outside_the_silence() -> None:
+    clean, gt, _ = _run(0, Faults(), duration=40.0)
+    lossy, _, _ = _run(0, Faults(drop=0.3, seed=3), duration=40.0)
+    quiet, _, _ = _run(0, Faults(silence=(Window(20.0, 30.0, "r2"),)), duration=40.0)
+    a = _errors(clean, gt)
+    base = a[a[:, 0] > 10, 1].mean()
+    b = _errors(lossy, gt)
+    assert abs(b[b[:, 0] > 10, 1].mean() - base) < 0.03
+    c = _errors(quiet, gt)
+    outside = (c[:, 0] > 10) & ((c[:, 0] < 20) | (c[:, 0] > 30))
+    ref = (a[:, 0] > 10) & ((a[:, 0] < 20) | (a[:, 0] > 30))
+    assert abs(c[outside, 1].mean() - a[ref, 1].mean()) < 0.03
