@@ -626,11 +626,14 @@ class DivergenceMonitor:
         """Record ``batch``'s ranges against ``fe``; the robots judged lost (empty if none)."""
         layout, config = loc.layout, loc.config
         index = {r: k for k, r in enumerate(layout.others)}
+        # The hypotheses' own spread: the published covariance adds a floor for correlated
+        # range errors (relloc.filter.summary) that would widen the gate by as much.
+        floor = float(getattr(loc.filter, "covariance_floor", 0.0))
         for m in batch:
             if not isinstance(m, RangeEvent):
                 continue
-            pa, va = self._position(m.robot_a, index, fe)
-            pb, vb = self._position(m.robot_b, index, fe)
+            pa, va = self._position(m.robot_a, index, fe, floor)
+            pb, vb = self._position(m.robot_b, index, fe, floor)
             nodes = config.range_nodes(m)
             bias, scale, sigma = (0.0, 1.0, None) if m.corrected else config.uwb.calibration(*nodes)
             pair_bias = fe.biases.get(pair_key(*nodes))
@@ -664,12 +667,14 @@ class DivergenceMonitor:
         return lost
 
     @staticmethod
-    def _position(robot: str, index: dict[str, int], fe: FilterEstimate) -> tuple[tuple[float, float], float]:
+    def _position(
+        robot: str, index: dict[str, int], fe: FilterEstimate, floor: float
+    ) -> tuple[tuple[float, float], float]:
         k = index.get(robot)
         if k is None:
             return (0.0, 0.0), 0.0  # the reference
         c = fe.cov[k]
-        return (float(fe.mean[k, 0]), float(fe.mean[k, 1])), float(0.5 * (c[0, 0] + c[1, 1]))
+        return (float(fe.mean[k, 0]), float(fe.mean[k, 1])), max(float(0.5 * (c[0, 0] + c[1, 1])) - floor, 0.0)
 
 
 _GATE_M = 0.5
