@@ -226,6 +226,17 @@ class SightingBatch:
                     h = h / norm
                     grad_v = (grad_v[0] / norm - h * vx / norm**2, grad_v[1] / norm - h * vy / norm**2)
                     ax, ay = ax / norm, ay / norm
+                    # Where the observer's heading is known (|u| near its scale), the bearing
+                    # itself: the sine above cannot tell a teammate ahead from one behind.
+                    known = np.hypot(ux, uy) > 0.5
+                    if np.any(known):
+                        d2 = np.maximum(dx * dx + dy * dy, 1e-18)
+                        v2 = norm * norm
+                        angle = wrap(np.arctan2(vy, vx) - np.arctan2(dy, dx))
+                        h = np.where(known, angle, h)
+                        grad_v = (np.where(known, -vy / v2, grad_v[0]), np.where(known, vx / v2, grad_v[1]))
+                        # d angle(v) - angle(d) / dd = -(-dy, dx) / |d|^2
+                        ax, ay = np.where(known, dy / d2, ax), np.where(known, -dx / d2, ay)
             # d = A(w) u: dd/du = A(w), so dh/du = A(w)^T dh/dd
             grad_u = (wx * ax + wy * ay, -wy * ax + wx * ay)
             residual = row.z - h
