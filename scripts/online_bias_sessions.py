@@ -10,8 +10,10 @@ and the APE median of ``r1`` after the warm-up is printed for both (plus the fin
     PYTHONPATH=src .venv/bin/python scripts/online_bias_sessions.py --biases 0.1,0.3,0.5 \
         --scales 0,0.08 --seeds 0-2 --particles 5000
 
-``--set key=value`` changes a filter parameter (``FilterConfig.with_changes``) for the online
-run only, to compare variants of the online bias.
+``--set key=value`` changes a filter parameter (``FilterConfig.with_changes``, e.g.
+``bias_walk=0.002``) for the online run only, to compare variants of the online bias (the
+sampled filter's prior width of an uncalibrated pair is ``uwb.default_bias_sigma``, not a filter
+parameter). Figures: docs/self-calibration.md, "Online bias on a new session".
 """
 
 from __future__ import annotations

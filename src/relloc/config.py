@@ -266,7 +266,7 @@ class SelfCalibrationConfig(_Checked):
     bias_mode: Literal["calibrated", "online"] = "calibrated"
     """``calibrated``: each pair's bias is the config's (or ``uwb.default_bias``);
     ``online``: every particle carries a Kalman belief about each pair's bias (Rao-Blackwellised),
-    its prior the calibration when present, else wide around ``uwb.default_bias``."""
+    its prior the calibration when present, else around ``uwb.default_bias``."""
     bias_prior_sigma: float = 0.05
     """Online mode: prior standard deviation of a calibrated pair's bias (m)."""
     bias_prior_sigma_uncalibrated: float = 0.25

@@ -2,8 +2,9 @@
 
 Every particle is one hypothesis about the formation (:mod:`relloc.filter.pf`); with online
 biases (``bias_mode = "online"``) it also carries a Gaussian belief about each UWB node pair's
-range bias, its prior the pair's calibration where there is one, else wide around
-``uwb.default_bias`` (Rao-Blackwellised, :mod:`relloc.filter.state`). The range model updates
+range bias, its prior the pair's calibration where there is one, else ``uwb.default_bias`` +-
+``uwb.default_bias_sigma``, what the default mode assumes (Rao-Blackwellised,
+:mod:`relloc.filter.state`). The range model updates
 those beliefs; the filter walks their variances. The localizer itself only starts the filter
 (:mod:`relloc.localizers.start`) and then runs the cycle of
 :class:`~relloc.localizers.base.FilterLocalizer`.
