@@ -280,11 +280,16 @@ class SelfCalibrationConfig(_Checked):
     bias_mode: Literal["calibrated", "online"] = "calibrated"
     """``calibrated``: each pair's bias is the config's (or ``uwb.default_bias``);
     ``online``: every particle carries a Kalman belief about each pair's bias (Rao-Blackwellised),
-    its prior the calibration when present, else wide around ``uwb.default_bias``."""
+    its prior the calibration when present, else around ``uwb.default_bias``."""
     bias_prior_sigma: float = 0.05
     """Online mode: prior standard deviation of a calibrated pair's bias (m)."""
     bias_prior_sigma_uncalibrated: float = 0.25
-    """Online mode: prior standard deviation of an uncalibrated pair's bias (m)."""
+    """Online mode, Gaussian-sum filter (headings or scales estimated as well): prior standard
+    deviation of an uncalibrated pair's bias (m). The sampled filter (``--bias online`` alone)
+    uses ``uwb.default_bias_sigma`` instead, the width its default mode assumes for the same
+    pair: a wider prior let the bias run, on a new session, along what one range cannot tell
+    apart (a longer bias, a nearer robot) (docs/self-calibration.md, "Online bias on a new
+    session")."""
     bias_walk: float = 0.01
     """Online mode: random walk of each bias (m per sqrt(s)): orientation-dependent errors
     make the effective bias drift as the robots turn."""

@@ -2,8 +2,9 @@
 
 Every particle is one hypothesis about the formation (:mod:`relloc.filter.pf`); with online
 biases (``bias_mode = "online"``) it also carries a Gaussian belief about each UWB node pair's
-range bias, its prior the pair's calibration where there is one, else wide around
-``uwb.default_bias`` (Rao-Blackwellised, :mod:`relloc.filter.state`). The range model updates
+range bias, its prior the pair's calibration where there is one, else ``uwb.default_bias`` +-
+``uwb.default_bias_sigma``, what the default mode assumes (Rao-Blackwellised,
+:mod:`relloc.filter.state`). The range model updates
 those beliefs; the filter walks their variances. The localizer itself only starts the filter
 (:mod:`relloc.localizers.start`) and then runs the cycle of
 :class:`~relloc.localizers.base.FilterLocalizer`.
@@ -23,9 +24,11 @@ from relloc.localizers.base import FilterLocalizer, Measurement
 from relloc.localizers.start import annealed_start
 
 
-def bias_layout(config: TeamConfig) -> tuple[StateLayout, list[float]]:
+def bias_layout(config: TeamConfig, *, uncalibrated_sigma: float | None = None) -> tuple[StateLayout, list[float]]:
     """The sampled state's layout and the prior of its non-position columns: with online
-    biases a (mean, variance) belief per UWB node pair of the team, none otherwise."""
+    biases a (mean, variance) belief per UWB node pair of the team, none otherwise. An
+    uncalibrated pair's prior is ``uwb.default_bias`` +- ``uncalibrated_sigma`` (default:
+    ``bias_prior_sigma_uncalibrated``)."""
     fc = config.filter
     names = config.robot_names
     if fc.self_calibration.bias_mode != "online":
@@ -37,7 +40,8 @@ def bias_layout(config: TeamConfig) -> tuple[StateLayout, list[float]]:
         if cal is not None:
             prior += [cal.bias, fc.self_calibration.bias_prior_sigma**2]
         else:
-            prior += [config.uwb.default_bias, fc.self_calibration.bias_prior_sigma_uncalibrated**2]
+            sigma = fc.self_calibration.bias_prior_sigma_uncalibrated if uncalibrated_sigma is None else uncalibrated_sigma
+            prior += [config.uwb.default_bias, sigma**2]
     return StateLayout(names, config.reference, tuple(node_pairs)), prior
 
 
@@ -87,7 +91,9 @@ class ParticleFilterLocalizer(FilterLocalizer):
     filter: ParticleFilter
 
     def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
-        layout, prior = bias_layout(config)
+        # An uncalibrated pair's online bias starts from what the default mode assumes about it,
+        # default_bias +- default_bias_sigma (docs/self-calibration.md, "Online bias on a new session").
+        layout, prior = bias_layout(config, uncalibrated_sigma=config.uwb.default_bias_sigma)
         super().__init__(config, layout, seed=seed)
         self.method = method
         self.range_model = config.filter.likelihood.range_model  # online pairs keep the symmetric model

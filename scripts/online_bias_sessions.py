@@ -1,0 +1,109 @@
+"""The sampled filter's online bias (``--bias online``) against the default bias on new sessions.
+
+A session of the ``single`` scenario (``r0`` static and the reference, ``r1`` circling, one
+range) is drawn with a chosen true pair bias and a chosen odometry scale error (``r1``'s path
+short by that fraction, like the TIERS recordings' 7-9 %); the filter's config carries no pair
+calibration, as on ``pair_range_20220907_1725``. Each session is run twice, with the default
+bias (``uwb.default_bias`` 0.3 m widened by ``default_bias_sigma``) and with ``--bias online``,
+and the APE median of ``r1`` after the warm-up is printed for both (plus the final online bias).
+
+    PYTHONPATH=src .venv/bin/python scripts/online_bias_sessions.py --biases 0.1,0.3,0.5 \
+        --scales 0,0.08 --seeds 0-2 --particles 5000
+
+``--set key=value`` changes a filter parameter (``FilterConfig.with_changes``, e.g.
+``bias_walk=0.002``) for the online run only, to compare variants of the online bias (the
+sampled filter's prior width of an uncalibrated pair is ``uwb.default_bias_sigma``, not a filter
+parameter). Figures: docs/self-calibration.md, "Online bias on a new session".
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import replace
+
+import numpy as np
+
+from relloc.config import TeamConfig
+from relloc.engine import Engine
+from relloc.evaluation.metrics import GroundTruth
+from relloc.evaluation.report import evaluate
+from relloc.methods import build_pipeline
+from relloc.simulator import single_scenario
+from relloc.simulator.error_models import OdometryErrorModel, UwbErrorModel
+
+
+def session(seed: int, bias: float, scale_error: float) -> tuple[object, TeamConfig]:
+    """The simulation and the config a user would have: no pair calibration."""
+    sim = single_scenario(
+        seed,
+        uwb=UwbErrorModel(bias_range=(bias, bias)),
+        odometry=OdometryErrorModel(scale_range=(1.0 - scale_error, 1.0 - scale_error)),
+    )
+    config = replace(sim.config, uwb=replace(sim.config.uwb, pairs={}))
+    return sim, config
+
+
+def ape_median(sim: object, config: TeamConfig, seed: int, warmup: float) -> tuple[float, float]:
+    """APE median of every non-reference robot (the worst), and the final online bias (nan if
+    the bias is not estimated)."""
+    pipeline = build_pipeline("pf", config, seed=seed)
+    gt = GroundTruth(config.reference)
+    engine = Engine([pipeline], truth_sinks=[gt.add])
+    engine.run(sim.events())  # type: ignore[attr-defined]
+    report = evaluate(engine, gt, "sim", warmup)
+    method = report.methods["pf"]
+    final = next(iter(method.final_biases.values()), (float("nan"), 0.0))[0]
+    return max(s.median for s in method.robots.values()), final
+
+
+def _values(text: str) -> list[float]:
+    return [float(v) for v in text.split(",")]
+
+
+def _seeds(text: str) -> list[int]:
+    if "-" in text:
+        lo, hi = text.split("-")
+        return list(range(int(lo), int(hi) + 1))
+    return [int(v) for v in text.split(",")]
+
+
+def _parse_set(items: list[str]) -> dict[str, object]:
+    out: dict[str, object] = {}
+    for item in items:
+        key, value = item.split("=", 1)
+        out[key] = value if not value.replace(".", "", 1).replace("-", "", 1).isdigit() else float(value)
+    return out
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--biases", default="0.1,0.3,0.5")
+    p.add_argument("--scales", default="0,0.08", help="odometry scale errors (path short by this fraction)")
+    p.add_argument("--seeds", default="0-2")
+    p.add_argument("--particles", type=int, default=5000)
+    p.add_argument("--warmup", type=float, default=10.0)
+    p.add_argument("--set", action="append", default=[], help="filter parameter for the online run")
+    p.add_argument("--skip-default", action="store_true")
+    args = p.parse_args()
+    changes = _parse_set(args.set)
+    print("| seed | true bias | scale error | default APE | online APE | online - default | final bias |")
+    print("|---|---|---|---|---|---|---|")
+    diffs = []
+    for bias in _values(args.biases):
+        for scale in _values(args.scales):
+            for seed in _seeds(args.seeds):
+                sim, config = session(seed, bias, scale)
+                config = config.with_filter(particles=args.particles)
+                d = float("nan")
+                if not args.skip_default:
+                    d, _ = ape_median(sim, config, seed, args.warmup)
+                online = config.with_modes(bias="online").with_filter(**changes)
+                o, b = ape_median(sim, online, seed, args.warmup)
+                diffs.append(o - d)
+                print(f"| {seed} | {bias:.2f} | {scale:.2f} | {d:.3f} | {o:.3f} | {o - d:+.3f} | {b:.3f} |", flush=True)
+    arr = np.array(diffs)
+    print(f"online - default: max {np.nanmax(arr):+.3f}, median {np.nanmedian(arr):+.3f}")
+
+
+if __name__ == "__main__":
+    main()
