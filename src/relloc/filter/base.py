@@ -18,7 +18,7 @@ a Kalman filter) and run the same cycle, which is all a localizer calls:
     uniform prior box so that a filter locked on a wrong mode can still find the right one.
 
 ``inject(formations)`` (recovery) restarts some hypotheses at given formations, for a
-localizer that found the filter lost (:class:`relloc.localizers.base.DivergenceMonitor`).
+localizer that found the filter lost (:class:`relloc.localizers.divergence.DivergenceMonitor`).
 
 :class:`WeightedFilter` implements the weights, the resampling schedule and the re-injection
 once; a filter supplies how to copy hypotheses (``_select``) and how to re-draw some from its
