@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import json
 from itertools import combinations
+from pathlib import Path
 
 import numpy as np
 import pytest
 
+from relloc.cli import main
 from relloc.cli.demo import SCENARIOS, DemoOptions, build_simulation
 from relloc.events import GroundTruthEvent, RangeEvent
 from relloc.simulator.scenarios import grid_scenario
@@ -74,3 +77,18 @@ def test_demo_registers_grid_outside_the_default_set() -> None:
 def test_too_small_a_team_is_refused() -> None:
     with pytest.raises(ValueError, match="at least 2"):
         grid_scenario(0, robots=1)
+
+
+def test_demo_runs_the_grid_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = tmp_path / "grid.json"
+    rc = main([
+        "demo", "--scenarios", "grid", "--robots", "3", "--particles", "2000", "--seed", "0",
+        "--json", str(path), "--out", str(tmp_path / "o"), "--no-progress",
+    ])
+    assert rc == 0
+    methods = json.loads(path.read_text())["scenarios"]["grid"]["methods"]
+    assert set(methods["pf"]["robots"]) == {"r1", "r2"}
+    assert all(r["n"] > 250 for r in methods["pf"]["robots"].values())
+    assert methods["pf"]["mean_ape_median"] < 0.5
+    assert main(["demo", "--scenarios", "grid", "--robots", "1", "--no-progress"]) == 2
+    assert "at least 2 robots" in capsys.readouterr().err

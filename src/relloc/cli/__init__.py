@@ -54,6 +54,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     for name in args.scenarios.split(","):
         if name not in known:
             raise UserError(f"unknown scenario {name!r}; known: {', '.join(known)}")
+    if "grid" in args.scenarios.split(",") and args.robots < 2:
+        raise UserError(f"--robots: the grid needs at least 2 robots, got {args.robots}")
     opts = options_from_args(
         DemoOptions, args, methods=tuple(parse_methods(args.methods)), scenarios=tuple(args.scenarios.split(",")),
         faults=_faults(args),
