@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from relloc.cli import main
-from relloc.cli.demo import SCENARIOS, DemoOptions, build_simulation
+from relloc.cli.demo import SCENARIOS, DemoOptions, build_simulation, scenario_setup
 from relloc.events import GroundTruthEvent, RangeEvent
 from relloc.simulator.scenarios import grid_scenario
 
@@ -72,6 +72,10 @@ def test_demo_registers_grid_outside_the_default_set() -> None:
     assert "grid" not in DemoOptions().scenarios
     sim = build_simulation("grid", DemoOptions(robots=7))
     assert len(sim.robots) == 7 and sim.duration == 40.0
+    # Heading-estimate mode: a moving robot is the reference (the static r0 would leave the
+    # formation's bearing unobservable).
+    _, config, _ = scenario_setup("grid", DemoOptions(robots=3, heading="estimate"))
+    assert config.reference == "r1"
 
 
 def test_too_small_a_team_is_refused() -> None:

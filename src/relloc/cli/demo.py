@@ -77,11 +77,12 @@ def build_simulation(name: str, opts: DemoOptions, **kwargs: Any) -> Simulation:
     return SCENARIOS[name](opts.seed, **kwargs)
 
 
-MOVING_REFERENCE: dict[str, str] = {"multi": "r1", "single": "r1"}
+MOVING_REFERENCE: dict[str, str] = {"multi": "r1", "single": "r1", "grid": "r1"}
 """Reference robot of each scenario in heading-estimate mode. The estimates are expressed in
 the reference's odometry frame, which only the reference's own motion ties to the ranges: a
 static reference (the scenarios' default ``r0``) would leave the whole formation's bearing
-unobservable, so a moving robot (``r1``: the triangle, resp. the circle) takes its place."""
+unobservable, so a moving robot (``r1``: the triangle, the circle, on the grid its own circle) takes
+its place."""
 
 
 def scenario_setup(name: str, opts: DemoOptions) -> tuple[Simulation, TeamConfig, dict[str, float] | None]:
