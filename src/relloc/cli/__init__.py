@@ -54,6 +54,8 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     for name in args.scenarios.split(","):
         if name not in known:
             raise UserError(f"unknown scenario {name!r}; known: {', '.join(known)}")
+    if "grid" in args.scenarios.split(",") and args.robots < 2:
+        raise UserError(f"--robots: the grid needs at least 2 robots, got {args.robots}")
     opts = options_from_args(
         DemoOptions, args, methods=tuple(parse_methods(args.methods)), scenarios=tuple(args.scenarios.split(",")),
         faults=_faults(args),
@@ -169,7 +171,8 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--warmup", type=argtypes.non_negative, default=10.0, help="seconds excluded from APE")
     demo.add_argument("--particles", type=argtypes.count, default=None, help="override the particle count")
     demo.add_argument("--methods", default="pf,multilateration", help=METHODS_HELP)
-    demo.add_argument("--scenarios", default="multi,single,nav", help="comma-separated: multi, single, nav, static, static_then_move")
+    demo.add_argument("--scenarios", default="multi,single,nav", help="comma-separated: multi, single, nav, static, static_then_move, grid (the scaling scenario: --robots N on a grid, all pairs ranging)")
+    demo.add_argument("--robots", type=argtypes.count, default=5, help="team size of the grid scenario (at least 2)")
     demo.add_argument("--out", type=Path, default=Path("out/demo"), help="folder for plots")
     demo.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE", help="write the figures as JSON")
     demo.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")

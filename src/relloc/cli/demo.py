@@ -5,6 +5,8 @@ reference) and the ``single`` scenario (two robots, one range) through the same 
 processes real recordings, and evaluates each method against the simulator's ground truth.
 ``static`` (the multi team parked) and ``static_then_move`` (parked for 20 s, then driving) show
 the estimate reporting an unobservable formation orientation, and the shape it still knows.
+``grid`` (``--robots N``) is the scaling scenario: N robots on a grid, each driving its own
+circle, every pair ranging, a static reference.
 The ``nav`` scenario is the paper's closed-loop experiment: one robot drives a rectangle around
 the static reference robot with the particle filter's estimate as its only position feedback
 (:mod:`relloc.navigation.closed_loop`); it reports positioning APE and path-tracking error.
@@ -31,7 +33,7 @@ from relloc.evaluation.report import ScenarioReport, evaluate, make_console, pri
 from relloc.faults import Faults, inject
 from relloc.methods import DETECTION_METHODS, build_pipeline
 from relloc.simulator import Simulation, multi_scenario, single_scenario
-from relloc.simulator.scenarios import static_scenario, static_then_move_scenario
+from relloc.simulator.scenarios import grid_scenario, static_scenario, static_then_move_scenario
 
 
 @dataclass(frozen=True)
@@ -52,6 +54,8 @@ class DemoOptions:
     """``fixed|online``."""
     faults: Faults = field(default_factory=Faults)
     """Faults injected into every scenario's event stream (:mod:`relloc.faults`)."""
+    robots: int = 5
+    """Team size of the ``grid`` scenario."""
 
 
 SCENARIOS: dict[str, Callable[..., Simulation]] = {
@@ -59,16 +63,26 @@ SCENARIOS: dict[str, Callable[..., Simulation]] = {
     "single": single_scenario,
     "static": static_scenario,
     "static_then_move": static_then_move_scenario,
+    "grid": grid_scenario,
 }
 """The open-loop scenarios (``nav`` is run apart). ``static`` and ``static_then_move`` are not in
-the default set: they show how the estimate reports an unobservable orientation."""
+the default set: they show how the estimate reports an unobservable orientation; nor is ``grid``
+(the scaling scenario, ``DemoOptions.robots`` robots)."""
 
 
-MOVING_REFERENCE: dict[str, str] = {"multi": "r1", "single": "r1"}
+def build_simulation(name: str, opts: DemoOptions, **kwargs: Any) -> Simulation:
+    """The scenario ``name`` for ``opts`` (the grid with ``opts.robots`` robots)."""
+    if name == "grid":
+        kwargs["robots"] = opts.robots
+    return SCENARIOS[name](opts.seed, **kwargs)
+
+
+MOVING_REFERENCE: dict[str, str] = {"multi": "r1", "single": "r1", "grid": "r1"}
 """Reference robot of each scenario in heading-estimate mode. The estimates are expressed in
 the reference's odometry frame, which only the reference's own motion ties to the ranges: a
 static reference (the scenarios' default ``r0``) would leave the whole formation's bearing
-unobservable, so a moving robot (``r1``: the triangle, resp. the circle) takes its place."""
+unobservable, so a moving robot (``r1``: the triangle, the circle, on the grid its own circle) takes
+its place."""
 
 
 def scenario_setup(name: str, opts: DemoOptions) -> tuple[Simulation, TeamConfig, dict[str, float] | None]:
@@ -83,7 +97,7 @@ def scenario_setup(name: str, opts: DemoOptions) -> tuple[Simulation, TeamConfig
     kwargs: dict[str, Any] = {"detections": bool(DETECTION_METHODS & set(opts.methods))}
     if estimate:
         kwargs["heading_offsets"] = "random"
-    sim = SCENARIOS[name](opts.seed, **kwargs)
+    sim = build_simulation(name, opts, **kwargs)
     config = sim.config
     if estimate:
         config = replace(config, robots=tuple(replace(r, heading_offset_deg=0.0) for r in config.robots))
@@ -145,7 +159,7 @@ def run_demo(opts: DemoOptions, console: Console | None = None) -> dict[str, Any
     console = console or make_console()
     for name in opts.scenarios:  # before any scenario runs
         if name in SCENARIOS:
-            check_warmup(opts.warmup, SCENARIOS[name](opts.seed).duration, name)
+            check_warmup(opts.warmup, build_simulation(name, opts).duration, name)
     if opts.out is not None:
         check_writable(opts.out)
     results: dict[str, Any] = {"seed": opts.seed, "scenarios": {}}

@@ -7,6 +7,7 @@ multi team with one robot driven by velocity commands. :func:`static_scenario` p
 team for the whole run and :func:`static_then_move_scenario` parks it for 20 s before the
 robots drive their patterns: at rest the formation's orientation about the reference is not
 observable from ranges, and these scenarios test that the estimate says so.
+:func:`grid_scenario` is the scaling scenario: ``N`` robots on a grid, all pairs ranging.
 """
 
 from __future__ import annotations
@@ -15,6 +16,8 @@ import math
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import Literal
+
+import numpy as np
 
 from relloc.simulator.error_models import (
     ActuationModel,
@@ -317,4 +320,79 @@ def static_then_move_scenario(
     reference drives its pattern: the motion resolves the orientation."""
     return _parked_multi(
         seed, STATIC_THEN_MOVE_PARK_S, duration, "sim_static_then_move", detections, heading_offsets, uwb, odometry
+    )
+
+
+GRID_SPACING = 3.0
+"""Distance between neighbouring cells of :func:`grid_scenario` (m)."""
+
+
+def grid_scenario(
+    seed: int = 0,
+    *,
+    robots: int = 5,
+    duration: float = 40.0,
+    spacing: float = GRID_SPACING,
+    detections: bool = False,
+    heading_offsets: Literal["start", "random"] = "start",
+    uwb: UwbErrorModel | None = None,
+    odometry: OdometryErrorModel | None = None,
+) -> Simulation:
+    """A team of ``robots`` on a square grid, every pair ranging: the scaling scenario.
+
+    The cells are ``spacing`` metres apart, ``ceil(sqrt(robots))`` to a row, filled row by row
+    and centred on the origin. ``r0`` (node ``n_0``) sits static at the centre of the first
+    cell and is the reference; every other robot ``r<i>`` drives counter-clockwise circles about
+    the centre of its own cell, radius 0.7-1.1 m and speed 0.2-0.3 m/s (drawn from the robot's
+    own ``grid-circle`` stream), from a seeded point of its circle. Positions, odometry and UWB
+    errors come from the same kinematics and error models as the other scenarios; all
+    ``robots * (robots - 1) / 2`` pairs range, each with its own noise streams, so adding a
+    robot does not change an existing pair's measurements. The arena is the grid's extent plus
+    2 m on every side. No objects: detections see nothing here.
+    """
+    if robots < 2:
+        raise ValueError(f"the grid needs at least 2 robots, got {robots}")
+    cols = math.ceil(math.sqrt(robots))
+    rows = math.ceil(robots / cols)
+    cells = [
+        ((k % cols - (cols - 1) / 2) * spacing, (k // cols - (rows - 1) / 2) * spacing)
+        for k in range(robots)
+    ]
+    yaw0 = _initial_yaw(seed, "r0", heading_offsets)
+    motions = [
+        RobotMotion(
+            "r0", "n_0", cells[0][0], cells[0][1], 0.0 if yaw0 is None else yaw0, pattern="static"
+        )
+    ]
+    for i in range(1, robots):
+        name = f"r{i}"
+        radius, speed = (float(v) for v in stream(seed, "grid-circle", name).uniform((0.7, 0.2), (1.1, 0.3)))
+        motions.append(
+            looped_motion(
+                name,
+                f"n_{i}",
+                "circle",
+                circle_loop(cells[i][0], cells[i][1], radius, speed),
+                seed=seed,
+                duration=duration,
+                initial_yaw=_initial_yaw(seed, name, heading_offsets),
+                turn_rate=TURN_RATE,
+                commanded=False,
+            )
+        )
+    xs, ys = np.asarray(cells).T
+    margin = 2.0
+    area = (
+        float(xs.min()) - margin, float(xs.max()) + margin, float(ys.min()) - margin, float(ys.max()) + margin,
+    )
+    return Simulation(
+        motions,
+        reference="r0",
+        seed=seed,
+        duration=duration,
+        name=f"sim_grid{robots}",
+        detections=detections,
+        uwb=uwb,
+        odometry=odometry,
+        area=area,
     )
