@@ -7,8 +7,19 @@ own rates and lags. A localizer
   backwards): a bad event is **rejected and counted** in :attr:`Localizer.stats` (and logged),
   never allowed to crash the engine or to corrupt the estimate. The time checks are here; the
   measurement's own rule is its model's (:mod:`relloc.filter.registry`);
+* keeps a **team clock** that no single stamp can capture: the first events wait until five
+  of them (from two sources: robots' odometry, range pairs) are in, and their median stamp
+  sets it; after that a stamp more than ``max_time_jump`` ahead of the newest accepted one, or
+  behind it where it could no longer be used, is rejected and counted (``time_jump``,
+  ``time_jump_backward``) and votes for a jump; three agreeing votes from two sources, each
+  accepted event meanwhile taking one away, make the clock follow a step of the whole stream,
+  either way (``clock_jumps_followed``; the filter's times move with it). A batch never grows
+  past ``_MAX_PENDING`` (``batches_forced``);
 * keeps each robot's odometry in an :class:`~relloc.odometry.OdometryTrack` (shared heading
-  frame), so that it can predict to any instant;
+  frame), so that it can predict to any instant; a message that moves its robot faster than
+  ``max_speed``/``max_yaw_rate`` (``[filter.odometry]``) is a reset or a jump and re-anchors
+  the track instead of moving the robot (``odometry_reanchored``, per robot in
+  :attr:`Localizer.odometry_faults`);
 * gathers the measurements stamped within one cell of a fixed ``update_period`` grid into one
   batch, predicts with every robot's odometry up to the batch time (its newest stamp), and
   fuses the batch in one update (the stacked measurement vector of the paper). A grid, not a
@@ -16,6 +27,11 @@ own rates and lags. A localizer
   then gives one range per batch, not now one, now two;
 * emits an :class:`~relloc.estimate.Estimate` (each robot's position relative to the
   reference, with covariance) at ``estimate_period``.
+
+A :class:`FilterLocalizer` also watches itself (:class:`DivergenceMonitor`): when most of a
+robot's ranges disagree with its estimate it is lost, flags its estimates ``recovering``,
+counts it (``divergence_detected``) and starts again from the last half second of
+measurements, oriented by the last formation it trusted (``recovery_injections``).
 
 Subclasses differ only in ``_step``, the fusion of one batch. :class:`FilterLocalizer` is that
 step for a filter of :mod:`relloc.filter.base`: predict, update with the batch's measurement
@@ -156,7 +172,7 @@ class Localizer:
             return []
         if self._clock == -math.inf:
             # The first events cannot set the clock alone: they wait until enough of them
-            # (from more than one source) agree on a time (see the module docstring).
+            # (from more than one source) set it by their median (the module docstring).
             self._warmup.append(event)
             if not self._warmup_ready():
                 return []
