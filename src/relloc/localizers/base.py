@@ -28,7 +28,7 @@ own rates and lags. A localizer
 * emits an :class:`~relloc.estimate.Estimate` (each robot's position relative to the
   reference, with covariance) at ``estimate_period``.
 
-A :class:`FilterLocalizer` also watches itself (:class:`DivergenceMonitor`): when most of a
+A :class:`FilterLocalizer` also watches itself (:class:`~relloc.localizers.divergence.DivergenceMonitor`): when most of a
 robot's ranges disagree with its estimate it is lost, flags its estimates ``recovering``,
 counts it (``divergence_detected``) and starts again from the last half second of
 measurements, oriented by the last formation it trusted (``recovery_injections``).
