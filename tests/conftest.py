@@ -1,4 +1,5 @@
-"""Shared test fixtures: where the TIERS recordings are, and a tiny rosbag2 writer.
+"""Shared test fixtures: where the TIERS recordings are, a tiny rosbag2 writer, and two Zenoh
+sessions on loopback.
 
 The recordings live in ``../shared/data`` next to the repository root and are never copied into
 the repository; tests that need them take the ``shared_data`` fixture, which skips (with the
@@ -7,7 +8,7 @@ reason) when the folder is absent.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -51,3 +52,19 @@ def bag_writer() -> Callable[..., Path]:
         return path
 
     return write
+
+
+@pytest.fixture
+def sessions() -> Iterator[tuple[Any, Any]]:
+    """Two peer Zenoh sessions on loopback (a free TCP port on 127.0.0.1, no multicast
+    scouting): (server side listening, client side connecting); both closed afterwards."""
+    from relloc.live import ZenohOptions, free_tcp_port, open_session
+
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    server = open_session(ZenohOptions(listen=(endpoint,), multicast=False))
+    client = open_session(ZenohOptions(connect=(endpoint,), multicast=False))
+    try:
+        yield server, client
+    finally:
+        client.close()
+        server.close()

@@ -21,19 +21,16 @@ from __future__ import annotations
 import struct
 import threading
 import time
-from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
+from waiting import wait_until
 
 from relloc.events import OdometryEvent
 from relloc.live import (
     EstimateCollector,
     LiveServer,
     ServeOptions,
-    ZenohOptions,
-    free_tcp_port,
-    open_session,
     publish_events,
     simulated_team,
 )
@@ -190,27 +187,6 @@ def test_rmw_source_checks_types_and_hashes_and_counts_loss_and_bad_attachments(
 
 
 # ---------------------------------------------------------------------------- over Zenoh
-@pytest.fixture
-def sessions() -> Iterator[tuple[Any, Any]]:
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-    server = open_session(ZenohOptions(listen=(endpoint,), multicast=False))
-    client = open_session(ZenohOptions(connect=(endpoint,), multicast=False))
-    try:
-        yield server, client
-    finally:
-        client.close()
-        server.close()
-
-
-def wait_until(condition: Callable[[], bool], timeout: float = 5.0) -> bool:
-    end = time.time() + timeout
-    while time.time() < end:
-        if condition():
-            return True
-        time.sleep(0.01)
-    return condition()
-
-
 def test_served_over_rmw_zenoh_seen_by_a_subscriber_written_from_the_design_document(
     sessions: tuple[Any, Any],
 ) -> None:

@@ -15,12 +15,12 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pytest
+from waiting import wait_until
 
 from relloc.config import TeamConfig
 from relloc.events import OdometryEvent
@@ -43,28 +43,6 @@ from relloc.sources.zenoh_source import ZenohSource, ZenohSourceOptions
 
 REPO = Path(__file__).resolve().parents[1]
 SHORTBAG = "multi4_shortbag_20221011"
-
-
-@pytest.fixture
-def sessions() -> Iterator[tuple[Any, Any]]:
-    """Two peer sessions on loopback: (server side listening, client side connecting)."""
-    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
-    server = open_session(ZenohOptions(listen=(endpoint,), multicast=False))
-    client = open_session(ZenohOptions(connect=(endpoint,), multicast=False))
-    try:
-        yield server, client
-    finally:
-        client.close()
-        server.close()
-
-
-def wait_until(condition: Callable[[], bool], timeout: float = 5.0) -> bool:
-    end = time.time() + timeout
-    while time.time() < end:
-        if condition():
-            return True
-        time.sleep(0.01)
-    return condition()
 
 
 class Running:
