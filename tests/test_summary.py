@@ -117,12 +117,13 @@ def test_a_parked_team_reports_its_orientation_unobservable_and_its_shape() -> N
 
 
 @pytest.mark.slow
-def test_motion_resolves_the_orientation() -> None:
-    """With the simulated team's 20 000 particles (fewer let the ring collapse onto a few
-    inherited orientations while parked, and the first motion may then pick a wrong one)."""
+def test_motion_resolves_the_orientation_at_few_particles() -> None:
+    """At 5 000 particles: while parked, resampling alone would narrow the ring onto a few
+    inherited orientations and the first motion would pick a wrong one, confidently (seed 0
+    without the re-spread at rest: APE 0.74-1.04 m, coverage 22 %)."""
     from relloc.simulator.scenarios import STATIC_THEN_MOVE_PARK_S, static_then_move_scenario
 
-    engine, gt = _run_pf(static_then_move_scenario(seed=0, duration=30.0), 20000)
+    engine, gt = _run_pf(static_then_move_scenario(seed=0, duration=30.0), 5000)
     estimates = engine.pipelines[0].estimates
     flags = np.array([e.orientation_observable for e in estimates])
     t = np.array([e.t for e in estimates])
@@ -131,3 +132,25 @@ def test_motion_resolves_the_orientation() -> None:
     late = [e for e in estimates if e.t > STATIC_THEN_MOVE_PARK_S + 5.0]
     errors = [np.hypot(*np.subtract(e.positions[r], gt.relative_at(r, e.t))) for e in late for r in e.positions]
     assert np.median(errors) < 0.2
+
+
+def test_evidence_is_symmetric_only_before_any_motion_or_non_invariant_model() -> None:
+    from relloc.filter.summary import AT_REST_PATH, Evidence
+
+    ev = Evidence(3)
+    assert ev.symmetric
+    ev.moved(np.full((3, 2), AT_REST_PATH / 10))  # odometry jitter at rest
+    assert ev.symmetric and not ev.can_resolve
+    there_and_back = np.zeros((3, 2))
+    there_and_back[1] = [0.2, 0.0]
+    ev.moved(there_and_back)
+    ev.moved(-there_and_back)  # back where it started: the net offset is zero, the path is not
+    assert not ev.symmetric and not ev.can_resolve
+    ev.reset()
+    assert ev.symmetric
+
+    class _Vector:
+        invariant = False
+
+    ev.fused([_Vector()])  # type: ignore[list-item]
+    assert not ev.symmetric and ev.can_resolve

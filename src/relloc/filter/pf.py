@@ -188,8 +188,17 @@ class ParticleFilter(WeightedFilter):
             self.particles[slots, self.layout.dim :] = self.extra_prior
 
     def _after_resample(self) -> None:
-        """The orientation kernel (module docstring)."""
-        if self.rotation_kernel > 0.0 and self.rejuvenate_rotation(self.rotation_kernel):
+        """Keep a team at rest on its ring, else the orientation kernel (module docstring).
+
+        While the exact posterior is invariant under the formation's symmetries (nothing but
+        ranges fused, nobody moved: ``Evidence.symmetric``), resampling alone would narrow the
+        ring onto the orientations of a few lucky ancestors, and the first motion would then
+        choose among those instead of among all: a wrong orientation, confidently published.
+        Re-spreading the resampled cloud over the symmetries is exact then, and keeps it
+        uniform at any particle count."""
+        if self.evidence.symmetric:
+            self.spread_symmetries()
+        elif self.rotation_kernel > 0.0 and self.rejuvenate_rotation(self.rotation_kernel):
             self.rotation_kernel_count += 1
 
     def counters(self) -> dict[str, int]:

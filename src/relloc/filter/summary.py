@@ -82,20 +82,27 @@ ORIENTATION_MAX_STD = 0.3
 MOTION_TO_RESOLVE = 0.3
 """Net displacement (m) of some robot from where it started after which motion may have told
 the orientation (the particles then decide)."""
+AT_REST_PATH = 0.02
+"""Path length (m) of odometry under which a robot counts as never having moved (wheel
+odometry at rest reports no motion, or a few millimetres of jitter)."""
 
 
 class Evidence:
     """What a filter has fused that can break the rotation/reflection symmetry: measurement
-    models that are not invariant to it, and each robot's net odometry displacement."""
+    models that are not invariant to it, and each robot's odometry (net displacement and path
+    length)."""
 
     def __init__(self, n_robots: int) -> None:
         self.non_invariant = 0
         self.offset = np.zeros((n_robots, 2))
         self.max_offset = 0.0
+        self.path = np.zeros(n_robots)
 
     def moved(self, disp: FloatArray) -> None:
         """Add one step's displacements ``(N, 2)``."""
-        self.offset += np.nan_to_num(disp)
+        d = np.nan_to_num(disp)
+        self.offset += d
+        self.path += np.hypot(d[:, 0], d[:, 1])
         self.max_offset = max(self.max_offset, float(np.max(np.hypot(self.offset[:, 0], self.offset[:, 1]))))
 
     def fused(self, models: Sequence[MeasurementModel]) -> None:
@@ -104,12 +111,20 @@ class Evidence:
     def reset(self) -> None:
         """Forget the motion (the filter restarted from the symmetric start)."""
         self.offset[:] = 0.0
+        self.path[:] = 0.0
         self.max_offset = 0.0
         self.non_invariant = 0
 
     @property
     def can_resolve(self) -> bool:
         return self.non_invariant > 0 or self.max_offset >= MOTION_TO_RESOLVE
+
+    @property
+    def symmetric(self) -> bool:
+        """Whether the exact posterior is still invariant under the rotations and mirror images
+        about the reference: only invariant models fused and no robot ever moved. A filter
+        may then re-spread its hypotheses over the symmetries at no cost in information."""
+        return self.non_invariant == 0 and float(self.path.max(initial=0.0)) < AT_REST_PATH
 
 
 @dataclass(frozen=True)
