@@ -82,9 +82,10 @@ ORIENTATION_MAX_STD = 0.3
 MOTION_TO_RESOLVE = 0.3
 """Net displacement (m) of some robot from where it started after which motion may have told
 the orientation (the particles then decide)."""
-AT_REST_PATH = 0.02
-"""Path length (m) of odometry under which a robot counts as never having moved (wheel
-odometry at rest reports no motion, or a few millimetres of jitter)."""
+AT_REST_PATH = 0.001
+"""Path length (m) of odometry under which a robot counts as never having moved: parked wheel
+odometry reports no motion at all (exactly zero on the parked TIERS robots), so this is only a
+margin for rounding; the first real motion exceeds it."""
 
 
 class Evidence:
