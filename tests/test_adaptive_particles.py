@@ -162,6 +162,7 @@ def test_the_adaptive_keys_are_validated() -> None:
     assert FilterConfig.section_of("mc_tolerance") == "adaptive"
     for bad in (
         {"min_particles": 0},
+        {"min_particles_no_kernel": 0},
         {"kld_epsilon": 0.0},
         {"kld_bin": -0.1},
         {"kld_quantile": 1.0},
@@ -171,8 +172,17 @@ def test_the_adaptive_keys_are_validated() -> None:
     ):
         with pytest.raises(ConfigError, match=r"filter\.adaptive"):
             FilterConfig.from_dict({"adaptive": bad})
-    # min_particles above the full count caps at it; "fixed" turns the rule off.
+    # min_particles above the full count caps at it; a pair (no orientation kernel) has its own
+    # floor; "fixed" turns the rule off.
     sim = multi_scenario(seed=0, duration=1.0)
     config = sim.config.with_filter(particles=1500)
-    assert count_rule(config) == KldSampling(1500, 1500, mc_tolerance=0.007)
-    assert count_rule(dataclasses.replace(config, filter=config.filter.with_changes(particle_count="fixed"))) is None
+    team = StateLayout(config.robot_names, config.reference)
+    assert count_rule(config, team) == KldSampling(1500, 1500, mc_tolerance=0.007)
+    big = config.with_filter(particles=30_000)
+    assert count_rule(big, team).min_particles == 2000
+    pair = StateLayout(config.robot_names[:2], config.robot_names[0])
+    assert count_rule(big, pair).min_particles == 5000
+    no_kernel = big.with_filter(rotation_kernel=0.0)
+    assert count_rule(no_kernel, team).min_particles == 5000
+    fixed = dataclasses.replace(config, filter=config.filter.with_changes(particle_count="fixed"))
+    assert count_rule(fixed, team) is None

@@ -373,6 +373,10 @@ class AdaptiveConfig(_Checked):
     """``kld``: adapt the count; ``fixed``: always ``particles``."""
     min_particles: int = 2000
     """Fewest particles once the posterior is narrow (capped at ``particles``)."""
+    min_particles_no_kernel: int = 5000
+    """The same where the orientation kernel cannot act (one non-reference robot, or
+    ``rotation_kernel = 0``): nothing but the count then keeps the diversity of the weakly
+    observed bearing (capped at ``particles``)."""
     kld_epsilon: float = 0.05
     """KLD-sampling's bound on the Kullback-Leibler divergence of the binned sample."""
     kld_quantile: float = 0.99
@@ -386,7 +390,7 @@ class AdaptiveConfig(_Checked):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        _require(self, "filter.adaptive", at_least_one=("min_particles",), positive=("kld_epsilon", "kld_bin"),
+        _require(self, "filter.adaptive", at_least_one=("min_particles", "min_particles_no_kernel"), positive=("kld_epsilon", "kld_bin"),
                  non_negative=("mc_tolerance",))
         if not 0.5 < self.kld_quantile < 1.0:
             raise ConfigError(f"filter.adaptive.kld_quantile must be in (0.5, 1), got {self.kld_quantile}")

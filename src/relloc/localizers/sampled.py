@@ -56,15 +56,19 @@ def _node_pair(config: TeamConfig, robot_a: str, robot_b: str) -> str:
     return pair_key(a, b)
 
 
-def count_rule(config: TeamConfig) -> KldSampling | None:
-    """The adaptive particle count of ``[filter.adaptive]`` (``None`` where it is ``fixed``):
-    from ``[filter] particles`` down to ``min_particles`` (at most ``particles``)."""
+def count_rule(config: TeamConfig, layout: StateLayout) -> KldSampling | None:
+    """The adaptive particle count of ``[filter.adaptive]`` for ``layout`` (``None`` where it
+    is ``fixed``): from ``[filter] particles`` down to ``min_particles``, or to
+    ``min_particles_no_kernel`` where the orientation kernel cannot act (a single
+    non-reference robot, or no kernel), each at most ``particles``."""
     fc = config.filter
     ac = fc.adaptive
     if ac.particle_count == "fixed":
         return None
+    kernel = fc.resampling.rotation_kernel > 0.0 and layout.n_others >= 2
+    floor = ac.min_particles if kernel else ac.min_particles_no_kernel
     return KldSampling(
-        min(ac.min_particles, fc.particles), fc.particles, epsilon=ac.kld_epsilon, quantile=ac.kld_quantile,
+        min(floor, fc.particles), fc.particles, epsilon=ac.kld_epsilon, quantile=ac.kld_quantile,
         bin_size=ac.kld_bin, mc_tolerance=ac.mc_tolerance, ess_fraction=fc.resampling.ess_threshold,
     )
 
@@ -121,7 +125,7 @@ class ParticleFilterLocalizer(FilterLocalizer):
         super().__init__(config, layout, seed=seed)
         self.method = method
         self.range_model = config.filter.likelihood.range_model  # online pairs keep the symmetric model
-        self.filter = particle_filter(config, layout, prior, config.filter.particles, self.rng, count_rule(config))
+        self.filter = particle_filter(config, layout, prior, config.filter.particles, self.rng, count_rule(config, layout))
         self.filter.covariance_floor = covariance_floor(config, self.range_model)
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
