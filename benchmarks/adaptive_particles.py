@@ -76,11 +76,17 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=2, help="interleaved runs per count and seed")
     ap.add_argument("--tail", type=float, default=5.0, help="the steady state: the run's last seconds")
     ap.add_argument("--json", type=Path, default=None, help="write the figures here")
+    ap.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE",
+        help="a [filter.adaptive] key for the adaptive runs, e.g. mc_tolerance=0.009 (repeatable)",
+    )
     args = ap.parse_args()
     seeds = [int(s) for s in args.seeds.split(",")]
     results = {}
-    for name, config, events, warmup in _cases():
-        fixed_config = config.with_filter(particle_count="fixed")
+    changes = {k: float(v) if "." in v else int(v) for k, v in (item.split("=", 1) for item in args.set)}
+    for name, base, events, warmup in _cases():
+        fixed_config = base.with_filter(particle_count="fixed")
+        config = base.with_filter(**changes)
         rows: dict[str, dict[str, list[float]]] = {"fixed": {}, "adaptive": {}}
         for _ in range(args.repeats):
             for seed in seeds:
