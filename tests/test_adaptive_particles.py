@@ -82,7 +82,9 @@ def test_the_filter_resamples_to_the_rules_size_and_back_to_full_on_recovery() -
     assert np.isclose(np.exp(pf.logw).sum(), 1.0)
     assert pf.estimate().particles == 500
     slots = pf.inject(np.tile([2.0, 0.0, 0.0, 2.0], (100, 1)))
-    assert pf.n == 8000 and pf.particles.shape[0] == 8000 and slots.size == 100
+    assert pf.n == 8000 and pf.particles.shape[0] == 8000
+    assert slots.size == 1600  # the injected share (100 of 500) kept at the full count
+    assert np.allclose(pf.particles[slots], [2.0, 0.0, 0.0, 2.0])
     # A fixed-count filter never changes size.
     fixed = _ring_filter(3000, None)
     fixed.estimate()

@@ -157,9 +157,16 @@ class WeightedFilter:
         """Recovery: resample, then restart ``len(formations)`` hypotheses, chosen at random,
         at the given formations (relative positions ``(K, 2(N-1))``, further state at its
         prior); equal weights. What a localizer calls when it finds the filter lost: the
-        measurements then weigh the injected hypotheses against the kept ones. Returns the
-        slots re-drawn."""
-        self.n = self._recovery_size()
+        measurements then weigh the injected hypotheses against the kept ones. A filter with
+        an adaptive count first grows back to its full count (:meth:`_recovery_size`), the
+        formations repeated so that they keep their share. Returns the slots re-drawn."""
+        n = self._recovery_size()
+        formations = np.asarray(formations, dtype=float)
+        if n != self.n and len(formations):
+            # The count grows back (an adaptive filter): the injected share stays the same,
+            # the given formations repeated.
+            formations = np.resize(formations, (round(len(formations) * n / self.n), formations.shape[1]))
+        self.n = n
         k = min(len(formations), self.n)
         self._select(systematic_resample(np.exp(self.logw), self.rng, self.n))
         slots = self.rng.choice(self.n, size=k, replace=False).astype(np.intp)
