@@ -66,7 +66,7 @@ def _ring_filter(n: int, rule: KldSampling | None) -> ParticleFilter:
         layout, n, (-5.0, 5.0, -5.0, 5.0), rng=np.random.default_rng(0), count_rule=rule, reinject_fraction=0.0
     )
     pf.particles = pf.rng.normal(0.0, 0.03, (n, 4)) + np.array([2.0, 0.0, 0.0, 2.0])
-    pf.evidence.max_offset = 1.0  # motion seen: the orientation can be resolved
+    pf.evidence.moved(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0]]))  # motion: the orientation can be resolved
     return pf
 
 
