@@ -129,6 +129,10 @@ def test_motion_resolves_the_orientation_at_few_particles() -> None:
     t = np.array([e.t for e in estimates])
     assert not flags[t < STATIC_THEN_MOVE_PARK_S].any()
     assert flags[t > STATIC_THEN_MOVE_PARK_S + 5.0].all()
+    # The adaptive count keeps the full count while parked (the ring must not narrow), and
+    # only then falls (relloc.filter.adaptive).
+    counts = np.array([e.particles for e in estimates])
+    assert (counts[t < STATIC_THEN_MOVE_PARK_S] == counts[0]).all() and counts[-1] < counts[0]
     late = [e for e in estimates if e.t > STATIC_THEN_MOVE_PARK_S + 5.0]
     errors = [np.hypot(*np.subtract(e.positions[r], gt.relative_at(r, e.t))) for e in late for r in e.positions]
     assert np.median(errors) < 0.2

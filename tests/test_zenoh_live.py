@@ -125,6 +125,7 @@ def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
     assert server.summary()["source"]["rejected"] == {}
     assert status and status[-1]["methods"]["pf"]["estimates"] > 0
     assert status[-1]["methods"]["pf"]["orientation_observable"] is own[-1].orientation_observable
+    assert status[-1]["particles"] == 1000 and status[-1]["methods"]["pf"]["particles"] == own[-1].particles == 1000
     assert status[-1]["source"]["messages"] > 0 and "robots" in status[-1]
     timed = [r for r in traces if r["trigger_sent"] is not None]
     assert len(timed) >= len(own) - 2

@@ -363,11 +363,47 @@ class AssociationConfig(_Checked):
 
 
 @dataclass(frozen=True)
+class AdaptiveConfig(_Checked):
+    """The adaptive particle count of the sampled filter (``[filter.adaptive]``,
+    :mod:`relloc.filter.adaptive`): ``particles`` (of ``[filter]``) at the start, after a
+    divergence and while the posterior is wide (orientation unobservable, several modes); once
+    it is one narrow mode, KLD-sampling's bound at each resampling, at least ``min_particles``."""
+
+    particle_count: Literal["kld", "fixed"] = "kld"
+    """``kld``: adapt the count; ``fixed``: always ``particles``."""
+    min_particles: int = 2000
+    """Fewest particles once the posterior is narrow (capped at ``particles``)."""
+    min_particles_no_kernel: int = 5000
+    """The same where the orientation kernel cannot act (one non-reference robot, or
+    ``rotation_kernel = 0``): nothing but the count then keeps the diversity of the weakly
+    observed bearing (capped at ``particles``)."""
+    kld_epsilon: float = 0.05
+    """KLD-sampling's bound on the Kullback-Leibler divergence of the binned sample."""
+    kld_quantile: float = 0.99
+    """Confidence ``1 - delta`` of that bound, in (0.5, 1)."""
+    kld_bin: float = 0.2
+    """Cell side (m) of the grid over the relative positions whose occupied cells are counted."""
+    mc_tolerance: float = 0.007
+    """Monte Carlo standard error (m) allowed for the published position along the posterior's
+    widest direction: at least ``sigma^2 / (ess_threshold mc_tolerance^2)`` particles; 0: no
+    such floor."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _require(self, "filter.adaptive", at_least_one=("min_particles", "min_particles_no_kernel"), positive=("kld_epsilon", "kld_bin"),
+                 non_negative=("mc_tolerance",))
+        if not 0.5 < self.kld_quantile < 1.0:
+            raise ConfigError(f"filter.adaptive.kld_quantile must be in (0.5, 1), got {self.kld_quantile}")
+
+
+@dataclass(frozen=True)
 class FilterConfig(_Checked):
     """Filter parameters, in sections (``[filter.<section>]`` in a file); what every method
     shares is at the top. The defaults are the ones used on every shared recording."""
 
     particles: int = 50000
+    """Particles of the sampled filter: its full count, at the start and while the posterior is
+    wide (``[filter.adaptive]`` lowers it once the posterior is narrow)."""
     update_period: float = 0.1
     """Measurements arriving within this window are fused in one update (s)."""
     estimate_period: float = 0.1
@@ -390,6 +426,7 @@ class FilterConfig(_Checked):
     resampling: ResamplingConfig = field(default_factory=ResamplingConfig)
     self_calibration: SelfCalibrationConfig = field(default_factory=SelfCalibrationConfig)
     association: AssociationConfig = field(default_factory=AssociationConfig)
+    adaptive: AdaptiveConfig = field(default_factory=AdaptiveConfig)
 
     def __post_init__(self) -> None:
         """Reject values no filter can run with (a typo must not become a silent NaN)."""
@@ -465,7 +502,7 @@ class FilterConfig(_Checked):
         return _build(cls, {**raw, **built}, "filter")
 
 
-_SECTIONS = ("likelihood", "odometry", "resampling", "self_calibration", "association")
+_SECTIONS = ("likelihood", "odometry", "resampling", "self_calibration", "association", "adaptive")
 """The sections of :class:`FilterConfig`, in file order."""
 
 

@@ -67,6 +67,9 @@ class Estimate:
     recovering: bool = False
     """The localizer found itself lost (most of a robot's ranges disagree with the estimate)
     and is re-injecting hypotheses: the positions are not to be trusted until it clears."""
+    particles: int | None = None
+    """Particles (hypotheses) the filter held for this estimate: the adaptive count of the
+    sampled filter (:mod:`relloc.filter.adaptive`); ``None`` for methods without."""
 
     @property
     def status(self) -> str:

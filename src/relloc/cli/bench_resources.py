@@ -47,7 +47,12 @@ from relloc.live import (
 class BenchOptions:
     """``relloc bench resources``: which cases to run and how."""
 
-    particles: tuple[int, ...] = (400, 4000)
+    particles: tuple[int | None, ...] = (None,)
+    """Particle counts to serve with; ``None``: the shipped default settings (the config's
+    ``[filter] particles`` and adaptive count, nothing overridden)."""
+    settle: float = 10.0
+    """Seconds of feeding after which the filter counts as converged: the CPU is also reported
+    over the rest of the run (``cpu_percent_converged``)."""
     scenarios: tuple[str, ...] = ("sim5", "shortbag")
     sim_duration: float = 30.0
     rate: float = 1.0
@@ -74,6 +79,56 @@ def _proc_memory_mb(pid: int) -> dict[str, float]:
     return out
 
 
+def _thread_cpu_seconds(pid: int) -> dict[str, float]:
+    """CPU time (s) of each thread of a process, summed by thread name (``comm``), from
+    ``/proc/<pid>/task/*/stat``: tells the engine thread from Zenoh's and any BLAS pool."""
+    out: dict[str, float] = {}
+    tick = os.sysconf("SC_CLK_TCK")
+    for task in Path(f"/proc/{pid}/task").iterdir():
+        try:
+            text = (task / "stat").read_text()
+        except OSError:
+            continue  # the thread ended
+        name = text[text.index("(") + 1 : text.rindex(")")]
+        fields = text.rsplit(")", 1)[1].split()
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / tick
+    return out
+
+
+class _CpuSampler:
+    """Samples a process's CPU time every ``period`` seconds on a thread of its own, so that
+    the CPU of any window of the run (after convergence) can be read afterwards."""
+
+    def __init__(self, pid: int, period: float = 0.25) -> None:
+        import threading
+
+        self.pid = pid
+        self.period = period
+        self.samples: list[tuple[float, float]] = []
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.samples.append((time.time(), _proc_cpu_seconds(self.pid)))
+            except OSError:
+                return
+            self._stop.wait(self.period)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def percent_between(self, t0: float, t1: float) -> float:
+        """CPU % of one core between the samples nearest after ``t0`` and before ``t1``."""
+        inside = [s for s in self.samples if t0 <= s[0] <= t1]
+        if len(inside) < 2 or inside[-1][0] - inside[0][0] <= 0.0:
+            return math.nan
+        return 100.0 * (inside[-1][1] - inside[0][1]) / (inside[-1][0] - inside[0][0])
+
+
 def _percentiles(values: list[float]) -> dict[str, float | int | None]:
     if not values:
         return {"p50_ms": None, "p95_ms": None, "max_ms": None, "n": 0}
@@ -91,7 +146,7 @@ def _percentiles(values: list[float]) -> dict[str, float | int | None]:
 
 
 def _bench_case(
-    scenario: str, particles: int, opts: BenchOptions, workdir: Path, say: Callable[[str], None]
+    scenario: str, particles: int | None, opts: BenchOptions, workdir: Path, say: Callable[[str], None]
 ) -> dict[str, Any]:
     """One serve subprocess fed over loopback; the server's figures while it was fed."""
     if scenario == "sim5":
@@ -109,12 +164,13 @@ def _bench_case(
         raise ValueError(f"unknown scenario {scenario!r}: choose sim5 or shortbag")
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
-    summary_path = workdir / f"serve_{scenario}_{particles}.json"
-    log_path = workdir / f"serve_{scenario}_{particles}.log"
+    label = "default" if particles is None else str(particles)
+    summary_path = workdir / f"serve_{scenario}_{label}.json"
+    log_path = workdir / f"serve_{scenario}_{label}.log"
     cmd = [
         sys.executable, "-m", "relloc.cli", "serve",
         "--config", str(config_path),
-        "--particles", str(particles),
+        *([] if particles is None else ["--particles", str(particles)]),
         "--seed", str(opts.seed),
         "--listen", endpoint,
         "--no-multicast",
@@ -124,19 +180,28 @@ def _bench_case(
         "--json", str(summary_path),
         "--duration", "600",
     ]  # fmt: skip
-    say(f"[{scenario}, {particles} particles] serve: {' '.join(cmd[2:])}")
+    say(f"[{scenario}, {label} particles] serve: {' '.join(cmd[2:])}")
     with log_path.open("w") as log_fh:
         proc = subprocess.Popen(cmd, stdout=log_fh, stderr=subprocess.STDOUT)
     session = open_session(ZenohOptions(connect=(endpoint,), multicast=False))
     collector = EstimateCollector(session, config)
-    result: dict[str, Any] = {"scenario": scenario, "robots": robots, "particles": particles}
+    served = config.filter.particles if particles is None else particles
+    result: dict[str, Any] = {
+        "scenario": scenario, "robots": robots, "particles": served, "settings": label,
+        "adaptive": particles is None and config.filter.adaptive.particle_count != "fixed",
+    }
+    sampler: _CpuSampler | None = None
     try:
         t_spawn = time.time()
         cpu: dict[str, float] = {}
+        threads: dict[str, dict[str, float]] = {}
 
         def on_start() -> None:
+            nonlocal sampler
             cpu["start"] = _proc_cpu_seconds(proc.pid)
             cpu["wall_start"] = time.time()
+            threads["start"] = _thread_cpu_seconds(proc.pid)
+            sampler = _CpuSampler(proc.pid)
 
         def server_died() -> bool:
             return proc.poll() is not None
@@ -158,9 +223,24 @@ def _bench_case(
         time.sleep(0.5)  # the tail of the stream reaches the server
         if proc.poll() is not None:
             raise RuntimeError(f"serve exited early (status {proc.returncode}); see {log_path}")
-        wall = time.time() - cpu["wall_start"]
+        t_end = time.time()
+        wall = t_end - cpu["wall_start"]
         cpu_s = _proc_cpu_seconds(proc.pid) - cpu["start"]
         mem = _proc_memory_mb(proc.pid)
+        by_thread = _thread_cpu_seconds(proc.pid)
+        if sampler is not None:
+            sampler.stop()
+            converged = sampler.percent_between(cpu["wall_start"] + opts.settle, t_end)
+        else:
+            converged = math.nan
+        result["cpu_percent_converged"] = _round(converged, 2)
+        result["settle_s"] = opts.settle
+        result["converged_window_s"] = round(max(wall - opts.settle, 0.0), 2)
+        result["thread_cpu_s"] = {
+            k: round(v - threads["start"].get(k, 0.0), 3)
+            for k, v in sorted(by_thread.items(), key=lambda kv: -kv[1])
+            if v - threads["start"].get(k, 0.0) > 0.0
+        }
         result.update(
             {
                 "startup_s": round(cpu["wall_start"] - t_spawn, 2),
@@ -202,6 +282,7 @@ def _bench_case(
             result["engine_compute_s"] = pf.get("compute_s")
             result["engine_thread_cpu_s"] = summary.get("engine_thread_cpu_s")
             result["serve_uptime_s"] = summary.get("uptime_s")
+            result["final_particles"] = summary.get("methods", {}).get("pf", {}).get("particles")
         if scenario == "shortbag" and opts.bag is not None:
             ape = ape_against_bag(estimates, opts.bag, config)
             result["ape_mean_median_m"] = _round(ape["mean_median"])
@@ -210,6 +291,8 @@ def _bench_case(
                 _sim_ape(sim, config, estimates, base, warmup=10.0)
             )
     finally:
+        if sampler is not None:
+            sampler.stop()
         if proc.poll() is None:
             proc.kill()
             proc.wait()
@@ -270,8 +353,10 @@ def bench_resources(opts: BenchOptions, say: Callable[[str], None] = print) -> d
 def _case_line(c: dict[str, Any]) -> str:
     lat = c["latency_publish"]
     return (
-        f"{c['scenario']:>8} {c['robots']} robots {c['particles']:>6} particles: "
-        f"CPU {c['cpu_percent']:.1f} % of a core, peak RSS {c['peak_rss_mb']:.0f} MB, "
+        f"{c['scenario']:>8} {c['robots']} robots {c['particles']:>6} particles"
+        f"{' (adaptive, last ' + str(c.get('final_particles')) + ')' if c.get('adaptive') else ''}: "
+        f"CPU {c['cpu_percent']:.1f} % of a core ({c['cpu_percent_converged']} % after "
+        f"{c['settle_s']:g} s), peak RSS {c['peak_rss_mb']:.0f} MB, "
         f"latency p50 {lat['p50_ms']} ms p95 {lat['p95_ms']} ms (n={lat['n']}), "
         f"{c['message_rate_hz']} msg/s, APE {c['ape_mean_median_m']} m"
     )
@@ -292,10 +377,12 @@ def _cmd_bench_resources(args: argparse.Namespace) -> int:
         print(f"skipping the shortbag case: {bag} not found")
         scenarios = tuple(s for s in scenarios if s != "shortbag")
     try:
-        particles = tuple(int(p) for p in args.particles.split(","))
-    except ValueError:
+        particles = tuple(
+            None if p.strip() == "default" else argtypes.count(p.strip()) for p in args.particles.split(",")
+        )
+    except (ValueError, argparse.ArgumentTypeError):
         raise UserError(
-            f"--particles must be numbers like 400,4000, got {args.particles!r}"
+            f"--particles must be 'default' or counts like default,400,4000, got {args.particles!r}"
         ) from None
     opts = options_from_args(
         BenchOptions, args, particles=particles, scenarios=scenarios, bag=bag, bag_config=bag_config
@@ -320,7 +407,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Start relloc serve and a publisher on loopback for each scenario and "
         "particle count; measure CPU, peak RSS and estimate latency.",
     )
-    res.add_argument("--particles", default="400,4000", help="comma-separated particle counts")
+    res.add_argument(
+        "--particles", default="default",
+        help="comma-separated particle counts; 'default': the shipped settings (the config's count, adaptive)",
+    )
+    res.add_argument(
+        "--settle", type=argtypes.non_negative, default=10.0, metavar="S",
+        help="seconds of feeding before the filter counts as converged (CPU also reported after it)",
+    )
     res.add_argument(
         "--scenarios",
         default="sim5,shortbag",

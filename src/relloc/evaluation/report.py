@@ -86,6 +86,8 @@ class MethodReport:
     observable_from_s: float = math.nan
     """Seconds from the start of the run to the estimate from which the orientation stays
     observable to the end (nan: never; 0 for methods that do not report it)."""
+    particles: dict[str, Any] = field(default_factory=dict)
+    """The particle count over time (methods that report one, :func:`particle_counts`)."""
 
     @property
     def mean_ape_median(self) -> float:
@@ -165,6 +167,8 @@ class MethodReport:
             out["orientation_observable_from_s"] = _num(self.observable_from_s)
         if self.frame_rotation_deg is not None:
             out["frame_rotation_deg"] = _num(self.frame_rotation_deg)
+        if self.particles:
+            out["particles"] = self.particles
         return out
 
 
@@ -263,10 +267,31 @@ def evaluate(
                 compute_s=p.compute_s,
                 n_estimates=len(p.estimates),
                 body_frame=body if mode == "none" else {},
+                particles=particle_counts(p.estimates, t0, warmup),
                 **calibration,
                 **(honest if mode == "none" else {}),
             )
     return ScenarioReport(name, warmup, duration, methods, t0, truth.reference, truth_name)
+
+
+def particle_counts(estimates: list[Any], t0: float, warmup: float) -> dict[str, Any]:
+    """The particle count over time of estimates that carry one: ``series``, the change points
+    ``[seconds from the run's start, count]`` (the first estimate's count, then each change),
+    and the ``max``, ``final`` and ``median_after_warmup`` counts; empty for methods without."""
+    counted = [(e.t, e.particles) for e in estimates if getattr(e, "particles", None) is not None]
+    if not counted:
+        return {}
+    series: list[list[float]] = []
+    for t, n in counted:
+        if not series or series[-1][1] != n:
+            series.append([round(t - t0, 3), n])
+    late = [n for t, n in counted if t >= t0 + warmup] or [counted[-1][1]]
+    return {
+        "series": series,
+        "max": max(n for _, n in counted),
+        "final": counted[-1][1],
+        "median_after_warmup": float(np.median(late)),
+    }
 
 
 def _honesty(

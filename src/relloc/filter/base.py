@@ -36,7 +36,7 @@ from numpy.typing import NDArray
 
 from relloc.filter.measurement import MeasurementModel
 from relloc.filter.motion import PriorBox
-from relloc.filter.resampling import ess, log_normalize, resample_with_reinjection
+from relloc.filter.resampling import ess, log_normalize, reinjection_slots, systematic_resample
 from relloc.filter.state import TeamLayout
 from relloc.filter.summary import ModeSummary
 
@@ -60,6 +60,8 @@ class FilterEstimate:
     summary: ModeSummary | None = None
     """The dominant mode, observability and shape (:mod:`relloc.filter.summary`); ``mean`` and
     ``cov`` are then its published moments."""
+    particles: int | None = None
+    """Hypotheses the filter holds (an adaptive particle count changes it at resampling)."""
 
 
 def renormalized(logw: FloatArray) -> FloatArray | None:
@@ -134,10 +136,17 @@ class WeightedFilter:
         return True
 
     def resample(self) -> None:
-        """Systematic resampling, then a ``reinject_fraction`` of the slots re-drawn from the
-        prior box; equal weights."""
-        idx, slots = resample_with_reinjection(self.logw, self.rng, self.reinject_fraction)
+        """Systematic resampling (to the size :meth:`_resampled_size` asks for: the same, but
+        for an adaptive particle count), then a ``reinject_fraction`` of the slots re-drawn
+        from the prior box; equal weights."""
+        w = np.exp(self.logw)
+        idx = systematic_resample(w, self.rng)
+        n = self._resampled_size(idx)
+        if n != self.n:
+            idx = systematic_resample(w, self.rng, n)
+            self.n = n
         self._select(idx)
+        slots = reinjection_slots(self.n, self.reinject_fraction, self.rng)
         if slots.size:
             self._reinject(slots, self.prior.sample(self.rng, slots.size, self.layout.n_others))
         self.logw = np.full(self.n, -math.log(self.n))
@@ -148,16 +157,33 @@ class WeightedFilter:
         """Recovery: resample, then restart ``len(formations)`` hypotheses, chosen at random,
         at the given formations (relative positions ``(K, 2(N-1))``, further state at its
         prior); equal weights. What a localizer calls when it finds the filter lost: the
-        measurements then weigh the injected hypotheses against the kept ones. Returns the
-        slots re-drawn."""
+        measurements then weigh the injected hypotheses against the kept ones. A filter with
+        an adaptive count first grows back to its full count (:meth:`_recovery_size`), the
+        formations repeated so that they keep their share. Returns the slots re-drawn."""
+        n = self._recovery_size()
+        formations = np.asarray(formations, dtype=float)
+        if n != self.n and len(formations):
+            # The count grows back (an adaptive filter): the injected share stays the same,
+            # the given formations repeated.
+            formations = np.resize(formations, (round(len(formations) * n / self.n), formations.shape[1]))
+        self.n = n
         k = min(len(formations), self.n)
-        idx, _ = resample_with_reinjection(self.logw, self.rng, 0.0)
-        self._select(idx)
+        self._select(systematic_resample(np.exp(self.logw), self.rng, self.n))
         slots = self.rng.choice(self.n, size=k, replace=False).astype(np.intp)
         self._reinject(slots, np.asarray(formations[:k], dtype=float))
         self.logw = np.full(self.n, -math.log(self.n))
         self.resample_count += 1
         return slots
+
+    def _resampled_size(self, idx: IntArray) -> int:
+        """How many hypotheses a resampling keeps, given the systematic draw ``idx`` at the
+        present count (the present count; an adaptive filter's rule)."""
+        return self.n
+
+    def _recovery_size(self) -> int:
+        """How many hypotheses :meth:`inject` resamples to (the present count; an adaptive
+        filter grows back to its full count)."""
+        return self.n
 
     def _select(self, idx: IntArray) -> None:
         """Keep hypotheses ``idx`` (with repetitions), in that order."""

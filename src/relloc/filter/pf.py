@@ -47,17 +47,19 @@ The formation's orientation: a nearly static, weakly observed quantity
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
 
+from relloc.filter.adaptive import KldSampling
 from relloc.filter.base import FilterEstimate, WeightedFilter, renormalized
 from relloc.filter.measurement import MeasurementModel, stacked
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.resampling import ess, log_normalize, mixture_moments, systematic_resample
 from relloc.filter.state import StateLayout
-from relloc.filter.summary import Evidence, summarize
+from relloc.filter.summary import Evidence, ModeSummary, summarize
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -90,6 +92,7 @@ class ParticleFilter(WeightedFilter):
         rotation_kernel: float = 0.0,
         rotation_kernel_max_spread: float = 0.25,
         bias_walk: float = 0.0,
+        count_rule: KldSampling | None = None,
     ) -> None:
         super().__init__(
             n_particles, area, rng=rng, resample=resample, ess_threshold=ess_threshold,
@@ -117,6 +120,13 @@ class ParticleFilter(WeightedFilter):
         self._mcmc_scale = 0.5
         self.evidence = Evidence(len(layout.robots))
         """What was fused that can resolve the formation's orientation (for ``estimate``)."""
+        self.count_rule = count_rule
+        """The adaptive particle count (:mod:`relloc.filter.adaptive`); ``None``: fixed. Its
+        ``max_particles`` is the count of every (re-)annealed start."""
+        if count_rule is not None and count_rule.max_particles != n_particles:
+            raise ValueError("count_rule.max_particles must be n_particles (the full count)")
+        self.last_summary: ModeSummary | None = None
+        """The summary of the last ``estimate`` since the last (re-)annealed start."""
         self.covariance_floor = 0.0
         """Variance (m^2) added per axis to the published covariances: the error the spread
         of the hypotheses cannot show (:mod:`relloc.filter.summary`; set by the localizer)."""
@@ -204,6 +214,39 @@ class ParticleFilter(WeightedFilter):
     def counters(self) -> dict[str, int]:
         return {"rotation_kernel": self.rotation_kernel_count}
 
+    # ---------------------------------------------------------------- particle count
+    @property
+    def posterior_wide(self) -> bool:
+        """Whether the posterior is wide in a way the count rule's binning cannot see: no
+        summary since the last (re-)annealed start, an orientation that is not observable, or
+        more than one mode (:mod:`relloc.filter.adaptive`)."""
+        s = self.last_summary
+        return s is None or not s.orientation_observable or s.n_modes > 1
+
+    def _resampled_size(self, idx: IntArray) -> int:
+        """The count rule's size for the systematic draw ``idx`` (sorted, with repetitions):
+        the cells are counted over the distinct particles it keeps."""
+        if self.count_rule is None:
+            return self.n
+        if self.posterior_wide:
+            return self.count_rule.max_particles
+        kept = idx[np.flatnonzero(np.diff(idx, prepend=-1))]
+        return self.count_rule.size(self.particles[kept, : self.layout.dim], wide=False, sigma=self.widest_std())
+
+    def widest_std(self) -> float:
+        """Standard deviation (m) of the last summary's widest direction: the largest
+        eigenvalue of any robot's published covariance, less the covariance floor."""
+        s = self.last_summary
+        if s is None:
+            return math.inf
+        c = s.cov
+        half_trace = 0.5 * (c[:, 0, 0] + c[:, 1, 1])
+        top = half_trace + np.sqrt((0.5 * (c[:, 0, 0] - c[:, 1, 1])) ** 2 + c[:, 0, 1] ** 2)
+        return math.sqrt(max(float(top.max(initial=0.0)) - self.covariance_floor, 0.0))
+
+    def _recovery_size(self) -> int:
+        return self.n if self.count_rule is None else self.count_rule.max_particles
+
     def orientations(self) -> FloatArray:
         """Each particle's formation angle (rad) about the reference, relative to the
         coordinate-wise median formation (least-squares angle, weighted by distance)."""
@@ -247,13 +290,14 @@ class ParticleFilter(WeightedFilter):
         m = self.particles.shape[0]
         rel = self.particles[:, : self.layout.dim].reshape(m, -1, 2)
         summary = summarize(rel, w, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor)
+        self.last_summary = summary
         biases = {}
         for pair in self.layout.bias_pairs:
             c, _ = self.layout.bias_columns(pair)
             biases[pair] = mixture_moments(w, self.particles[:, c], self.particles[:, c + 1])
         return FilterEstimate(
             mean=summary.mean, cov=summary.cov, ess=float(1.0 / np.einsum("m,m->", w, w)), biases=biases,
-            summary=summary,
+            summary=summary, particles=m,
         )
 
     # ---------------------------------------------------------------- initialisation
@@ -281,6 +325,9 @@ class ParticleFilter(WeightedFilter):
         Returns the number of stages used.
         """
         guide = guide or loglik
+        if self.count_rule is not None:
+            self.n = self.count_rule.max_particles  # a wide posterior: the full count
+        self.last_summary = None
         self.particles = self.sample_prior(self.n)
         ll = self.log_likelihood(guide, self.particles)
         beta = 0.0

@@ -38,18 +38,11 @@ def ess(logw: FloatArray) -> float:
     return float(1.0 / np.sum(w * w))
 
 
-def resample_with_reinjection(
-    logw: FloatArray, rng: np.random.Generator, reinject_fraction: float
-) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """One resampling step of a filter: the indices of the particles to keep (systematic, on the
-    normalised weights ``exp(logw)``), and the slots, a ``reinject_fraction`` of them, that the
-    caller re-draws from its prior (the uniform start), so that a filter locked on a wrong
-    mode can still find the right one."""
-    n = len(logw)
-    idx = systematic_resample(np.exp(logw), rng)
+def reinjection_slots(n: int, reinject_fraction: float, rng: np.random.Generator) -> NDArray[np.intp]:
+    """A ``reinject_fraction`` of the slots of ``n`` particles, drawn without replacement: the
+    ones a filter re-draws from its prior after a resampling."""
     k = round(reinject_fraction * n)
-    slots = rng.choice(n, size=k, replace=False) if k > 0 else np.zeros(0, dtype=np.intp)
-    return idx, slots
+    return rng.choice(n, size=k, replace=False) if k > 0 else np.zeros(0, dtype=np.intp)
 
 
 def mixture_moments(w: FloatArray, mu: FloatArray, var: FloatArray) -> tuple[float, float]:

@@ -227,6 +227,7 @@ class LiveServer:
                 "orientation_observable": None if last_est is None else last_est.orientation_observable,
                 "mode_weight": None if last_est is None else round(last_est.mode_weight, 3),
                 "n_modes": None if last_est is None else last_est.n_modes,
+                "particles": None if last_est is None else last_est.particles,
                 "estimate_status": None if last_est is None else last_est.status,
                 "rejected": dict(p.localizer.rejected),
                 "faults": p.localizer.fault_counters(),
@@ -240,6 +241,9 @@ class LiveServer:
             "reference": self.config.reference,
             "ros_interface": self.options.interface.kind,
             "particles": self.config.filter.particles,
+            "min_particles": None if self.config.filter.adaptive.particle_count == "fixed" else min(
+                self.config.filter.adaptive.min_particles, self.config.filter.particles
+            ),
             "methods": methods,
             "source": {
                 "messages": counts["messages"],

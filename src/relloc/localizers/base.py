@@ -419,7 +419,7 @@ class Localizer:
         est = Estimate(
             t, self.method, self.layout.reference, positions, covs, fe.ess, fe.headings, fe.biases, fe.scales,
             **honest,
-            recovering=self.recovering,
+            recovering=self.recovering, particles=fe.particles,
         )
         self.last_estimate = est
         return est

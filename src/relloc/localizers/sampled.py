@@ -5,7 +5,10 @@ biases (``bias_mode = "online"``) it also carries a Gaussian belief about each U
 range bias, its prior the pair's calibration where there is one, else ``uwb.default_bias`` +-
 ``uwb.default_bias_sigma``, what the default mode assumes (Rao-Blackwellised,
 :mod:`relloc.filter.state`). The range model updates
-those beliefs; the filter walks their variances. The localizer itself only starts the filter
+those beliefs; the filter walks their variances. The particle count adapts
+(``[filter.adaptive]``, :mod:`relloc.filter.adaptive`): ``[filter] particles`` at the start and
+while the posterior is wide, down to ``min_particles`` once it is one narrow mode. The
+localizer itself only starts the filter
 (:mod:`relloc.localizers.start`) and then runs the cycle of
 :class:`~relloc.localizers.base.FilterLocalizer`.
 """
@@ -17,6 +20,7 @@ import numpy as np
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
 from relloc.events import pair_key
+from relloc.filter.adaptive import KldSampling
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.pf import ParticleFilter
 from relloc.filter.state import StateLayout
@@ -52,10 +56,33 @@ def _node_pair(config: TeamConfig, robot_a: str, robot_b: str) -> str:
     return pair_key(a, b)
 
 
+def count_rule(config: TeamConfig, layout: StateLayout) -> KldSampling | None:
+    """The adaptive particle count of ``[filter.adaptive]`` for ``layout`` (``None`` where it
+    is ``fixed``): from ``[filter] particles`` down to ``min_particles``, or to
+    ``min_particles_no_kernel`` where the orientation kernel cannot act (a single
+    non-reference robot, or no kernel), each at most ``particles``."""
+    fc = config.filter
+    ac = fc.adaptive
+    if ac.particle_count == "fixed":
+        return None
+    kernel = fc.resampling.rotation_kernel > 0.0 and layout.n_others >= 2
+    floor = ac.min_particles if kernel else ac.min_particles_no_kernel
+    return KldSampling(
+        min(floor, fc.particles), fc.particles, epsilon=ac.kld_epsilon, quantile=ac.kld_quantile,
+        bin_size=ac.kld_bin, mc_tolerance=ac.mc_tolerance, ess_fraction=fc.resampling.ess_threshold,
+    )
+
+
 def particle_filter(
-    config: TeamConfig, layout: StateLayout, prior: list[float], n: int, rng: np.random.Generator
+    config: TeamConfig,
+    layout: StateLayout,
+    prior: list[float],
+    n: int,
+    rng: np.random.Generator,
+    rule: KldSampling | None = None,
 ) -> ParticleFilter:
-    """The configured particle filter of ``n`` particles over ``layout``."""
+    """The configured particle filter of ``n`` particles over ``layout`` (with the adaptive
+    count ``rule``, if any: ``n`` is then its maximum)."""
     fc = config.filter
     return ParticleFilter(
         layout,
@@ -71,6 +98,7 @@ def particle_filter(
         rotation_kernel=fc.resampling.rotation_kernel,
         rotation_kernel_max_spread=fc.resampling.rotation_kernel_max_spread,
         bias_walk=fc.self_calibration.bias_walk,
+        count_rule=rule,
     )
 
 
@@ -97,7 +125,7 @@ class ParticleFilterLocalizer(FilterLocalizer):
         super().__init__(config, layout, seed=seed)
         self.method = method
         self.range_model = config.filter.likelihood.range_model  # online pairs keep the symmetric model
-        self.filter = particle_filter(config, layout, prior, config.filter.particles, self.rng)
+        self.filter = particle_filter(config, layout, prior, config.filter.particles, self.rng, count_rule(config, layout))
         self.filter.covariance_floor = covariance_floor(config, self.range_model)
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
