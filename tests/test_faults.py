@@ -156,19 +156,25 @@ def test_odometry_reset_or_jump_re_anchors_the_track(kind: str) -> None:
 # ---------------------------------------------------------------- divergence and recovery
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["burst1", "burst3", "kidnap"])
-def test_divergence_is_flagged_and_recovered(kind: str) -> None:
-    """All ranges 1 m or 3 m long for 2 s, or r2 moved 2 m unseen, on seeds 0-2: the loss is
-    flagged within 2 s every time and counted, and the error is under 0.3 m after 35 s of every
-    run. The issue's bound (under 0.2 m within 10 s of the fault's end) is not met on every
-    seed: the measured recovery times are in docs/results.md ("Faults"), and this test does not
-    claim them."""
+def test_divergence_is_flagged_and_recovered_within_10_s(kind: str) -> None:
+    """All ranges 1 m or 3 m long for 2 s, or r2 moved 2 m unseen, on seeds 0-2 (issue 15's
+    bounds): the loss is flagged within 2 s of the onset every time and counted, and the error
+    is back under 0.2 m within 10 s of the fault's end (measured: 1.0-5.5 s, docs/faults.md)."""
+    end = 22.0 if kind.startswith("burst") else 20.0
     for seed in (0, 1, 2):
         ests, gt, loc = _run(seed, _kidnapped(kind))
         err = _errors(ests, gt)
         flagged = err[err[:, 2] > 0, 0]
         assert flagged.size and 0.0 <= flagged.min() - 20.0 <= 2.0, seed
         assert loc.stats["divergence_detected"] >= 1 and loc.fault_counters()["recovery_injections"] >= 1
-        assert err[err[:, 0] > 35.0, 1].mean() < 0.3, seed
+        assert _back_under(err, end) <= 10.0, seed
+        assert err[err[:, 0] > 35.0, 1].mean() < 0.15, seed
+
+
+def test_no_divergence_is_flagged_on_clean_runs() -> None:
+    for seed in (0, 1, 2):
+        _, _, loc = _run(seed, Faults(), duration=30.0)
+        assert loc.stats["divergence_detected"] == 0 and loc.stats["recovery_injections"] == 0, seed
 
 
 def test_the_navigation_gate_holds_while_recovering() -> None:
