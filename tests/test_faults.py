@@ -9,9 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
+from waiting import wait_until
 
 from relloc.evaluation.metrics import GroundTruth
 from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent
@@ -199,3 +203,61 @@ def test_loss_and_a_silence_cost_little_outside_the_silence() -> None:
     outside = (c[:, 0] > 10) & ((c[:, 0] < 20) | (c[:, 0] > 30))
     ref = (a[:, 0] > 10) & ((a[:, 0] < 20) | (a[:, 0] > 30))
     assert abs(c[outside, 1].mean() - a[ref, 1].mean()) < 0.03
+
+
+# ---------------------------------------------------------------- relloc replay
+def test_replay_publishes_the_faulted_messages_over_zenoh(
+    tmp_path: Path, bag_writer: Callable[..., Path], sessions: tuple[Any, Any]
+) -> None:
+    """``relloc replay`` with faults: the messages a live source receives over loopback Zenoh
+    decode to exactly the bag's events with the faults applied (a loss, a silence, a range
+    burst, an odometry reset and jump, a kidnapping, a stamp shift), values to float32 (a
+    range's precision in ``sensor_msgs/Range``)."""
+    from relloc.live.publish import (
+        SIM_TIME_BASE,
+        EventEncoder,
+        ReplayOptions,
+        replay_bag,
+        simulated_team,
+    )
+    from relloc.ros.messages import decode
+    from relloc.sources.rosbag import RosbagSource
+    from relloc.sources.zenoh_source import ZenohSource
+
+    sim, config = simulated_team(0, 6.0)
+    config = config.with_robot("r2", mocap_body="r2").with_robot("r0", mocap_body="r0")
+    encoder = EventEncoder(config, ground_truth=True)
+    messages = []
+    for ev in sim.events():
+        out = encoder.encode(ev, SIM_TIME_BASE)
+        if out is not None and (not isinstance(ev, GroundTruthEvent) or ev.robot in ("r0", "r2")):
+            channel, payload = out
+            messages.append((channel.name, channel.msgtype, ev.t + 0.01, decode(payload, channel.msgtype)))
+    bag = bag_writer(tmp_path / "sim", messages)
+    t0 = SIM_TIME_BASE
+    faults = parse(
+        drop=0.2, silence=[f"r1:{t0 + 1}:{t0 + 2}"], range_burst=[f"{t0 + 2}:{t0 + 3}:1.5"],
+        odom_reset=[f"r3:{t0 + 3}"], odom_jump=[f"r4:{t0 + 4}:2:0"], kidnap=[f"r2:{t0 + 4.5}:1:0"],
+        stamp_shift=["200:0.05"], seed=4,
+    )
+    srv, client = sessions
+    source = ZenohSource(config)
+    source.attach(srv)
+    try:
+        stats = replay_bag(bag, config, client, ReplayOptions(rate=20.0, wait=5.0, faults=faults))
+        assert wait_until(lambda: source.queue_depth >= stats.messages, timeout=10.0)
+        received = [a.event for a in source.drain()]
+    finally:
+        source.detach()
+    expected = list(inject(RosbagSource(bag, config), faults))
+    def key(e: Any) -> tuple:  # values at float32 (a range's precision on the wire), the stamp exact
+        values = dataclasses.astuple(e)
+        return (type(e).__name__, values[0], *(float(np.float32(v)) if isinstance(v, float) else v for v in values[1:]))
+
+    assert sorted(map(key, received)) == sorted(map(key, (e for e in expected if not isinstance(e, GroundTruthEvent))))
+    counts = stats.injected
+    assert counts["dropped"] > 100 and counts["silenced"] > 20 and counts["shifted"] == 1
+    assert counts["changed"] > 100
+    ranges = [e for e in received if isinstance(e, RangeEvent) and "r2" in (e.robot_a, e.robot_b) and e.t > t0 + 5]
+    clean = {(e.t, e.robot_a, e.robot_b): e.distance for e in RosbagSource(bag, config) if isinstance(e, RangeEvent)}
+    assert any(abs(e.distance - clean[(e.t, e.robot_a, e.robot_b)]) > 0.3 for e in ranges)  # kidnapped
