@@ -109,6 +109,9 @@ class ParticleFilter(WeightedFilter):
         self.rotation_kernel = rotation_kernel
         self.rotation_kernel_max_spread = rotation_kernel_max_spread
         self.rotation_kernel_count = 0
+        self.kernel_paused = False
+        """Set by the localizer while some robot is out of ranging: the formation is then not
+        one rigid body, and the orientation kernel waits."""
         self.bias_walk = bias_walk
         """Random walk of each online bias (m/sqrt(s)), added to its beliefs' variances."""
         self._others = np.array([layout.index(r) for r in layout.others], dtype=np.intp)
@@ -189,7 +192,7 @@ class ParticleFilter(WeightedFilter):
 
     def _after_resample(self) -> None:
         """The orientation kernel (module docstring)."""
-        if self.rotation_kernel > 0.0 and self.rejuvenate_rotation(self.rotation_kernel):
+        if self.rotation_kernel > 0.0 and not self.kernel_paused and self.rejuvenate_rotation(self.rotation_kernel):
             self.rotation_kernel_count += 1
 
     def counters(self) -> dict[str, int]:

@@ -107,6 +107,11 @@ _TRUST_HOLD = 5.0
 _RECOVERY_SIGMA = 1.5
 """Spread (m) of a lost robot's re-injected positions about the estimate."""
 
+_UNRANGED_AFTER = 2.0
+"""Seconds without a range after which a robot pauses the orientation kernel."""
+"""Diffusion (m^2/s) of a robot whose odometry has gone quiet: a ground robot moving about
+0.3 m/s unseen, its heading decorrelating within a second (1 m after 10 s of silence)."""
+
 _YAW_LOG = 200_000
 """Odometry yaws kept per robot for evaluating estimated headings: 5.5 h at 10 Hz."""
 
@@ -454,6 +459,8 @@ class FilterLocalizer(Localizer):
         """The formation's motion by odometry alone since the start (shared heading frame)."""
         self._trusted_from = -math.inf
         """Formations estimated before this time are not trusted (a restart's hold)."""
+        self._last_ranged: dict[str, float] = {}
+        """Each robot's newest range (for the orientation kernel)."""
         self._others_index = np.array([self.layout.index(r) for r in self.layout.others], dtype=np.intp)
 
     @property
@@ -490,6 +497,7 @@ class FilterLocalizer(Localizer):
             self._recover(t, fe, lost)
             fe = self.filter.estimate()
         est = self._emit(t, fe)
+        self._pause_kernel(t, batch)
         if self.filter.maybe_resample():
             self.stats["resampled"] += 1
         for name, count in self.filter.counters().items():
@@ -530,6 +538,21 @@ class FilterLocalizer(Localizer):
             self.filter.inject(formations)
         self.monitor.restart(t)
         self._trusted_from = t + _TRUST_HOLD
+
+    def _pause_kernel(self, t: float, batch: list[Measurement]) -> None:
+        """Pause a particle filter's orientation kernel while some robot has had no range for
+        ``_UNRANGED_AFTER`` (silent, or out of range). The kernel treats the orientation as a
+        static parameter of one rigid formation; a robot out of ranging splits it into parts
+        whose relative orientation nothing observes, and neither a common turn (the silent
+        robot dragged wherever the others' orientation drifts) nor a turn of the ranged part
+        alone (measured worse, docs/faults.md) is a move of the posterior."""
+        for m in batch:
+            if isinstance(m, RangeEvent):
+                self._last_ranged[m.robot_a] = self._last_ranged[m.robot_b] = m.t
+        if isinstance(self.filter, ParticleFilter):
+            self.filter.kernel_paused = any(
+                t - self._last_ranged.get(r, t) > _UNRANGED_AFTER for r in self.layout.robots
+            )
 
     def _remember(self, t: float, batch: list[Measurement], fe: FilterEstimate) -> None:
         """Keep the last ``init_window`` of measurements (for a re-annealed start) and the
