@@ -461,6 +461,8 @@ class FilterLocalizer(Localizer):
         """Formations estimated before this time are not trusted (a restart's hold)."""
         self._last_ranged: dict[str, float] = {}
         """Each robot's newest range (for the orientation kernel)."""
+        self._split_at = -math.inf
+        """When some robot was last out of ranging."""
         self._others_index = np.array([self.layout.index(r) for r in self.layout.others], dtype=np.intp)
 
     @property
@@ -545,14 +547,16 @@ class FilterLocalizer(Localizer):
         static parameter of one rigid formation; a robot out of ranging splits it into parts
         whose relative orientation nothing observes, and neither a common turn (the silent
         robot dragged wherever the others' orientation drifts) nor a turn of the ranged part
-        alone (measured worse, docs/faults.md) is a move of the posterior."""
+        alone (measured worse, docs/faults.md) is a move of the posterior. It waits as long
+        again after every robot is ranged once more: the orientations are then still the
+        split's mixture."""
         for m in batch:
             if isinstance(m, RangeEvent):
                 self._last_ranged[m.robot_a] = self._last_ranged[m.robot_b] = m.t
+        if any(t - self._last_ranged.get(r, t) > _UNRANGED_AFTER for r in self.layout.robots):
+            self._split_at = t
         if isinstance(self.filter, ParticleFilter):
-            self.filter.kernel_paused = any(
-                t - self._last_ranged.get(r, t) > _UNRANGED_AFTER for r in self.layout.robots
-            )
+            self.filter.kernel_paused = t - self._split_at < _UNRANGED_AFTER
 
     def _remember(self, t: float, batch: list[Measurement], fe: FilterEstimate) -> None:
         """Keep the last ``init_window`` of measurements (for a re-annealed start) and the
