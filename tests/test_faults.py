@@ -311,3 +311,23 @@ def test_a_10_s_silence_on_the_shortbag_costs_little_after_it(shared_data: Path)
         assert loc_clean.stats["divergence_detected"] == loc_quiet.stats["divergence_detected"] == 0
         gaps.append(quiet - clean)
     assert float(np.median(gaps)) <= 0.03 and max(gaps) <= 0.08, gaps
+
+
+def test_the_orientation_kernel_waits_while_a_robot_is_out_of_ranging() -> None:
+    """r2 silent 10-20 s: the kernel pauses 2 s into the silence and resumes 2 s after r2's
+    ranges are back; it never pauses on the clean run."""
+    sim = multi_scenario(seed=0, duration=26.0)
+    config = sim.config.with_filter(particles=PARTICLES)
+    for faults, expect_pause in ((Faults(), False), (Faults(silence=(Window(10.0, 20.0, "r2"),)), True)):
+        loc = ParticleFilterLocalizer(config, seed=0)
+        paused = []
+        for ev in inject(sim.events(), faults):
+            if not isinstance(ev, GroundTruthEvent):
+                loc.process(ev)
+                if loc.initialized:
+                    paused.append((ev.t, loc.filter.kernel_paused))
+        times = [t for t, p in paused if p]
+        if not expect_pause:
+            assert not times
+            continue
+        assert 12.0 <= min(times) <= 12.3 and 21.9 <= max(times) <= 22.3, (min(times), max(times))
