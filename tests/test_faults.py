@@ -9,9 +9,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
+from waiting import wait_until
 
 from relloc.evaluation.metrics import GroundTruth
 from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent
@@ -156,19 +160,25 @@ def test_odometry_reset_or_jump_re_anchors_the_track(kind: str) -> None:
 # ---------------------------------------------------------------- divergence and recovery
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["burst1", "burst3", "kidnap"])
-def test_divergence_is_flagged_and_recovered(kind: str) -> None:
-    """All ranges 1 m or 3 m long for 2 s, or r2 moved 2 m unseen, on seeds 0-2: the loss is
-    flagged within 2 s every time and counted, and the error is under 0.3 m after 35 s of every
-    run. The issue's bound (under 0.2 m within 10 s of the fault's end) is not met on every
-    seed: the measured recovery times are in docs/results.md ("Faults"), and this test does not
-    claim them."""
+def test_divergence_is_flagged_and_recovered_within_10_s(kind: str) -> None:
+    """All ranges 1 m or 3 m long for 2 s, or r2 moved 2 m unseen, on seeds 0-2 (issue 15's
+    bounds): the loss is flagged within 2 s of the onset every time and counted, and the error
+    is back under 0.2 m within 10 s of the fault's end (measured: 1.0-5.5 s, docs/faults.md)."""
+    end = 22.0 if kind.startswith("burst") else 20.0
     for seed in (0, 1, 2):
         ests, gt, loc = _run(seed, _kidnapped(kind))
         err = _errors(ests, gt)
         flagged = err[err[:, 2] > 0, 0]
         assert flagged.size and 0.0 <= flagged.min() - 20.0 <= 2.0, seed
         assert loc.stats["divergence_detected"] >= 1 and loc.fault_counters()["recovery_injections"] >= 1
-        assert err[err[:, 0] > 35.0, 1].mean() < 0.3, seed
+        assert _back_under(err, end) <= 10.0, seed
+        assert err[err[:, 0] > 35.0, 1].mean() < 0.15, seed
+
+
+def test_no_divergence_is_flagged_on_clean_runs() -> None:
+    for seed in (0, 1, 2):
+        _, _, loc = _run(seed, Faults(), duration=30.0)
+        assert loc.stats["divergence_detected"] == 0 and loc.stats["recovery_injections"] == 0, seed
 
 
 def test_the_navigation_gate_holds_while_recovering() -> None:
@@ -193,3 +203,131 @@ def test_loss_and_a_silence_cost_little_outside_the_silence() -> None:
     outside = (c[:, 0] > 10) & ((c[:, 0] < 20) | (c[:, 0] > 30))
     ref = (a[:, 0] > 10) & ((a[:, 0] < 20) | (a[:, 0] > 30))
     assert abs(c[outside, 1].mean() - a[ref, 1].mean()) < 0.03
+
+
+# ---------------------------------------------------------------- relloc replay
+def test_replay_publishes_the_faulted_messages_over_zenoh(
+    tmp_path: Path, bag_writer: Callable[..., Path], sessions: tuple[Any, Any]
+) -> None:
+    """``relloc replay`` with faults: the messages a live source receives over loopback Zenoh
+    decode to exactly the bag's events with the faults applied (a loss, a silence, a range
+    burst, an odometry reset and jump, a kidnapping, a stamp shift), values to float32 (a
+    range's precision in ``sensor_msgs/Range``)."""
+    from relloc.live.publish import (
+        SIM_TIME_BASE,
+        EventEncoder,
+        ReplayOptions,
+        replay_bag,
+        simulated_team,
+    )
+    from relloc.ros.messages import decode
+    from relloc.sources.rosbag import RosbagSource
+    from relloc.sources.zenoh_source import ZenohSource
+
+    sim, config = simulated_team(0, 6.0)
+    config = config.with_robot("r2", mocap_body="r2").with_robot("r0", mocap_body="r0")
+    encoder = EventEncoder(config, ground_truth=True)
+    messages = []
+    for ev in sim.events():
+        out = encoder.encode(ev, SIM_TIME_BASE)
+        if out is not None and (not isinstance(ev, GroundTruthEvent) or ev.robot in ("r0", "r2")):
+            channel, payload = out
+            messages.append((channel.name, channel.msgtype, ev.t + 0.01, decode(payload, channel.msgtype)))
+    bag = bag_writer(tmp_path / "sim", messages)
+    t0 = SIM_TIME_BASE
+    faults = parse(
+        drop=0.2, silence=[f"r1:{t0 + 1}:{t0 + 2}"], range_burst=[f"{t0 + 2}:{t0 + 3}:1.5"],
+        odom_reset=[f"r3:{t0 + 3}"], odom_jump=[f"r4:{t0 + 4}:2:0"], kidnap=[f"r2:{t0 + 4.5}:1:0"],
+        stamp_shift=["200:0.05"], seed=4,
+    )
+    srv, client = sessions
+    source = ZenohSource(config)
+    source.attach(srv)
+    try:
+        stats = replay_bag(bag, config, client, ReplayOptions(rate=20.0, wait=5.0, faults=faults))
+        assert wait_until(lambda: source.queue_depth >= stats.messages, timeout=10.0)
+        received = [a.event for a in source.drain()]
+    finally:
+        source.detach()
+    expected = list(inject(RosbagSource(bag, config), faults))
+    def key(e: Any) -> tuple:  # values at float32 (a range's precision on the wire), the stamp exact
+        values = dataclasses.astuple(e)
+        return (type(e).__name__, values[0], *(float(np.float32(v)) if isinstance(v, float) else v for v in values[1:]))
+
+    assert sorted(map(key, received)) == sorted(map(key, (e for e in expected if not isinstance(e, GroundTruthEvent))))
+    counts = stats.injected
+    assert counts["dropped"] > 100 and counts["silenced"] > 20 and counts["shifted"] == 1
+    assert counts["changed"] > 100
+    ranges = [e for e in received if isinstance(e, RangeEvent) and "r2" in (e.robot_a, e.robot_b) and e.t > t0 + 5]
+    clean = {(e.t, e.robot_a, e.robot_b): e.distance for e in RosbagSource(bag, config) if isinstance(e, RangeEvent)}
+    assert any(abs(e.distance - clean[(e.t, e.robot_a, e.robot_b)]) > 0.3 for e in ranges)  # kidnapped
+
+
+# ---------------------------------------------------------------- the live shortbag
+SHORTBAG = "multi4_shortbag_20221011"
+
+
+def _shortbag_error(shared_data: Path, seed: int, faults: Faults, outside: tuple[float, float]) -> tuple[float, Any]:
+    """Mean over estimates after ``outside[1]`` s (and after the 5 s warm-up, before
+    ``outside[0]``) of the mean error over robots, on the shortbag's events through the
+    localizer (the events a live replay gives the server) with ``faults`` injected."""
+    from relloc.config import TeamConfig
+    from relloc.sources.rosbag import RosbagSource
+
+    config = TeamConfig.load(Path(__file__).resolve().parents[1] / "configs" / "tiers" / f"{SHORTBAG}.toml")
+    source = RosbagSource(shared_data / "tiers" / SHORTBAG, config)
+    t0 = source.start_time
+    events = list(source)
+    gt = GroundTruth(config.reference)
+    loc = ParticleFilterLocalizer(config, seed=seed)
+    ests = []
+    for ev in inject(events, dataclasses.replace(faults, silence=tuple(
+        Window(t0 + w.start, t0 + w.end, w.robot) for w in faults.silence
+    ))):
+        if isinstance(ev, GroundTruthEvent):
+            gt.add(ev)
+        else:
+            ests += loc.process(ev)
+    ests += loc.flush()
+    err = _errors(ests, gt)
+    err[:, 0] -= t0
+    keep = (err[:, 0] > 5.0) & ((err[:, 0] < outside[0]) | (err[:, 0] > outside[1]))
+    return float(err[keep, 1].mean()), loc
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+def test_a_10_s_silence_on_the_shortbag_costs_little_after_it(shared_data: Path) -> None:
+    """turtle05 (the far, static robot) silent 5-15 s of the 17.5 s shortbag, seeds 0-2:
+    after it the error is within 0.03 m of the clean run's on the median seed, within 0.08 m
+    on every seed (measured gaps 0.051 / 0.015 / -0.005 m; 0.104 / 0.125 / 0.050 m before
+    the orientation kernel paused for a silent robot, docs/faults.md), and no divergence is
+    flagged, clean or silent."""
+    silence = Faults(silence=(Window(5.0, 15.0, "turtle05"),))
+    gaps = []
+    for seed in (0, 1, 2):
+        clean, loc_clean = _shortbag_error(shared_data, seed, Faults(), (5.0, 15.0))
+        quiet, loc_quiet = _shortbag_error(shared_data, seed, silence, (5.0, 15.0))
+        assert loc_clean.stats["divergence_detected"] == loc_quiet.stats["divergence_detected"] == 0
+        gaps.append(quiet - clean)
+    assert float(np.median(gaps)) <= 0.03 and max(gaps) <= 0.08, gaps
+
+
+def test_the_orientation_kernel_waits_while_a_robot_is_out_of_ranging() -> None:
+    """r2 silent 10-20 s: the kernel pauses 2 s into the silence and resumes 2 s after r2's
+    ranges are back; it never pauses on the clean run."""
+    sim = multi_scenario(seed=0, duration=26.0)
+    config = sim.config.with_filter(particles=PARTICLES)
+    for faults, expect_pause in ((Faults(), False), (Faults(silence=(Window(10.0, 20.0, "r2"),)), True)):
+        loc = ParticleFilterLocalizer(config, seed=0)
+        paused = []
+        for ev in inject(sim.events(), faults):
+            if not isinstance(ev, GroundTruthEvent):
+                loc.process(ev)
+                if loc.initialized:
+                    paused.append((ev.t, loc.filter.kernel_paused))
+        times = [t for t, p in paused if p]
+        if not expect_pause:
+            assert not times
+            continue
+        assert 12.0 <= min(times) <= 12.3 and 21.9 <= max(times) <= 22.3, (min(times), max(times))

@@ -3,7 +3,8 @@
 A fault is a function of the event stream, not of a source, so the same faults serve the
 simulator, a bag run and a live replay alike (the commands apply :func:`inject` to whatever
 their source yields; ``relloc serve`` applies a :class:`FaultInjector` to every event it
-receives, which covers a live replay). Every fault is seeded and deterministic; a stream with
+receives; ``relloc replay`` applies one to the messages it publishes,
+:mod:`relloc.live.message_faults`). Every fault is seeded and deterministic; a stream with
 no fault passes through unchanged.
 
 * ``drop``: each measurement (odometry, range, detection) is lost with a probability;
@@ -253,8 +254,8 @@ def parse(
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """The fault-injection options of the commands that run a stream (``relloc demo``,
-    ``relloc run``, ``relloc serve``: a replayed bag is faulted where it is received); times
-    are the stream's (s)."""
+    ``relloc run``, ``relloc serve``) or publish one (``relloc replay``: the messages are
+    faulted before they go out); times are the stream's (s: header stamps)."""
     g = parser.add_argument_group("fault injection (for testing robustness)")
     g.add_argument("--drop", type=float, default=0.0, metavar="P", help="lose each measurement with probability P")
     g.add_argument("--silence", action="append", default=[], metavar="ROBOT:START:END", help="a robot sends nothing then")

@@ -92,7 +92,7 @@ def _print_summary(s: dict[str, Any]) -> None:
 
 def _cmd_replay(args: argparse.Namespace) -> int:
     config = TeamConfig.load(args.config)
-    opts = options_from_args(ReplayOptions, args, interface=interface_from_args(args, config))
+    opts = options_from_args(ReplayOptions, args, interface=interface_from_args(args, config), faults=_faults(args))
     session = open_command_session(args)
     try:
         with stop_on_signals() as stop:
@@ -106,6 +106,8 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     )
     if stats.unmatched:
         print(f"  no subscriber when it started: {', '.join(stats.unmatched)}")
+    if stats.injected:
+        print("  faults injected: " + ", ".join(f"{k} {v}" for k, v in sorted(stats.injected.items())))
     return 0
 
 
@@ -184,5 +186,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     replay.add_argument("--start", type=float, default=0.0, metavar="S", help="skip S s of the bag")
     replay.add_argument("--duration", type=argtypes.positive, default=None, metavar="S", help="publish only S s")
+    add_fault_arguments(replay)
     add_zenoh_args(replay)
     replay.set_defaults(handler=_cmd_replay)

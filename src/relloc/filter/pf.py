@@ -112,6 +112,9 @@ class ParticleFilter(WeightedFilter):
         self.rotation_kernel = rotation_kernel
         self.rotation_kernel_max_spread = rotation_kernel_max_spread
         self.rotation_kernel_count = 0
+        self.kernel_paused = False
+        """Set by the localizer while some robot is out of ranging: the formation is then not
+        one rigid body, and the orientation kernel waits."""
         self.bias_walk = bias_walk
         """Random walk of each online bias (m/sqrt(s)), added to its beliefs' variances."""
         self._others = np.array([layout.index(r) for r in layout.others], dtype=np.intp)
@@ -198,7 +201,8 @@ class ParticleFilter(WeightedFilter):
             self.particles[slots, self.layout.dim :] = self.extra_prior
 
     def _after_resample(self) -> None:
-        """Keep a team at rest on its ring, else the orientation kernel (module docstring).
+        """Keep a team at rest on its ring, else the orientation kernel (module docstring),
+        unless the localizer paused it (``kernel_paused``).
 
         While the exact posterior is invariant under the formation's symmetries (nothing but
         ranges fused, nobody moved: ``Evidence.symmetric``), resampling alone would narrow the
@@ -208,7 +212,7 @@ class ParticleFilter(WeightedFilter):
         uniform at any particle count."""
         if self.evidence.symmetric:
             self.spread_symmetries()
-        elif self.rotation_kernel > 0.0 and self.rejuvenate_rotation(self.rotation_kernel):
+        elif self.rotation_kernel > 0.0 and not self.kernel_paused and self.rejuvenate_rotation(self.rotation_kernel):
             self.rotation_kernel_count += 1
 
     def counters(self) -> dict[str, int]:

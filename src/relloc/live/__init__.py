@@ -20,11 +20,13 @@ host's wall clock on loopback.
 :mod:`.session`          Zenoh session options and opening
 :mod:`.server`           :class:`LiveServer` (the engine loop) and :class:`ServeOptions`
 :mod:`.publish`          :func:`replay_bag`, :func:`publish_events`: data into Zenoh
+:mod:`.message_faults`   :class:`MessageFaults`: ``replay``'s faults on the messages it sends
 :mod:`.collect`          :class:`EstimateCollector`, :func:`ape_against_bag` (tests, benchmarks)
 =======================  ==================================================================
 """
 
 from relloc.live.collect import SHORTBAG, EstimateCollector, ape_against_bag
+from relloc.live.message_faults import MessageFaults
 from relloc.live.publish import (
     SIM_TIME_BASE,
     PublishStats,
@@ -46,6 +48,7 @@ __all__ = [
     "SIM_TIME_BASE",
     "EstimateCollector",
     "LiveServer",
+    "MessageFaults",
     "PublishStats",
     "ReplayOptions",
     "ServeOptions",

@@ -25,6 +25,8 @@ from typing import Any
 
 from relloc.config import RobotConfig, TeamConfig
 from relloc.events import Event, GroundTruthEvent, OdometryEvent, RangeEvent
+from relloc.faults import Faults
+from relloc.live.message_faults import MessageFaults
 from relloc.ros.interfaces import Channel, RosInterface
 from relloc.ros.messages import ODOMETRY, POSE_STAMPED, RANGE, TWIST, MessageDecodeError
 from relloc.ros.zenoh_node import ZenohNode
@@ -64,6 +66,8 @@ class PublishStats:
     """Time spent waiting for the server's subscribers before the first message."""
     unmatched: list[str] = field(default_factory=list)
     """Required keys that still had no subscriber when publishing started."""
+    injected: dict[str, int] = field(default_factory=dict)
+    """What the injected faults did (``dropped``, ``silenced``, ``changed``, ``shifted``)."""
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -73,6 +77,7 @@ class PublishStats:
             "max_behind_s": round(self.max_behind_s, 4),
             "waited_s": round(self.waited_s, 3),
             "unmatched": self.unmatched,
+            "injected_faults": dict(self.injected),
         }
 
 
@@ -180,6 +185,9 @@ class ReplayOptions:
     start: float = 0.0
     """Skip this many seconds at the start of the bag."""
     duration: float | None = None
+    faults: Faults = field(default_factory=Faults)
+    """Faults injected into the team's messages before they go out
+    (:mod:`relloc.live.message_faults`)."""
 
 
 def replay_bag(
@@ -196,7 +204,8 @@ def replay_bag(
     interface's attachment (the send wall time). The team's topics are published on exactly the
     keys a :class:`~relloc.sources.zenoh_source.ZenohSource` of ``config`` subscribes to (with
     robot scopes and ``prefix``), every other topic below ``prefix`` alone; motion capture stays
-    out unless ``ground_truth``.
+    out unless ``ground_truth``. With ``faults``, the team's messages are faulted on the way
+    (decoded, changed, encoded again: :class:`~relloc.live.message_faults.MessageFaults`).
     """
     from rosbags.rosbag2 import Reader
 
@@ -220,22 +229,27 @@ def replay_bag(
         mocap = re.compile(
             "^" + re.escape(config.mocap_topic).replace(re.escape("{body}"), "[^/]+") + "$"
         )
-        conns = [
+        faulted = MessageFaults(config, opts.faults) if opts.faults.active else None
+        published = [
             c
             for c in reader.connections
             if c.msgcount
             and (not opts.team_only or c.topic in team_topics)
             and (opts.ground_truth or not mocap.match(c.topic))
         ]
-        if not conns:
+        if not published:
             raise BagError(f"nothing to replay in {bag} (team topics: {sorted(team_topics)})")
+        # A kidnapping moves ranges by the robots' true positions: the faults read motion
+        # capture even where it is not published.
+        read = {c.topic for c in published} | (faulted.topics() if faulted and opts.faults.kidnap else set())
+        conns = [c for c in reader.connections if c.msgcount and c.topic in read]
         if not 0.0 <= opts.start < (reader.end_time - reader.start_time) * 1e-9:
             raise BagError(
                 f"--start {opts.start:g} s is outside {bag}, which lasts "
                 f"{(reader.end_time - reader.start_time) * 1e-9:.1f} s"
             )
         channels = _topic_channels(
-            config, opts.interface, opts.prefix, {c.topic: c.msgtype for c in conns}
+            config, opts.interface, opts.prefix, {c.topic: c.msgtype for c in published}
         )
         t_wait = time.time()
         stats.unmatched = pubs.wait_matching(_required(config, channels), opts.wait, stop)
@@ -247,13 +261,22 @@ def replay_bag(
 
         def items() -> Iterator[tuple[float, Channel, bytes]]:
             for conn, recv_ns, raw in reader.messages(connections=conns):
-                if recv_ns < first_ns or conn.topic not in channels:
+                if recv_ns < first_ns:
                     continue
                 if recv_ns > last_ns:
                     return
-                yield recv_ns * 1e-9, channels[conn.topic], bytes(raw)
+                payload: bytes | None = bytes(raw)
+                if faulted is not None:
+                    try:
+                        payload = faulted(conn.topic, conn.msgtype, payload, recv_ns * 1e-9)
+                    except MessageDecodeError as exc:  # a damaged message goes out as it is
+                        log.warning("%s: not faulted (%s)", conn.topic, exc)
+                if payload is not None and conn.topic in channels:
+                    yield recv_ns * 1e-9, channels[conn.topic], payload
 
         _run_schedule(items(), pubs, opts.rate, stop, stats, on_start)
+        if faulted is not None:
+            stats.injected = dict(faulted.counts)
     finally:
         pubs.close()
         reader.close()

@@ -30,8 +30,9 @@ own rates and lags. A localizer
 
 A :class:`FilterLocalizer` also watches itself (:class:`~relloc.localizers.divergence.DivergenceMonitor`): when most of a
 robot's ranges disagree with its estimate it is lost, flags its estimates ``recovering``,
-counts it (``divergence_detected``) and starts again from the last half second of
-measurements, oriented by the last formation it trusted (``recovery_injections``).
+counts it (``divergence_detected``) and starts again from the measurements since the
+disagreement began, oriented by the last formation it trusted, dead-reckoned to now
+(``recovery_injections``).
 
 Subclasses differ only in ``_step``, the fusion of one batch. :class:`FilterLocalizer` is that
 step for a filter of :mod:`relloc.filter.base`: predict, update with the batch's measurement
@@ -58,7 +59,7 @@ from relloc.events import (
     OdometryEvent,
     RangeEvent,
 )
-from relloc.filter.base import FilterEstimate, WeightedFilter, renormalized
+from relloc.filter.base import FilterEstimate, WeightedFilter
 from relloc.filter.measurement import MeasurementModel, ModelContext, finite
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.pf import ParticleFilter
@@ -66,7 +67,7 @@ from relloc.filter.registry import MODELS, model_for
 from relloc.filter.state import StateLayout, TeamLayout
 from relloc.filter.summary import estimate_fields
 from relloc.localizers.divergence import DivergenceMonitor
-from relloc.localizers.start import annealed_start
+from relloc.localizers.start import annealed_start, orient_by
 from relloc.odometry import OdometryTrack
 
 log = logging.getLogger(__name__)
@@ -96,13 +97,20 @@ def _source(event: Event) -> tuple[str, ...]:
 
 _CONFIDENT_STD = 0.5
 """Largest position std (m) of an estimate kept as a reference formation for recovery."""
-_REFERENCE_SIGMA = 1.0
-"""How far (m per coordinate) a re-annealed formation may be from the last one estimated before
-the loss and still be taken as its orientation."""
+_REFERENCE_SIGMA = 0.5
+"""Scale (m) of the robust fit of a re-annealed formation to the dead-reckoned reference: a
+robot farther off than this (moved unseen) hardly sways the orientation."""
 _RECOVERY_FRACTION = 0.5
 """Share of the hypotheses re-injected at each recovery."""
+_TRUST_HOLD = 5.0
+"""Seconds after a restart before its formations are trusted as the orientation reference."""
 _RECOVERY_SIGMA = 1.5
 """Spread (m) of a lost robot's re-injected positions about the estimate."""
+
+_UNRANGED_AFTER = 2.0
+"""Seconds without a range after which a robot pauses the orientation kernel."""
+"""Diffusion (m^2/s) of a robot whose odometry has gone quiet: a ground robot moving about
+0.3 m/s unseen, its heading decorrelating within a second (1 m after 10 s of silence)."""
 
 _YAW_LOG = 200_000
 """Odometry yaws kept per robot for evaluating estimated headings: 5.5 h at 10 Hz."""
@@ -446,6 +454,16 @@ class FilterLocalizer(Localizer):
         self.monitor = DivergenceMonitor()
         self._recent: deque[Measurement] = deque()
         self._formations: deque[tuple[float, FloatArray]] = deque()
+        """Trusted formations, each less the dead reckoning ``_drift`` at its time."""
+        self._drift = np.zeros(2 * self.layout.n_others)
+        """The formation's motion by odometry alone since the start (shared heading frame)."""
+        self._trusted_from = -math.inf
+        """Formations estimated before this time are not trusted (a restart's hold)."""
+        self._last_ranged: dict[str, float] = {}
+        """Each robot's newest range (for the orientation kernel)."""
+        self._split_at = -math.inf
+        """When some robot was last out of ranging."""
+        self._others_index = np.array([self.layout.index(r) for r in self.layout.others], dtype=np.intp)
 
     @property
     def recovering(self) -> bool:
@@ -466,7 +484,11 @@ class FilterLocalizer(Localizer):
                 return None
             start, self._init_batch = self._init_batch, []
             return self._start(t, start)
-        self.filter.predict(*self._motion_to(t))
+        disp, sigma, dt = self._motion_to(t)
+        self.filter.predict(disp, sigma, dt)
+        if self.filter.shared_heading:
+            ref = disp[self.layout.index(self.layout.reference)]
+            self._drift += (disp[self._others_index] - ref).reshape(-1)
         models = self.models(batch, self.filter)
         if not self.filter.update(models):
             self.stats["update_no_support"] += 1
@@ -477,6 +499,7 @@ class FilterLocalizer(Localizer):
             self._recover(t, fe, lost)
             fe = self.filter.estimate()
         est = self._emit(t, fe)
+        self._pause_kernel(t, batch)
         if self.filter.maybe_resample():
             self.stats["resampled"] += 1
         for name, count in self.filter.counters().items():
@@ -484,25 +507,29 @@ class FilterLocalizer(Localizer):
         return est
 
     def _recover(self, t: float, fe: FilterEstimate, lost: set[str]) -> None:
-        """The filter is lost: start it again from the last ``init_window`` of measurements
-        (the annealed start of :mod:`relloc.localizers.start`, whose formation is known only
-        up to rotations and mirror images about the reference), and pick among those images
-        by closeness to the last formation estimated before the loss (``_REFERENCE_SIGMA``):
-        the ranges fix the shape, the recent past the orientation. A filter that cannot be
-        re-annealed instead gets hypotheses re-injected about its estimate, the lost robots'
-        positions scattered ``_RECOVERY_SIGMA`` wide. Either way the monitor then judges the
-        new filter on fresh ranges only."""
+        """The filter is lost: start it again (the annealed start of
+        :mod:`relloc.localizers.start`) from the recent measurements since the disagreement
+        began (:meth:`DivergenceMonitor.onset`: a burst's ranges are not fused with the clean
+        ones after it), and give the new shape the orientation and handedness of the last
+        trusted formation, moved to now by odometry (:func:`~relloc.localizers.start.orient_by`):
+        the ranges fix the shape, dead reckoning from before the loss the orientation. Nothing
+        estimated within a monitor window before the loss, or within ``_TRUST_HOLD`` after a
+        restart, is trusted. A filter that cannot be re-annealed instead gets hypotheses
+        re-injected about its estimate, the lost robots' positions scattered
+        ``_RECOVERY_SIGMA`` wide. Either way the monitor then judges the new filter on fresh
+        ranges only."""
         self.stats["recovery_injections"] += 1
+        # The loss may have begun a window before it was flagged: nothing since is trusted.
+        while self._formations and self._formations[-1][0] > t - self.monitor.window:
+            self._formations.pop()
         reference = self._good_formation(t - self.monitor.window)
-        if isinstance(self.filter, ParticleFilter) and self._recent and annealed_start(
-            self, self.filter, list(self._recent)
-        ):
+        recent = list(self._recent)
+        if recent:
+            onset = self.monitor.onset(lost, recent[0].t)
+            recent = [m for m in recent if m.t >= onset] or recent
+        if isinstance(self.filter, ParticleFilter) and recent and annealed_start(self, self.filter, recent):
             if reference is not None:
-                d2 = ((self.filter.particles[:, : self.layout.dim] - reference) ** 2).sum(axis=1)
-                logw = renormalized(-0.5 * d2 / _REFERENCE_SIGMA**2)
-                if logw is not None:
-                    self.filter.logw = logw
-                    self.filter.resample()
+                orient_by(self.filter, reference, _REFERENCE_SIGMA)
         else:
             others = self.layout.others
             cols = [k for k, r in enumerate(others) if r in lost or self.layout.reference in lost]
@@ -511,26 +538,51 @@ class FilterLocalizer(Localizer):
             for c in cols:
                 formations[:, 2 * c : 2 * c + 2] += self.rng.normal(0.0, _RECOVERY_SIGMA, (k, 2))
             self.filter.inject(formations)
-        self.monitor.restart()
+        self.monitor.restart(t)
+        self._trusted_from = t + _TRUST_HOLD
+
+    def _pause_kernel(self, t: float, batch: list[Measurement]) -> None:
+        """Pause a particle filter's orientation kernel while some robot has had no range for
+        ``_UNRANGED_AFTER`` (silent, or out of range). The kernel treats the orientation as a
+        static parameter of one rigid formation; a robot out of ranging splits it into parts
+        whose relative orientation nothing observes, and neither a common turn (the silent
+        robot dragged wherever the others' orientation drifts) nor a turn of the ranged part
+        alone (measured worse, docs/faults.md) is a move of the posterior. It waits as long
+        again after every robot is ranged once more: the orientations are then still the
+        split's mixture."""
+        for m in batch:
+            if isinstance(m, RangeEvent):
+                self._last_ranged[m.robot_a] = self._last_ranged[m.robot_b] = m.t
+        if any(t - self._last_ranged.get(r, t) > _UNRANGED_AFTER for r in self.layout.robots):
+            self._split_at = t
+        if isinstance(self.filter, ParticleFilter):
+            self.filter.kernel_paused = t - self._split_at < _UNRANGED_AFTER
 
     def _remember(self, t: float, batch: list[Measurement], fe: FilterEstimate) -> None:
-        """Keep the last ``init_window`` of measurements (for a re-annealed start) and, while
-        the monitor sees few outliers and the estimate is confident (every robot's std under
-        ``_CONFIDENT_STD``: a filter that has just jumped is wide, and sees no outliers), the
-        recent formations."""
+        """Keep the last ``init_window`` of measurements (for a re-annealed start) and the
+        formations the localizer trusts: those estimated while the monitor sees few outliers,
+        the estimate is confident (every robot's std under ``_CONFIDENT_STD``: a filter that
+        has just jumped is wide, and sees no outliers), and not within ``_TRUST_HOLD`` of a
+        restart (whose orientation was borrowed from the reference, and whose shape fits only
+        the ranges of its window: a burst's, perhaps). The newest trusted formation older than
+        the horizon is always kept, so a long episode still has one to return to."""
         self._recent.extend(batch)
         horizon = t - max(self.config.filter.init_window, self.update_period)
         while self._recent and self._recent[0].t < horizon:
             self._recent.popleft()
         confident = float(np.linalg.eigvalsh(fe.cov).max(initial=0.0)) < _CONFIDENT_STD**2
-        if self.monitor.healthy and confident:
-            self._formations.append((t, fe.mean.reshape(-1).copy()))
-            while self._formations and self._formations[0][0] < t - 2 * self.monitor.window - 1.0:
+        if self.monitor.healthy and confident and t >= self._trusted_from:
+            self._formations.append((t, fe.mean.reshape(-1) - self._drift))
+            keep = t - 2 * self.monitor.window - 1.0
+            while len(self._formations) > 1 and self._formations[1][0] < keep:
                 self._formations.popleft()
 
     def _good_formation(self, before: float) -> FloatArray | None:
+        """The newest trusted formation estimated before ``before`` (else the oldest kept),
+        moved to now by the odometry since (dead reckoning in the shared heading frame)."""
         good = [f for tf, f in self._formations if tf <= before]
-        return good[-1] if good else (self._formations[0][1] if self._formations else None)
+        f = good[-1] if good else (self._formations[0][1] if self._formations else None)
+        return None if f is None else f + self._drift
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
         raise NotImplementedError

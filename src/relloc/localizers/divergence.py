@@ -16,6 +16,8 @@ import math
 from collections import deque
 from typing import TYPE_CHECKING
 
+import numpy as np
+
 from relloc.events import RangeEvent, pair_key
 from relloc.filter.base import FilterEstimate
 
@@ -35,8 +37,10 @@ class DivergenceMonitor:
     sees most of a robot's ranges disagree. Over the last ``window`` seconds, a robot whose
     ranges are outliers in more than ``lost_fraction`` of ``min_ranges`` or more is lost (the
     reference, when most of everyone's are); the state clears once every robot is under
-    ``clear_fraction``. Tracking ranges keeps the rule independent of the filter (particles
-    or Gaussians) and of how the likelihood is robustified.
+    ``clear_fraction``; a restart that has not cleared it after a whole window of fresh ranges
+    returns the robots still over ``clear_fraction`` as lost again (a retry). Tracking ranges
+    keeps the rule independent of the filter (particles or Gaussians) and of how the
+    likelihood is robustified.
     """
 
     def __init__(
@@ -52,11 +56,13 @@ class DivergenceMonitor:
         self.episodes = 0
         """Times the filter was found lost."""
         self._seen: dict[str, deque[tuple[float, bool]]] = {}
+        self._restarted = -math.inf
 
-    def restart(self) -> None:
-        """Forget the ranges seen (the filter was restarted: judge it on fresh ones); the
-        lost state stays until they clear it."""
+    def restart(self, t: float) -> None:
+        """Forget the ranges seen (the filter was restarted at ``t``: judge it on fresh
+        ones); the lost state stays until they clear it."""
         self._seen.clear()
+        self._restarted = t
 
     def shift_time(self, dt: float) -> None:
         for q in self._seen.values():
@@ -86,6 +92,7 @@ class DivergenceMonitor:
             for r in (m.robot_a, m.robot_b):
                 self._seen.setdefault(r, deque()).append((m.t, outlier))
         lost: set[str] = set()
+        unclear: set[str] = set()
         worst = 0.0
         for r, q in self._seen.items():
             while q and q[0][0] < t - self.window:
@@ -96,6 +103,12 @@ class DivergenceMonitor:
             worst = max(worst, frac)
             if frac > self.lost_fraction:
                 lost.add(r)
+            elif frac >= self.clear_fraction:
+                unclear.add(r)
+        if self.lost and not lost and unclear and t - self._restarted >= self.window:
+            # A restart that has not cleared the loss after a whole window of fresh ranges is
+            # retried (its start may have fused some of the fault's last ranges).
+            return unclear
         if lost and not self.lost:
             self.lost = True
             self.episodes += 1
@@ -106,6 +119,18 @@ class DivergenceMonitor:
             log.info("filter recovered at t=%.2f", t)
         self.healthy = not self.lost and worst < self.clear_fraction
         return lost
+
+    def onset(self, robots: set[str], since: float) -> float:
+        """When the disagreement of ``robots``' ranges began, no earlier than ``since``: the
+        change point of their outlier indicators ``o`` (a CUSUM: the stamp from which the sum
+        of ``o - 1/2`` is largest), so that a restart anneals on the ranges since the fault
+        began (a kidnapping, a burst) or since it ended (the end of a burst the lost filter
+        had fitted), not across the change. ``since`` if nothing was recorded."""
+        seen = sorted((t, o) for r in robots for t, o in self._seen.get(r, ()) if t >= since)
+        if not seen:
+            return since
+        gain = np.cumsum([(o - 0.5) for _, o in reversed(seen)])[::-1]  # suffix sums
+        return seen[int(np.argmax(gain))][0] if gain.max() > 0.0 else since
 
     @staticmethod
     def _position(

@@ -19,12 +19,17 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING
 
+import numpy as np
+from numpy.typing import NDArray
+
 from relloc.filter.measurement import stacked
 from relloc.filter.pf import ParticleFilter
 from relloc.filter.registry import model_for
 
 if TYPE_CHECKING:
     from relloc.localizers.base import FilterLocalizer, Measurement
+
+FloatArray = NDArray[np.float64]
 
 
 def annealed_start(localizer: FilterLocalizer, pf: ParticleFilter, batch: list[Measurement]) -> bool:
@@ -58,3 +63,46 @@ def _invariant(event: object, shared_heading: bool) -> bool:
     if model is None:
         return False
     return model.invariant or (not shared_heading and getattr(model, "invariant_without_shared_heading", False))
+
+
+def orient_by(pf: ParticleFilter, reference: FloatArray, sigma: float) -> None:
+    """Turn (and, where it fits better, mirror) each particle's formation to the orientation
+    that best fits ``reference`` (relative positions ``(2(N-1),)``): the orientation and
+    handedness of a re-annealed start, whose ranges fixed only the shape. Shapes are left as
+    the ranges made them; the weights are not touched.
+
+    The fit is a 2D Procrustes rotation of each particle's robots, the reference robot among
+    them, about their centroids, for the particle and for its mirror image. A robot whose
+    position ``reference`` gets wrong (it was moved unseen; the reference robot itself, too)
+    is down-weighted by iterating with Cauchy weights ``1 / (1 + r^2 / sigma^2)`` of the
+    previous residuals ``r`` (iteratively reweighted least squares); the image with the
+    smaller robust residual is kept. Vectorised over particles."""
+    m, d = pf.particles.shape[0], pf.layout.dim
+    pts = np.concatenate([np.zeros((m, 1, 2)), pf.particles[:, :d].reshape(m, -1, 2)], axis=1)
+    ref = np.concatenate([np.zeros((1, 2)), np.asarray(reference, float).reshape(-1, 2)])
+    mirrored = pts * np.array([1.0, -1.0])
+    theta, cost = _procrustes(pts, ref, sigma)
+    theta_m, cost_m = _procrustes(mirrored, ref, sigma)
+    flip = cost_m < cost
+    rel = np.where(flip[:, None, None], mirrored, pts)[:, 1:]
+    pf.particles[:, :d] = rel.reshape(m, -1)
+    pf.rotate(np.where(flip, theta_m, theta))
+
+
+def _procrustes(pts: FloatArray, ref: FloatArray, sigma: float, passes: int = 3) -> tuple[FloatArray, FloatArray]:
+    """Per particle, the robust rotation (rad) of ``pts`` ``(M, N, 2)`` onto ``ref`` ``(N, 2)``
+    about the centroids, and its cost (the sum of ``log(1 + r^2 / sigma^2)``)."""
+    w = np.ones(pts.shape[:2])
+    theta = np.zeros(pts.shape[0])
+    residual = np.zeros(pts.shape[:2])
+    for _ in range(passes):
+        ws = w / w.sum(axis=1, keepdims=True)
+        a = pts - np.einsum("mn,mnk->mk", ws, pts)[:, None]
+        b = ref[None] - (ws @ ref)[:, None]
+        cross = np.einsum("mn,mn->m", w, a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0])
+        dot = np.einsum("mn,mn->m", w, a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1])
+        theta = np.arctan2(cross, dot)
+        c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
+        residual = np.hypot(c * a[..., 0] - s * a[..., 1] - b[..., 0], s * a[..., 0] + c * a[..., 1] - b[..., 1])
+        w = 1.0 / (1.0 + (residual / sigma) ** 2)
+    return theta, np.log1p((residual / sigma) ** 2).sum(axis=1)
