@@ -222,10 +222,12 @@ class ParticleFilter(WeightedFilter):
     @property
     def posterior_wide(self) -> bool:
         """Whether the posterior is wide in a way the count rule's binning cannot see: no
-        summary since the last (re-)annealed start, an orientation that is not observable, or
-        more than one mode (:mod:`relloc.filter.adaptive`)."""
+        summary since the last (re-)annealed start, an orientation that is not observable,
+        more than one mode (:mod:`relloc.filter.adaptive`), or the orientation kernel paused
+        by the localizer (a robot out of ranging: the formation is not one rigid body, and
+        only the count keeps the orientations of its parts diverse)."""
         s = self.last_summary
-        return s is None or not s.orientation_observable or s.n_modes > 1
+        return s is None or not s.orientation_observable or s.n_modes > 1 or self.kernel_paused
 
     def _resampled_size(self, idx: IntArray) -> int:
         """The count rule's size for the systematic draw ``idx`` (sorted, with repetitions):
