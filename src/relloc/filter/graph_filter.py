@@ -50,7 +50,8 @@ The cycle (the interface of :mod:`relloc.filter.base`)
     the formation's tangent) is under the summary's bound: one Gaussian can be wide along the
     rotation although its mean is one point.
 ``maybe_resample``
-    Gaussians are not resampled (copies of one Gaussian add nothing): hypotheses whose weight
+    Gaussians are not resampled (copies of one Gaussian add nothing): once the fused motion can
+    tell orientations apart (some robot moved ``MOTION_TO_RESOLVE``), hypotheses whose weight
     falls under ``prune_weight`` are dropped, and hypotheses whose means have come within
     ``merge_distance`` (RMS over the robots) are merged by moment matching. Every update then
     costs what its few surviving Gaussians cost.
@@ -296,7 +297,12 @@ class RangeGraphFilter(WeightedFilter):
         return False
 
     def resample(self) -> None:
-        """Drop hypotheses under ``prune_weight`` and merge those within ``merge_distance``."""
+        """Drop hypotheses under ``prune_weight`` and merge those within ``merge_distance``.
+        Nothing is dropped before the fused motion could have told the orientations apart
+        (:class:`relloc.filter.summary.Evidence`): the first updates' weights rank the
+        hypotheses by how their transients settle, not by the orientation."""
+        if not self.evidence.can_resolve:
+            return
         w = self.weights()
         keep = np.flatnonzero(w >= min(self.prune_weight, float(w.max())))
         if keep.size < self.n:

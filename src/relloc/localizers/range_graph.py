@@ -39,7 +39,7 @@ from relloc.filter.state import StateLayout
 from relloc.localizers.base import FilterLocalizer, Measurement
 from relloc.localizers.sampled import covariance_floor
 
-LARGE_TEAM_ROBOTS = 8
+LARGE_TEAM_ROBOTS = 12
 """Teams of at least this many robots get this localizer as ``pf`` (docs/scaling.md)."""
 ROTATIONS = 36
 """Orientation hypotheses per handedness at the start (10 degrees apart)."""
@@ -91,7 +91,17 @@ class RangeGraphLocalizer(FilterLocalizer):
         if not self._start_from(batch):
             return None
         self._started(t)
+        self._since_shape(batch)
         return self._emit(t, self.filter.estimate())
+
+    def _since_shape(self, batch: list[Measurement]) -> None:
+        """The shape is that of the window's middle (the median range time): the odometry
+        since then, not since the window's end, moves the hypotheses first (in the shared
+        frame, so it already tells orientations apart)."""
+        stamps = [m.t for m in batch if isinstance(m, RangeEvent)]
+        if stamps:
+            t_shape = float(np.median(stamps))
+            self._anchor = {r: self._odometry_pose(r, t_shape) for r in self.layout.robots}
 
     def _start_from(self, batch: list[Measurement], reference: np.ndarray | None = None) -> bool:
         """Start the filter from ``batch``'s range graph (module docstring); with a
@@ -134,6 +144,7 @@ class RangeGraphLocalizer(FilterLocalizer):
         new filter on fresh ranges."""
         reference = self._good_formation(t - self.monitor.window)
         if self._recent and self._start_from(list(self._recent), reference):
+            self._since_shape(list(self._recent))
             self.stats["recovery_injections"] += 1
             self.monitor.restart()
             return
