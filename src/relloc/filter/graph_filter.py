@@ -58,6 +58,15 @@ The cycle (the interface of :mod:`relloc.filter.base`)
 
 Re-injection (``inject``, a localizer's recovery) restarts hypotheses at given formations with
 an isotropic ``reinject_sigma``.
+
+What the covariance cannot show
+-------------------------------
+Besides the covariance floor of one range's noise (``covariance_floor``, as every filter), the
+published covariance keeps, once the orientation is resolved, a rotation of the whole formation
+of ``rotation_floor`` std: ``rotation_floor^2 J J^T`` per robot. A range error that follows the
+robots' headings (an antenna pattern) turns every robot's apparent motion alike when the
+robots turn alike, and ranges with odometry cannot tell that from a turn of the formation; the
+filter's own rotation variance then shrinks far below its error (docs/scaling.md, "Why").
 """
 
 from __future__ import annotations
