@@ -139,13 +139,12 @@ class RangeGraphLocalizer(FilterLocalizer):
         return True
 
     def _recover(self, t: float, fe: FilterEstimate, lost: set[str]) -> None:
-        """Lost: start again from the last ``init_window`` of measurements, the hypotheses
-        weighed by the last formation estimated before the loss; the monitor then judges the
-        new filter on fresh ranges."""
-        reference = self._good_formation(t - self.monitor.window)
-        if self._recent and self._start_from(list(self._recent), reference):
-            self._since_shape(list(self._recent))
-            self.stats["recovery_injections"] += 1
-            self.monitor.restart()
-            return
-        super()._recover(t, fe, lost)  # no range graph to start from: re-injected hypotheses
+        """Lost: the base's recovery (its counts, its bookkeeping of trusted formations and of
+        the monitor, and hypotheses re-injected about the estimate), then, where the last
+        ``init_window`` of measurements places the team, a start from their range graph in
+        its place, the hypotheses weighed by the last formation trusted before the loss."""
+        super()._recover(t, fe, lost)
+        recent = list(self._recent)
+        if recent and self._start_from(recent, self._good_formation(t - self.monitor.window)):
+            self._since_shape(recent)
+            self.stats["graph_restarts"] += 1
