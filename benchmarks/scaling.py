@@ -32,6 +32,13 @@ The references, measured in the same run, at every point:
 
 The ratios ``update / pass`` and ``update / floor`` say how far the update is from what the
 memory allows; they mean something on any machine, where the absolute times do not.
+
+A third sweep times the large-team representation, :class:`relloc.filter.graph_filter.RangeGraphFilter`
+(what ``pf`` is for teams of ``LARGE_TEAM_ROBOTS`` and more, docs/scaling.md), over the same
+team sizes: the same predict + update + estimate + ``maybe_resample`` (pruning) cycle with
+``--hypotheses`` Gaussians (1: converged; 72: the start's orientation hypotheses), each started
+0.3 m about the truth. Its cost does not depend on a particle count: ``H`` batched ``D x D``
+solves and ``O(H K)`` for the ranges.
 ``--json FILE`` writes every point.
 
 Run it with relloc installed (no extra dependency)::
@@ -56,6 +63,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from relloc.filter.graph_filter import RangeGraphFilter
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.pf import ParticleFilter
 from relloc.filter.ranges import RangeBatch
@@ -144,6 +152,37 @@ def time_update(team: Team, m: int, reps: int, seed: int) -> float:
     return statistics.median(times)
 
 
+def time_graph_update(team: Team, hypotheses: int, reps: int, seed: int) -> float:
+    """Median seconds of one predict + update + estimate + prune of the range-graph filter with
+    ``hypotheses`` Gaussians (none is pruned: all start equally near the truth)."""
+    rng = np.random.default_rng(seed)
+    n = len(team.layout.robots)
+    f = RangeGraphFilter(team.layout, area_of(team), rng=np.random.default_rng(seed + 1), motion=OdometryMotion(process_noise=PROCESS_NOISE))
+    start = team.positions(0)
+    rel = (start[1:] - start[0]).reshape(-1)
+    d = rel.size
+    f.initialize(rel + rng.normal(0.0, CLOUD_SPREAD, (hypotheses, d)), np.repeat(np.eye(d)[None] * CLOUD_SPREAD**2, hypotheses, axis=0))
+    f.merge_distance = 0.0  # keep every hypothesis: the cost of H of them
+    f.prune_weight = 0.0
+    k_pairs = len(team.pair_a)
+    bias, sigma_uwb, sigma = np.zeros(k_pairs), np.full(k_pairs, SIGMA_UWB), np.full(n, SIGMA_ODOM)
+    times = []
+    for k in range(1, WARMUP + reps + 1):
+        before, now = team.positions(k - 1), team.positions(k)
+        disp = now - before + rng.normal(0.0, SIGMA_ODOM, (n, 2))
+        ranges = np.linalg.norm(now[team.pair_a] - now[team.pair_b], axis=1) + rng.normal(0.0, SIGMA_UWB, k_pairs)
+        batch = RangeBatch(team.pair_a, team.pair_b, ranges, bias, sigma_uwb)
+        gc.collect()
+        t0 = time.perf_counter()
+        f.predict(disp, sigma, DT)
+        f.update([batch])
+        f.estimate()
+        f.maybe_resample()
+        if k > WARMUP:
+            times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
 def time_pass(m: int, d: int, reps: int) -> float:
     """Median seconds of ``x += y`` over two ``(m, d)`` float64 arrays."""
     x, y = np.ones((m, d)), np.full((m, d), 1e-9)
@@ -202,6 +241,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--particles-fixed", type=int, default=20_000, help="particle count of the team sweep")
     parser.add_argument("--reps", type=int, default=10, help="timed updates per point")
     parser.add_argument("--copy-mb", type=int, default=256, help="MiB copied to measure the bandwidth")
+    parser.add_argument("--hypotheses", type=int, nargs="+", default=[1, 72], help="Gaussians of the range-graph sweep")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, help="write every point to this file")
     args = parser.parse_args(argv)
@@ -226,6 +266,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         p = measure(n, args.particles_fixed, args.reps, bandwidth, args.seed)
         results["robots_sweep"].append(p)  # type: ignore[union-attr]
         print(_line(p), flush=True)
+    print(f"-- range-graph Gaussian sum over robots, {args.hypotheses} hypotheses")
+    results["graph_sweep"] = []
+    for n in robots:
+        team = make_team(n, np.random.default_rng(args.seed))
+        for h in args.hypotheses:
+            t = time_graph_update(team, h, args.reps, args.seed)
+            point = {"robots": n, "hypotheses": h, "dim": 2 * (n - 1), "pairs": len(team.pair_a), "update_s": t}
+            results["graph_sweep"].append(point)  # type: ignore[union-attr]
+            print(f"N={n:>3} H={h:>3}  D={point['dim']:>3} K={point['pairs']:>5}  update {t * 1e3:9.2f} ms", flush=True)
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=2) + "\n")

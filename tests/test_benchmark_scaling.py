@@ -31,7 +31,9 @@ def test_floor_bytes_counts_state_ranges_and_weights() -> None:
 
 def test_a_point_reports_the_update_against_both_references(tmp_path: Path) -> None:
     out = tmp_path / "s.json"
-    assert scaling.main(["--particles", "500", "--robots", "3", "--reps", "2", "--copy-mb", "8", "--json", str(out)]) == 0
+    assert scaling.main(
+        ["--particles", "500", "--robots", "3", "--reps", "2", "--copy-mb", "8", "--hypotheses", "1", "4", "--json", str(out)]
+    ) == 0
     data = json.loads(out.read_text())
     (p,) = data["particles_sweep"]
     (q,) = data["robots_sweep"]
@@ -40,3 +42,6 @@ def test_a_point_reports_the_update_against_both_references(tmp_path: Path) -> N
     for point in (p, q):
         assert point["update_s"] > point["floor_s"] > 0.0
         assert point["update_over_floor"] == point["update_s"] / point["floor_s"]
+    g1, g4 = data["graph_sweep"]
+    assert (g1["robots"], g1["hypotheses"], g1["dim"], g1["pairs"]) == (3, 1, 4, 3)
+    assert g4["hypotheses"] == 4 and 0.0 < g1["update_s"] < 0.05

@@ -19,6 +19,7 @@ from relloc.config import TeamConfig
 from relloc.engine import Pipeline, Stage
 from relloc.localizers.base import FilterLocalizer
 from relloc.localizers.multilateration import MultilaterationLocalizer
+from relloc.localizers.range_graph import RangeGraphLocalizer, suits_range_graph
 from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
 
@@ -79,8 +80,12 @@ def build_pipeline(
 def filter_localizer(config: TeamConfig, *, seed: int = 0, method: str = "pf") -> FilterLocalizer:
     """The particle localizer the config's modes call for: the self-calibrating one where the
     headings or the odometry scales are estimated, else the sampled one (which estimates
-    range biases itself with ``bias_mode = "online"``)."""
+    range biases itself with ``bias_mode = "online"``); for a large team in the shared heading
+    frame with calibrated biases, the Gaussian sum started from the range graph
+    (:mod:`relloc.localizers.range_graph`, docs/scaling.md)."""
     fc = config.filter
     if fc.self_calibration.heading_mode == "estimate" or fc.self_calibration.odom_scale_mode == "online":
         return SelfCalibratingLocalizer(config, seed=seed, method=method)
+    if suits_range_graph(config):
+        return RangeGraphLocalizer(config, seed=seed, method=method)
     return ParticleFilterLocalizer(config, seed=seed, method=method)

@@ -1,0 +1,150 @@
+"""The large-team localizer: the formation from the range graph, then a Gaussian sum over it.
+
+What a large team gets as ``pf`` (:func:`relloc.methods.filter_localizer` picks it by team
+size, :data:`LARGE_TEAM_ROBOTS`): the sampled filter's start from the uniform prior does not
+scale past a few robots (``2(N-1)`` dimensions), its updates cost ``M`` particles times
+``N(N-1)/2`` ranges, and the posterior it approximates is, after the start, a single narrow
+bump. So:
+
+* **Start** (``init_window`` of measurements, as the sampled filter): the shape from all
+  pair ranges by classical MDS refined by SMACOF, turned to ``ROTATIONS`` evenly spaced angles
+  about the reference and mirrored (:mod:`relloc.filter.range_graph`), one Gaussian per
+  hypothesis whose covariance spans the gap to its neighbours along the rotation
+  (``rotation_sigma`` half a step) and the shape's own error (``SHAPE_SIGMA``, or twice the
+  fit's RMS residual if larger). Robots the range graph does not connect to the reference
+  start at the reference with the prior box's variance. Detections of the window then weigh
+  the hypotheses.
+* **Cycle**: :class:`relloc.filter.graph_filter.RangeGraphFilter`: odometry prediction,
+  all ranges of a batch in one sparse information-form EKF update per hypothesis, the
+  hypotheses that motion contradicts pruned.
+* **Recovery**: when the divergence monitor finds it lost, the same start from the last
+  ``init_window`` of measurements, the hypotheses weighed by their closeness to the last
+  formation it trusted (as the sampled localizer re-anneals).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from relloc.config import TeamConfig
+from relloc.estimate import Estimate
+from relloc.events import RangeEvent
+from relloc.filter.base import FilterEstimate
+from relloc.filter.graph_filter import RangeGraphFilter
+from relloc.filter.range_graph import orientation_hypotheses, shape_from_ranges, start_covariance
+from relloc.filter.ranges import RangeBatch
+from relloc.filter.state import StateLayout
+from relloc.localizers.base import FilterLocalizer, Measurement
+from relloc.localizers.sampled import covariance_floor
+
+LARGE_TEAM_ROBOTS = 12
+"""Teams of at least this many robots get this localizer as ``pf`` (docs/scaling.md)."""
+ROTATIONS = 36
+"""Orientation hypotheses per handedness at the start (10 degrees apart)."""
+SHAPE_SIGMA = 0.3
+"""Smallest std (m per coordinate) of the start's shape."""
+ROTATION_FLOOR = 0.05
+"""Std (rad) of the formation's rotation that the published covariance keeps once the
+orientation is resolved: a range error that follows the robots' headings (an antenna pattern)
+turns the apparent motion of every robot alike, about its amplitude over the robots' turning
+radius (docs/scaling.md: 2.5-3 degrees on the grid), which no fusion of ranges and odometry
+can tell from a turn of the formation."""
+REFERENCE_SIGMA = 1.0
+"""Recovery: how far (m per coordinate) a restarted hypothesis may be from the last trusted
+formation and still be taken as its orientation."""
+
+
+def suits_range_graph(config: TeamConfig) -> bool:
+    """Whether ``config`` calls for this localizer: a team of ``LARGE_TEAM_ROBOTS`` or more in
+    the shared heading frame with fixed odometry scales and calibrated (not online) biases."""
+    sc = config.filter.self_calibration
+    return (
+        len(config.robot_names) >= LARGE_TEAM_ROBOTS
+        and sc.heading_mode != "estimate"
+        and sc.odom_scale_mode != "online"
+        and sc.bias_mode != "online"
+    )
+
+
+class RangeGraphLocalizer(FilterLocalizer):
+    """Odometry + UWB ranges (+ detections) for a large team: a Gaussian sum started from the
+    range graph (module docstring)."""
+
+    method = "pf"
+    filter: RangeGraphFilter
+
+    def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
+        layout = StateLayout(config.robot_names, config.reference)
+        super().__init__(config, layout, seed=seed)
+        self.method = method
+        fc = config.filter
+        self.range_model = fc.likelihood.range_model
+        self.filter = RangeGraphFilter(
+            layout, config.area, rng=self.rng, motion=self.motion, rotation_noise=fc.odometry.rotation_noise,
+            rotation_floor=ROTATION_FLOOR,
+        )
+        self.filter.covariance_floor = covariance_floor(config, self.range_model)
+
+    def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
+        if not self._start_from(batch):
+            return None
+        self._started(t)
+        self._since_shape(batch)
+        return self._emit(t, self.filter.estimate())
+
+    def _since_shape(self, batch: list[Measurement]) -> None:
+        """The shape is that of the window's middle (the median range time): the odometry
+        since then, not since the window's end, moves the hypotheses first (in the shared
+        frame, so it already tells orientations apart)."""
+        stamps = [m.t for m in batch if isinstance(m, RangeEvent)]
+        if stamps:
+            t_shape = float(np.median(stamps))
+            self._anchor = {r: self._odometry_pose(r, t_shape) for r in self.layout.robots}
+
+    def _start_from(self, batch: list[Measurement], reference: np.ndarray | None = None) -> bool:
+        """Start the filter from ``batch``'s range graph (module docstring); with a
+        ``reference`` formation ``(D,)``, weigh the hypotheses by their distance to it. False
+        if the batch has no range that places a robot."""
+        lay = self.layout
+        ranges = [m for m in batch if isinstance(m, RangeEvent)]
+        models = [b for b in self.models(ranges, self.filter, count=False) if isinstance(b, RangeBatch)]
+        if not models:
+            return False
+        ia = np.concatenate([b.index_a for b in models])
+        ib = np.concatenate([b.index_b for b in models])
+        z = np.concatenate([b.distance - b.bias for b in models])
+        shape = shape_from_ranges(len(lay.robots), lay.index(lay.reference), ia, ib, z)
+        others = np.array([lay.index(r) for r in lay.others], dtype=np.intp)
+        if shape.measured == 0 or not shape.placed[others].any():
+            return False
+        formations = orientation_hypotheses(shape.relative[others], ROTATIONS, reflections=True)
+        cov = start_covariance(formations, max(SHAPE_SIGMA, 2.0 * shape.rms), math.pi / ROTATIONS)
+        unplaced = np.flatnonzero(~shape.placed[others])
+        if unplaced.size:
+            cols = np.concatenate([2 * unplaced, 2 * unplaced + 1])
+            cov[:, cols, :] = 0.0
+            cov[:, :, cols] = 0.0
+            cov[:, cols, cols] = float(np.mean(self.filter.half_extent**2) / 3.0)
+        logw = None
+        if reference is not None:
+            d2 = ((formations.reshape(formations.shape[0], -1) - reference) ** 2).sum(axis=1)
+            logw = -0.5 * d2 / REFERENCE_SIGMA**2
+        self.filter.initialize(formations, cov, logw)
+        rest = self.models([m for m in batch if not isinstance(m, RangeEvent)], self.filter, count=False)
+        if rest:
+            self.filter.update(rest)
+        self.stats["graph_start_rms_mm"] = round(1000.0 * shape.rms)
+        return True
+
+    def _recover(self, t: float, fe: FilterEstimate, lost: set[str]) -> None:
+        """Lost: the base's recovery (its counts, its bookkeeping of trusted formations and of
+        the monitor, and hypotheses re-injected about the estimate), then, where the last
+        ``init_window`` of measurements places the team, a start from their range graph in
+        its place, the hypotheses weighed by the last formation trusted before the loss."""
+        super()._recover(t, fe, lost)
+        recent = list(self._recent)
+        if recent and self._start_from(recent, self._good_formation(t - self.monitor.window)):
+            self._since_shape(recent)
+            self.stats["graph_restarts"] += 1
