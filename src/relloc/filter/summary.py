@@ -297,7 +297,7 @@ def summarize(
 
     # The dominant mode's circular spread of orientation (about the template: an offset
     # does not change it).
-    rbar = math.hypot(float(np.einsum("m,m->", wm, c)), float(np.einsum("m,m->", wm, s)))
+    rbar = min(math.hypot(float(np.einsum("m,m->", wm, c)), float(np.einsum("m,m->", wm, s))), 1.0)
     orientation_std = math.pi if rbar <= math.exp(-0.5 * math.pi**2) else min(math.sqrt(-2.0 * math.log(rbar)), math.pi)
 
     if can_resolve:
