@@ -123,6 +123,37 @@ def test_a_sighting_turns_an_unknown_heading_in_the_gaussian_sum_filter() -> Non
     assert math.degrees(spread) < 5.0
 
 
+def test_a_sighting_does_not_read_the_observers_odometry_scale_into_the_range() -> None:
+    """Headings and scales estimated: r1 drives squares (0.1 m steps, a right angle every 20)
+    with an odometry that says 10 % more than it drives, its frame turned by 40 deg, and sees
+    the static reference at every step. Its scale comes out at 0.9, its position within 0.1 m.
+    (Read as ``(A(w) u) . v = r``, the range would be the scale times the distance: 0.949 and a
+    0.14 m error.)"""
+    config = _config()
+    layout = CalibrationLayout(config.robot_names, config.reference, heading=True, scale=True)
+    gsf = GaussianSumFilter(layout, 20, config.area, rng=np.random.default_rng(0), position_sigma=0.3)
+    theta, scale = math.radians(40.0), 0.9
+    c, s = math.cos(theta), math.sin(theta)
+    p1 = np.array([2.0, 1.0])
+    gsf.initialize(p1 + np.random.default_rng(1).normal(0.0, 0.3, (20, 2)))
+    rng = np.random.default_rng(2)
+    psi = 0.0
+    for k in range(300):
+        turn = math.pi / 2 if k % 20 == 19 else 0.0
+        odo = 0.1 * np.array([math.cos(psi + 0.5 * turn), math.sin(psi + 0.5 * turn)])  # in r1's odometry frame
+        p1 = p1 + scale * np.array([c * odo[0] - s * odo[1], s * odo[0] + c * odo[1]])
+        psi += turn
+        gsf.predict(np.array([[0.0, 0.0], odo]), np.array([0.0, 0.002]), 0.5)
+        bearing = math.remainder(math.atan2(-p1[1], -p1[0]) - (theta + psi) + rng.normal(0.0, 0.005), math.tau)
+        sighting = SightingEvent(0.5 * k, "r1", "r0", float(np.hypot(*p1)) + rng.normal(0.0, 0.03), bearing, 0.03, 0.005)
+        context = ModelContext(config, layout, yaws={"r0": 0.0, "r1": psi}, shared_heading=False)
+        assert gsf.update(SightingBatch.build([sighting], context))
+        gsf.maybe_resample()
+    assert gsf.scale("r1")[0] == pytest.approx(0.9, abs=0.02)
+    assert math.degrees(gsf.heading("r1")[0]) == pytest.approx(40.0, abs=2.0)
+    assert float(np.hypot(*(gsf.estimate().mean[0] - p1))) < 0.1
+
+
 # ---------------------------------------------------------------------------- MRCLAM reader
 _HEADER = "# UTIAS Multi-Robot Cooperative Localization and Mapping Dataset\n# a test file\n"
 
@@ -154,6 +185,8 @@ def test_the_mrclam_reader_turns_a_data_set_into_events(tmp_path: Path) -> None:
     events = list(source)
     assert [e.t for e in events] == sorted(e.t for e in events)
     odo = [e for e in events if isinstance(e, OdometryEvent) and e.robot == "robot1"]
+    # stamped ODOMETRY_DELAY after the velocity command, when the robot follows it
+    assert [e.t for e in odo] == pytest.approx([100.24, 101.24, 102.24, 103.24])
     assert [(round(e.x, 9), round(e.y, 9), round(e.yaw, 9)) for e in odo] == [
         (0.0, 0.0, 0.0), (0.1, 0.0, 0.0), (0.2, 0.0, 0.0), (0.2, 0.0, 0.5),
     ]
