@@ -298,6 +298,10 @@ class SelfCalibrationConfig(_Checked):
     reference_heading_walk: float = 0.003
     """Estimate mode: random walk of the reference robot's own odometry heading (rad per
     sqrt(s)); its drift turns the frame it defines, and only its motion tells it."""
+    heading_split_std: float = 0.0
+    """Estimate mode: split a Gaussian of the self-calibrating filter into three along a
+    heading whose angular std has grown past this (rad; 0: never), keeping the count
+    (relloc.filter.gaussian_sum, "Splitting a heading that has grown wide")."""
     heading_prior_sigma_deg: float = 0.0
     """Estimate mode: > 0 uses the configured heading offsets as a prior with this standard
     deviation (deg); 0 (default): uniform prior, the offsets are not read."""
@@ -320,7 +324,7 @@ class SelfCalibrationConfig(_Checked):
             positive=("selfcal_position_sigma", "scale_prior_sigma"),
             non_negative=(
                 "bias_prior_sigma", "bias_prior_sigma_uncalibrated", "bias_walk", "heading_walk",
-                "reference_heading_walk", "heading_prior_sigma_deg", "scale_walk",
+                "reference_heading_walk", "heading_split_std", "heading_prior_sigma_deg", "scale_walk",
             ),
         )
 

@@ -68,6 +68,21 @@ per particle and robot, as a pseudo-measurement ``|u| = s0``, as soon as that pa
 of ``u`` is determined well enough (angular std below ``~15 deg``) for the linearisation to be
 valid.
 
+Splitting a heading that has grown wide
+---------------------------------------
+A robot that nobody sees and that sees nobody is dead reckoning: its heading's random walk
+widens ``u`` tangentially, and its predicted position spreads along an arc (it drove some
+metres in a direction known to +-20 deg, say). One Gaussian is a poor fit to an arc, and a
+range linearised at its centre pulls the state the wrong way. With ``split_heading_std`` set,
+after each prediction every Gaussian whose widest known heading has an angular std above it is
+replaced by three, along that heading's tangent ``e`` in the full state: means ``mu + a_k s``
+and covariance ``P - (1 - sigma^2) s s^T`` with ``s = P e / sqrt(e^T P e)`` (so the positions
+correlated with the heading move with it), ``a = (-1.058, 0, 1.058)``, weights
+``(0.225, 0.550, 0.225)``, ``sigma = 0.672``: the three-component split of a unit Gaussian
+that keeps its mean and variance (the splitting library of Huber et al. and DeMars et al.).
+The enlarged mixture is resampled back to ``M`` Gaussians, so the count and the cost per step
+stay fixed. Range-only sightings are where this matters (docs/mrclam.md).
+
 Each range's covariance update ``P -= gain (P h)^T`` is deferred: the next range needs only
 ``P h``, which the pending updates give cheaply, and the ranges of a batch are applied to the
 covariance together, as one batched product, when it is next read (:meth:`GaussianSumFilter.cov`).
@@ -92,12 +107,17 @@ from scipy.special import i0e, i1e
 from relloc.filter.base import FilterEstimate, WeightedFilter, renormalized
 from relloc.filter.measurement import MeasurementModel, robust_gaussian
 from relloc.filter.motion import OdometryMotion
-from relloc.filter.resampling import mixture_moments
+from relloc.filter.resampling import mixture_moments, systematic_resample
 from relloc.filter.state import TeamLayout
 from relloc.filter.summary import Evidence, summarize
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
+
+_SPLIT_W = (0.2252246249, 0.5495507502, 0.2252246249)
+_SPLIT_MU = (-1.0575154615, 0.0, 1.0575154615)
+_SPLIT_SIGMA = 0.6715662887
+
 
 def _rotation_jacobian(d: FloatArray) -> FloatArray:
     """``A(d)`` with ``A(d) u = s R(theta) d`` for ``u = s (cos theta, sin theta)``."""
@@ -243,6 +263,7 @@ class GaussianSumFilter(WeightedFilter):
         ess_threshold: float = 0.5,
         reinject_fraction: float = 0.01,
         heading_prior: dict[str, tuple[float, float]] | None = None,
+        split_heading_std: float = 0.0,
     ) -> None:
         super().__init__(
             n_particles, area, rng=rng, resample="ess", ess_threshold=ess_threshold,
@@ -262,6 +283,10 @@ class GaussianSumFilter(WeightedFilter):
         if self.bias_prior_mean.shape != (nb,) or self.bias_prior_var.shape != (nb,):
             raise ValueError(f"bias_prior needs {nb} means and variances")
         self.heading_prior = heading_prior or {}
+        self.split_heading_std = split_heading_std
+        """Heading mode: split a Gaussian whose known heading's angular std exceeds this (rad;
+        0: never) (:meth:`split_headings`)."""
+        self.split_count = 0
         self.prior_mean, self.prior_cov = self._calibration_prior()
         self._pending: list[tuple[FloatArray, FloatArray]] = []
         self.mean = np.zeros((n_particles, layout.width))
@@ -281,7 +306,12 @@ class GaussianSumFilter(WeightedFilter):
         return not self.layout.heading
 
     def counters(self) -> dict[str, int]:
-        return {"scale_priors_applied": self.magnitude_count} if self.layout.heading else {}
+        if not self.layout.heading:
+            return {}
+        out = {"scale_priors_applied": self.magnitude_count}
+        if self.split_heading_std > 0.0:
+            out["heading_splits"] = self.split_count
+        return out
 
     # ---------------------------------------------------------------- covariance
     @property
@@ -442,6 +472,8 @@ class GaussianSumFilter(WeightedFilter):
         self.cov += q
         if lay.heading and dt > 0.0:
             self._heading_walk(dt)
+            if self.split_heading_std > 0.0:
+                self.split_count += self.split_headings(self.split_heading_std)
 
     def _heading_walk(self, dt: float) -> None:
         """Random walk of each ``u``: ``heading_walk`` along the circle (turning ``u``, scaled by
@@ -461,6 +493,49 @@ class GaussianSumFilter(WeightedFilter):
             block = q_t[:, None, None] * t[:, :, None] * t[:, None, :]
             block += q_r[:, None, None] * r[:, :, None] * r[:, None, :]
             self.cov[:, c0 : c1 + 1, c0 : c1 + 1] += block
+
+    # ---------------------------------------------------------------- splitting
+    def split_headings(self, max_std: float) -> int:
+        """Split every Gaussian whose widest known heading (angular std of ``u``: tangential std
+        over ``|u|``) exceeds ``max_std`` (rad) into three along that heading, then resample the
+        enlarged mixture back to ``M`` (systematic; equal weights). Returns how many Gaussians
+        were split (module docstring, "Splitting a heading that has grown wide")."""
+        lay = self.layout
+        cov = self.cov
+        n, width = self.n, lay.width
+        worst = np.zeros(n)
+        direction = np.zeros((n, width))
+        for robot in lay.robots:
+            c0, c1 = lay.u_columns(robot)
+            mu = self.mean[:, c0 : c1 + 1]
+            norm = np.sqrt(np.sum(mu * mu, axis=1))
+            t = np.stack([-mu[:, 1], mu[:, 0]], axis=1) / np.maximum(norm, 1e-9)[:, None]
+            var_t = np.einsum("ma,mab,mb->m", t, cov[:, c0 : c1 + 1, c0 : c1 + 1], t)
+            std = np.where(norm > 0.5, np.sqrt(np.maximum(var_t, 0.0)) / np.maximum(norm, 1e-9), 0.0)
+            better = std > worst
+            worst = np.where(better, std, worst)
+            direction[better] = 0.0
+            direction[better, c0] = t[better, 0]
+            direction[better, c1] = t[better, 1]
+        sel = np.flatnonzero(worst > max_std)
+        if not sel.size:
+            return 0
+        e = direction[sel]
+        pe = np.einsum("kde,ke->kd", cov[sel], e)
+        sd = pe / np.sqrt(np.maximum(np.einsum("kd,kd->k", pe, e), 1e-18))[:, None]
+        child_cov = cov[sel] - (1.0 - _SPLIT_SIGMA**2) * sd[:, :, None] * sd[:, None, :]
+        keep = np.setdiff1d(np.arange(n), sel)
+        means = [self.mean[keep]] + [self.mean[sel] + mu_k * sd for mu_k in _SPLIT_MU]
+        covs = [cov[keep]] + [child_cov] * 3
+        logws = [self.logw[keep]] + [self.logw[sel] + math.log(w_k) for w_k in _SPLIT_W]
+        done = [self.magnitude_done[keep]] + [self.magnitude_done[sel]] * 3
+        mean_all, cov_all = np.concatenate(means), np.concatenate(covs)
+        logw_all, done_all = np.concatenate(logws), np.concatenate(done)
+        w = np.exp(logw_all - logw_all.max())
+        idx = systematic_resample(w / w.sum(), self.rng, n)
+        self.mean, self.cov, self.magnitude_done = mean_all[idx], cov_all[idx], done_all[idx]
+        self.logw = np.full(n, -math.log(n))
+        return int(sel.size)
 
     # ---------------------------------------------------------------- updates
     def update(self, models: Sequence[MeasurementModel]) -> bool:

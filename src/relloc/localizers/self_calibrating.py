@@ -95,6 +95,7 @@ class SelfCalibratingLocalizer(FilterLocalizer):
             ess_threshold=fc.resampling.ess_threshold,
             reinject_fraction=fc.resampling.reinject_fraction,
             heading_prior=heading_prior,
+            split_heading_std=fc.self_calibration.heading_split_std,
         )
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:

@@ -46,6 +46,11 @@ BEARING_SIGMA = math.radians(1.0)
 """Bearing noise (rad): the barcode's bearing is good to 0.4 deg, the rest covers the time
 stamp of a sighting taken while the robots turn."""
 
+ODOMETRY_DELAY = 0.24
+"""Seconds between an odometry sample's stamp and the motion it reports (s): the files hold
+the velocity *commands* of the iRobot Creates, which the drive follows about a quarter of a
+second later. The source stamps each sample this much later."""
+
 ROBOT_SUBJECTS = range(1, 6)
 """Subject numbers of the robots in ``Barcodes.dat``."""
 
@@ -144,7 +149,7 @@ class MrclamSource:
         baseline (``ekf_oracle``), never given to relloc's filters."""
         out = {}
         for i, name in self.robots.items():
-            truth, t = self.truth[i], self.odometry[i][0, 0]
+            truth, t = self.truth[i], self.odometry[i][0, 0] + ODOMETRY_DELAY
             k = min(int(np.searchsorted(truth[:, 0], t)), len(truth) - 1)
             out[name] = (float(truth[k, 1]), float(truth[k, 2]), float(truth[k, 3]))
         return out
@@ -172,7 +177,7 @@ class MrclamSource:
         poses = integrate_odometry(table)
         for (t, v, w), (x, y, yaw) in zip(table.tolist(), poses.tolist(), strict=True):
             self.stats.counts["odometry"] += 1
-            yield OdometryEvent(t, name, x, y, yaw, v, w)
+            yield OdometryEvent(t + ODOMETRY_DELAY, name, x, y, yaw, v, w)
 
     def _sightings(self, subject: int) -> Iterator[SightingEvent]:
         name = self.robots[subject]
