@@ -149,6 +149,26 @@ def test_a_whole_stream_clock_step_is_followed_within_a_second(dt: float) -> Non
     assert err[:, 1].mean() < 0.2
 
 
+def test_a_followed_clock_step_moves_every_remembered_time_with_it() -> None:
+    """r2 silent 8-11 s pauses the orientation kernel until 13 s; the stream then steps back
+    1 h at 15 s. The times the localizer keeps (last range per robot, the kernel's pause, the
+    trust hold, the monitor's restart) move with the clock, so the kernel runs again after the
+    step instead of waiting for the old clock to come round (an hour)."""
+    dt = -3600.0
+    sim = multi_scenario(seed=0, duration=22.0)
+    loc = ParticleFilterLocalizer(sim.config.with_filter(particles=PARTICLES), seed=0)
+    faults = Faults(silence=(Window(8.0, 11.0, "r2"),), stream_jump=((15.0, dt),))
+    paused_after = []
+    for ev in inject(sim.events(), faults):
+        if not isinstance(ev, GroundTruthEvent):
+            loc.process(ev)
+            if loc.initialized and ev.t < 0.0 and ev.t - dt > 17.0:  # after the step
+                paused_after.append(loc.filter.kernel_paused)
+    assert loc.stats["clock_jumps_followed"] == 1
+    assert paused_after and not any(paused_after)
+    assert loc._split_at < loc.t and loc.monitor._restarted <= loc.t
+
+
 # ---------------------------------------------------------------- odometry
 @pytest.mark.parametrize("kind", ["reset", "step"])
 def test_odometry_reset_or_jump_re_anchors_the_track(kind: str) -> None:

@@ -473,6 +473,9 @@ class FilterLocalizer(Localizer):
         self.t += dt
         self._recent.clear()
         self._formations = deque((tf + dt, f) for tf, f in self._formations)
+        self._trusted_from += dt
+        self._last_ranged = {r: tr + dt for r, tr in self._last_ranged.items()}
+        self._split_at += dt
         self.monitor.shift_time(dt)
         self._init_batch = [dataclasses.replace(m, t=m.t + dt) for m in self._init_batch]
 

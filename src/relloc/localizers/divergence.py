@@ -68,6 +68,7 @@ class DivergenceMonitor:
         for q in self._seen.values():
             for i, (t, out) in enumerate(q):
                 q[i] = (t + dt, out)
+        self._restarted += dt
 
     def observe(self, t: float, batch: list[Measurement], fe: FilterEstimate, loc: Localizer) -> set[str]:
         """Record ``batch``'s ranges against ``fe``; the robots judged lost (empty if none)."""
