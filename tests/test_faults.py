@@ -319,7 +319,7 @@ def _shortbag_error(shared_data: Path, seed: int, faults: Faults, outside: tuple
 @pytest.mark.shared_data
 def test_a_10_s_silence_on_the_shortbag_costs_little_after_it(shared_data: Path) -> None:
     """turtle05 (the far, static robot) silent 5-15 s of the 17.5 s shortbag, seeds 0-2:
-    after it the error is within 0.03 m of the clean run's on the median seed, within 0.08 m
+    after it the error is within 0.03 m of the clean run's on the median seed, within 0.05 m
     on every seed (measured gaps 0.016 / 0.024 / 0.017 m; 0.104 / 0.125 / 0.050 m before
     the orientation kernel paused for a silent robot, docs/faults.md), and no divergence is
     flagged, clean or silent."""
@@ -330,7 +330,7 @@ def test_a_10_s_silence_on_the_shortbag_costs_little_after_it(shared_data: Path)
         quiet, loc_quiet = _shortbag_error(shared_data, seed, silence, (5.0, 15.0))
         assert loc_clean.stats["divergence_detected"] == loc_quiet.stats["divergence_detected"] == 0
         gaps.append(quiet - clean)
-    assert float(np.median(gaps)) <= 0.03 and max(gaps) <= 0.08, gaps
+    assert float(np.median(gaps)) <= 0.03 and max(gaps) <= 0.05, gaps
 
 
 def test_the_orientation_kernel_waits_while_a_robot_is_out_of_ranging() -> None:
