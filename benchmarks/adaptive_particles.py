@@ -25,6 +25,7 @@ import numpy as np
 from relloc.cli.demo import DemoOptions, scenario_setup
 from relloc.config import TeamConfig
 from relloc.events import GroundTruthEvent
+from relloc.malloc import tune_malloc
 from relloc.methods import filter_localizer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -80,7 +81,14 @@ def main() -> None:
         "--set", action="append", default=[], metavar="KEY=VALUE",
         help="a [filter.adaptive] key for the adaptive runs, e.g. mc_tolerance=0.009 (repeatable)",
     )
+    ap.add_argument(
+        "--malloc", choices=("tuned", "default"), default="tuned",
+        help="tuned: glibc keeps freed memory mapped, as the relloc command does (relloc.malloc); "
+        "default: glibc's own settings",
+    )
     args = ap.parse_args()
+    if args.malloc == "tuned":
+        tune_malloc()
     seeds = [int(s) for s in args.seeds.split(",")]
     results = {}
     changes = {k: float(v) if "." in v else int(v) for k, v in (item.split("=", 1) for item in args.set)}
