@@ -56,6 +56,7 @@ to what they publish. The estimate itself does not change.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -246,6 +247,14 @@ every hypothesis are exact fits to it), the shape and distances are means whose 
 error over 1024 hypotheses is about 3 % of the posterior's spread."""
 
 
+@functools.cache
+def _pairs(n: int) -> tuple[IntArray, IntArray]:
+    """``np.triu_indices(n, 1)``, made once per team size (read-only)."""
+    i, j = np.triu_indices(n, 1)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j
+
+
 def _normalised(w: FloatArray) -> FloatArray:
     total = float(w.sum())
     return w / total if total > 0 else np.full(w.shape, 1.0 / w.size)
@@ -311,8 +320,9 @@ def summarize(
     template = np.einsum("m,mkd->kd", ws, gauge(rel if step == 1 else rel[sub]))
     c, s, hand = procrustes_fit(x, y, template)
     labels = _modes(np.arctan2(s, c), hand, w)
-    members = labels == 0 if (labels >= 0).any() else np.ones(m, dtype=bool)
-    mode_w = np.bincount(labels[labels >= 0], weights=w[labels >= 0])
+    valid = labels >= 0
+    members = labels == 0 if valid.any() else np.ones(m, dtype=bool)
+    mode_w = np.bincount(labels[valid], weights=w[valid])
     n_modes = max(1, int(np.sum(mode_w >= MODE_MIN_WEIGHT)))
     mode_weight = float(np.sum(w, where=members))
     everything = bool(members.all())
@@ -349,7 +359,7 @@ def summarize(
     shape_cov = np.einsum("ab,kbc,dc->kad", rot, shape_cov, rot) + floor * np.eye(2)[None]
 
     # Pairwise distances, the reference (index 0) included.
-    i, j = np.triu_indices(k + 1, 1)
+    i, j = _pairs(k + 1)
     px = np.zeros((k + 1, xs.shape[1]))
     py = np.zeros((k + 1, xs.shape[1]))
     px[1:], py[1:] = xs, ys
