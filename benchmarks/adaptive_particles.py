@@ -25,6 +25,7 @@ import numpy as np
 from relloc.cli.demo import DemoOptions, scenario_setup
 from relloc.config import TeamConfig
 from relloc.events import GroundTruthEvent
+from relloc.malloc import tune_malloc
 from relloc.methods import filter_localizer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -46,8 +47,11 @@ def _cases() -> list[tuple[str, TeamConfig, list[Any], float]]:
     return out
 
 
-def _timed_run(config: TeamConfig, events: list[Any], seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(time of each step from the first event (s), its duration (s), particle count)."""
+def _timed_run(
+    config: TeamConfig, events: list[Any], seed: int, clock: Any = time.perf_counter
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(time of each step from the first event (s), its duration (s) on ``clock``, particle
+    count)."""
     loc = filter_localizer(config, seed=seed)
     t_steps: list[float] = []
     durations: list[float] = []
@@ -56,9 +60,9 @@ def _timed_run(config: TeamConfig, events: list[Any], seed: int) -> tuple[np.nda
     t0 = events[0].t
 
     def timed(t: float, batch: list[Any]) -> Any:
-        start = time.perf_counter()
+        start = clock()
         out = step(t, batch)
-        durations.append(time.perf_counter() - start)
+        durations.append(clock() - start)
         t_steps.append(t - t0)
         counts.append(getattr(loc.filter, "n", 0))
         return out
@@ -80,7 +84,20 @@ def main() -> None:
         "--set", action="append", default=[], metavar="KEY=VALUE",
         help="a [filter.adaptive] key for the adaptive runs, e.g. mc_tolerance=0.009 (repeatable)",
     )
+    ap.add_argument(
+        "--malloc", choices=("tuned", "default"), default="tuned",
+        help="tuned: glibc keeps freed memory mapped, as the relloc command does (relloc.malloc); "
+        "default: glibc's own settings",
+    )
+    ap.add_argument(
+        "--clock", choices=("wall", "cpu"), default="wall",
+        help="wall: elapsed time per step; cpu: the thread's CPU time per step (what other jobs "
+        "on the machine disturb least)",
+    )
     args = ap.parse_args()
+    clock = time.perf_counter if args.clock == "wall" else time.thread_time
+    if args.malloc == "tuned":
+        tune_malloc()
     seeds = [int(s) for s in args.seeds.split(",")]
     results = {}
     changes = {k: float(v) if "." in v else int(v) for k, v in (item.split("=", 1) for item in args.set)}
@@ -91,7 +108,7 @@ def main() -> None:
         for _ in range(args.repeats):
             for seed in seeds:
                 for label, cfg in (("fixed", fixed_config), ("adaptive", config)):
-                    t, d, n = _timed_run(cfg, events, seed)
+                    t, d, n = _timed_run(cfg, events, seed, clock)
                     end = t[-1]
                     r = rows[label]
                     r.setdefault("after_warmup_ms", []).append(1e3 * float(np.median(d[t >= warmup])))

@@ -14,7 +14,7 @@ import pytest
 SRC = Path(__file__).resolve().parents[1] / "src" / "relloc"
 
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("events", "config", "estimate", "odometry"),
+    ("events", "config", "estimate", "odometry", "malloc"),
     ("filter",),
     ("localizers", "stages", "ranging", "ros", "simulator", "faults"),
     ("sources",),

@@ -56,6 +56,7 @@ to what they publish. The estimate itself does not change.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -181,7 +182,10 @@ def gauge(rel: FloatArray) -> FloatArray:
 def _rotate(rel: FloatArray, theta: FloatArray) -> FloatArray:
     c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
     x, y = rel[:, :, 0], rel[:, :, 1]
-    return np.stack([c * x - s * y, s * x + c * y], axis=-1)
+    out = np.empty(rel.shape)
+    out[:, :, 0] = c * x - s * y
+    out[:, :, 1] = s * x + c * y
+    return out
 
 
 def procrustes_fit(x: FloatArray, y: FloatArray, template: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
@@ -209,15 +213,17 @@ def _modes(angle: FloatArray, hand: FloatArray, w: FloatArray) -> IntArray:
     hist = np.bincount(cell, weights=w, minlength=2 * MODE_BINS)
     label_of_cell = np.full(2 * MODE_BINS, -1, dtype=np.intp)
     runs: list[list[int]] = []
+    heavy = (hist > MODE_MIN_BIN_WEIGHT).tolist()
     for h in range(2):
-        occ = hist[h * MODE_BINS : (h + 1) * MODE_BINS] > MODE_MIN_BIN_WEIGHT
-        occ = occ | np.roll(occ, 1) | np.roll(occ, -1)  # a mode's tails: its neighbour bins
-        if not occ.any():
+        held = heavy[h * MODE_BINS : (h + 1) * MODE_BINS]
+        # a mode's tails: its neighbour bins (on the circle)
+        occ = [held[i - 1] or held[i] or held[(i + 1) % MODE_BINS] for i in range(MODE_BINS)]
+        if not any(occ):
             continue
-        if occ.all():
+        if all(occ):
             runs.append([h * MODE_BINS + i for i in range(MODE_BINS)])
             continue
-        start = int(np.flatnonzero(~occ)[0])  # walk the circle from an empty bin
+        start = occ.index(False)  # walk the circle from an empty bin
         current: list[int] = []
         for j in range(1, MODE_BINS + 1):
             i = (start + j) % MODE_BINS
@@ -239,6 +245,14 @@ SUMMARY_SAMPLE = 1024
 and the distances are computed: the template only needs to be roughly right (the angles of
 every hypothesis are exact fits to it), the shape and distances are means whose Monte Carlo
 error over 1024 hypotheses is about 3 % of the posterior's spread."""
+
+
+@functools.cache
+def _pairs(n: int) -> tuple[IntArray, IntArray]:
+    """``np.triu_indices(n, 1)``, made once per team size (read-only)."""
+    i, j = np.triu_indices(n, 1)
+    i.flags.writeable = j.flags.writeable = False
+    return i, j
 
 
 def _normalised(w: FloatArray) -> FloatArray:
@@ -298,14 +312,17 @@ def summarize(
     x, y = np.ascontiguousarray(rel[:, :, 0].T), np.ascontiguousarray(rel[:, :, 1].T)  # (K, M)
     weighted_mean, all_cov = _moments(x, y, w, covs)
 
-    # A first template: the weighted mean gauge form of an even stride through the cloud.
-    sub = np.arange(0, m, max(1, m // SUMMARY_SAMPLE))
-    ws = _normalised(w[sub])
-    template = np.einsum("m,mkd->kd", ws, gauge(rel[sub]))
+    # A first template: the weighted mean gauge form of an even stride through the cloud (the
+    # whole cloud below 2 SUMMARY_SAMPLE hypotheses: no copy of it then).
+    step = max(1, m // SUMMARY_SAMPLE)
+    sub = np.arange(0, m, step)
+    ws = _normalised(w if step == 1 else w[sub])
+    template = np.einsum("m,mkd->kd", ws, gauge(rel if step == 1 else rel[sub]))
     c, s, hand = procrustes_fit(x, y, template)
     labels = _modes(np.arctan2(s, c), hand, w)
-    members = labels == 0 if (labels >= 0).any() else np.ones(m, dtype=bool)
-    mode_w = np.bincount(labels[labels >= 0], weights=w[labels >= 0])
+    valid = labels >= 0
+    members = labels == 0 if valid.any() else np.ones(m, dtype=bool)
+    mode_w = np.bincount(labels[valid], weights=w[valid])
     n_modes = max(1, int(np.sum(mode_w >= MODE_MIN_WEIGHT)))
     mode_weight = float(np.sum(w, where=members))
     everything = bool(members.all())
@@ -327,7 +344,10 @@ def summarize(
 
     # Shape and distances from the even stride through the cloud (a deterministic sample: its
     # Monte Carlo error is a few percent of the posterior's spread), which keeps them cheap.
-    ax, ay = _onto(x[:, sub], y[:, sub], c[sub], s[sub], hand[sub])
+    # x[:, sub] is laid out hypothesis-major (a gather along the last axis): the sums over it
+    # below depend on that layout to the last bit, so it stays a gather even for step 1.
+    xs, ys = x[:, sub], y[:, sub]
+    ax, ay = _onto(xs, ys, *((c, s, hand) if step == 1 else (c[sub], s[sub], hand[sub])))
     shape_mean, shape_cov = _moments(ax, ay, ws, None)
     if covs is not None:  # a member's own covariance turns with it; its trace is what survives
         shape_cov += 0.5 * np.einsum("m,mk->k", ws, np.trace(covs[sub], axis1=2, axis2=3))[:, None, None] * np.eye(2)
@@ -339,9 +359,10 @@ def summarize(
     shape_cov = np.einsum("ab,kbc,dc->kad", rot, shape_cov, rot) + floor * np.eye(2)[None]
 
     # Pairwise distances, the reference (index 0) included.
-    i, j = np.triu_indices(k + 1, 1)
-    px = np.concatenate([np.zeros((1, sub.size)), x[:, sub]])
-    py = np.concatenate([np.zeros((1, sub.size)), y[:, sub]])
+    i, j = _pairs(k + 1)
+    px = np.zeros((k + 1, xs.shape[1]))
+    py = np.zeros((k + 1, xs.shape[1]))
+    px[1:], py[1:] = xs, ys
     dx, dy = px[i] - px[j], py[i] - py[j]
     dd = dx * dx + dy * dy
     dm = _wsum(np.sqrt(dd), ws)
