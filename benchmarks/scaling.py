@@ -56,13 +56,14 @@ import math
 import platform
 import statistics
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
 
+from relloc.filter.base import WeightedFilter
 from relloc.filter.graph_filter import RangeGraphFilter
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.pf import ParticleFilter
@@ -120,50 +121,10 @@ def area_of(team: Team) -> tuple[float, float, float, float]:
     return (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
 
 
-def time_update(team: Team, m: int, reps: int, seed: int) -> float:
-    """Median seconds of one predict + update + estimate + resample at ``m`` particles."""
-    rng = np.random.default_rng(seed)
+def _median_cycle(team: Team, f: WeightedFilter, resample: Callable[[], object], reps: int, rng: np.random.Generator) -> float:
+    """Median seconds of one predict + update + estimate + ``resample`` of ``f`` on the team
+    driving its circles, every pair ranging (the first ``WARMUP`` cycles not counted)."""
     n = len(team.layout.robots)
-    pf = ParticleFilter(
-        team.layout, m, area_of(team), rng=np.random.default_rng(seed + 1),
-        motion=OdometryMotion(process_noise=PROCESS_NOISE), resample="every_step", reinject_fraction=0.01,
-    )
-    start = team.positions(0)
-    rel = (start[1:] - start[0]).reshape(-1)
-    cloud = pf.particles.copy()
-    cloud[:, : rel.size] = rel + rng.normal(0.0, CLOUD_SPREAD, (m, rel.size))
-    pf.particles = cloud
-    k_pairs = len(team.pair_a)
-    bias, sigma_uwb, sigma = np.zeros(k_pairs), np.full(k_pairs, SIGMA_UWB), np.full(n, SIGMA_ODOM)
-    times = []
-    for k in range(1, WARMUP + reps + 1):
-        before, now = team.positions(k - 1), team.positions(k)
-        disp = now - before + rng.normal(0.0, SIGMA_ODOM, (n, 2))
-        ranges = np.linalg.norm(now[team.pair_a] - now[team.pair_b], axis=1) + rng.normal(0.0, SIGMA_UWB, k_pairs)
-        batch = RangeBatch(team.pair_a, team.pair_b, ranges, bias, sigma_uwb)
-        gc.collect()
-        t0 = time.perf_counter()
-        pf.predict(disp, sigma, DT)
-        pf.update([batch])
-        pf.estimate()
-        pf.resample()
-        if k > WARMUP:
-            times.append(time.perf_counter() - t0)
-    return statistics.median(times)
-
-
-def time_graph_update(team: Team, hypotheses: int, reps: int, seed: int) -> float:
-    """Median seconds of one predict + update + estimate + prune of the range-graph filter with
-    ``hypotheses`` Gaussians (none is pruned: all start equally near the truth)."""
-    rng = np.random.default_rng(seed)
-    n = len(team.layout.robots)
-    f = RangeGraphFilter(team.layout, area_of(team), rng=np.random.default_rng(seed + 1), motion=OdometryMotion(process_noise=PROCESS_NOISE))
-    start = team.positions(0)
-    rel = (start[1:] - start[0]).reshape(-1)
-    d = rel.size
-    f.initialize(rel + rng.normal(0.0, CLOUD_SPREAD, (hypotheses, d)), np.repeat(np.eye(d)[None] * CLOUD_SPREAD**2, hypotheses, axis=0))
-    f.merge_distance = 0.0  # keep every hypothesis: the cost of H of them
-    f.prune_weight = 0.0
     k_pairs = len(team.pair_a)
     bias, sigma_uwb, sigma = np.zeros(k_pairs), np.full(k_pairs, SIGMA_UWB), np.full(n, SIGMA_ODOM)
     times = []
@@ -177,10 +138,39 @@ def time_graph_update(team: Team, hypotheses: int, reps: int, seed: int) -> floa
         f.predict(disp, sigma, DT)
         f.update([batch])
         f.estimate()
-        f.maybe_resample()
+        resample()
         if k > WARMUP:
             times.append(time.perf_counter() - t0)
     return statistics.median(times)
+
+
+def time_update(team: Team, m: int, reps: int, seed: int) -> float:
+    """Median seconds of one predict + update + estimate + resample at ``m`` particles."""
+    rng = np.random.default_rng(seed)
+    pf = ParticleFilter(
+        team.layout, m, area_of(team), rng=np.random.default_rng(seed + 1),
+        motion=OdometryMotion(process_noise=PROCESS_NOISE), resample="every_step", reinject_fraction=0.01,
+    )
+    start = team.positions(0)
+    rel = (start[1:] - start[0]).reshape(-1)
+    cloud = pf.particles.copy()
+    cloud[:, : rel.size] = rel + rng.normal(0.0, CLOUD_SPREAD, (m, rel.size))
+    pf.particles = cloud
+    return _median_cycle(team, pf, pf.resample, reps, rng)
+
+
+def time_graph_update(team: Team, hypotheses: int, reps: int, seed: int) -> float:
+    """Median seconds of one predict + update + estimate + prune of the range-graph filter with
+    ``hypotheses`` Gaussians (none is pruned: all start equally near the truth)."""
+    rng = np.random.default_rng(seed)
+    f = RangeGraphFilter(team.layout, area_of(team), rng=np.random.default_rng(seed + 1), motion=OdometryMotion(process_noise=PROCESS_NOISE))
+    start = team.positions(0)
+    rel = (start[1:] - start[0]).reshape(-1)
+    d = rel.size
+    f.initialize(rel + rng.normal(0.0, CLOUD_SPREAD, (hypotheses, d)), np.repeat(np.eye(d)[None] * CLOUD_SPREAD**2, hypotheses, axis=0))
+    f.merge_distance = 0.0  # keep every hypothesis: the cost of H of them
+    f.prune_weight = 0.0
+    return _median_cycle(team, f, f.maybe_resample, reps, rng)
 
 
 def time_pass(m: int, d: int, reps: int) -> float:

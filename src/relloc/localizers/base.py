@@ -109,8 +109,6 @@ _RECOVERY_SIGMA = 1.5
 
 _UNRANGED_AFTER = 2.0
 """Seconds without a range after which a robot pauses the orientation kernel."""
-"""Diffusion (m^2/s) of a robot whose odometry has gone quiet: a ground robot moving about
-0.3 m/s unseen, its heading decorrelating within a second (1 m after 10 s of silence)."""
 
 _YAW_LOG = 200_000
 """Odometry yaws kept per robot for evaluating estimated headings: 5.5 h at 10 Hz."""
