@@ -12,7 +12,7 @@ import pytest
 
 from relloc.config import FilterConfig
 from relloc.filter.pf import ParticleFilter
-from relloc.filter.ranges import RangeBatch, _range_mixture
+from relloc.filter.ranges import RangeBatch, range_mixture
 from relloc.filter.state import StateLayout
 
 
@@ -29,10 +29,10 @@ def _positions(xs: list[float]) -> np.ndarray:
 def test_nlos_mixture_is_a_density_with_the_stated_parts() -> None:
     r = np.linspace(-4.0, 6.0, 200_001)
     dr = r[1] - r[0]
-    los, total = _range_mixture(r, np.array(0.1), 0.0, 15.0, 0.1, 0.3)
+    los, total = range_mixture(r, np.array(0.1), 0.0, 15.0, 0.1, 0.3)
     assert total.sum() * dr == pytest.approx(1.0, abs=1e-6)
     assert los.sum() * dr == pytest.approx(0.9, abs=1e-6)
-    _, with_floor = _range_mixture(r, np.array(0.1), 0.02, 15.0, 0.1, 0.3)
+    _, with_floor = range_mixture(r, np.array(0.1), 0.02, 15.0, 0.1, 0.3)
     assert np.min(with_floor) >= 0.02 / 15.0
 
 

@@ -36,7 +36,7 @@ The cycle (the interface of :mod:`relloc.filter.base`)
 
     Robustness: each range's weight ``w_k = pi_k / sigma_k^2`` carries the probability
     ``pi_k`` that it is line-of-sight and no gross error, under the range model's own mixture
-    (:func:`relloc.filter.ranges._range_mixture`) at the range's predictive variance, floored
+    (:func:`relloc.filter.ranges.range_mixture`) at the range's predictive variance, floored
     at ``MIN_INLIER``: an NLOS spike is fused as a range of inflated noise and barely moves the
     state (as the Gaussian-sum filter of :mod:`relloc.filter.gaussian_sum` scales its gain).
 
@@ -81,7 +81,7 @@ from numpy.typing import NDArray
 from relloc.filter.base import FilterEstimate, WeightedFilter, renormalized
 from relloc.filter.measurement import MeasurementModel
 from relloc.filter.motion import OdometryMotion
-from relloc.filter.ranges import RangeBatch, _range_mixture
+from relloc.filter.ranges import RangeBatch, range_mixture
 from relloc.filter.resampling import log_normalize
 from relloc.filter.state import StateLayout
 from relloc.filter.summary import ORIENTATION_MAX_STD, Evidence, summarize
@@ -211,7 +211,7 @@ class RangeGraphFilter(WeightedFilter):
         hph = np.einsum("mki,mkij,mkj->mk", e, blk, e)
         var = model.sigma[None, :] ** 2
         s = var + np.maximum(hph, 0.0)
-        los, total = _range_mixture(
+        los, total = range_mixture(
             r, np.sqrt(s), model.outlier_fraction, model.max_range, model.nlos_fraction, model.nlos_sigma
         )
         inlier = np.maximum(los / total, MIN_INLIER)

@@ -85,7 +85,7 @@ def _robust_gaussian_loglik(residual: FloatArray, sigma: FloatArray, eps: float,
     return z
 
 
-def _range_mixture(
+def range_mixture(
     residual: FloatArray, sigma: FloatArray, eps: float, support: float, nlos_fraction: float, nlos_sigma: float
 ) -> tuple[FloatArray, FloatArray]:
     """Line-of-sight density and total density of the range mixture (module docstring),
@@ -292,7 +292,7 @@ class RangeBatch:
     def log_likelihood(self, positions: FloatArray, particles: FloatArray | None = None) -> FloatArray:
         residual, sigma = self._residual_and_sigma(positions, particles)
         if self.nlos_fraction > 0.0:
-            _, total = _range_mixture(
+            _, total = range_mixture(
                 residual, sigma, self.outlier_fraction, self.max_range, self.nlos_fraction, self.nlos_sigma
             )
             return np.log(total).sum(axis=0)
@@ -317,7 +317,7 @@ class RangeBatch:
         r, s = residual[online], sigma[online]
         cols = self.bias_columns[online]
         var = particles[:, cols + 1].T  # (K', M)
-        los, total = _range_mixture(r, s, self.outlier_fraction, self.max_range, self.nlos_fraction, self.nlos_sigma)
+        los, total = range_mixture(r, s, self.outlier_fraction, self.max_range, self.nlos_fraction, self.nlos_sigma)
         inlier = los / total
         gain = inlier * var / (s * s)
         particles[:, cols] += (gain * r).T
