@@ -245,10 +245,8 @@ class ParticleFilter(WeightedFilter):
         s = self.last_summary
         if s is None:
             return math.inf
-        c = s.cov
-        half_trace = 0.5 * (c[:, 0, 0] + c[:, 1, 1])
-        top = half_trace + np.sqrt((0.5 * (c[:, 0, 0] - c[:, 1, 1])) ** 2 + c[:, 0, 1] ** 2)
-        return math.sqrt(max(float(top.max(initial=0.0)) - self.covariance_floor, 0.0))
+        top = float(np.linalg.eigvalsh(s.cov).max(initial=0.0))
+        return math.sqrt(max(top - self.covariance_floor, 0.0))
 
     def _recovery_size(self) -> int:
         return self.n if self.count_rule is None else self.count_rule.max_particles
