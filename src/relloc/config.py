@@ -228,11 +228,17 @@ class OdometryConfig(_Checked):
     odometry track instead of moving it (counted ``odometry_reanchored``)."""
     max_yaw_rate: float = 4.0
     """Fastest a robot's odometry may turn it (rad/s; 0.3 rad of slack), as ``max_speed``."""
+    unseen_speed: float = 0.25
+    """How fast (m/s, one standard deviation per axis) a robot nothing is heard of may be
+    moving: once its odometry is past ``max_odom_extrapolation`` and it has had no range for
+    2 s, its published covariance grows by ``(unseen_speed * seconds unseen)^2`` (everyone's,
+    when it is the reference), and the estimate lists it in ``unseen``. 0 turns it off."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         _require(self, "filter.odometry", non_negative=(
             "odom_noise_per_m", "odom_noise_per_rad", "process_noise", "rotation_noise", "max_odom_extrapolation",
+            "unseen_speed",
         ), positive=("max_speed", "max_yaw_rate"))
 
 

@@ -70,6 +70,12 @@ class Estimate:
     particles: int | None = None
     """Particles (hypotheses) the filter held for this estimate: the adaptive count of the
     sampled filter (:mod:`relloc.filter.adaptive`); ``None`` for methods without."""
+    unseen: dict[str, float] = field(default_factory=dict)
+    """Robots nothing has been heard of for a while (odometry past its extrapolation, no range
+    for 2 s), with the seconds since: where they are now is unknown. Their positions are where
+    they were last seen; their covariances (all of them, when the reference is unseen) have
+    grown at ``[filter.odometry] unseen_speed``, so that they still cover a robot that drove
+    on meanwhile."""
 
     @property
     def status(self) -> str:
@@ -77,6 +83,9 @@ class Estimate:
         the posterior has competing modes, that the localizer is recovering, or ``ok``."""
         if self.recovering:
             return "recovering: the measurements stopped fitting the estimate; hypotheses are being re-injected"
+        if self.unseen:
+            who = ", ".join(f"{r} for {s:.1f} s" for r, s in sorted(self.unseen.items()))
+            return f"unseen: {who} (no odometry, no range): positions are where last seen, covariances widened"
         if not self.orientation_observable:
             return RESOLVE_HINT
         if self.mode_weight < DOMINANT_MODE_WEIGHT:

@@ -88,6 +88,8 @@ class MethodReport:
     observable to the end (nan: never; 0 for methods that do not report it)."""
     particles: dict[str, Any] = field(default_factory=dict)
     """The particle count over time (methods that report one, :func:`particle_counts`)."""
+    unseen: dict[str, list[list[float]]] = field(default_factory=dict)
+    """Per robot, when the estimates listed it as unseen (:func:`unseen_intervals`)."""
 
     @property
     def mean_ape_median(self) -> float:
@@ -169,6 +171,8 @@ class MethodReport:
             out["frame_rotation_deg"] = _num(self.frame_rotation_deg)
         if self.particles:
             out["particles"] = self.particles
+        if self.unseen:
+            out["unseen"] = self.unseen
         return out
 
 
@@ -268,10 +272,30 @@ def evaluate(
                 n_estimates=len(p.estimates),
                 body_frame=body if mode == "none" else {},
                 particles=particle_counts(p.estimates, t0, warmup),
+                unseen=unseen_intervals(p.estimates, t0),
                 **calibration,
                 **(honest if mode == "none" else {}),
             )
     return ScenarioReport(name, warmup, duration, methods, t0, truth.reference, truth_name)
+
+
+def unseen_intervals(estimates: list[Any], t0: float) -> dict[str, list[list[float]]]:
+    """Per robot, the ``[first, last]`` seconds from the run's start of each stretch of
+    consecutive estimates that listed it in ``Estimate.unseen`` (nothing heard of it)."""
+    out: dict[str, list[list[float]]] = {}
+    open_: dict[str, list[float]] = {}
+    for e in estimates:
+        flagged = getattr(e, "unseen", None) or {}
+        t = round(e.t - t0, 3)
+        for robot in flagged:
+            if robot in open_:
+                open_[robot][1] = t
+            else:
+                open_[robot] = [t, t]
+                out.setdefault(robot, []).append(open_[robot])
+        for robot in [r for r in open_ if r not in flagged]:
+            del open_[robot]
+    return out
 
 
 def particle_counts(estimates: list[Any], t0: float, warmup: float) -> dict[str, Any]:

@@ -228,6 +228,7 @@ class LiveServer:
                 "mode_weight": None if last_est is None else round(last_est.mode_weight, 3),
                 "n_modes": None if last_est is None else last_est.n_modes,
                 "particles": None if last_est is None else last_est.particles,
+                "unseen": {} if last_est is None else dict(last_est.unseen),
                 "estimate_status": None if last_est is None else last_est.status,
                 "rejected": dict(p.localizer.rejected),
                 "faults": p.localizer.fault_counters(),

@@ -58,6 +58,8 @@ from relloc.events import (
     GroundTruthEvent,
     OdometryEvent,
     RangeEvent,
+    RelativeObservation,
+    SightingEvent,
 )
 from relloc.filter.base import FilterEstimate, WeightedFilter
 from relloc.filter.measurement import MeasurementModel, ModelContext, finite
@@ -422,13 +424,37 @@ class Localizer:
                 yaws = self.odometry_yaws.setdefault(robot, deque(maxlen=_YAW_LOG))
                 yaws.append((t, self.tracks[robot].pose_at(t)[2]))
         honest = {} if fe.summary is None else estimate_fields(fe.summary, self.layout.reference, self.layout.others)
+        unseen = self._unseen(t)
+        if unseen:
+            covs = self._widen_unseen(covs, unseen)
         est = Estimate(
             t, self.method, self.layout.reference, positions, covs, fe.ess, fe.headings, fe.biases, fe.scales,
             **honest,
-            recovering=self.recovering, particles=fe.particles,
+            recovering=self.recovering, particles=fe.particles, unseen=unseen,
         )
         self.last_estimate = est
         return est
+
+
+    def _unseen(self, t: float) -> dict[str, float]:
+        """Robots nothing is heard of at ``t``, with the seconds their motion has been unknown
+        (see :attr:`Estimate.unseen`); none for a localizer that does not track ranges."""
+        return {}
+
+    def _widen_unseen(
+        self, covs: dict[str, tuple[tuple[float, float], tuple[float, float]]], unseen: dict[str, float]
+    ) -> dict[str, tuple[tuple[float, float], tuple[float, float]]]:
+        """The covariances grown for what the unseen robots may have driven meanwhile: a robot
+        moving at ``unseen_speed`` in an unknown direction, ``(speed * seconds)^2`` per axis;
+        a relative position is unknown by its own robot's motion and by the reference's."""
+        speed = self.config.filter.odometry.unseen_speed
+        ref = unseen.get(self.layout.reference, 0.0)
+        out = dict(covs)
+        for robot, ((xx, xy), (yx, yy)) in covs.items():
+            add = (speed * unseen.get(robot, 0.0)) ** 2 + (speed * ref) ** 2
+            if add:
+                out[robot] = ((xx + add, xy), (yx, yy + add))
+        return out
 
 
 class FilterLocalizer(Localizer):
@@ -459,6 +485,8 @@ class FilterLocalizer(Localizer):
         """Formations estimated before this time are not trusted (a restart's hold)."""
         self._last_ranged: dict[str, float] = {}
         """Each robot's newest range (for the orientation kernel)."""
+        self._last_measured: dict[str, float] = {}
+        """Each robot's newest measurement of any kind (for :meth:`_unseen`)."""
         self._split_at = -math.inf
         """When some robot was last out of ranging."""
         self._others_index = np.array([self.layout.index(r) for r in self.layout.others], dtype=np.intp)
@@ -473,6 +501,7 @@ class FilterLocalizer(Localizer):
         self._formations = deque((tf + dt, f) for tf, f in self._formations)
         self._trusted_from += dt
         self._last_ranged = {r: tr + dt for r, tr in self._last_ranged.items()}
+        self._last_measured = {r: tr + dt for r, tr in self._last_measured.items()}
         self._split_at += dt
         self.monitor.shift_time(dt)
         self._init_batch = [dataclasses.replace(m, t=m.t + dt) for m in self._init_batch]
@@ -484,6 +513,7 @@ class FilterLocalizer(Localizer):
             if t - first < self.config.filter.init_window:
                 return None
             start, self._init_batch = self._init_batch, []
+            self._note_measured(start, ranged=False)
             return self._start(t, start)
         disp, sigma, dt = self._motion_to(t)
         self.filter.predict(disp, sigma, dt)
@@ -496,6 +526,7 @@ class FilterLocalizer(Localizer):
         fe = self.filter.estimate()
         lost = self.monitor.observe(t, batch, fe, self)
         self._remember(t, batch, fe)
+        self._note_measured(batch)
         if lost:
             self._recover(t, fe, lost)
             fe = self.filter.estimate()
@@ -542,6 +573,42 @@ class FilterLocalizer(Localizer):
         self.monitor.restart(t)
         self._trusted_from = t + _TRUST_HOLD
 
+    def _note_measured(self, batch: list[Measurement], *, ranged: bool = True) -> None:
+        """Each robot's newest measurement (ranges, sightings, relative observations: for
+        :meth:`_unseen`) and, with ``ranged``, its newest range (for the orientation kernel,
+        which counts from the start's end)."""
+        for m in batch:
+            if isinstance(m, RangeEvent):
+                a, b = m.robot_a, m.robot_b
+                if ranged:
+                    self._last_ranged[a] = self._last_ranged[b] = m.t
+            elif isinstance(m, (SightingEvent, RelativeObservation)):
+                a, b = m.observer, m.target
+            else:
+                continue
+            self._last_measured[a] = max(self._last_measured.get(a, -math.inf), m.t)
+            self._last_measured[b] = max(self._last_measured.get(b, -math.inf), m.t)
+
+    def _unseen(self, t: float) -> dict[str, float]:
+        """A robot is unseen once its odometry is older than the extrapolation horizon and it
+        has had no measurement for ``_UNRANGED_AFTER``: from the later of the two, nothing
+        says where it went (the filter holds it where it was last seen: spreading its
+        particles would thin out the whole formation's). Robots never heard at all are left
+        to the filter's own prior."""
+        oc = self.config.filter.odometry
+        if not oc.unseen_speed:
+            return {}
+        out = {}
+        for robot in self.layout.robots:
+            track = self.tracks[robot]
+            measured = self._last_measured.get(robot, -math.inf)
+            if track.empty and measured == -math.inf:
+                continue
+            odom = track.last_time + oc.max_odom_extrapolation
+            if t - measured > _UNRANGED_AFTER and t > odom:
+                out[robot] = round(t - max(odom, measured), 3)
+        return out
+
     def _pause_kernel(self, t: float, batch: list[Measurement]) -> None:
         """Pause a particle filter's orientation kernel while some robot has had no range for
         ``_UNRANGED_AFTER`` (silent, or out of range). The kernel treats the orientation as a
@@ -551,9 +618,6 @@ class FilterLocalizer(Localizer):
         alone (measured worse, docs/faults.md) is a move of the posterior. It waits as long
         again after every robot is ranged once more: the orientations are then still the
         split's mixture."""
-        for m in batch:
-            if isinstance(m, RangeEvent):
-                self._last_ranged[m.robot_a] = self._last_ranged[m.robot_b] = m.t
         if any(t - self._last_ranged.get(r, t) > _UNRANGED_AFTER for r in self.layout.robots):
             self._split_at = t
         if isinstance(self.filter, ParticleFilter):

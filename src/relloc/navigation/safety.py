@@ -7,6 +7,8 @@ velocity) as soon as one of them fails:
 =====================  =====================================================================
 ``no_estimate``        no estimate of this robot has arrived yet
 ``stale_estimate``     the latest estimate is older than ``max_age`` (engine or link down)
+``unseen``             nothing has been heard of this robot or of the reference for a while
+                       (``Estimate.unseen``): its position is where it was last seen
 ``uncertain``          the estimate's position std exceeds ``max_std`` (the filter has not
                        converged yet, or has diverged: e.g. its particles split between a
                        formation and its mirror image)
@@ -109,6 +111,9 @@ class SafetyGate:
         age = now - estimate.t
         if age > cfg.max_age:
             return "stale_estimate", f"estimate is {age:.2f} s old (max {cfg.max_age:g} s)"
+        unseen = {r: s for r, s in estimate.unseen.items() if r in (robot, estimate.reference)}
+        if unseen:
+            return "unseen", ", ".join(f"{r} unheard for {s:.1f} s" for r, s in sorted(unseen.items()))
         if not estimate.orientation_observable:
             return "unobservable", estimate.status
         if estimate.mode_weight < cfg.min_mode_weight:
