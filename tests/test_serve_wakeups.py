@@ -155,7 +155,11 @@ def test_source_wakes_only_for_urgent_messages_and_keeps_arrival_order() -> None
         src.on_sample(_Sample("b/odom", odom_payload("b", t)))
     src.on_sample(_Sample("uwb/tof/n_1/n_2/distance", range_payload(T0 + 0.95)))
     assert src._wake.empty() and src.queue_depth == 4  # nothing urgent: nobody woken
-    src.on_sample(_Sample("c/odom", odom_payload("c", 0.0)))  # zero stamps: restamped, at once
+    # c's odometry is restamped from its receive time: judged by the header clock's offset
+    # when the rule was set (only a's odometry seen then: its stamp T0 at its receive time).
+    src.on_sample(_Sample("c/odom", odom_payload("c", 0.0)))
+    assert src._wake.empty() and src.queue_depth == 5
+    src.rearm(WakeRule(T0 + 1.0, T0 + 0.01, T0 - 5.0, T0 + 5.0))  # c's restamp would fuse now
     assert not src._wake.empty()
     released = src.poll(0.0)
     # Handled together, released in arrival order (no reorder window): b's second odometry is

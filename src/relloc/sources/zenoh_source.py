@@ -24,10 +24,19 @@ robot, so it is subscribed below the scope of each of its two robots.
 Threads
 -------
 Zenoh calls :meth:`ZenohSource.on_sample` on its own threads. That callback only copies the
-payload and its attachment, notes the receive wall time and puts them on a bounded queue; decoding, reordering and everything after happen
-on the one engine thread that calls :meth:`ZenohSource.poll`. The filter state therefore never
-sees two threads, and a slow engine cannot block Zenoh's network threads (a full queue drops
-the sample and counts it as ``queue_full``).
+payload and its attachment, notes the receive wall time and appends them to a bounded queue;
+decoding, reordering and everything after happen on the one engine thread that calls
+:meth:`ZenohSource.poll`. The filter state therefore never sees two threads, and a slow engine
+cannot block Zenoh's network threads (a full queue drops the sample and counts it as
+``queue_full``).
+
+The callback wakes the engine thread only for a message that could make an estimate: the
+consumer's :class:`~relloc.events.WakeRule` (:meth:`ZenohSource.rearm`, after each wake) judges
+the message's kind and header stamp, read from the CDR bytes without decoding (a restamped
+message: its receive time on the header clock). Any other message waits in the queue and is
+handled with the next urgent one, in arrival order, or at the next poll timeout: the same
+events in the same order. A thread woken for each message runs cold, and that cost, not the
+decoding itself, was most of the live engine's CPU (``docs/adaptive-particles.md``).
 
 Time and order
 --------------
@@ -230,6 +239,12 @@ def header_stamp(payload: bytes | bytearray | memoryview) -> float:
     return float(sec + nanosec * 1e-9)
 
 
+_RESTAMP_MARGIN = 0.02
+"""Seconds added to the estimated stamp of a message to be restamped, when judging whether
+it must wake the engine: the header clock's offset moves a little between the rule being set
+and the message being handled (and a restamp never goes back), so a message near a bound
+wakes the engine rather than waits."""
+
 _FUTURE_SLACK = 0.0
 """How far (s) a stamp may lead the header clock's estimate of now and still advance the
 reorder buffer (what a future stamp can move the buffer's time by)."""
@@ -282,17 +297,22 @@ class ZenohSource:
         self._wake: queue.SimpleQueue[None] = queue.SimpleQueue()
         self._max_queue = opts.queue_size
         self._rule: WakeRule | None = None
-        # The keys whose stamp a wake rule can judge before decoding: stamped odometry (True)
-        # and measurements (False), as received (rmw_zenoh: with the type relloc expects).
-        self._judged: dict[str, bool] = {}
+        # The keys a wake rule can judge before decoding (rmw_zenoh: with the type relloc
+        # expects): odometry and measurements, each with its kind and whether it is restamped.
+        self._judged: dict[str, tuple[bool, str, bool]] = {}
         for key, route in self.routes.items():
-            if route.zero_stamps or route.kind not in ("odometry", "range", "sighting"):
+            if route.kind not in ("odometry", "range", "sighting"):
                 continue
+            judged = (route.kind == "odometry", route.kind, route.zero_stamps)
             if opts.interface.rmw:
                 for name, hash_ in self._dds_types[key].items():
-                    self._judged[f"{key}/{name}/{hash_}"] = route.kind == "odometry"
+                    self._judged[f"{key}/{name}/{hash_}"] = judged
             else:
-                self._judged[key] = route.kind == "odometry"
+                self._judged[key] = judged
+        self._restamped_kinds = tuple(sorted({r.kind for r in self.routes.values() if r.zero_stamps}))
+        self._restamp_offset: dict[str, float] = {}
+        """Per kind, the header clock's offset when the rule was set, plus ``_RESTAMP_MARGIN``:
+        a restamped message's stamp, from its receive time, by an estimate a little late."""
         self._subscribers: list[Any] = []
         self._lock = threading.Lock()
         self._queue_full = 0
@@ -352,7 +372,7 @@ class ZenohSource:
             key, payload = str(sample.key_expr), sample.payload.to_bytes()
             inbox.append((key, payload, received, raw))
             # Queued first, judged after: rearm() sets the rule first, then looks at the queue.
-            if self._urgent(self._rule, key, payload):
+            if self._urgent(self._rule, key, payload, received):
                 self._wake.put(None)
         else:
             with self._lock:
@@ -369,16 +389,24 @@ class ZenohSource:
     def queue_depth(self) -> int:
         return len(self._inbox)
 
-    def _urgent(self, rule: WakeRule | None, key: str, payload: bytes) -> bool:
+    def _urgent(self, rule: WakeRule | None, key: str, payload: bytes, received: float) -> bool:
         """Whether a queued message must wake the engine thread under ``rule`` (``None``: every
-        message does): its key's kind and its header stamp, read without decoding."""
+        message does): its key's kind and its header stamp, read without decoding; a message
+        to be restamped (zero stamps) by its receive time on the header clock as the rule was
+        set, taken ``_RESTAMP_MARGIN`` late (the offset moves a little as messages come)."""
         if rule is None:
             return True
-        odometry = self._judged.get(key)
-        if odometry is None:  # not judged: restamped, another kind, or no route (a rejection)
+        judged = self._judged.get(key)
+        if judged is None:  # another kind, or no route (a rejection)
             return True
-        t = header_stamp(payload)
-        return t == 0.0 or rule.urgent(t, odometry)
+        odometry, kind, zero_stamps = judged
+        t = 0.0 if zero_stamps else header_stamp(payload)
+        if t == 0.0:
+            offset = self._restamp_offset.get(kind)
+            if offset is None:
+                return True
+            t = offset + self.clock.rate * received
+        return rule.urgent(t, odometry)
 
     # ------------------------------------------------------------------ engine side
     def rearm(self, rule: WakeRule | None) -> None:
@@ -390,9 +418,13 @@ class ZenohSource:
         woken for one message runs cold, and that cost is most of a live server's CPU). Wakes
         the engine now if a message already queued is urgent by ``rule``. Call from the engine
         thread, after feeding what :meth:`poll` returned."""
+        if rule is not None:  # the offsets first: a callback may judge by the new rule now
+            self._restamp_offset = {
+                kind: self.clock.offset(kind) + _RESTAMP_MARGIN for kind in self._restamped_kinds
+            }
         self._rule = rule
-        for key, payload, _, _ in list(self._inbox):
-            if self._urgent(rule, key, payload):
+        for key, payload, received, _ in list(self._inbox):
+            if self._urgent(rule, key, payload, received):
                 self._wake.put(None)
                 return
 
