@@ -394,19 +394,25 @@ class ZenohSource:
         message does): its key's kind and its header stamp, read without decoding; a message
         to be restamped (zero stamps) by its receive time on the header clock as the rule was
         set, taken ``_RESTAMP_MARGIN`` late (the offset moves a little as messages come)."""
+        # Runs on Zenoh's threads for every message, cold: header_stamp and WakeRule.urgent
+        # written out, one Python frame instead of three.
         if rule is None:
             return True
         judged = self._judged.get(key)
         if judged is None:  # another kind, or no route (a rejection)
             return True
         odometry, kind, zero_stamps = judged
-        t = 0.0 if zero_stamps else header_stamp(payload)
+        t = 0.0
+        if not zero_stamps and len(payload) >= 12 and payload[0] == 0 and payload[1] <= 1:
+            sec, nanosec = _STAMP[payload[1]].unpack_from(payload, 4)
+            t = sec + nanosec * 1e-9
         if t == 0.0:
             offset = self._restamp_offset.get(kind)
             if offset is None:
                 return True
             t = offset + self.clock.rate * received
-        return rule.urgent(t, odometry)
+        measurement_from, odometry_from, lo, hi = rule
+        return not lo <= t <= hi or t >= (odometry_from if odometry else measurement_from)
 
     # ------------------------------------------------------------------ engine side
     def rearm(self, rule: WakeRule | None) -> None:
