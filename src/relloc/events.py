@@ -23,7 +23,10 @@ Frames
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 
 @dataclass(frozen=True, slots=True)
@@ -136,6 +139,36 @@ class SightingEvent:
 
 
 Event = OdometryEvent | RangeEvent | DetectionEvent | GroundTruthEvent | RelativeObservation | SightingEvent
+
+
+class WakeRule(NamedTuple):
+    """Which events a consumer must process at once, and which can wait: an event stamped
+    ``t`` is *urgent* if it is a measurement with ``t >= measurement_from``, odometry with
+    ``t >= odometry_from``, or if ``t`` is outside ``[lo, hi]``. An event that is not urgent
+    cannot make an estimate now: processed later, in its order, it gives the same estimates
+    (:meth:`relloc.localizers.base.Localizer.wake_rule`). A live source uses it to wake its
+    engine thread only when it has to (:class:`relloc.sources.zenoh_source.ZenohSource`)."""
+
+    measurement_from: float
+    odometry_from: float
+    lo: float
+    hi: float
+
+    def urgent(self, t: float, odometry: bool) -> bool:
+        return not self.lo <= t <= self.hi or t >= (self.odometry_from if odometry else self.measurement_from)
+
+    @staticmethod
+    def combine(rules: Iterable[WakeRule]) -> WakeRule:
+        """The rule of several consumers: an event is urgent if it is for any of ``rules``."""
+        r = list(rules)
+        return WakeRule(
+            min(x.measurement_from for x in r), min(x.odometry_from for x in r),
+            max(x.lo for x in r), min(x.hi for x in r),
+        )  # fmt: skip
+
+
+WAKE_ALWAYS = WakeRule(-math.inf, -math.inf, math.inf, -math.inf)
+"""Every event is urgent."""
 
 
 def pair_key(a: str, b: str) -> str:

@@ -53,6 +53,7 @@ from numpy.typing import NDArray
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
 from relloc.events import (
+    WAKE_ALWAYS,
     DetectionEvent,
     Event,
     GroundTruthEvent,
@@ -60,6 +61,7 @@ from relloc.events import (
     RangeEvent,
     RelativeObservation,
     SightingEvent,
+    WakeRule,
 )
 from relloc.filter.base import FilterEstimate, WeightedFilter
 from relloc.filter.measurement import MeasurementModel, ModelContext, finite
@@ -108,6 +110,10 @@ _TRUST_HOLD = 5.0
 """Seconds after a restart before its formations are trusted as the orientation reference."""
 _RECOVERY_SIGMA = 1.5
 """Spread (m) of a lost robot's re-injected positions about the estimate."""
+
+_WAKE_MARGIN = 1e-5
+"""Seconds by which a :class:`WakeRule`'s bounds are moved towards waking: more than the
+rounding of ``floor(t / period)`` at epoch stamps (about 4e-7 s)."""
 
 _UNRANGED_AFTER = 2.0
 """Seconds without a range after which a robot pauses the orientation kernel."""
@@ -235,6 +241,32 @@ class Localizer:
         self._pending.append(event)
         self.stats[model.stat] += 1
         return out
+
+    def wake_rule(self) -> WakeRule:
+        """Which events could make this localizer fuse a batch now (and so emit an estimate):
+        what a live server must process at once; any other event can wait and be processed
+        later, in its order, with the same result (:class:`WakeRule`).
+
+        It mirrors the batching grid of :meth:`_accept` and :meth:`_advance` for the state
+        after every event processed so far. A measurement is urgent from the cell after the
+        pending batch's, or always when no batch is pending (it opens one: once processed,
+        the rule knows its cell) or the batch nears ``_MAX_PENDING``; odometry from two cells
+        after it (never with no batch pending). Every event is urgent during the warm-up and
+        outside the ``max_time_jump`` window about the clock (a vote for a jump). The bounds
+        are moved by ``_WAKE_MARGIN`` towards urgent, so rounding can only wake too often.
+        """
+        clock = self._clock
+        if clock == -math.inf:
+            return WAKE_ALWAYS
+        limit = self.config.filter.max_time_jump
+        lo, hi = clock - limit + _WAKE_MARGIN, clock + limit - _WAKE_MARGIN
+        if not self._pending:
+            return WakeRule(-math.inf, math.inf, lo, hi)
+        if len(self._pending) >= _MAX_PENDING // 2:
+            return WakeRule(-math.inf, -math.inf, lo, hi)
+        cell = self._cell(self._batch_start)
+        period = self.update_period
+        return WakeRule((cell + 1) * period - _WAKE_MARGIN, (cell + 2) * period - _WAKE_MARGIN, lo, hi)
 
     def flush(self) -> list[Estimate]:
         """Fuse what is still pending (end of a recording)."""

@@ -24,10 +24,19 @@ robot, so it is subscribed below the scope of each of its two robots.
 Threads
 -------
 Zenoh calls :meth:`ZenohSource.on_sample` on its own threads. That callback only copies the
-payload and its attachment, notes the receive wall time and puts them on a bounded queue; decoding, reordering and everything after happen
-on the one engine thread that calls :meth:`ZenohSource.poll`. The filter state therefore never
-sees two threads, and a slow engine cannot block Zenoh's network threads (a full queue drops
-the sample and counts it as ``queue_full``).
+payload and its attachment, notes the receive wall time and appends them to a bounded queue;
+decoding, reordering and everything after happen on the one engine thread that calls
+:meth:`ZenohSource.poll`. The filter state therefore never sees two threads, and a slow engine
+cannot block Zenoh's network threads (a full queue drops the sample and counts it as
+``queue_full``).
+
+The callback wakes the engine thread only for a message that could make an estimate: the
+consumer's :class:`~relloc.events.WakeRule` (:meth:`ZenohSource.rearm`, after each wake) judges
+the message's kind and header stamp, read from the CDR bytes without decoding (a restamped
+message: its receive time on the header clock). Any other message waits in the queue and is
+handled with the next urgent one, in arrival order, or at the next poll timeout: the same
+events in the same order. A thread woken for each message runs cold, and that cost, not the
+decoding itself, was most of the live engine's CPU (``docs/adaptive-particles.md``).
 
 Time and order
 --------------
@@ -52,16 +61,18 @@ dropped, counted per reason in :attr:`ZenohSource.stats` and logged (the first t
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import queue
+import struct
 import threading
 import time
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Any
 
 from relloc.config import ConfigError, TeamConfig
-from relloc.events import Event
+from relloc.events import Event, WakeRule
 from relloc.ros.interfaces import (
     RmwAttachment,
     RosInterface,
@@ -214,7 +225,26 @@ class ZenohSourceOptions:
     ``subscribe_all`` those keys come back, and are counted ``own_output``, not rejected."""
 
 
-_WAKE = object()
+_STAMP = {0: struct.Struct(">iI"), 1: struct.Struct("<iI")}
+"""The header stamp after the 4-byte CDR encapsulation header (big-, little-endian)."""
+
+
+def header_stamp(payload: bytes | bytearray | memoryview) -> float:
+    """The header stamp (s) of a CDR message that starts with a ``std_msgs/Header`` (odometry,
+    ranges, detections), read without decoding it; ``0.0`` if the bytes do not look like one.
+    The decoders' arithmetic: for a well-formed message, the stamp they return."""
+    if len(payload) < 12 or payload[0] != 0 or payload[1] > 1:
+        return 0.0
+    sec, nanosec = _STAMP[payload[1]].unpack_from(payload, 4)
+    return float(sec + nanosec * 1e-9)
+
+
+_RESTAMP_MARGIN = 0.02
+"""Seconds added to the estimated stamp of a message to be restamped, when judging whether
+it must wake the engine: the header clock's offset moves a little between the rule being set
+and the message being handled (and a restamp never goes back), so a message near a bound
+wakes the engine rather than waits."""
+
 _FUTURE_SLACK = 0.0
 """How far (s) a stamp may lead the header clock's estimate of now and still advance the
 reorder buffer (what a future stamp can move the buffer's time by)."""
@@ -259,13 +289,35 @@ class ZenohSource:
             opts.reorder_window, hold=opts.reorder_window / opts.clock_rate
         )
         self._converter = Converter(self.stats, self.clock, log)
-        # SimpleQueue: C-implemented, the cheapest hand-over between threads CPython has; it
-        # is unbounded, so the size limit is checked (approximately) before each put.
-        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        # Zenoh's threads append to the inbox (a deque: appends and pops are atomic, its order
+        # is the arrival order) and put a token on the wake queue when the engine thread has to
+        # run (SimpleQueue: C-implemented, the cheapest hand-over between threads CPython has).
+        # Both are unbounded, so the size limit is checked (approximately) before each append.
+        self._inbox: deque[tuple[str, bytes, float, bytes | None]] = deque()
+        self._wake: queue.SimpleQueue[None] = queue.SimpleQueue()
         self._max_queue = opts.queue_size
+        self._rule: WakeRule | None = None
+        # The keys a wake rule can judge before decoding (rmw_zenoh: with the type relloc
+        # expects): odometry and measurements, each with its kind and whether it is restamped.
+        self._judged: dict[str, tuple[bool, str, bool]] = {}
+        for key, route in self.routes.items():
+            if route.kind not in ("odometry", "range", "sighting"):
+                continue
+            judged = (route.kind == "odometry", route.kind, route.zero_stamps)
+            if opts.interface.rmw:
+                for name, hash_ in self._dds_types[key].items():
+                    self._judged[f"{key}/{name}/{hash_}"] = judged
+            else:
+                self._judged[key] = judged
+        self._restamped_kinds = tuple(sorted({r.kind for r in self.routes.values() if r.zero_stamps}))
+        self._restamp_offset: dict[str, float] = {}
+        """Per kind, the header clock's offset when the rule was set, plus ``_RESTAMP_MARGIN``:
+        a restamped message's stamp, from its receive time, by an estimate a little late."""
         self._subscribers: list[Any] = []
         self._lock = threading.Lock()
         self._queue_full = 0
+        self._ready: list[Arrival] = []
+        """Events handled from the queue and released, not yet returned by :meth:`poll`."""
 
     # ------------------------------------------------------------------ zenoh side
     @property
@@ -310,12 +362,18 @@ class ZenohSource:
                 log.debug("undeclaring a subscriber failed: %s", exc)
 
     def on_sample(self, sample: Any) -> None:
-        """Zenoh callback (Zenoh's threads): copy, time and enqueue; nothing else."""
+        """Zenoh callback (Zenoh's threads): copy, time and queue; wake the engine thread if
+        the message is urgent (:meth:`rearm`); nothing else."""
         received = time.time()
         attachment = sample.attachment
         raw = attachment.to_bytes() if attachment is not None else None
-        if self._queue.qsize() < self._max_queue:
-            self._queue.put((str(sample.key_expr), sample.payload.to_bytes(), received, raw))
+        inbox = self._inbox
+        if len(inbox) < self._max_queue:
+            key, payload = str(sample.key_expr), sample.payload.to_bytes()
+            inbox.append((key, payload, received, raw))
+            # Queued first, judged after: rearm() sets the rule first, then looks at the queue.
+            if self._urgent(self._rule, key, payload, received):
+                self._wake.put(None)
         else:
             with self._lock:
                 self._queue_full += 1
@@ -325,46 +383,101 @@ class ZenohSource:
 
     def wake(self) -> None:
         """Make a blocked :meth:`poll` return now (e.g. on shutdown)."""
-        self._queue.put(_WAKE)
+        self._wake.put(None)
 
     @property
     def queue_depth(self) -> int:
-        return self._queue.qsize()
+        return len(self._inbox)
+
+    def _urgent(self, rule: WakeRule | None, key: str, payload: bytes, received: float) -> bool:
+        """Whether a queued message must wake the engine thread under ``rule`` (``None``: every
+        message does): its key's kind and its header stamp, read without decoding; a message
+        to be restamped (zero stamps) by its receive time on the header clock as the rule was
+        set, taken ``_RESTAMP_MARGIN`` late (the offset moves a little as messages come)."""
+        # Runs on Zenoh's threads for every message, cold: header_stamp and WakeRule.urgent
+        # written out, one Python frame instead of three.
+        if rule is None:
+            return True
+        judged = self._judged.get(key)
+        if judged is None:  # another kind, or no route (a rejection)
+            return True
+        odometry, kind, zero_stamps = judged
+        t = 0.0
+        if not zero_stamps and len(payload) >= 12 and payload[0] == 0 and payload[1] <= 1:
+            sec, nanosec = _STAMP[payload[1]].unpack_from(payload, 4)
+            t = sec + nanosec * 1e-9
+        if t == 0.0:
+            offset = self._restamp_offset.get(kind)
+            if offset is None:
+                return True
+            t = offset + self.clock.rate * received
+        measurement_from, odometry_from, lo, hi = rule
+        return not lo <= t <= hi or t >= (odometry_from if odometry else measurement_from)
 
     # ------------------------------------------------------------------ engine side
+    def rearm(self, rule: WakeRule | None) -> None:
+        """Wake the engine thread from now on only for the messages urgent by ``rule`` (the
+        consumer's :class:`~relloc.events.WakeRule` for its state after every event taken so
+        far; ``None``: for every message). Any other message waits in the queue, and is handled
+        with the next urgent one, in arrival order, or at the next :meth:`poll` timeout: the
+        same events in the same order, without waking the engine for most messages (a thread
+        woken for one message runs cold, and that cost is most of a live server's CPU). Wakes
+        the engine now if a message already queued is urgent by ``rule``. Call from the engine
+        thread, after feeding what :meth:`poll` returned."""
+        if rule is not None:  # the offsets first: a callback may judge by the new rule now
+            self._restamp_offset = {
+                kind: self.clock.offset(kind) + _RESTAMP_MARGIN for kind in self._restamped_kinds
+            }
+        self._rule = rule
+        for key, payload, received, _ in list(self._inbox):
+            if self._urgent(rule, key, payload, received):
+                self._wake.put(None)
+                return
+
     def poll(self, timeout: float) -> list[Arrival]:
-        """Wait up to ``timeout`` s for messages, handle all queued ones, return due events.
+        """Wait up to ``timeout`` s for an urgent message (:meth:`rearm`), handle all queued
+        ones, return due events.
 
         Returns early when the reorder buffer has an event due. Call from one thread only.
         """
         due = self.buffer.next_due()
         wait = timeout if due is None else max(0.0, min(timeout, due - time.time()))
-        try:
-            item = self._queue.get(timeout=wait) if wait > 0 else self._queue.get_nowait()
-        except queue.Empty:
-            item = None
-        while item is not None:
-            if item is not _WAKE:
-                self.handle(*item)
-            try:
-                item = self._queue.get_nowait()
-            except queue.Empty:
-                item = None
-        self._sync_queue_full()
-        return self.release(time.time())
+        wake = self._wake
+        if wait > 0 and wake.empty():
+            with contextlib.suppress(queue.Empty):
+                wake.get(timeout=wait)
+        while not wake.empty():  # one consumer: empty() is exact
+            wake.get_nowait()
+        return self.take_queued()
+
+    def take_queued(self) -> list[Arrival]:
+        """Handle every queued message now, without waiting; return due events."""
+        inbox = self._inbox
+        while inbox:
+            self._handle_queued(inbox.popleft())
+        if self._queue_full:  # an int read needs no lock
+            self._sync_queue_full()
+        return self._released(self._take_ready() + self.buffer.pop_ready(time.time()))
 
     def drain(self) -> list[Arrival]:
         """Handle everything still queued and release everything held (shutdown)."""
-        while True:
-            try:
-                item = self._queue.get_nowait()
-            except queue.Empty:
-                break
-            if item is not _WAKE:
-                self.handle(*item)
+        inbox = self._inbox
+        while inbox:
+            self._handle_queued(inbox.popleft())
         self._sync_queue_full()
         self.stats.clock_offset = self.clock.overall
-        return self.flush()
+        return self._released(self._take_ready() + self.buffer.flush())
+
+    def _handle_queued(self, item: tuple[str, bytes, float, bytes | None]) -> None:
+        """Handle one queued message. Without a reorder window its event leaves at once, so
+        that events handled together (a burst, messages that waited) keep their arrival order."""
+        self.handle(*item)
+        if self.buffer.window == 0.0 and len(self.buffer):
+            self._ready += self.buffer.pop_ready()
+
+    def _take_ready(self) -> list[Arrival]:
+        ready, self._ready = self._ready, []
+        return ready
 
     def handle(
         self,
