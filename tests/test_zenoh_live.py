@@ -67,7 +67,13 @@ class Running:
 
 
 def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
-    """Five simulated robots published as ROS 2 CDR; estimates, status and traces come back."""
+    """Five simulated robots published as ROS 2 CDR; estimates, status and traces come back.
+
+    A reorder window of 0.4 s of header time (0.1 s of wall time at 4x): Zenoh's threads
+    deliver the keys' messages in a slightly different interleaving from run to run, and
+    without the window the filter was fed each run another order (in one loaded run of ten it
+    then lost track, median error 0.34 m); with it, the stamp order, the same every run
+    (docs/faults.md, session 6)."""
     srv_session, client = sessions
     sim, config = simulated_team(seed=0, duration=16.0)
     rate = 4.0
@@ -83,7 +89,7 @@ def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
     server = LiveServer(
         config,
         srv_session,
-        ServeOptions(particles=1000, clock_rate=rate, trace=True, status_period=0.25),
+        ServeOptions(particles=1000, clock_rate=rate, trace=True, status_period=0.25, reorder_window=0.4),
     )
     base = 1_700_000_000.0
     with Running(server) as live:
