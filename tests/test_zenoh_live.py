@@ -71,7 +71,7 @@ def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
 
     A reorder window of 0.4 s of header time (0.1 s of wall time at 4x): Zenoh's threads
     deliver the keys' messages in a slightly different interleaving from run to run, and
-    without the window the filter was fed each run another order (in one loaded run of ten it
+    without the window the filter was fed each run another order (in one loaded run of twelve it
     then lost track, median error 0.34 m); with it, the stamp order, the same every run
     (docs/faults.md, session 6)."""
     srv_session, client = sessions
