@@ -354,10 +354,13 @@ class _Recorder:
     def __init__(self) -> None:
         self.sent: list[tuple[float, float, float]] = []
         self.lock = threading.Lock()
+        self.fresh = threading.Event()
+        """Set at every command (for a test to act just after one, while the loop waits)."""
 
     def __call__(self, v: float, w: float) -> None:
         with self.lock:
             self.sent.append((time.monotonic(), v, w))
+        self.fresh.set()
 
 
 def _loop_with_live_data(nav: Navigator) -> tuple[NavigationLoop, _Recorder, threading.Event]:
@@ -393,6 +396,10 @@ def test_ctrl_c_stops_the_robot_within_one_control_period() -> None:
         while time.monotonic() < deadline and not any(v != 0.0 for _, v, _ in rec.sent):
             time.sleep(0.01)
         assert any(v != 0.0 for _, v, _ in rec.sent), "the robot never started"
+        # Press just after a command, while the loop waits for its next tick: pressed during a
+        # tick, the command that tick computed would still go out after the press.
+        rec.fresh.clear()
+        assert rec.fresh.wait(5.0)
         pressed = time.monotonic()
         stop.set()  # what the SIGINT handler of relloc navigate does
         runner.join(timeout=2.0)

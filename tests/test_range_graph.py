@@ -4,13 +4,15 @@ automatic choice, and the grid end to end."""
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import replace
 
 import numpy as np
 import pytest
 
 from relloc.engine import Engine, Pipeline
-from relloc.events import RangeEvent
+from relloc.estimate import Estimate
+from relloc.events import Event, RangeEvent
 from relloc.filter.graph_filter import RangeGraphFilter
 from relloc.filter.range_graph import orientation_hypotheses, shape_from_ranges, start_covariance
 from relloc.filter.ranges import RangeBatch
@@ -129,7 +131,8 @@ def test_the_localizer_is_chosen_by_team_size_and_modes() -> None:
 @pytest.mark.parametrize("heading_error", [True, False])
 def test_the_twenty_robot_grid_converges_fast(heading_error: bool) -> None:
     """20 robots, 20 s: the shape within 0.1 m once a rotation is fitted, one orientation
-    hypothesis left, far faster than real time; the unaligned error is the rotation the
+    hypothesis left, far faster than real time (in CPU time, which a loaded machine does not
+    stretch as it does the wall clock); the unaligned error is the rotation the
     heading-dependent range error mimics (docs/scaling.md), about 2.5 degrees, and without that
     error the filter beats multilateration's fitted-rotation figure by far."""
     from relloc.evaluation.metrics import GroundTruth
@@ -141,6 +144,18 @@ def test_the_twenty_robot_grid_converges_fast(heading_error: bool) -> None:
     sim = grid_scenario(0, robots=20, duration=20.0, uwb=uwb)
     loc = filter_localizer(sim.config)
     assert isinstance(loc, RangeGraphLocalizer)
+    cpu_s = 0.0
+    process = loc.process
+
+    def timed(event: Event) -> list[Estimate]:
+        nonlocal cpu_s
+        start = time.process_time()
+        try:
+            return process(event)
+        finally:
+            cpu_s += time.process_time() - start
+
+    loc.process = timed  # type: ignore[method-assign]
     pipes = [Pipeline("pf", loc)]
     if not heading_error:
         pipes.append(Pipeline("multilateration", MultilaterationLocalizer(sim.config)))
@@ -149,7 +164,7 @@ def test_the_twenty_robot_grid_converges_fast(heading_error: bool) -> None:
     report = evaluate(engine, gt, "grid", 10.0)
     pf = report.methods["pf"]
     med = float(np.median([s.median for s in pf.robots.values()]))
-    assert pf.compute_s < 5.0
+    assert cpu_s < 5.0
     assert loc.filter.n == 1 and loc.stats["hypotheses_pruned"] >= 60
     last = loc.last_estimate
     assert last is not None and last.orientation_observable and last.n_modes == 1
@@ -189,6 +204,32 @@ def test_recovery_restarts_from_the_range_graph() -> None:
     target = sim.true_poses("r5", t)[0, :2] + shift - sim.true_poses("r0", t)[0, :2]
     assert last.t > 15.5 and not last.recovering
     assert np.linalg.norm(np.array(last.positions["r5"]) - target) < 0.5
+
+
+def test_the_recovery_restarts_once_from_the_ranges_since_the_onset() -> None:
+    """The restart is the base recovery's hook: it gets the measurements since the divergence
+    began, nothing before. r5's ranges of the first half of the last half second are 3 m off
+    (the fault, before the onset the monitor finds); the range graph of the second half fits
+    within 0.15 m RMS, and no hypothesis is re-injected besides (the generator is untouched).
+    Fed the whole half second, as the restart was once, the fit was 0.37 m RMS and the base had
+    re-injected hypotheses (drawing from the generator) only for the restart to replace them."""
+    sim = grid_scenario(0, robots=10, duration=6.0)
+    loc = RangeGraphLocalizer(sim.config)
+    for ev in sim.events():
+        loc.process(ev)
+    recent = list(loc._recent)
+    onset = 0.5 * (recent[0].t + loc.t)
+    loc._recent.clear()
+    for m in recent:
+        faulty = isinstance(m, RangeEvent) and m.t < onset and "r5" in (m.robot_a, m.robot_b)
+        loc._recent.append(replace(m, distance=m.distance + 3.0) if faulty else m)
+    loc.monitor.onset = lambda robots, since: onset  # type: ignore[method-assign]
+    state = loc.rng.bit_generator.state
+    loc._recover(loc.t, loc.filter.estimate(), {"r5"})
+    assert loc.stats["recovery_injections"] == loc.stats["graph_restarts"] == 1
+    assert loc.stats["graph_start_rms_mm"] < 150
+    assert loc.rng.bit_generator.state == state
+    assert loc.filter.n == 2 * 36
 
 
 def test_no_hypothesis_is_pruned_before_motion_could_tell_them_apart() -> None:

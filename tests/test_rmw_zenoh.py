@@ -305,7 +305,12 @@ def test_malformed_attachments_and_foreign_types_over_zenoh(sessions: tuple[Any,
         pubs[1].put(_odom(T0 + 0.1), attachment=RmwAttachment(1, 0, b"\x05" * 16).encode())
         pubs[2].put(b"\x00\x01\x00\x00\x03\x00\x00\x00hi\x00")
         released: list[Any] = []
-        assert wait_until(lambda: bool(released.extend(source.poll(0.05)) or len(released) >= 3))
+        # The foreign type was put last: wait for its rejection too, not only for the three
+        # events (then a little longer, for anything that should not come).
+        assert wait_until(
+            lambda: bool(released.extend(source.poll(0.05)))
+            or (len(released) >= 3 and sum(source.stats.rejected.values()) >= 1)
+        )
         time.sleep(0.1)
         released.extend(source.drain())
     finally:

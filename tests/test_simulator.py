@@ -340,9 +340,10 @@ def test_random_heading_offsets_are_random_and_exposed() -> None:
 
 
 def test_generating_the_multi_run_is_fast() -> None:
-    start = time.perf_counter()
+    # CPU time: a loaded machine stretches the wall clock, not the work done
+    start = time.process_time()
     sim = multi_scenario(0, detections=True)
     n = sum(1 for _ in sim.events())
-    elapsed = time.perf_counter() - start
+    elapsed = time.process_time() - start
     assert n > 15000
     assert elapsed < 1.5  # typically about 0.1 s

@@ -14,7 +14,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 from typing import Any
 
@@ -68,7 +67,13 @@ class Running:
 
 
 def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
-    """Five simulated robots published as ROS 2 CDR; estimates, status and traces come back."""
+    """Five simulated robots published as ROS 2 CDR; estimates, status and traces come back.
+
+    A reorder window of 0.4 s of header time (0.1 s of wall time at 4x): Zenoh's threads
+    deliver the keys' messages in a slightly different interleaving from run to run, and
+    without the window the filter was fed each run another order (in one loaded run of twelve it
+    then lost track, median error 0.34 m); with it, the stamp order, the same every run
+    (docs/faults.md, session 6)."""
     srv_session, client = sessions
     sim, config = simulated_team(seed=0, duration=16.0)
     rate = 4.0
@@ -84,24 +89,29 @@ def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
     server = LiveServer(
         config,
         srv_session,
-        ServeOptions(particles=1000, clock_rate=rate, trace=True, status_period=0.25),
+        ServeOptions(particles=1000, clock_rate=rate, trace=True, status_period=0.25, reorder_window=0.4),
     )
     base = 1_700_000_000.0
     with Running(server) as live:
         stats = publish_events(sim.events(), config, client, rate=rate, time_base=base, wait=5.0)
         assert stats.unmatched == []
         assert wait_until(lambda: live.source.stats.events.total() >= stats.messages)
-    # The last pose is published as the server ends: let it arrive (a loaded machine is slow).
-    wait_until(lambda: len(collector.estimates()) >= len(server.pipelines[0].estimates))
+    own = server.pipelines[0].estimates
+    # The last estimate (its poses, shape and trace) and the final status are published as the
+    # server ends: everything it published is waited for before anything is undeclared (a
+    # loaded machine is slow), so that the counts below do not depend on timing.
+    assert wait_until(lambda: len(collector.estimates()) >= len(own), timeout=20.0)
+    assert wait_until(lambda: len(shapes) == len(own) and len(collector.traces()) == len(own), timeout=20.0)
+    assert wait_until(
+        lambda: bool(status) and status[-1]["methods"]["pf"]["estimates"] == len(own), timeout=20.0
+    )
     collector_estimates = collector.estimates()
     traces = collector.traces()
     collector.close()
     status_sub.undeclare()
     shape_sub.undeclare()
 
-    own = server.pipelines[0].estimates
     # The shape and distances, live on relloc/shape; the flag in the status.
-    assert wait_until(lambda: len(shapes) == len(own))
     assert shapes[-1]["t"] == pytest.approx(own[-1].t, abs=1e-6) and shapes[-1]["gauge"] == "r1"
     assert shapes[-1]["shape"]["r1"][1] == pytest.approx(0.0, abs=1e-9)
     assert shapes[-1]["distances"]["r0-r1"][0] == pytest.approx(own[-1].distances["r0-r1"][0])
@@ -173,8 +183,12 @@ def test_serve_command_shuts_down_cleanly_on_sigterm(
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )  # fmt: skip
     session = open_session(ZenohOptions(connect=(endpoint,), multicast=False))
+    status: list[dict[str, Any]] = []
     try:
         pub = session.declare_publisher("r1/odom")
+        session.declare_subscriber(
+            "relloc/status", lambda s: status.append(json.loads(s.payload.to_bytes()))
+        )
         assert wait_until(lambda: pub.matching_status.matching, timeout=30.0), (
             "serve never subscribed"
         )
@@ -183,7 +197,11 @@ def test_serve_command_shuts_down_cleanly_on_sigterm(
                 encode(odometry_msg(OdometryEvent(1_700_000_000.0 + 0.05 * k, "r1", 0.0, 0.0, 0.0)))
             )
         pub.put(b"garbage")
-        time.sleep(0.3)
+        # SIGTERM once serve has all six (its status says so, every second), not after a guess
+        # at how long a loaded machine takes.
+        assert wait_until(
+            lambda: bool(status) and status[-1]["source"]["messages"] == 6, timeout=30.0
+        ), status[-1:]
         proc.send_signal(signal.SIGTERM)
         out, _ = proc.communicate(timeout=20)
     finally:
@@ -218,8 +236,12 @@ def test_replayed_shortbag_matches_relloc_run(
     """Replay the 17 s shortbag at 2x into the live engine: same APE as ``relloc run``, on the
     bridge and on rmw_zenoh (the same bytes under other keys, with rmw_zenoh attachments).
 
-    Same particles, same seed; the reorder window (0.2 s of header time) restores the header
-    order the rosbag source produces, so the filter sees the same event sequence.
+    Same particles, same seed; the reorder window restores the header order the rosbag source
+    produces, so the filter sees the same event sequence. A wide one (1 s of header time, held
+    at most 0.5 s of wall time at 2x): the replay shares this process, and its thread, starved
+    of the GIL by the engine's on a loaded machine, falls behind its schedule; with 0.2 s some
+    ten events of each run came out of order under load, and the filter, fed another sequence,
+    was off by up to 22 % (docs/faults.md, session 6).
     """
     bag = shared_data / "tiers" / SHORTBAG
     config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")
@@ -234,21 +256,25 @@ def test_replayed_shortbag_matches_relloc_run(
         config,
         srv_session,
         ServeOptions(
-            particles=particles, seed=seed, reorder_window=0.2, clock_rate=rate, interface=interface
+            particles=particles, seed=seed, reorder_window=1.0, clock_rate=rate, interface=interface
         ),
     )
     with Running(server) as live:
         stats = replay_bag(bag, config, client, ReplayOptions(rate=rate, wait=5.0, interface=interface))
         assert stats.unmatched == []
         expected = sum(n for k, n in stats.per_key.items() if k in live.source.routes)
-        assert wait_until(lambda: sum(live.source.stats.messages.values()) >= expected)
+        assert wait_until(lambda: sum(live.source.stats.messages.values()) >= expected, timeout=20.0)
+    # What the server held is fused and published as it ends: let all of it arrive.
+    published = len(server.pipelines[0].estimates)
+    assert wait_until(lambda: len(collector.estimates()) >= published, timeout=20.0)
     estimates = collector.estimates()
     collector.close()
 
     served = ape_against_bag(estimates, bag, config, warmup=report.warmup, t0=report.t0)
     print(
         f"{kind}: served mean APE median {served['mean_median']:.3f} m over {len(estimates)} "
-        f"estimates; relloc run {offline.mean_ape_median:.3f} m over {offline.n_estimates}"
+        f"estimates; relloc run {offline.mean_ape_median:.3f} m over {offline.n_estimates}; "
+        f"{server.source.stats.out_of_order} events out of order"
     )
     assert abs(len(estimates) - offline.n_estimates) <= 2
     assert served["mean_median"] == pytest.approx(offline.mean_ape_median, rel=0.10)

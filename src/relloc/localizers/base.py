@@ -571,10 +571,10 @@ class FilterLocalizer(Localizer):
         return est
 
     def _recover(self, t: float, fe: FilterEstimate, lost: set[str]) -> None:
-        """The filter is lost: start it again (the annealed start of
-        :mod:`relloc.localizers.start`) from the recent measurements since the disagreement
-        began (:meth:`DivergenceMonitor.onset`: a burst's ranges are not fused with the clean
-        ones after it), and give the new shape the orientation and handedness of the last
+        """The filter is lost: start it again (:meth:`_restart`, for a particle filter the
+        annealed start of :mod:`relloc.localizers.start`) from the recent measurements since
+        the disagreement began (:meth:`DivergenceMonitor.onset`: a burst's ranges are not
+        fused with the clean ones after it), and give the new shape the orientation and handedness of the last
         trusted formation, moved to now by odometry (:func:`~relloc.localizers.start.orient_by`):
         the ranges fix the shape, dead reckoning from before the loss the orientation. Nothing
         estimated within a monitor window before the loss, or within ``_TRUST_HOLD`` after a
@@ -591,10 +591,7 @@ class FilterLocalizer(Localizer):
         if recent:
             onset = self.monitor.onset(lost, recent[0].t)
             recent = [m for m in recent if m.t >= onset] or recent
-        if isinstance(self.filter, ParticleFilter) and recent and annealed_start(self, self.filter, recent):
-            if reference is not None:
-                orient_by(self.filter, reference, _REFERENCE_SIGMA)
-        else:
+        if not (recent and self._restart(recent, reference)):
             others = self.layout.others
             cols = [k for k, r in enumerate(others) if r in lost or self.layout.reference in lost]
             k = max(1, int(_RECOVERY_FRACTION * self.filter.n))
@@ -604,6 +601,17 @@ class FilterLocalizer(Localizer):
             self.filter.inject(formations)
         self.monitor.restart(t)
         self._trusted_from = t + _TRUST_HOLD
+
+    def _restart(self, recent: list[Measurement], reference: FloatArray | None) -> bool:
+        """Recovery's restart from ``recent`` (the measurements since the onset), oriented by
+        the ``reference`` formation (``None``: none trusted); False if the filter cannot be
+        restarted from them (the recovery then re-injects hypotheses). A particle filter is
+        re-annealed; subclasses with another start override this."""
+        if not (isinstance(self.filter, ParticleFilter) and annealed_start(self, self.filter, recent)):
+            return False
+        if reference is not None:
+            orient_by(self.filter, reference, _REFERENCE_SIGMA)
+        return True
 
     def _note_measured(self, batch: list[Measurement], *, ranged: bool = True) -> None:
         """Each robot's newest measurement (ranges, sightings, relative observations: for

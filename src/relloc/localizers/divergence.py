@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections import deque
+from collections import Counter, deque
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -22,6 +22,7 @@ from relloc.events import RangeEvent, pair_key
 from relloc.filter.base import FilterEstimate
 
 if TYPE_CHECKING:
+    from relloc.config import TeamConfig
     from relloc.localizers.base import Localizer, Measurement
 
 log = logging.getLogger(__name__)
@@ -56,12 +57,18 @@ class DivergenceMonitor:
         self.episodes = 0
         """Times the filter was found lost."""
         self._seen: dict[str, deque[tuple[float, bool]]] = {}
+        self._outliers: Counter[str] = Counter()
+        """The outliers among each robot's recorded ranges (kept with ``_seen``)."""
         self._restarted = -math.inf
+        self._config: TeamConfig | None = None
+        self._pairs: dict[tuple[str, str, str | None, str | None, bool], tuple[int, int, float, float, float, str | None]] = {}
+        self._rows: dict[str, int] = {}
 
     def restart(self, t: float) -> None:
         """Forget the ranges seen (the filter was restarted at ``t``: judge it on fresh
         ones); the lost state stays until they clear it."""
         self._seen.clear()
+        self._outliers.clear()
         self._restarted = t
 
     def shift_time(self, dt: float) -> None:
@@ -72,35 +79,19 @@ class DivergenceMonitor:
 
     def observe(self, t: float, batch: list[Measurement], fe: FilterEstimate, loc: Localizer) -> set[str]:
         """Record ``batch``'s ranges against ``fe``; the robots judged lost (empty if none)."""
-        layout, config = loc.layout, loc.config
-        index = {r: k for k, r in enumerate(layout.others)}
-        # The hypotheses' own spread: the published covariance adds a floor for correlated
-        # range errors (relloc.filter.summary) that would widen the gate by as much.
-        floor = float(getattr(loc.filter, "covariance_floor", 0.0))
-        for m in batch:
-            if not isinstance(m, RangeEvent):
-                continue
-            pa, va = self._position(m.robot_a, index, fe, floor)
-            pb, vb = self._position(m.robot_b, index, fe, floor)
-            nodes = config.range_nodes(m)
-            bias, scale, sigma = (0.0, 1.0, None) if m.corrected else config.uwb.calibration(*nodes)
-            pair_bias = fe.biases.get(pair_key(*nodes))
-            if pair_bias is not None and not m.corrected:
-                bias = pair_bias[0]
-            sig = sigma if sigma is not None else config.filter.likelihood.sigma_uwb
-            residual = (m.distance - bias) / scale - math.hypot(pa[0] - pb[0], pa[1] - pb[1])
-            outlier = abs(residual) > max(_GATE_M, 3.0 * math.sqrt(sig**2 + va + vb))
-            for r in (m.robot_a, m.robot_b):
-                self._seen.setdefault(r, deque()).append((m.t, outlier))
+        ranges = [m for m in batch if isinstance(m, RangeEvent)]
+        if ranges:
+            self._record(ranges, fe, loc)
         lost: set[str] = set()
         unclear: set[str] = set()
         worst = 0.0
+        counts = self._outliers
         for r, q in self._seen.items():
             while q and q[0][0] < t - self.window:
-                q.popleft()
+                counts[r] -= q.popleft()[1]
             if len(q) < self.min_ranges:
                 continue
-            frac = sum(o for _, o in q) / len(q)
+            frac = counts[r] / len(q)
             worst = max(worst, frac)
             if frac > self.lost_fraction:
                 lost.add(r)
@@ -121,6 +112,68 @@ class DivergenceMonitor:
         self.healthy = not self.lost and worst < self.clear_fraction
         return lost
 
+    def _record(self, ranges: list[RangeEvent], fe: FilterEstimate, loc: Localizer) -> None:
+        """Judge each range of a batch and append ``(stamp, outlier)`` to both its robots'
+        records, in batch order. What a range's pair contributes that does not change (robot
+        rows, calibration, noise) is looked up once per pair and kept; the residuals and gates
+        of the whole batch are then one NumPy expression. The same operations as one range at a
+        time, in the same order (``math.hypot`` and Python's ``**``, whose last bits NumPy's
+        ``hypot`` and ``square`` do not always match), so the flags are identical."""
+        config = loc.config
+        if config is not self._config:
+            self._config, self._pairs = config, {}
+            self._rows = {r: k for k, r in enumerate(loc.layout.others)}
+        pairs, biases = self._pairs, fe.biases
+        rows: list[tuple[float, ...]] = []
+        names: list[str] = []
+        for m in ranges:
+            key = (m.robot_a, m.robot_b, m.node_a, m.node_b, m.corrected)
+            pair = pairs.get(key)
+            if pair is None:
+                pair = pairs[key] = self._pair(m, config)
+            row_a, row_b, bias, scale, sig2, bias_key = pair
+            if bias_key is not None:
+                pair_bias = biases.get(bias_key)
+                if pair_bias is not None:
+                    bias = pair_bias[0]
+            rows.append((row_a, row_b, m.distance, bias, scale, sig2))
+            names += (m.robot_a, m.robot_b)
+        a = np.array(rows)
+        ia, ib = a[:, 0].astype(np.intp), a[:, 1].astype(np.intp)
+        # The reference is the last row: at the origin, no spread.
+        floor = float(getattr(loc.filter, "covariance_floor", 0.0))
+        n = fe.mean.shape[0]
+        pos = np.zeros((n + 1, 2))
+        pos[:n] = fe.mean
+        var = np.zeros(n + 1)
+        spread = 0.5 * (fe.cov[:, 0, 0] + fe.cov[:, 1, 1]) - floor
+        var[:n] = np.where(spread < 0.0, 0.0, spread)  # max(spread, 0.0); NaN stays, as with max
+        dx, dy = (pos[ia, 0] - pos[ib, 0]).tolist(), (pos[ia, 1] - pos[ib, 1]).tolist()
+        distance = np.array([math.hypot(x, y) for x, y in zip(dx, dy, strict=True)])
+        residual = (a[:, 2] - a[:, 3]) / a[:, 4] - distance
+        gate = 3.0 * np.sqrt(a[:, 5] + var[ia] + var[ib])
+        outlier = np.abs(residual) > np.where(gate > _GATE_M, gate, _GATE_M)  # max(_GATE_M, gate)
+        stamps = [m.t for m in ranges]
+        flags = outlier.tolist()
+        seen, counts = self._seen, self._outliers
+        for k, r in enumerate(names):  # both robots of range k // 2, in batch order
+            o = flags[k >> 1]
+            seen.setdefault(r, deque()).append((stamps[k >> 1], o))
+            counts[r] += o
+
+    def _pair(self, m: RangeEvent, config: TeamConfig) -> tuple[int, int, float, float, float, str | None]:
+        """What the monitor needs of a range's pair that its values do not change: its robots'
+        rows (the reference's is the last), the calibration's bias and scale, the range
+        variance, and the key of the pair's bias in the estimate (``None`` when corrected)."""
+        rows, ref = self._rows, len(self._rows)
+        nodes = config.range_nodes(m)
+        bias, scale, sigma = (0.0, 1.0, None) if m.corrected else config.uwb.calibration(*nodes)
+        sig = sigma if sigma is not None else config.filter.likelihood.sigma_uwb
+        return (
+            rows.get(m.robot_a, ref), rows.get(m.robot_b, ref), bias, scale, sig**2,
+            None if m.corrected else pair_key(*nodes),
+        )  # fmt: skip
+
     def onset(self, robots: set[str], since: float) -> float:
         """When the disagreement of ``robots``' ranges began, no earlier than ``since``: the
         change point of their outlier indicators ``o`` (a CUSUM: the stamp from which the sum
@@ -132,16 +185,6 @@ class DivergenceMonitor:
             return since
         gain = np.cumsum([(o - 0.5) for _, o in reversed(seen)])[::-1]  # suffix sums
         return seen[int(np.argmax(gain))][0] if gain.max() > 0.0 else since
-
-    @staticmethod
-    def _position(
-        robot: str, index: dict[str, int], fe: FilterEstimate, floor: float
-    ) -> tuple[tuple[float, float], float]:
-        k = index.get(robot)
-        if k is None:
-            return (0.0, 0.0), 0.0  # the reference
-        c = fe.cov[k]
-        return (float(fe.mean[k, 0]), float(fe.mean[k, 1])), max(float(0.5 * (c[0, 0] + c[1, 1])) - floor, 0.0)
 
 
 _GATE_M = 0.5

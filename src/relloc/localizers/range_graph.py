@@ -18,8 +18,9 @@ bump. So:
   all ranges of a batch in one sparse information-form EKF update per hypothesis, the
   hypotheses that motion contradicts pruned.
 * **Recovery**: when the divergence monitor finds it lost, the same start from the last
-  ``init_window`` of measurements, the hypotheses weighed by their closeness to the last
-  formation it trusted (as the sampled localizer re-anneals).
+  ``init_window`` of measurements since the divergence began (the base's onset, as the
+  sampled localizer re-anneals), the hypotheses weighed by their closeness to the last
+  formation it trusted; only where they place no robot are hypotheses re-injected instead.
 """
 
 from __future__ import annotations
@@ -31,7 +32,6 @@ import numpy as np
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
 from relloc.events import RangeEvent
-from relloc.filter.base import FilterEstimate
 from relloc.filter.graph_filter import RangeGraphFilter
 from relloc.filter.range_graph import orientation_hypotheses, shape_from_ranges, start_covariance
 from relloc.filter.ranges import RangeBatch
@@ -138,13 +138,14 @@ class RangeGraphLocalizer(FilterLocalizer):
         self.stats["graph_start_rms_mm"] = round(1000.0 * shape.rms)
         return True
 
-    def _recover(self, t: float, fe: FilterEstimate, lost: set[str]) -> None:
-        """Lost: the base's recovery (its counts, its bookkeeping of trusted formations and of
-        the monitor, and hypotheses re-injected about the estimate), then, where the last
-        ``init_window`` of measurements places the team, a start from their range graph in
-        its place, the hypotheses weighed by the last formation trusted before the loss."""
-        super()._recover(t, fe, lost)
-        recent = list(self._recent)
-        if recent and self._start_from(recent, self._good_formation(t - self.monitor.window)):
-            self._since_shape(recent)
-            self.stats["graph_restarts"] += 1
+    def _restart(self, recent: list[Measurement], reference: np.ndarray | None) -> bool:
+        """Recovery's restart (the base's :meth:`~FilterLocalizer._recover` does the
+        bookkeeping and picks ``recent``, the measurements since the divergence began): the
+        start from their range graph, the hypotheses weighed by the last trusted formation
+        ``reference``. False where they place no robot (the base then re-injects hypotheses
+        about the estimate)."""
+        if not self._start_from(recent, reference):
+            return False
+        self._since_shape(recent)
+        self.stats["graph_restarts"] += 1
+        return True
