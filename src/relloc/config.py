@@ -387,10 +387,11 @@ class AdaptiveConfig(_Checked):
     """Confidence ``1 - delta`` of that bound, in (0.5, 1)."""
     kld_bin: float = 0.2
     """Cell side (m) of the grid over the relative positions whose occupied cells are counted."""
-    mc_tolerance: float = 0.007
+    mc_tolerance: float = 0.01
     """Monte Carlo standard error (m) allowed for the published position along the posterior's
     widest direction: at least ``sigma^2 / (ess_threshold mc_tolerance^2)`` particles; 0: no
-    such floor."""
+    such floor. 0.01 with the ordered resampling and moment-matched kernel of an adaptive
+    filter (:mod:`relloc.filter.pf`), which drift less per particle (docs/adaptive-particles.md)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -28,6 +28,19 @@ The rule: KLD-sampling at resampling time
     times as many, so the count grows geometrically, resampling after resampling, back to the
     maximum.
 
+A Monte Carlo floor: the spread the grid cannot see
+    A posterior 0.5 m wide along one direction occupies few 0.2 m cells there, and Fox's bound
+    asks for a thousand particles or two; but the mean of a direction that the measurements
+    barely constrain is then carried by the particles themselves, and every resampling moves
+    it by a random amount that nothing pulls back (the drift of :mod:`relloc.filter.pf`). So
+    the count is at least ``sigma^2 / (ess_fraction tol^2)``: enough particles that the
+    Monte Carlo standard error of the published mean along the widest direction (``sigma``,
+    the published covariance's largest eigenvalue less the covariance floor) stays under
+    ``mc_tolerance`` at the ESS that triggers a resampling. The filter's ordered resampling
+    and moment-matched kernel (:mod:`relloc.filter.pf`) make that drift several times smaller
+    per particle, which is what the default tolerance of ``[filter.adaptive]`` is measured
+    with (docs/adaptive-particles.md, "The shortbag's 5x").
+
 Where the bound must not be trusted: keep the full count
     Binning cannot see what makes this posterior hard. While the orientation is unobservable
     the posterior is a ring; at a few thousand particles a long rest lets resampling narrow the
