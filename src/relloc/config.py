@@ -387,16 +387,20 @@ class AdaptiveConfig(_Checked):
     """Confidence ``1 - delta`` of that bound, in (0.5, 1)."""
     kld_bin: float = 0.2
     """Cell side (m) of the grid over the relative positions whose occupied cells are counted."""
-    mc_tolerance: float = 0.01
+    mc_tolerance: float = 0.007
     """Monte Carlo standard error (m) allowed for the published position along the posterior's
     widest direction: at least ``sigma^2 / (ess_threshold mc_tolerance^2)`` particles; 0: no
-    such floor. 0.01 with the ordered resampling and moment-matched kernel of an adaptive
-    filter (:mod:`relloc.filter.pf`), which drift less per particle (docs/adaptive-particles.md)."""
+    such floor."""
+    mc_tolerance_ordered: float = 0.012
+    """The same along the principal axis of a formation's positions, along which an adaptive
+    filter resamples in order (:mod:`relloc.filter.pf`: its mean drifts far less there per
+    particle); the other directions keep ``mc_tolerance``. 0: no ordered resampling and
+    ``mc_tolerance`` everywhere (the rule of session 5, draw for draw)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         _require(self, "filter.adaptive", at_least_one=("min_particles", "min_particles_no_kernel"), positive=("kld_epsilon", "kld_bin"),
-                 non_negative=("mc_tolerance",))
+                 non_negative=("mc_tolerance", "mc_tolerance_ordered"))
         if not 0.5 < self.kld_quantile < 1.0:
             raise ConfigError(f"filter.adaptive.kld_quantile must be in (0.5, 1), got {self.kld_quantile}")
 

@@ -113,6 +113,10 @@ class KldSampling:
     bin_size: float = 0.2
     mc_tolerance: float = 0.0
     ess_fraction: float = 0.5
+    mc_tolerance_ordered: float = 0.0
+    """The tolerance along the principal axis of a formation, along which the filter then
+    resamples in order (:mod:`relloc.filter.pf`); 0: no ordered resampling, ``mc_tolerance``
+    everywhere."""
 
     def __post_init__(self) -> None:
         if not 1 <= self.min_particles <= self.max_particles:
@@ -125,6 +129,16 @@ class KldSampling:
     @property
     def z(self) -> float:
         return NormalDist().inv_cdf(self.quantile)
+
+    @property
+    def ordered_share(self) -> float:
+        """The share of the principal axis's variance that the Monte Carlo floor still counts
+        when the resampling is ordered along it: ``(mc_tolerance / mc_tolerance_ordered)^2``
+        (at most 1). Sizing ``sigma_1^2 share`` to ``mc_tolerance`` is sizing ``sigma_1^2`` to
+        ``mc_tolerance_ordered``."""
+        if self.mc_tolerance <= 0.0 or self.mc_tolerance_ordered <= 0.0:
+            return 1.0
+        return min((self.mc_tolerance / self.mc_tolerance_ordered) ** 2, 1.0)
 
     def monte_carlo_bound(self, sigma: float) -> int:
         """Particles for a Monte Carlo standard error of the weighted mean below

@@ -52,8 +52,9 @@ Fewer particles, less Monte Carlo drift (a filter with an adaptive count)
     removes the two random moves of the mean that the method does not need:
 
     * it resamples *in order*: the systematic draw walks the particles sorted by their
-      projection on the weighted cloud's principal axis (the widest direction of the
-      ``2(N-1)``-dimensional positions: on a formation, its orientation about the reference),
+      projection on the principal axis of the dominant mode's weighted positions (the widest
+      direction of the ``2(N-1)``-dimensional cloud: on a formation, its orientation about
+      the reference),
       so the resampled cloud takes the quantiles of the weighted one along that axis and its
       mean moves by ``O(sigma / M)`` instead of ``O(sigma / sqrt(M))`` (sorted systematic
       resampling; the one-dimensional case of the ordered resampling of Gerber, Chopin &
@@ -64,8 +65,10 @@ Fewer particles, less Monte Carlo drift (a filter with an adaptive count)
       expectation (and their variance up to the draws' sample correlation with them).
 
     Each particle still moves as before; only the common part of the random moves, which
-    carries no information, is gone. A fixed count keeps the plain systematic draw and kernel,
-    draw for draw. Measured: docs/adaptive-particles.md.
+    carries no information, is gone. The count rule's Monte Carlo floor then counts only what
+    the order leaves of the principal axis's drift (:mod:`relloc.filter.adaptive`). A fixed count, a pair, a wide or multi-modal posterior
+    and ``mc_tolerance_ordered = 0`` keep the plain systematic draw and kernel, draw for draw.
+    Measured: docs/adaptive-particles.md.
 """
 
 from __future__ import annotations
@@ -151,6 +154,10 @@ class ParticleFilter(WeightedFilter):
         ``max_particles`` is the count of every (re-)annealed start."""
         if count_rule is not None and count_rule.max_particles != n_particles:
             raise ValueError("count_rule.max_particles must be n_particles (the full count)")
+        self._ordered = False
+        """Whether the last resampling was ordered (and its kernel moment-matched)."""
+        self._ordered_sigma = 0.0
+        """The spread (m) the Monte Carlo floor of an ordered resampling is sized for."""
         self.last_summary: ModeSummary | None = None
         """The summary of the last ``estimate`` since the last (re-)annealed start."""
         self.covariance_floor = 0.0
@@ -253,15 +260,31 @@ class ParticleFilter(WeightedFilter):
         return s is None or not s.orientation_observable or s.n_modes > 1 or self.kernel_paused
 
     def _resampling_order(self, w: FloatArray) -> IntArray | None:
-        """With a count rule, the particles sorted by their projection on the principal axis
-        of the weighted cloud of positions (module docstring: less drift of the mean along
-        the widest direction); with a fixed count ``None`` (stored order)."""
-        if self.count_rule is None:
+        """With a count rule that allows for it (``mc_tolerance_ordered``), on a formation
+        whose posterior is one observable mode: the
+        particles sorted by their projection on the principal axis of the dominant mode's
+        weighted positions (module docstring: less drift of the mean along the widest
+        direction); else ``None`` (stored order). Also sets the spread the Monte Carlo floor
+        is then sized for (``_ordered_sigma``)."""
+        self._ordered = False
+        rule = self.count_rule
+        if rule is None or rule.mc_tolerance_ordered <= 0.0 or self.layout.n_others < 2 or self.posterior_wide:
             return None
+        s = self.last_summary
+        wm = w * s.members if s is not None and s.members.shape == w.shape else w
+        wm = wm / wm.sum()
         x = self.particles[:, : self.layout.dim]
-        xc = x - np.einsum("m,md->d", w, x)
-        cov = (xc * w[:, None]).T @ xc  # a (D, M) x (M, D) product: BLAS, no stall
-        axis = np.linalg.eigh(cov)[1][:, -1]
+        xc = x - np.einsum("m,md->d", wm, x)
+        cov = (xc * wm[:, None]).T @ xc  # a (D, M) x (M, D) product: BLAS, no stall
+        lam, vec = np.linalg.eigh(cov)
+        axis = vec[:, -1]
+        # What the ordered draw leaves of the principal axis's drift (rule.ordered_share), and
+        # all of every other direction's; per robot, the widest of that.
+        residual = cov - (1.0 - rule.ordered_share) * lam[-1] * np.outer(axis, axis)
+        k = np.arange(self.layout.n_others)
+        blocks = residual.reshape(k.size, 2, k.size, 2)[k, :, k, :]
+        self._ordered_sigma = math.sqrt(max(float(np.linalg.eigvalsh(blocks).max()), 0.0))
+        self._ordered = True
         return np.argsort(np.einsum("md,d->m", xc, axis), kind="stable")
 
     def _resampled_size(self, idx: IntArray) -> int:
@@ -272,7 +295,8 @@ class ParticleFilter(WeightedFilter):
         if self.posterior_wide:
             return self.count_rule.max_particles
         kept = np.flatnonzero(np.bincount(idx, minlength=self.n))  # idx follows the resampling order
-        return self.count_rule.size(self.particles[kept, : self.layout.dim], wide=False, sigma=self.widest_std())
+        sigma = self._ordered_sigma if self._ordered else self.widest_std()
+        return self.count_rule.size(self.particles[kept, : self.layout.dim], wide=False, sigma=sigma)
 
     def widest_std(self) -> float:
         """Standard deviation (m) of the last summary's widest direction: the largest
@@ -318,7 +342,7 @@ class ParticleFilter(WeightedFilter):
         a = np.sqrt(1.0 - h)
         turn = np.zeros(self.particles.shape[0])
         eps = self.rng.standard_normal(dc.size)
-        if self.count_rule is not None and dc.size > 1:
+        if self._ordered and dc.size > 1:
             # Moment-matched (module docstring): the mean kept exactly, not only in
             # expectation, so that the kernel adds no drift to the orientation.
             eps -= eps.mean()
