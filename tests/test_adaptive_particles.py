@@ -170,6 +170,7 @@ def test_the_adaptive_keys_are_validated() -> None:
         {"kld_bin": -0.1},
         {"kld_quantile": 1.0},
         {"mc_tolerance": -1.0},
+        {"mc_tolerance_ordered": -0.01},
         {"particle_count": "ess"},
         {"min_particle": 10},
     ):
@@ -180,7 +181,9 @@ def test_the_adaptive_keys_are_validated() -> None:
     sim = multi_scenario(seed=0, duration=1.0)
     config = sim.config.with_filter(particles=1500)
     team = StateLayout(config.robot_names, config.reference)
-    assert count_rule(config, team) == KldSampling(1500, 1500, mc_tolerance=0.007, mc_tolerance_ordered=0.012)
+    assert count_rule(config, team) == KldSampling(1500, 1500, mc_tolerance=0.007)
+    ordered = config.with_filter(mc_tolerance_ordered=0.012)
+    assert count_rule(ordered, team) == KldSampling(1500, 1500, mc_tolerance=0.007, mc_tolerance_ordered=0.012)
     big = config.with_filter(particles=30_000)
     assert count_rule(big, team).min_particles == 2000
     pair = StateLayout(config.robot_names[:2], config.robot_names[0])
