@@ -36,10 +36,14 @@ A Monte Carlo floor: the spread the grid cannot see
     the count is at least ``sigma^2 / (ess_fraction tol^2)``: enough particles that the
     Monte Carlo standard error of the published mean along the widest direction (``sigma``,
     the published covariance's largest eigenvalue less the covariance floor) stays under
-    ``mc_tolerance`` at the ESS that triggers a resampling. The filter's ordered resampling
-    and moment-matched kernel (:mod:`relloc.filter.pf`) make that drift several times smaller
-    per particle, which is what the default tolerance of ``[filter.adaptive]`` is measured
-    with (docs/adaptive-particles.md, "The shortbag's 5x").
+    ``mc_tolerance`` at the ESS that triggers a resampling.
+
+    With ``mc_tolerance_ordered`` (off by default) the filter resamples a formation in order
+    along its principal axis and moment-matches its orientation kernel (:mod:`relloc.filter.pf`),
+    which makes the drift along that axis several times smaller per particle; the floor then
+    sizes that axis to ``mc_tolerance_ordered`` and every other direction to ``mc_tolerance``
+    (:attr:`KldSampling.ordered_share`). Measured, with why it is off by default:
+    docs/adaptive-particles.md, "The shortbag's 5x".
 
 Where the bound must not be trusted: keep the full count
     Binning cannot see what makes this posterior hard. While the orientation is unobservable
