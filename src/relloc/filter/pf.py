@@ -48,15 +48,16 @@ Fewer particles, less Monte Carlo drift (a filter with an adaptive count)
     What a small count loses on such a weakly observed direction is not the precision of one
     estimate but a drift: every resampling moves the cloud's mean along it by a random amount
     of order ``sigma / sqrt(M)`` (``sigma`` the posterior's spread along it), the ranges do not
-    pull it back, and the moves add up over the run. A filter with a count rule therefore
-    removes the two random moves of the mean that the method does not need:
+    pull it back, and the moves add up over the run. A filter with a count rule that sets
+    ``mc_tolerance_ordered`` (off by default) therefore removes, on a formation whose
+    posterior is one observable mode, the two random moves of the mean that the method does
+    not need:
 
     * it resamples *in order*: the systematic draw walks the particles sorted by their
       projection on the principal axis of the dominant mode's weighted positions (the widest
       direction of the ``2(N-1)``-dimensional cloud: on a formation, its orientation about
-      the reference),
-      so the resampled cloud takes the quantiles of the weighted one along that axis and its
-      mean moves by ``O(sigma / M)`` instead of ``O(sigma / sqrt(M))`` (sorted systematic
+      the reference), so the resampled cloud takes the quantiles of the weighted one along
+      that axis and its mean moves by ``O(sigma / M)`` instead of ``O(sigma / sqrt(M))`` (sorted systematic
       resampling; the one-dimensional case of the ordered resampling of Gerber, Chopin &
       Whiteley, 2019, "Negative association, ordering and convergence of resampling methods",
       Annals of Statistics 47);
@@ -66,9 +67,10 @@ Fewer particles, less Monte Carlo drift (a filter with an adaptive count)
 
     Each particle still moves as before; only the common part of the random moves, which
     carries no information, is gone. The count rule's Monte Carlo floor then counts only what
-    the order leaves of the principal axis's drift (:mod:`relloc.filter.adaptive`). A fixed count, a pair, a wide or multi-modal posterior
-    and ``mc_tolerance_ordered = 0`` keep the plain systematic draw and kernel, draw for draw.
-    Measured: docs/adaptive-particles.md.
+    the order leaves of the principal axis's drift (:mod:`relloc.filter.adaptive`). A fixed
+    count, a pair, a wide or multi-modal posterior and ``mc_tolerance_ordered = 0`` keep the
+    plain systematic draw and kernel, draw for draw. Measured, and why it is off by default
+    (it costs accuracy through transients): docs/adaptive-particles.md, "The shortbag's 5x".
 """
 
 from __future__ import annotations
@@ -261,11 +263,10 @@ class ParticleFilter(WeightedFilter):
 
     def _resampling_order(self, w: FloatArray) -> IntArray | None:
         """With a count rule that allows for it (``mc_tolerance_ordered``), on a formation
-        whose posterior is one observable mode: the
-        particles sorted by their projection on the principal axis of the dominant mode's
-        weighted positions (module docstring: less drift of the mean along the widest
-        direction); else ``None`` (stored order). Also sets the spread the Monte Carlo floor
-        is then sized for (``_ordered_sigma``)."""
+        whose posterior is one observable mode: the particles sorted by their projection on
+        the principal axis of the dominant mode's weighted positions (module docstring: less
+        drift of the mean along the widest direction); else ``None`` (stored order). Also
+        sets the spread the Monte Carlo floor is then sized for (``_ordered_sigma``)."""
         self._ordered = False
         rule = self.count_rule
         if rule is None or rule.mc_tolerance_ordered <= 0.0 or self.layout.n_others < 2 or self.posterior_wide:
@@ -324,8 +325,8 @@ class ParticleFilter(WeightedFilter):
         """Liu-West kernel along the formation's orientation on equally weighted particles:
         turn each particle of the main mode from ``theta`` to
         ``a theta + (1 - a) mean + sqrt(h) std eps`` (``a = sqrt(1 - h)``), keeping the mean and
-        variance of the orientations (the mean exactly under a count rule: moment-matched noise).
-        Particles farther than 4 robust stds from the mode (other
+        variance of the orientations (the mean exactly after an ordered resampling:
+        moment-matched noise). Particles farther than 4 robust stds from the mode (other
         modes, re-injected ones) are left alone. Returns False (and does nothing) when the
         orientations do not form one mode narrower than ``rotation_kernel_max_spread``, or
         when there is no formation (a single non-reference robot)."""
