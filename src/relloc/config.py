@@ -397,11 +397,18 @@ class AdaptiveConfig(_Checked):
     """Monte Carlo standard error (m) allowed for the published position along the posterior's
     widest direction: at least ``sigma^2 / (ess_threshold mc_tolerance^2)`` particles; 0: no
     such floor."""
+    mc_tolerance_ordered: float = 0.0
+    """The same along the principal axis of a formation's positions, along which an adaptive
+    filter resamples in order (:mod:`relloc.filter.pf`: its mean drifts far less there per
+    particle); the other directions keep ``mc_tolerance``. 0 (the default): no ordered
+    resampling and ``mc_tolerance`` everywhere (the rule of session 5, draw for draw). 0.012
+    gives the shortbag's 5x at its APE, but costs demo ``multi`` 0.005 m over seeds and the
+    shortbag's silence test its bound (docs/adaptive-particles.md, "The shortbag's 5x")."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         _require(self, "filter.adaptive", at_least_one=("min_particles", "min_particles_no_kernel"), positive=("kld_epsilon", "kld_bin"),
-                 non_negative=("mc_tolerance",))
+                 non_negative=("mc_tolerance", "mc_tolerance_ordered"))
         if not 0.5 < self.kld_quantile < 1.0:
             raise ConfigError(f"filter.adaptive.kld_quantile must be in (0.5, 1), got {self.kld_quantile}")
 

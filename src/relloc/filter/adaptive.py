@@ -28,6 +28,23 @@ The rule: KLD-sampling at resampling time
     times as many, so the count grows geometrically, resampling after resampling, back to the
     maximum.
 
+A Monte Carlo floor: the spread the grid cannot see
+    A posterior 0.5 m wide along one direction occupies few 0.2 m cells there, and Fox's bound
+    asks for a thousand particles or two; but the mean of a direction that the measurements
+    barely constrain is then carried by the particles themselves, and every resampling moves
+    it by a random amount that nothing pulls back (the drift of :mod:`relloc.filter.pf`). So
+    the count is at least ``sigma^2 / (ess_fraction tol^2)``: enough particles that the
+    Monte Carlo standard error of the published mean along the widest direction (``sigma``,
+    the published covariance's largest eigenvalue less the covariance floor) stays under
+    ``mc_tolerance`` at the ESS that triggers a resampling.
+
+    With ``mc_tolerance_ordered`` (off by default) the filter resamples a formation in order
+    along its principal axis and moment-matches its orientation kernel (:mod:`relloc.filter.pf`),
+    which makes the drift along that axis several times smaller per particle; the floor then
+    sizes that axis to ``mc_tolerance_ordered`` and every other direction to ``mc_tolerance``
+    (:attr:`KldSampling.ordered_share`). Measured, with why it is off by default:
+    docs/adaptive-particles.md, "The shortbag's 5x".
+
 Where the bound must not be trusted: keep the full count
     Binning cannot see what makes this posterior hard. While the orientation is unobservable
     the posterior is a ring; at a few thousand particles a long rest lets resampling narrow the
@@ -100,6 +117,10 @@ class KldSampling:
     bin_size: float = 0.2
     mc_tolerance: float = 0.0
     ess_fraction: float = 0.5
+    mc_tolerance_ordered: float = 0.0
+    """The tolerance along the principal axis of a formation, along which the filter then
+    resamples in order (:mod:`relloc.filter.pf`); 0: no ordered resampling, ``mc_tolerance``
+    everywhere."""
 
     def __post_init__(self) -> None:
         if not 1 <= self.min_particles <= self.max_particles:
@@ -112,6 +133,16 @@ class KldSampling:
     @property
     def z(self) -> float:
         return NormalDist().inv_cdf(self.quantile)
+
+    @property
+    def ordered_share(self) -> float:
+        """The share of the principal axis's variance that the Monte Carlo floor still counts
+        when the resampling is ordered along it: ``(mc_tolerance / mc_tolerance_ordered)^2``
+        (at most 1). Sizing ``sigma_1^2 share`` to ``mc_tolerance`` is sizing ``sigma_1^2`` to
+        ``mc_tolerance_ordered``."""
+        if self.mc_tolerance <= 0.0 or self.mc_tolerance_ordered <= 0.0:
+            return 1.0
+        return min((self.mc_tolerance / self.mc_tolerance_ordered) ** 2, 1.0)
 
     def monte_carlo_bound(self, sigma: float) -> int:
         """Particles for a Monte Carlo standard error of the weighted mean below

@@ -137,13 +137,15 @@ class WeightedFilter:
 
     def resample(self) -> None:
         """Systematic resampling (to the size :meth:`_resampled_size` asks for: the same, but
-        for an adaptive particle count), then a ``reinject_fraction`` of the slots re-drawn
+        for an adaptive particle count; walking the hypotheses in the order
+        :meth:`_resampling_order` gives), then a ``reinject_fraction`` of the slots re-drawn
         from the prior box; equal weights."""
         w = np.exp(self.logw)
-        idx = systematic_resample(w, self.rng)
+        order = self._resampling_order(w)
+        idx = systematic_resample(w, self.rng, order=order)
         n = self._resampled_size(idx)
         if n != self.n:
-            idx = systematic_resample(w, self.rng, n)
+            idx = systematic_resample(w, self.rng, n, order=order)
             self.n = n
         self._select(idx)
         slots = reinjection_slots(self.n, self.reinject_fraction, self.rng)
@@ -174,6 +176,11 @@ class WeightedFilter:
         self.logw = np.full(self.n, -math.log(self.n))
         self.resample_count += 1
         return slots
+
+    def _resampling_order(self, w: FloatArray) -> IntArray | None:
+        """The order in which the systematic resampling walks the hypotheses (``None``: as they
+        are stored)."""
+        return None
 
     def _resampled_size(self, idx: IntArray) -> int:
         """How many hypotheses a resampling keeps, given the systematic draw ``idx`` at the

@@ -70,6 +70,7 @@ def count_rule(config: TeamConfig, layout: StateLayout) -> KldSampling | None:
     return KldSampling(
         min(floor, fc.particles), fc.particles, epsilon=ac.kld_epsilon, quantile=ac.kld_quantile,
         bin_size=ac.kld_bin, mc_tolerance=ac.mc_tolerance, ess_fraction=fc.resampling.ess_threshold,
+        mc_tolerance_ordered=ac.mc_tolerance_ordered,
     )
 
 
