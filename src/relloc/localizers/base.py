@@ -467,7 +467,6 @@ class Localizer:
         self.last_estimate = est
         return est
 
-
     def _unseen(self, t: float) -> dict[str, float]:
         """Robots nothing is heard of at ``t``, with the seconds their motion has been unknown
         (see :attr:`Estimate.unseen`); none for a localizer that does not track ranges."""
@@ -574,9 +573,10 @@ class FilterLocalizer(Localizer):
         """The filter is lost: start it again (:meth:`_restart`, for a particle filter the
         annealed start of :mod:`relloc.localizers.start`) from the recent measurements since
         the disagreement began (:meth:`DivergenceMonitor.onset`: a burst's ranges are not
-        fused with the clean ones after it), and give the new shape the orientation and handedness of the last
-        trusted formation, moved to now by odometry (:func:`~relloc.localizers.start.orient_by`):
-        the ranges fix the shape, dead reckoning from before the loss the orientation. Nothing
+        fused with the clean ones after it), and give the new shape the orientation and
+        handedness of the last trusted formation, moved to now by odometry
+        (:func:`~relloc.localizers.start.orient_by`): the ranges fix the shape, dead
+        reckoning from before the loss the orientation. Nothing
         estimated within a monitor window before the loss, or within ``_TRUST_HOLD`` after a
         restart, is trusted. A filter that cannot be re-annealed instead gets hypotheses
         re-injected about its estimate, the lost robots' positions scattered
