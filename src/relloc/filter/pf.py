@@ -57,10 +57,10 @@ Fewer particles, less Monte Carlo drift (a filter with an adaptive count)
       projection on the principal axis of the dominant mode's weighted positions (the widest
       direction of the ``2(N-1)``-dimensional cloud: on a formation, its orientation about
       the reference), so the resampled cloud takes the quantiles of the weighted one along
-      that axis and its mean moves by ``O(sigma / M)`` instead of ``O(sigma / sqrt(M))`` (sorted systematic
-      resampling; the one-dimensional case of the ordered resampling of Gerber, Chopin &
-      Whiteley, 2019, "Negative association, ordering and convergence of resampling methods",
-      Annals of Statistics 47);
+      that axis and its mean moves by ``O(sigma / M)`` instead of ``O(sigma / sqrt(M))``
+      (sorted systematic resampling; the one-dimensional case of the ordered resampling of
+      Gerber, Chopin & Whiteley, 2019, "Negative association, ordering and convergence of
+      resampling methods", Annals of Statistics 47);
     * its orientation kernel draws moment-matched noise (the draws centred and scaled to unit
       sample variance), so that the kernel keeps the orientations' mean exactly, not only in
       expectation (and their variance up to the draws' sample correlation with them).
