@@ -22,8 +22,8 @@ from relloc.faults import FaultInjector, Faults
 from relloc.live import LiveServer, ServeOptions, event_messages, simulated_team
 from relloc.methods import build_pipeline
 from relloc.ros.interfaces import encode_sent_time
-from relloc.ros.messages import encode, odometry_msg, range_msg
-from relloc.sources.zenoh_source import ZenohSource, header_stamp
+from relloc.ros.messages import encode, header_stamp_from_cdr, odometry_msg, range_msg
+from relloc.sources.zenoh_source import ZenohSource
 
 T0 = 1_700_000_000.0
 
@@ -135,11 +135,18 @@ def test_events_let_wait_never_make_an_estimate(faults: Faults) -> None:
 
 
 # ---------------------------------------------------------------------------- the source
-def test_header_stamp_reads_the_decoders_stamp() -> None:
-    assert header_stamp(odom_payload("a", T0 + 0.123456789)) == pytest.approx(T0 + 0.123456789, abs=1e-9)
-    assert header_stamp(range_payload(T0 + 2.5)) == T0 + 2.5
-    assert header_stamp(b"\x00\x01\x00\x00abc") == 0.0  # too short
-    assert header_stamp(b"\x07\x01" + bytes(20)) == 0.0  # not CDR
+def test_the_wake_rule_judges_the_header_stamp_the_decoder_reads() -> None:
+    """The callback's inlined stamp read is ``header_stamp_from_cdr``'s, to the last bit: a
+    message stamped exactly at the rule's bound wakes the engine, one a microsecond before
+    does not; bytes that are no CDR header wake it (judged by the decoder later)."""
+    src = ZenohSource(team())
+    for key, payload in (("a/odom", odom_payload("a", T0 + 0.123456789)), ("uwb/tof/n_1/n_2/distance", range_payload(T0 + 2.5))):
+        t = header_stamp_from_cdr(payload)
+        odometry = key.endswith("odom")
+        at = WakeRule(-math.inf if odometry else t, t if odometry else math.inf, T0 - 5.0, T0 + 5.0)
+        before = WakeRule(*(b + 1e-6 if math.isfinite(b) and b == t else b for b in at))
+        assert src._urgent(at, key, payload, 0.0) and not src._urgent(before, key, payload, 0.0)
+    assert src._urgent(WakeRule(math.inf, math.inf, T0 - 5.0, T0 + 5.0), "a/odom", b"\x07\x01" + bytes(20), 0.0)
 
 
 def test_source_wakes_only_for_urgent_messages_and_keeps_arrival_order() -> None:

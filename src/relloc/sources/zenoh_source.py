@@ -226,17 +226,9 @@ class ZenohSourceOptions:
 
 
 _STAMP = {0: struct.Struct(">iI"), 1: struct.Struct("<iI")}
-"""The header stamp after the 4-byte CDR encapsulation header (big-, little-endian)."""
-
-
-def header_stamp(payload: bytes | bytearray | memoryview) -> float:
-    """The header stamp (s) of a CDR message that starts with a ``std_msgs/Header`` (odometry,
-    ranges, detections), read without decoding it; ``0.0`` if the bytes do not look like one.
-    The decoders' arithmetic: for a well-formed message, the stamp they return."""
-    if len(payload) < 12 or payload[0] != 0 or payload[1] > 1:
-        return 0.0
-    sec, nanosec = _STAMP[payload[1]].unpack_from(payload, 4)
-    return float(sec + nanosec * 1e-9)
+"""The header stamp after the 4-byte CDR encapsulation header (big-, little-endian), keyed by
+the header's second byte: what :func:`relloc.ros.messages.header_stamp_from_cdr` reads, inlined
+in :meth:`ZenohSource._urgent` (Zenoh's threads, every message)."""
 
 
 _RESTAMP_MARGIN = 0.02
