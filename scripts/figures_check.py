@@ -1,0 +1,96 @@
+"""Run the figures that a refactor must leave unchanged and write each run's JSON to one folder.
+
+    .venv/bin/python scripts/figures_check.py --out out/figures-before
+    .venv/bin/python scripts/figures_check.py --out out/figures-after --compare out/figures-before
+
+The runs: `relloc demo --seed 0`, the self-calibration demo, the TIERS shortbag seeds 0-4,
+`pair_range` with calibrated and online biases, and MRCLAM Dataset 6. Wall and compute times are
+dropped before comparing; every other field must be equal.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+TIMING_KEYS = {"compute_s", "wall_s", "elapsed_s", "cpu_s", "seconds"}
+
+
+def runs(data: Path) -> dict[str, list[str]]:
+    tiers = data / "tiers"
+    shortbag = ["run", str(tiers / "multi4_shortbag_20221011"),
+                "--config", "configs/tiers/multi4_shortbag_20221011.toml", "--methods", "pf"]
+    pair = ["run", str(tiers / "pair_range_20220907_1725"),
+            "--config", "configs/tiers/pair_range_20220907_1725.toml", "--warmup", "10"]
+    table = {
+        "demo": ["demo", "--seed", "0"],
+        "demo_selfcal": ["demo", "--seed", "0", "--heading", "estimate", "--bias", "online",
+                         "--warmup", "20", "--scenarios", "multi"],
+        "pair_range": pair,
+        "pair_range_online": [*pair, "--bias", "online"],
+        "mrclam6": ["run", str(data / "mrclam" / "MRCLAM_Dataset6"),
+                    "--config", "configs/mrclam/dataset6.toml", "--methods", "pf",
+                    "--warmup", "30"],
+    }
+    for seed in range(5):
+        table[f"shortbag_seed{seed}"] = [*shortbag, "--seed", str(seed)]
+    return table
+
+
+def strip(value: object) -> object:
+    if isinstance(value, dict):
+        return {k: strip(v) for k, v in value.items() if k not in TIMING_KEYS}
+    if isinstance(value, list):
+        return [strip(v) for v in value]
+    return value
+
+
+def run_one(name: str, argv: list[str], out: Path) -> str:
+    json_path = out / f"{name}.json"
+    cmd = [sys.executable, "-m", "relloc.cli", *argv, "--no-progress",
+           "--out", str(out / name), "--json", str(json_path)]
+    done = subprocess.run(cmd, capture_output=True, text=True)
+    if done.returncode != 0:
+        return f"{name}: exit {done.returncode}\n{done.stderr[-2000:]}"
+    return f"{name}: ok"
+
+
+def compare(a: Path, b: Path) -> int:
+    bad = 0
+    for path in sorted(a.glob("*.json")):
+        other = b / path.name
+        if not other.exists():
+            print(f"{path.stem}: missing in {b}")
+            bad += 1
+            continue
+        same = strip(json.loads(path.read_text())) == strip(json.loads(other.read_text()))
+        print(f"{path.stem}: {'identical' if same else 'DIFFERENT'}")
+        bad += not same
+    return bad
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=Path("../shared/data"))
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--compare", type=Path, default=None, help="a folder of an earlier run")
+    parser.add_argument("--only", default=None, help="comma-separated run names")
+    parser.add_argument("--jobs", type=int, default=2)
+    args = parser.parse_args()
+    args.out.mkdir(parents=True, exist_ok=True)
+    table = runs(args.data)
+    if args.only:
+        table = {k: v for k, v in table.items() if k in args.only.split(",")}
+    with ThreadPoolExecutor(args.jobs) as pool:
+        for line in pool.map(lambda kv: run_one(*kv, args.out), table.items()):
+            print(line, flush=True)
+    if args.compare is not None:
+        sys.exit(1 if compare(args.compare, args.out) else 0)
+
+
+if __name__ == "__main__":
+    main()
