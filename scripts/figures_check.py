@@ -5,7 +5,8 @@
 
 The runs: `relloc demo --seed 0`, the self-calibration demo, the TIERS shortbag seeds 0-4,
 `pair_range` with calibrated and online biases, and MRCLAM Dataset 6. Wall and compute times are
-dropped before comparing; every other field must be equal.
+dropped before comparing; every other field, and every TUM trajectory file byte for byte, must
+be equal.
 """
 
 from __future__ import annotations
@@ -68,7 +69,12 @@ def compare(a: Path, b: Path) -> int:
             bad += 1
             continue
         same = strip(json.loads(path.read_text())) == strip(json.loads(other.read_text()))
-        print(f"{path.stem}: {'identical' if same else 'DIFFERENT'}")
+        tum = sorted((a / path.stem).glob("**/*.txt"))
+        differ = [t.name for t in tum
+                  if not (b / t.relative_to(a)).exists() or t.read_bytes() != (b / t.relative_to(a)).read_bytes()]
+        same = same and not differ
+        detail = f" (TUM files differ: {', '.join(differ)})" if differ else f" ({len(tum)} TUM files)"
+        print(f"{path.stem}: {'identical' if same else 'DIFFERENT'}{detail}")
         bad += not same
     return bad
 
