@@ -166,7 +166,7 @@ def test_a_followed_clock_step_moves_every_remembered_time_with_it() -> None:
                 paused_after.append(loc.filter.kernel_paused)
     assert loc.stats["clock_jumps_followed"] == 1
     assert paused_after and not any(paused_after)
-    assert loc._split_at < loc.t and loc.monitor._restarted <= loc.t
+    assert loc.heard.split_at < loc.t and loc.recovery.monitor._restarted <= loc.t
 
 
 # ---------------------------------------------------------------- odometry

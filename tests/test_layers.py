@@ -63,3 +63,70 @@ def test_no_import_reaches_a_higher_layer(path: Path) -> None:
         m for m in _imports(path) if (part := _part(m)) is not None and part in LAYER_OF and LAYER_OF[part] > own
     )
     assert not higher, f"{path.relative_to(SRC)} (layer {own + 1}) imports {higher}"
+
+
+def _module(path: Path) -> str:
+    parts = ("relloc", *path.relative_to(SRC).with_suffix("").parts)
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+
+
+PACKAGE = {_module(p): p for p in SRC.rglob("*.py")}
+
+
+def _edges(path: Path) -> set[str]:
+    """The package's modules that ``path`` imports (``from relloc.a import b`` names module
+    ``relloc.a.b`` where that is one, else ``relloc.a``), inside functions and
+    ``TYPE_CHECKING`` blocks too."""
+    out: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Import):
+            out.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            out.update(f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in PACKAGE else node.module for a in node.names)
+    return out & PACKAGE.keys()
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (or a module importing
+    itself), by Tarjan's algorithm: every import cycle lies within one."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    out: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on_stack.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on_stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            component = []
+            while True:
+                w = stack.pop()
+                on_stack.discard(w)
+                component.append(w)
+                if w == v:
+                    break
+            if len(component) > 1 or v in graph[v]:
+                out.append(sorted(component))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_package_has_no_import_cycle() -> None:
+    graph = {module: _edges(path) for module, path in PACKAGE.items()}
+    assert _cycles(graph) == []
+
+
+def test_the_cycle_check_finds_a_cycle() -> None:
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}, "e": {"e"}}
+    assert _cycles(graph) == [["a", "b", "c"], ["e"]]

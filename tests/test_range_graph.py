@@ -217,15 +217,15 @@ def test_the_recovery_restarts_once_from_the_ranges_since_the_onset() -> None:
     loc = RangeGraphLocalizer(sim.config)
     for ev in sim.events():
         loc.process(ev)
-    recent = list(loc._recent)
+    recent = list(loc.recovery.recent)
     onset = 0.5 * (recent[0].t + loc.t)
-    loc._recent.clear()
+    loc.recovery.recent.clear()
     for m in recent:
         faulty = isinstance(m, RangeEvent) and m.t < onset and "r5" in (m.robot_a, m.robot_b)
-        loc._recent.append(replace(m, distance=m.distance + 3.0) if faulty else m)
-    loc.monitor.onset = lambda robots, since: onset  # type: ignore[method-assign]
+        loc.recovery.recent.append(replace(m, distance=m.distance + 3.0) if faulty else m)
+    loc.recovery.monitor.onset = lambda robots, since: onset  # type: ignore[method-assign]
     state = loc.rng.bit_generator.state
-    loc._recover(loc.t, loc.filter.estimate(), {"r5"})
+    loc.recovery.recover(loc.t, loc.filter.estimate(), {"r5"}, loc.filter, loc._restart)
     assert loc.stats["recovery_injections"] == loc.stats["graph_restarts"] == 1
     assert loc.stats["graph_start_rms_mm"] < 150
     assert loc.rng.bit_generator.state == state

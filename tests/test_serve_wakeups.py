@@ -78,16 +78,16 @@ def test_localizer_rule_follows_the_batching_grid() -> None:
     assert loc.wake_rule() == WAKE_ALWAYS  # the warm-up: the clock is not set
     events = [e for e in sim.events() if isinstance(e, OdometryEvent | RangeEvent)]
     k = 0
-    while not loc._pending or loc._clock == -math.inf:
+    while not loc.grid.pending or loc.clock.now == -math.inf:
         loc.process(events[k])
         k += 1
     period = config.filter.update_period
-    cell = math.floor(loc._batch_start / period)
+    cell = math.floor(loc.grid.start / period)
     rule = loc.wake_rule()
     assert rule.measurement_from == pytest.approx((cell + 1) * period, abs=1e-4)
     assert rule.odometry_from == pytest.approx((cell + 2) * period, abs=1e-4)
-    assert rule.urgent(loc._clock + config.filter.max_time_jump + 0.1, odometry=True)
-    loc._pending.clear()  # nothing pending: every measurement opens a batch, no odometry fuses
+    assert rule.urgent(loc.clock.now + config.filter.max_time_jump + 0.1, odometry=True)
+    loc.grid.pending.clear()  # nothing pending: every measurement opens a batch, no odometry fuses
     rule = loc.wake_rule()
     assert rule.measurement_from == -math.inf and rule.odometry_from == math.inf
 

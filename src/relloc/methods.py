@@ -17,7 +17,7 @@ from pathlib import Path
 
 from relloc.config import TeamConfig
 from relloc.engine import Pipeline, Stage
-from relloc.localizers.base import FilterLocalizer
+from relloc.localizers.filtered import FilterLocalizer
 from relloc.localizers.multilateration import MultilaterationLocalizer
 from relloc.localizers.range_graph import RangeGraphLocalizer, suits_range_graph
 from relloc.localizers.sampled import ParticleFilterLocalizer

@@ -17,8 +17,12 @@ a Kalman filter) and run the same cycle, which is all a localizer calls:
     ``ess_threshold * M``), re-drawing a ``reinject_fraction`` of the hypotheses from the
     uniform prior box so that a filter locked on a wrong mode can still find the right one.
 
-``inject(formations)`` (recovery) restarts some hypotheses at given formations, for a
-localizer that found the filter lost (:class:`relloc.localizers.divergence.DivergenceMonitor`).
+A localizer that found the filter lost (:class:`relloc.localizers.divergence.DivergenceMonitor`)
+calls ``restart(recent, reference, context)``: start again from the recent measurements,
+oriented by a trusted formation (a particle filter re-anneals); where a filter cannot (the
+default), it calls ``inject(formations)``, which restarts some hypotheses at given formations.
+``pause_kernel(paused)`` tells a filter that moves the formation's orientation on its own (the
+particle filter's kernel) whether the formation is one rigid body now; the others ignore it.
 
 :class:`WeightedFilter` implements the weights, the resampling schedule and the re-injection
 once; a filter supplies how to copy hypotheses (``_select``) and how to re-draw some from its
@@ -30,6 +34,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -39,6 +44,9 @@ from relloc.filter.motion import PriorBox
 from relloc.filter.resampling import ess, log_normalize, reinjection_slots, systematic_resample
 from relloc.filter.state import TeamLayout
 from relloc.filter.summary import ModeSummary
+
+if TYPE_CHECKING:
+    from relloc.filter.annealing import StartContext
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -123,6 +131,18 @@ class WeightedFilter:
     def counters(self) -> dict[str, int]:
         """Running counts of the filter's own events, for the localizer's statistics."""
         return {}
+
+    # ---------------------------------------------------------------- recovery hooks
+    def restart(self, recent: list[Any], reference: FloatArray | None, context: StartContext) -> bool:
+        """Start again from ``recent`` (the measurements since the filter got lost), oriented
+        by the ``reference`` formation (relative positions ``(2(N-1),)``; ``None``: none
+        trusted), the models built by ``context``; False if the filter cannot (this default:
+        the localizer then re-injects hypotheses, :meth:`inject`)."""
+        return False
+
+    def pause_kernel(self, paused: bool) -> None:
+        """Whether some robot is out of ranging (the formation is then not one rigid body):
+        for a filter that moves the formation's orientation on its own; nothing here."""
 
     # ---------------------------------------------------------------- resampling
     def ess(self) -> float:

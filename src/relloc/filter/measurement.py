@@ -33,6 +33,13 @@ filter nor any localizer does:
 ``needs_shared_heading`` (class)
     Whether the measurement is expressed in the team's shared (compass) heading frame: a
     filter that estimates the headings has no such frame and cannot fuse it.
+``stream(event)``, ``heard(event)``, ``ranged`` (class, optional)
+    What the localizer's bookkeeping reads of an event: the stream it belongs to (the team
+    clock's warm-up and jump votes count streams), the robots it is news of (the unseen-robot
+    rule) and whether those count as ranged (the orientation kernel waits while a robot is
+    not). A model that follows the protocol without subclassing it may leave them out:
+    :func:`hook` then reads the protocol's defaults (one stream per event type and robot,
+    news of nobody, not ranged).
 
 The linearisation and the likelihood are two views of one model; the test suite checks every
 registered model's rows against finite differences of its log-likelihood.
@@ -158,6 +165,25 @@ class MeasurementModel(Protocol):
     def conditions(self) -> bool: ...
 
     def condition(self, positions: FloatArray, particles: FloatArray) -> None: ...
+
+    ranged: ClassVar[bool] = False
+    """Whether the robots an event is news of (:meth:`heard`) count as ranged."""
+
+    @classmethod
+    def stream(cls, event: Any) -> tuple[str, ...]:
+        """Which stream ``event`` belongs to: one per event type and robot (or observer)."""
+        return (type(event).__name__, str(getattr(event, "robot", getattr(event, "observer", ""))))
+
+    @classmethod
+    def heard(cls, event: Any) -> tuple[str, ...]:
+        """The robots ``event`` is news of (their position): none by default."""
+        return ()
+
+
+def hook(model: type[MeasurementModel], name: str) -> Any:
+    """``model``'s optional hook ``name`` (``stream``, ``heard``, ``ranged``), or the
+    protocol's default where the model follows the protocol without defining it."""
+    return getattr(model, name, getattr(MeasurementModel, name))
 
 
 def stacked(models: Sequence[MeasurementModel]) -> Callable[[FloatArray, FloatArray], FloatArray]:

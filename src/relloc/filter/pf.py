@@ -77,11 +77,13 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from relloc.filter.adaptive import KldSampling
+from relloc.filter.annealing import StartContext, annealed_start, orient_by
 from relloc.filter.base import FilterEstimate, WeightedFilter, renormalized
 from relloc.filter.measurement import MeasurementModel, stacked
 from relloc.filter.motion import OdometryMotion
@@ -141,7 +143,7 @@ class ParticleFilter(WeightedFilter):
         self.rotation_kernel_max_spread = rotation_kernel_max_spread
         self.rotation_kernel_count = 0
         self.kernel_paused = False
-        """Set by the localizer while some robot is out of ranging: the formation is then not
+        """Set by :meth:`pause_kernel` while some robot is out of ranging: the formation is not
         one rigid body, and the orientation kernel waits."""
         self.bias_walk = bias_walk
         """Random walk of each online bias (m/sqrt(s)), added to its beliefs' variances."""
@@ -249,6 +251,18 @@ class ParticleFilter(WeightedFilter):
 
     def counters(self) -> dict[str, int]:
         return {"rotation_kernel": self.rotation_kernel_count}
+
+    def restart(self, recent: list[Any], reference: FloatArray | None, context: StartContext) -> bool:
+        """Recovery: the annealed start from ``recent`` (:mod:`relloc.filter.annealing`), each
+        formation then turned to ``reference``'s orientation and handedness (``orient_by``)."""
+        if not annealed_start(context, self, recent, shared_heading=self.shared_heading):
+            return False
+        if reference is not None:
+            orient_by(self, reference)
+        return True
+
+    def pause_kernel(self, paused: bool) -> None:
+        self.kernel_paused = paused
 
     # ---------------------------------------------------------------- particle count
     @property

@@ -143,6 +143,7 @@ class RangeBatch:
     stat: ClassVar[str] = "range"
     invariant: ClassVar[bool] = True
     needs_shared_heading: ClassVar[bool] = False
+    ranged: ClassVar[bool] = True
 
     index_a: IntArray
     index_b: IntArray
@@ -235,6 +236,15 @@ class RangeBatch:
                 )
             )
         return out
+
+    @classmethod
+    def stream(cls, event: RangeEvent) -> tuple[str, ...]:
+        """One stream per robot pair, whichever robot's node reported it."""
+        return ("range", *sorted((event.robot_a, event.robot_b)))
+
+    @classmethod
+    def heard(cls, event: RangeEvent) -> tuple[str, ...]:
+        return (event.robot_a, event.robot_b)
 
     @classmethod
     def rejection(cls, event: RangeEvent, context: ValidationContext) -> str | None:

@@ -163,6 +163,10 @@ class SightingBatch:
         return [cls(layout, tuple(rows), eps, ucols)]
 
     @classmethod
+    def heard(cls, event: SightingEvent) -> tuple[str, ...]:
+        return (event.observer, event.target)
+
+    @classmethod
     def rejection(cls, event: SightingEvent, context: ValidationContext) -> str | None:
         """Unknown or identical robots, no value at all, non-finite or impossible values (a
         range not above zero, a bearing beyond +-pi, a noise not above zero): counted, never

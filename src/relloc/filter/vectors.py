@@ -78,6 +78,10 @@ class RelativePositionBatch:
         ]
 
     @classmethod
+    def heard(cls, event: RelativeObservation) -> tuple[str, ...]:
+        return (event.observer, event.target)
+
+    @classmethod
     def rejection(cls, event: RelativeObservation, context: ValidationContext) -> str | None:
         names = context.layout.robots
         if event.observer not in names or event.target not in names:

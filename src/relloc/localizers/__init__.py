@@ -1,9 +1,15 @@
 """Localizers: the holders of filter state. Events in, estimates out.
 
-:mod:`~relloc.localizers.base` validates, batches on the update grid, keeps the odometry
-tracks and emits estimates for every method; :mod:`~relloc.localizers.sampled` runs the
-particle filter, :mod:`~relloc.localizers.self_calibrating` the Gaussian-sum filter that
-estimates headings, odometry scales and range biases, :mod:`~relloc.localizers.multilateration`
-the least-squares baseline; :mod:`~relloc.localizers.start` is the annealed start both particle
-localizers begin with. :func:`relloc.methods.build_pipeline` chooses the class from the config.
+:mod:`~relloc.localizers.base` validates and batches for every method, from small
+collaborators: the team clock (:mod:`~relloc.localizers.clock`), the batching grid that also
+gives the live wake rule (:mod:`~relloc.localizers.grid`) and the odometry tracks
+(:mod:`~relloc.localizers.tracks`). :mod:`~relloc.localizers.filtered` runs a filter's step,
+with recovery (:mod:`~relloc.localizers.recovery`, :mod:`~relloc.localizers.divergence`) and
+what is heard of each robot (:mod:`~relloc.localizers.heard`). The methods:
+:mod:`~relloc.localizers.sampled` runs the particle filter, :mod:`~relloc.localizers.self_calibrating`
+the Gaussian-sum filter that estimates headings, odometry scales and range biases,
+:mod:`~relloc.localizers.range_graph` the large-team Gaussian sum,
+:mod:`~relloc.localizers.multilateration` the least-squares baseline and
+:mod:`~relloc.localizers.ekf` the oracle EKF. :func:`relloc.methods.build_pipeline` chooses the
+class from the config.
 """

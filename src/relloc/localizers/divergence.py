@@ -1,5 +1,5 @@
 """Divergence detection: when the filter is lost, as the share of ranges its own estimate calls
-outliers (issue 15's monitor, used by :class:`relloc.localizers.base.FilterLocalizer`).
+outliers (used by :class:`relloc.localizers.recovery.Recovery`).
 
 A particle filter that has collapsed onto a wrong formation (a multipath burst, a robot moved
 without odometry) keeps reporting a confident estimate: its own spread says nothing. The ranges
@@ -14,16 +14,14 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter, deque
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 
+from relloc.config import TeamConfig
 from relloc.events import RangeEvent, pair_key
 from relloc.filter.base import FilterEstimate
-
-if TYPE_CHECKING:
-    from relloc.config import TeamConfig
-    from relloc.localizers.base import Localizer, Measurement
+from relloc.filter.state import TeamLayout
 
 log = logging.getLogger(__name__)
 
@@ -45,8 +43,9 @@ class DivergenceMonitor:
     """
 
     def __init__(
-        self, window: float = 1.0, lost_fraction: float = 0.6, clear_fraction: float = 0.25, min_ranges: int = 5
-    ) -> None:
+        self, config: TeamConfig, layout: TeamLayout, *, window: float = 1.0, lost_fraction: float = 0.6,
+        clear_fraction: float = 0.25, min_ranges: int = 5,
+    ) -> None:  # fmt: skip
         self.window = window
         self.lost_fraction = lost_fraction
         self.clear_fraction = clear_fraction
@@ -60,9 +59,9 @@ class DivergenceMonitor:
         self._outliers: Counter[str] = Counter()
         """The outliers among each robot's recorded ranges (kept with ``_seen``)."""
         self._restarted = -math.inf
-        self._config: TeamConfig | None = None
+        self._config = config
         self._pairs: dict[tuple[str, str, str | None, str | None, bool], tuple[int, int, float, float, float, str | None]] = {}
-        self._rows: dict[str, int] = {}
+        self._rows = {r: k for k, r in enumerate(layout.others)}
 
     def restart(self, t: float) -> None:
         """Forget the ranges seen (the filter was restarted at ``t``: judge it on fresh
@@ -77,11 +76,13 @@ class DivergenceMonitor:
                 q[i] = (t + dt, out)
         self._restarted += dt
 
-    def observe(self, t: float, batch: list[Measurement], fe: FilterEstimate, loc: Localizer) -> set[str]:
-        """Record ``batch``'s ranges against ``fe``; the robots judged lost (empty if none)."""
+    def observe(self, t: float, batch: list[Any], fe: FilterEstimate, floor: float = 0.0) -> set[str]:
+        """Record ``batch``'s ranges against ``fe`` (published with the covariance ``floor``,
+        taken back out); the robots judged lost (empty if none). A new loss counts an
+        ``episode``."""
         ranges = [m for m in batch if isinstance(m, RangeEvent)]
         if ranges:
-            self._record(ranges, fe, loc)
+            self._record(ranges, fe, floor)
         lost: set[str] = set()
         unclear: set[str] = set()
         worst = 0.0
@@ -104,7 +105,6 @@ class DivergenceMonitor:
         if lost and not self.lost:
             self.lost = True
             self.episodes += 1
-            loc.stats["divergence_detected"] += 1
             log.warning("filter lost at t=%.2f (ranges of %s disagree with the estimate): recovering", t, sorted(lost))
         elif self.lost and not lost and worst < self.clear_fraction:
             self.lost = False
@@ -112,18 +112,14 @@ class DivergenceMonitor:
         self.healthy = not self.lost and worst < self.clear_fraction
         return lost
 
-    def _record(self, ranges: list[RangeEvent], fe: FilterEstimate, loc: Localizer) -> None:
+    def _record(self, ranges: list[RangeEvent], fe: FilterEstimate, floor: float) -> None:
         """Judge each range of a batch and append ``(stamp, outlier)`` to both its robots'
         records, in batch order. What a range's pair contributes that does not change (robot
         rows, calibration, noise) is looked up once per pair and kept; the residuals and gates
         of the whole batch are then one NumPy expression. The same operations as one range at a
         time, in the same order (``math.hypot`` and Python's ``**``, whose last bits NumPy's
         ``hypot`` and ``square`` do not always match), so the flags are identical."""
-        config = loc.config
-        if config is not self._config:
-            self._config, self._pairs = config, {}
-            self._rows = {r: k for k, r in enumerate(loc.layout.others)}
-        pairs, biases = self._pairs, fe.biases
+        config, pairs, biases = self._config, self._pairs, fe.biases
         rows: list[tuple[float, ...]] = []
         names: list[str] = []
         for m in ranges:
@@ -141,7 +137,6 @@ class DivergenceMonitor:
         a = np.array(rows)
         ia, ib = a[:, 0].astype(np.intp), a[:, 1].astype(np.intp)
         # The reference is the last row: at the origin, no spread.
-        floor = float(getattr(loc.filter, "covariance_floor", 0.0))
         n = fe.mean.shape[0]
         pos = np.zeros((n + 1, 2))
         pos[:n] = fe.mean

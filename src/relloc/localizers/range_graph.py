@@ -18,7 +18,7 @@ bump. So:
   all ranges of a batch in one sparse information-form EKF update per hypothesis, the
   hypotheses that motion contradicts pruned.
 * **Recovery**: when the divergence monitor finds it lost, the same start from the last
-  ``init_window`` of measurements since the divergence began (the base's onset, as the
+  ``init_window`` of measurements since the divergence began (the recovery's onset, as the
   sampled localizer re-anneals), the hypotheses weighed by their closeness to the last
   formation it trusted; only where they place no robot are hypotheses re-injected instead.
 """
@@ -36,7 +36,8 @@ from relloc.filter.graph_filter import RangeGraphFilter
 from relloc.filter.range_graph import orientation_hypotheses, shape_from_ranges, start_covariance
 from relloc.filter.ranges import RangeBatch
 from relloc.filter.state import StateLayout
-from relloc.localizers.base import FilterLocalizer, Measurement
+from relloc.localizers.base import Measurement
+from relloc.localizers.filtered import FilterLocalizer
 from relloc.localizers.sampled import covariance_floor
 
 LARGE_TEAM_ROBOTS = 12
@@ -101,7 +102,7 @@ class RangeGraphLocalizer(FilterLocalizer):
         stamps = [m.t for m in batch if isinstance(m, RangeEvent)]
         if stamps:
             t_shape = float(np.median(stamps))
-            self._anchor = {r: self._odometry_pose(r, t_shape) for r in self.layout.robots}
+            self._anchor = {r: self.odometry.pose(r, t_shape) for r in self.layout.robots}
 
     def _start_from(self, batch: list[Measurement], reference: np.ndarray | None = None) -> bool:
         """Start the filter from ``batch``'s range graph (module docstring); with a
@@ -139,7 +140,7 @@ class RangeGraphLocalizer(FilterLocalizer):
         return True
 
     def _restart(self, recent: list[Measurement], reference: np.ndarray | None) -> bool:
-        """Recovery's restart (the base's :meth:`~FilterLocalizer._recover` does the
+        """Recovery's restart (:meth:`relloc.localizers.recovery.Recovery.recover` does the
         bookkeeping and picks ``recent``, the measurements since the divergence began): the
         start from their range graph, the hypotheses weighed by the last trusted formation
         ``reference``. False where they place no robot (the base then re-injects hypotheses

@@ -9,8 +9,9 @@ those beliefs; the filter walks their variances. The particle count adapts
 (``[filter.adaptive]``, :mod:`relloc.filter.adaptive`): ``[filter] particles`` at the start and
 while the posterior is wide, down to ``min_particles`` once it is one narrow mode. The
 localizer itself only starts the filter
-(:mod:`relloc.localizers.start`) and then runs the cycle of
-:class:`~relloc.localizers.base.FilterLocalizer`.
+(:mod:`relloc.filter.annealing`) and then runs the cycle of
+:class:`~relloc.localizers.filtered.FilterLocalizer`; its recovery re-anneals
+(``ParticleFilter.restart``).
 """
 
 from __future__ import annotations
@@ -21,11 +22,12 @@ from relloc.config import TeamConfig
 from relloc.estimate import Estimate
 from relloc.events import pair_key
 from relloc.filter.adaptive import KldSampling
+from relloc.filter.annealing import annealed_start
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.pf import ParticleFilter
 from relloc.filter.state import StateLayout
-from relloc.localizers.base import FilterLocalizer, Measurement
-from relloc.localizers.start import annealed_start
+from relloc.localizers.base import Measurement
+from relloc.localizers.filtered import FilterLocalizer
 
 
 def bias_layout(config: TeamConfig, *, uncalibrated_sigma: float | None = None) -> tuple[StateLayout, list[float]]:
@@ -130,7 +132,7 @@ class ParticleFilterLocalizer(FilterLocalizer):
         self.filter.covariance_floor = covariance_floor(config, self.range_model)
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
-        if not annealed_start(self, self.filter, batch):
+        if not annealed_start(self, self.filter, batch, shared_heading=self.filter.shared_heading):
             return None
         self._started(t)
         return self._emit(t, self.filter.estimate())

@@ -4,7 +4,7 @@ Where the config says ``heading_mode = "estimate"`` or ``odom_scale_mode = "onli
 quantities a sampled particle cannot integrate (a heading revealed a little at every step) are
 carried by a Gaussian-sum filter (:mod:`relloc.filter.gaussian_sum`, which explains why): each
 of its components is a Kalman filter over positions and calibration. It starts from the
-sampled filter's annealed start (:mod:`relloc.localizers.start`), one Gaussian per particle,
+sampled filter's annealed start (:mod:`relloc.filter.annealing`), one Gaussian per particle,
 after which the sampled filter is dropped.
 
 What the filter estimates is not read from the config: a robot's odometry track keeps its own
@@ -20,13 +20,14 @@ import numpy as np
 
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
+from relloc.filter.annealing import annealed_start
 from relloc.filter.gaussian_sum import CalibrationLayout, CalibrationNoise, GaussianSumFilter
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.pf import ParticleFilter
 from relloc.filter.resampling import normalize, systematic_resample
-from relloc.localizers.base import FilterLocalizer, Measurement
+from relloc.localizers.base import Measurement
+from relloc.localizers.filtered import FilterLocalizer
 from relloc.localizers.sampled import bias_layout, covariance_floor, particle_filter
-from relloc.localizers.start import annealed_start
 
 
 def calibration_layout(config: TeamConfig) -> CalibrationLayout:
@@ -103,7 +104,7 @@ class SelfCalibratingLocalizer(FilterLocalizer):
         Gaussian per particle, resampled to its size) and drop the sampled filter."""
         pf = self.start_filter
         assert pf is not None
-        if not annealed_start(self, pf, batch):
+        if not annealed_start(self, pf, batch, shared_heading=self.filter.shared_heading):
             return None
         self._started(t)
         gsf, particles = self.filter, pf.particles

@@ -11,48 +11,96 @@ cannot tell those images apart, and a sharp likelihood would pick one by chance.
 anneals on the invariant models only, spreads the particles uniformly over rotations and
 mirror images (exact for an invariant target), and only then weighs them by the other models
 (a detection vector fixes the orientation). With no invariant model in the batch it anneals on
-everything and does not spread. Used by both particle localizers: the sampled one keeps the
-particles, the self-calibrating one hands them to its Gaussian-sum filter.
+everything and does not spread. Both particle localizers start so; the self-calibrating one
+then hands the particles to its Gaussian-sum filter. A particle filter's recovery restart
+(:meth:`relloc.filter.pf.ParticleFilter.restart`) is the same start from the recent
+measurements, each formation then turned to the orientation of a trusted one
+(:func:`orient_by`).
+
+The start asks its localizer only for the measurement models of some events
+(:class:`StartContext`), so this module knows no localizer.
 """
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections import Counter
+from collections.abc import Callable, Sequence
+from typing import TYPE_CHECKING, Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from relloc.filter.measurement import stacked
-from relloc.filter.pf import ParticleFilter
+from relloc.filter.measurement import MeasurementModel, stacked
 from relloc.filter.registry import model_for
 
 if TYPE_CHECKING:
-    from relloc.localizers.base import FilterLocalizer, Measurement
+    from relloc.config import TeamConfig
+    from relloc.filter.state import StateLayout
 
 FloatArray = NDArray[np.float64]
 
+REFERENCE_SIGMA = 0.5
+"""Scale (m) of the robust fit of a re-annealed formation to the dead-reckoned reference: a
+robot farther off than this (moved unseen) hardly sways the orientation."""
 
-def annealed_start(localizer: FilterLocalizer, pf: ParticleFilter, batch: list[Measurement]) -> bool:
+
+class Annealable(Protocol):
+    """What the start asks of a particle filter (:class:`relloc.filter.pf.ParticleFilter`)."""
+
+    particles: FloatArray
+
+    @property
+    def layout(self) -> StateLayout: ...
+
+    def initialize_annealed(
+        self, loglik: Callable[[FloatArray, FloatArray], FloatArray],
+        guide: Callable[[FloatArray, FloatArray], FloatArray] | None = None, *, mcmc_steps: int = 3,
+    ) -> int: ...  # fmt: skip
+
+    def spread_symmetries(self) -> None: ...
+
+    def update(self, models: Sequence[MeasurementModel]) -> bool: ...
+
+    def maybe_resample(self) -> bool: ...
+
+    def rotate(self, theta: FloatArray) -> None: ...
+
+
+class StartContext(Protocol):
+    """What the start asks of its localizer: the configuration (``spread_rotations``,
+    ``mcmc_steps``), the statistics it counts into, and the measurement models of some events
+    for a given filter (robust, or the plain guide)."""
+
+    config: TeamConfig
+    stats: Counter[str]
+
+    def models(
+        self, batch: list[Any], target: Any, *, robust: bool = True, count: bool = True
+    ) -> list[MeasurementModel]: ...
+
+
+def annealed_start(context: StartContext, pf: Annealable, batch: list[Any], *, shared_heading: bool) -> bool:
     """Start ``pf`` from ``batch`` (module docstring); False if the batch gives it nothing to
-    anneal on. Counts the tempering stages and any resampling in ``localizer.stats``."""
-    fc = localizer.config.filter
-    shared = localizer.filter.shared_heading
-    invariant = [m for m in batch if _invariant(m, shared)]
-    spread = fc.spread_rotations and bool(localizer.models(invariant, pf, count=False))
+    anneal on. ``shared_heading``: whether the localizer's filter has the shared heading frame
+    (what makes a sighting invariant or not). Counts the tempering stages and any resampling in
+    ``context.stats``."""
+    fc = context.config.filter
+    invariant = [m for m in batch if _invariant(m, shared_heading)]
+    spread = fc.spread_rotations and bool(context.models(invariant, pf, count=False))
     anneal_on = invariant if spread else batch
-    models = localizer.models(anneal_on, pf, count=False)
-    guide = localizer.models(anneal_on, pf, robust=False, count=False)
+    models = context.models(anneal_on, pf, count=False)
+    guide = context.models(anneal_on, pf, robust=False, count=False)
     if not models or not guide:
         return False
     stages = pf.initialize_annealed(stacked(models), stacked(guide), mcmc_steps=fc.mcmc_steps)
-    localizer.stats["anneal_stages"] = stages
+    context.stats["anneal_stages"] = stages
     if spread:
         pf.spread_symmetries()
-        rest = localizer.models([m for m in batch if not _invariant(m, shared)], pf, count=False)
+        rest = context.models([m for m in batch if not _invariant(m, shared_heading)], pf, count=False)
         if rest:
             pf.update(rest)
             if pf.maybe_resample():
-                localizer.stats["resampled"] += 1
+                context.stats["resampled"] += 1
     return True
 
 
@@ -65,7 +113,7 @@ def _invariant(event: object, shared_heading: bool) -> bool:
     return model.invariant or (not shared_heading and getattr(model, "invariant_without_shared_heading", False))
 
 
-def orient_by(pf: ParticleFilter, reference: FloatArray, sigma: float) -> None:
+def orient_by(pf: Annealable, reference: FloatArray, sigma: float = REFERENCE_SIGMA) -> None:
     """Turn (and, where it fits better, mirror) each particle's formation to the orientation
     that best fits ``reference`` (relative positions ``(2(N-1),)``): the orientation and
     handedness of a re-annealed start, whose ranges fixed only the shape. Shapes are left as

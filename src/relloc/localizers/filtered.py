@@ -1,0 +1,187 @@
+"""The localizer around a filter of :mod:`relloc.filter.base`: the step every filter method runs.
+
+After its start (subclasses' ``_start``, once ``init_window`` of measurements has been
+gathered) every batch is predicted to with every robot's odometry, fused through its
+measurement models, and estimated; then the localizer's collaborators read the estimate:
+
+* :class:`~relloc.localizers.recovery.Recovery` watches for divergence and restarts the
+  filter when it is lost (``WeightedFilter.restart``; the range-graph localizer overrides
+  :meth:`FilterLocalizer._restart`);
+* :class:`~relloc.localizers.heard.Heard` widens the covariances of robots nothing is heard of
+  and tells the filter whether the formation is split (``WeightedFilter.pause_kernel``).
+
+The estimate is emitted (each robot's position relative to the reference, with covariance)
+and the filter resamples when due.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+from numpy.typing import NDArray
+
+from relloc.config import TeamConfig
+from relloc.estimate import Estimate
+from relloc.filter.base import FilterEstimate, WeightedFilter
+from relloc.filter.measurement import MeasurementModel, ModelContext
+from relloc.filter.motion import OdometryMotion
+from relloc.filter.registry import MODELS, model_for
+from relloc.filter.state import StateLayout
+from relloc.filter.summary import estimate_fields
+from relloc.localizers.base import Localizer, Measurement
+from relloc.localizers.heard import Heard
+from relloc.localizers.recovery import Recovery
+
+FloatArray = NDArray[np.float64]
+
+
+class FilterLocalizer(Localizer):
+    """A localizer around a filter of :mod:`relloc.filter.base` (module docstring)."""
+
+    filter: WeightedFilter
+    range_model = "nlos"
+    """Which range likelihood (:class:`relloc.filter.measurement.ModelContext`) the filter uses."""
+
+    def __init__(self, config: TeamConfig, layout: StateLayout | None = None, *, seed: int = 0) -> None:
+        super().__init__(config, layout)
+        fc = config.filter
+        self.rng = np.random.default_rng(seed)
+        self.motion = OdometryMotion(fc.odometry.process_noise, fc.odometry.odom_noise_per_m, fc.odometry.odom_noise_per_rad)
+        self.initialized = False
+        self.t = math.nan
+        self._anchor: dict[str, tuple[float, float, float]] = {}
+        self._init_batch: list[Measurement] = []
+        self.recovery = Recovery(config, self.layout, self.rng, self.stats)
+        self.heard = Heard(config, self.layout)
+
+    @property
+    def recovering(self) -> bool:
+        return self.recovery.monitor.lost
+
+    def _shift_time(self, dt: float) -> None:
+        self.t += dt
+        self.recovery.shift_time(dt)
+        self.heard.shift_time(dt)
+        self._init_batch = [dataclasses.replace(m, t=m.t + dt) for m in self._init_batch]
+
+    def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
+        if not self.initialized:
+            self._init_batch += batch
+            first = min(m.t for m in self._init_batch)
+            if t - first < self.config.filter.init_window:
+                return None
+            start, self._init_batch = self._init_batch, []
+            self.heard.note(start, ranged=False)
+            return self._start(t, start)
+        disp, sigma, dt = self._motion_to(t)
+        self.filter.predict(disp, sigma, dt)
+        if self.filter.shared_heading:
+            self.recovery.moved(disp)
+        models = self.models(batch, self.filter)
+        if not self.filter.update(models):
+            self.stats["update_no_support"] += 1
+        fe = self.filter.estimate()
+        lost = self.recovery.observe(t, batch, fe, float(getattr(self.filter, "covariance_floor", 0.0)))
+        self.recovery.remember(t, batch, fe)
+        self.heard.note(batch)
+        if lost:
+            self.recovery.recover(t, fe, lost, self.filter, self._restart)
+            fe = self.filter.estimate()
+        est = self._emit(t, fe)
+        self.filter.pause_kernel(self.heard.split(t))
+        if self.filter.maybe_resample():
+            self.stats["resampled"] += 1
+        for name, count in self.filter.counters().items():
+            self.stats[name] = count
+        return est
+
+    def _restart(self, recent: list[Measurement], reference: FloatArray | None) -> bool:
+        """Recovery's restart from ``recent`` (the measurements since the onset), oriented by
+        the ``reference`` formation (``None``: none trusted): the filter's own
+        (``WeightedFilter.restart``); False if it cannot (hypotheses are then re-injected)."""
+        return self.filter.restart(recent, reference, self)
+
+    def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
+        raise NotImplementedError
+
+    def _started(self, t: float) -> None:
+        """The start is done at ``t``: odometry from now on moves the filter."""
+        self.initialized = True
+        self.t = t
+        self._anchor = {r: self.odometry.pose(r, t) for r in self.layout.robots}
+
+    # ---------------------------------------------------------------- models
+    def models(
+        self, batch: list[Measurement], target: WeightedFilter, *, robust: bool = True, count: bool = True
+    ) -> list[MeasurementModel]:
+        """The measurement models of ``batch`` for ``target``'s state layout, in registry
+        order. Measurements in the shared heading frame are left out (and counted, with
+        ``count``) where the localizer's filter has no such frame."""
+        groups: dict[type, list[Measurement]] = {}
+        for m in batch:
+            cls = model_for(m)
+            if cls is not None:
+                groups.setdefault(cls, []).append(m)
+        yaws = {r: self.odometry.pose(r, max(m.t for m in batch))[2] for r in self.layout.robots} if batch else None
+        context = ModelContext(
+            self.config, target.layout, robust, self.range_model, yaws, self.filter.shared_heading
+        )
+        out: list[MeasurementModel] = []
+        for cls in dict.fromkeys(MODELS.values()):
+            events = groups.get(cls)
+            if not events:
+                continue
+            if cls.needs_shared_heading and not self.filter.shared_heading:
+                if count:
+                    self.stats[f"ignored_{cls.stat}_no_shared_heading"] += len(events)
+                continue
+            out += cls.build(events, context)
+        return out
+
+    # ---------------------------------------------------------------- prediction, emission
+    def _motion_to(self, t: float) -> tuple[FloatArray, FloatArray, float]:
+        """Every robot's odometry displacement ``(N, 2)`` and its noise ``(N,)`` since the last
+        step, and the time step; the filter is at ``t`` after it."""
+        n = len(self.layout.robots)
+        disp = np.zeros((n, 2))
+        sigma = np.zeros(n)
+        for i, robot in enumerate(self.layout.robots):
+            now = self.odometry.pose(robot, t)
+            before = self._anchor.get(robot, (math.nan,) * 3)
+            if math.isnan(now[0]):
+                continue
+            if math.isnan(before[0]):
+                before = now  # odometry started since the last step: no known motion yet
+            disp[i] = (now[0] - before[0], now[1] - before[1])
+            dist = math.hypot(*disp[i])
+            turn = abs(math.remainder(now[2] - before[2], math.tau))
+            sigma[i] = self.motion.step_sigma(dist, turn)
+            self._anchor[robot] = now
+        dt = max(t - self.t, 0.0)
+        self.t = t
+        return disp, sigma, dt
+
+    def _emit(self, t: float, fe: FilterEstimate) -> Estimate:
+        """The :class:`Estimate` of a filter's moments at ``t`` (and, where it estimates
+        headings, each robot's odometry yaw then, for evaluating them), the covariances of
+        unseen robots widened (:mod:`relloc.localizers.heard`)."""
+        positions, covs = {}, {}
+        for k, robot in enumerate(self.layout.others):
+            positions[robot] = (float(fe.mean[k, 0]), float(fe.mean[k, 1]))
+            c = fe.cov[k]
+            covs[robot] = ((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1])))
+        for robot in {*fe.headings, self.layout.reference}:  # the reference's: body-frame evaluation
+            self.odometry.log_yaw(robot, t)
+        honest = {} if fe.summary is None else estimate_fields(fe.summary, self.layout.reference, self.layout.others)
+        unseen = self.heard.unseen(t, self.tracks)
+        if unseen:
+            covs = self.heard.widen(covs, unseen)
+        est = Estimate(
+            t, self.method, self.layout.reference, positions, covs, fe.ess, fe.headings, fe.biases, fe.scales,
+            **honest,
+            recovering=self.recovering, particles=fe.particles, unseen=unseen,
+        )
+        self.last_estimate = est
+        return est

@@ -1,0 +1,103 @@
+"""When each robot was last heard of: the unseen-robot widening and the orientation kernel's pause.
+
+Every fused measurement is news of some robots (``MeasurementModel.heard``: a range of its
+pair, a sighting or a relative observation of its observer and target), and a range's count
+as ranged (``MeasurementModel.ranged``). From those times:
+
+* a robot is **unseen** once its odometry is older than the extrapolation horizon and it has
+  had no measurement for ``_UNRANGED_AFTER``: from the later of the two, nothing says where it
+  went. The filter holds it where it was last seen (spreading its hypotheses would thin out
+  the whole formation's); the published covariances grow instead by what it may have driven
+  meanwhile, at ``unseen_speed`` in an unknown direction (:attr:`Estimate.unseen`);
+* the formation is **split** while some robot has had no range for ``_UNRANGED_AFTER``, and
+  as long again after every robot is ranged once more (the orientations are then still the
+  split's mixture): a filter's orientation kernel treats the orientation as a static
+  parameter of one rigid formation, and a robot out of ranging splits it into parts whose
+  relative orientation nothing observes (docs/faults.md).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from relloc.config import TeamConfig
+from relloc.filter.measurement import hook
+from relloc.filter.registry import model_for
+from relloc.filter.state import TeamLayout
+from relloc.odometry import OdometryTrack
+
+_UNRANGED_AFTER = 2.0
+"""Seconds without a range after which a robot pauses the orientation kernel (and, without
+any measurement, may be unseen)."""
+
+Covariances = dict[str, tuple[tuple[float, float], tuple[float, float]]]
+
+
+class Heard:
+    """Each robot's newest measurement and newest range (module docstring)."""
+
+    def __init__(self, config: TeamConfig, layout: TeamLayout) -> None:
+        self.robots, self.reference = layout.robots, layout.reference
+        oc = config.filter.odometry
+        self.unseen_speed, self.horizon = oc.unseen_speed, oc.max_odom_extrapolation
+        self.ranged: dict[str, float] = {}
+        """Each robot's newest range (counted from the start's end)."""
+        self.measured: dict[str, float] = {}
+        """Each robot's newest measurement of any kind."""
+        self.split_at = -math.inf
+        """When some robot was last out of ranging."""
+
+    def note(self, batch: list[Any], *, ranged: bool = True) -> None:
+        """The robots ``batch`` is news of; with ``ranged``, its ranges count for the kernel
+        (not the start's: the kernel's clock starts at its end)."""
+        for m in batch:
+            model = model_for(m)
+            robots = hook(model, "heard")(m) if model is not None else ()
+            if not robots:
+                continue
+            if ranged and hook(model, "ranged"):
+                for r in robots:
+                    self.ranged[r] = m.t
+            for r in robots:
+                self.measured[r] = max(self.measured.get(r, -math.inf), m.t)
+
+    def unseen(self, t: float, tracks: dict[str, OdometryTrack]) -> dict[str, float]:
+        """The robots unseen at ``t`` with the seconds their motion has been unknown; robots
+        never heard at all are left to the filter's own prior. None without ``unseen_speed``."""
+        if not self.unseen_speed:
+            return {}
+        out = {}
+        for robot in self.robots:
+            track = tracks[robot]
+            measured = self.measured.get(robot, -math.inf)
+            if track.empty and measured == -math.inf:
+                continue
+            odom = track.last_time + self.horizon
+            if t - measured > _UNRANGED_AFTER and t > odom:
+                out[robot] = round(t - max(odom, measured), 3)
+        return out
+
+    def widen(self, covs: Covariances, unseen: dict[str, float]) -> Covariances:
+        """The covariances grown for what the unseen robots may have driven: ``(speed *
+        seconds)^2`` per axis; a relative position is unknown by its own robot's motion and
+        by the reference's."""
+        speed = self.unseen_speed
+        ref = unseen.get(self.reference, 0.0)
+        out = dict(covs)
+        for robot, ((xx, xy), (yx, yy)) in covs.items():
+            add = (speed * unseen.get(robot, 0.0)) ** 2 + (speed * ref) ** 2
+            if add:
+                out[robot] = ((xx + add, xy), (yx, yy + add))
+        return out
+
+    def split(self, t: float) -> bool:
+        """Whether the formation is split at ``t`` (module docstring)."""
+        if any(t - self.ranged.get(r, t) > _UNRANGED_AFTER for r in self.robots):
+            self.split_at = t
+        return t - self.split_at < _UNRANGED_AFTER
+
+    def shift_time(self, dt: float) -> None:
+        self.ranged = {r: tr + dt for r, tr in self.ranged.items()}
+        self.measured = {r: tr + dt for r, tr in self.measured.items()}
+        self.split_at += dt
