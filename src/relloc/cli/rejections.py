@@ -1,7 +1,7 @@
 """What the rejection counters mean, in one place, for every command that prints them.
 
 Sources (:class:`~relloc.sources.ingest.IngestStats.rejected`) and localizers
-(:attr:`~relloc.localizers.base.FilterLocalizer.rejected`) count what they dropped by a short
+(:attr:`~relloc.localizers.base.Localizer.rejected`) count what they dropped by a short
 reason name. A user reading ``repeated_range: 539`` needs to know what was dropped and whether
 it changes the result; :data:`REASONS` says both, and :func:`rejection_lines` turns a counter
 into readable lines. A reason missing from the table is still printed, marked "see the log".
