@@ -11,7 +11,7 @@ Two ways to read a message, chosen per robot in the team config (``odom_mode``):
   offset (the rotation from its odometry frame to the shared frame: the paper's compass) and
   positions are multiplied by its odometry scale.
 * ``"twist"``: integrate the body twist (forward speed along the integrated heading, yaw rate)
-  from the first message's pose. Some recordings (the shortbag's ``/cali/`` topics) freeze the
+  from the first message's pose. Some recordings (the ``/cali/`` topics of the TIERS four-robot bag) freeze the
   orientation of the pose, and their twist integrates to a better path than their positions.
 """
 

@@ -2,7 +2,7 @@
 
 The whole command-line layer lives in this package, on top of the library; nothing below
 imports it. This module is the parser and the dispatch; each command family registers itself
-from its own module (:mod:`.live`, :mod:`.navigation`, :mod:`.ranging`, :mod:`.bench_resources`);
+from its own module (:mod:`.live`, :mod:`.navigation`, :mod:`.ranging`);
 :mod:`.common` holds what they share (user errors, signals, Zenoh sessions, options from
 arguments). Each command is a thin layer: parse arguments, call one function, print.
 Expected failures (bad config, unreadable bag, unknown method) print one clear line and exit
@@ -25,7 +25,7 @@ from relloc.cli.common import UserError, check_writable, is_user_error, options_
 from relloc.faults import add_arguments as add_fault_arguments
 from relloc.malloc import tune_malloc
 
-_COMMAND_MODULES = ("relloc.cli.ranging", "relloc.cli.live", "relloc.cli.bench_resources", "relloc.cli.navigation")
+_COMMAND_MODULES = ("relloc.cli.ranging", "relloc.cli.live", "relloc.cli.navigation")
 """Command families with a ``register(subparsers)`` of their own. None imports an optional
 dependency at module level (training imports torch only when it runs), so every command is
 always listed; a module that fails to import is a bug and raises."""

@@ -7,8 +7,8 @@ topics as bridged by zenoh-bridge-ros2dds, or as robots on rmw_zenoh publish the
 :class:`~relloc.sinks.zenoh_sink.ZenohSink`. One thread runs the engine; Zenoh's callbacks only
 enqueue. ``replay`` publishes a rosbag2 recording's raw CDR messages on the interface's keys at
 the recorded pace (times ``--rate``), so a recording stands in for the robots;
-``relloc bench resources`` (:mod:`relloc.cli.bench_resources`) runs both on loopback and measures the server process (CPU, peak RSS,
-end-to-end latency). ``docs/live.md`` tells the whole story and gives the measured figures.
+``benchmarks/serve_resources.py`` runs both on loopback and measures the server process (CPU,
+peak RSS, end-to-end latency). ``docs/live.md`` tells the whole story and gives the measured figures.
 
 Latency is traced, not guessed: the replay attaches its send wall time to every message
 (:func:`~relloc.ros.interfaces.encode_sent_time`, or the rmw_zenoh attachment); the server, run with ``--trace``,
@@ -25,7 +25,7 @@ host's wall clock on loopback.
 =======================  ==================================================================
 """
 
-from relloc.live.collect import SHORTBAG, EstimateCollector, ape_against_bag
+from relloc.live.collect import EstimateCollector, ape_against_bag
 from relloc.live.message_faults import MessageFaults
 from relloc.live.publish import (
     SIM_TIME_BASE,
@@ -44,7 +44,6 @@ from relloc.live.session import (
 )
 
 __all__ = [
-    "SHORTBAG",
     "SIM_TIME_BASE",
     "EstimateCollector",
     "LiveServer",

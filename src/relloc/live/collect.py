@@ -23,13 +23,9 @@ from relloc.ros.messages import POSE_WITH_COVARIANCE_STAMPED
 from relloc.ros.zenoh_node import ZenohNode
 from relloc.sinks.zenoh_sink import STRING, pose_topic
 
-__all__ = ["SHORTBAG", "EstimateCollector", "ape_against_bag"]
+__all__ = ["EstimateCollector", "ape_against_bag"]
 
 log = logging.getLogger(__name__)
-
-SHORTBAG = "multi4_shortbag_20221011"
-"""The shared multi-robot recording the live tests and benchmarks replay."""
-
 
 class EstimateCollector:
     """Subscribes to a server's pose (and trace) topics and rebuilds the estimates it published.

@@ -33,7 +33,7 @@ with its liveliness tokens):
 ``<prefix>/trace``
     JSON (as the status), one per estimate, only with ``trace=True``: the estimate time and the
     message that triggered it (key, header stamp, send and receive wall time) and the
-    publication wall time, from which ``relloc bench resources`` measures end-to-end latency.
+    publication wall time, from which ``benchmarks/serve_resources.py`` measures end-to-end latency.
 
 A zenoh-bridge-ros2dds on the receiving side turns ``relloc/turtle01/pose`` into the ROS topic
 ``/relloc/turtle01/pose``; with rmw_zenoh it is that topic already.

@@ -1,4 +1,6 @@
-"""``relloc bench resources``: CPU, peak memory and end-to-end latency of ``relloc serve``.
+"""CPU, peak memory and end-to-end latency of ``relloc serve``.
+
+    .venv/bin/python benchmarks/serve_resources.py --json out/bench/resources.json
 
 Runs the server as a subprocess (so that its CPU time and peak RSS can be read from ``/proc``),
 feeds it over Zenoh on loopback (five simulated robots, the paper's team, and/or the TIERS
@@ -25,11 +27,10 @@ from pathlib import Path
 from typing import Any
 
 from relloc.cli import argtypes
-from relloc.cli.common import UserError, options_from_args
+from relloc.cli.common import options_from_args
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
 from relloc.live import (
-    SHORTBAG,
     SIM_TIME_BASE,
     EstimateCollector,
     ReplayOptions,
@@ -42,10 +43,14 @@ from relloc.live import (
     simulated_team,
 )
 
+SHORTBAG = "multi4_shortbag_20221011"
+"""The shared TIERS recording of the ``shortbag`` case."""
+REPO = Path(__file__).resolve().parents[1]
+
 
 @dataclass(frozen=True)
 class BenchOptions:
-    """``relloc bench resources``: which cases to run and how."""
+    """Which cases to run and how."""
 
     particles: tuple[int | None, ...] = (None,)
     """Particle counts to serve with; ``None``: the shipped default settings (the config's
@@ -362,18 +367,15 @@ def _case_line(c: dict[str, Any]) -> str:
     )
 
 
-def _cmd_bench_resources(args: argparse.Namespace) -> int:
-    root = Path(__file__).resolve().parents[3]
-    bag = Path(args.bag) if args.bag else root.parent / "shared" / "data" / "tiers" / SHORTBAG
-    bag_config = (
-        Path(args.bag_config)
-        if args.bag_config
-        else root / "configs" / "tiers" / f"{SHORTBAG}.toml"
-    )
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    bag = Path(args.bag) if args.bag else REPO.parent / "shared" / "data" / "tiers" / SHORTBAG
+    bag_config = Path(args.bag_config) if args.bag_config else REPO / "configs" / "tiers" / f"{SHORTBAG}.toml"
     scenarios = tuple(s.strip() for s in args.scenarios.split(",") if s.strip())
     if "shortbag" in scenarios and not bag.exists():
         if args.bag:
-            raise UserError(f"bag not found: {bag}")
+            print(f"bag not found: {bag}", file=sys.stderr)
+            return 2
         print(f"skipping the shortbag case: {bag} not found")
         scenarios = tuple(s for s in scenarios if s != "shortbag")
     try:
@@ -381,9 +383,8 @@ def _cmd_bench_resources(args: argparse.Namespace) -> int:
             None if p.strip() == "default" else argtypes.count(p.strip()) for p in args.particles.split(",")
         )
     except (ValueError, argparse.ArgumentTypeError):
-        raise UserError(
-            f"--particles must be 'default' or counts like default,400,4000, got {args.particles!r}"
-        ) from None
+        print(f"--particles must be 'default' or counts like default,400,4000, got {args.particles!r}", file=sys.stderr)
+        return 2
     opts = options_from_args(
         BenchOptions, args, particles=particles, scenarios=scenarios, bag=bag, bag_config=bag_config
     )
@@ -393,19 +394,10 @@ def _cmd_bench_resources(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: argparse._SubParsersAction) -> None:
-    """Add ``bench resources`` to the ``relloc`` command line."""
-    bench = sub.add_parser(
-        "bench",
-        help="benchmarks of the live engine",
-        description="Benchmarks of the live engine (docs/live.md).",
-    )
-    bench_sub = bench.add_subparsers(dest="bench_command", required=True)
-    res = bench_sub.add_parser(
-        "resources",
-        help="CPU, peak RSS and latency of relloc serve on loopback",
+def _parser() -> argparse.ArgumentParser:
+    res = argparse.ArgumentParser(
         description="Start relloc serve and a publisher on loopback for each scenario and "
-        "particle count; measure CPU, peak RSS and estimate latency.",
+        "particle count; measure CPU, peak RSS and estimate latency (docs/live.md).",
     )
     res.add_argument(
         "--particles", default="default",
@@ -434,4 +426,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     res.add_argument(
         "--json", dest="json_path", type=Path, default=None, metavar="FILE", help="write the figures as JSON"
     )
-    res.set_defaults(handler=_cmd_bench_resources)
+    return res
+
+
+if __name__ == "__main__":
+    sys.exit(main())

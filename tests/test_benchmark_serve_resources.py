@@ -1,0 +1,29 @@
+"""benchmarks/serve_resources.py: its options and latency percentiles (no server started)."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+import pytest
+
+_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "serve_resources.py"
+_spec = importlib.util.spec_from_file_location("bench_serve_resources", _PATH)
+assert _spec is not None and _spec.loader is not None
+bench = importlib.util.module_from_spec(_spec)
+sys.modules[_spec.name] = bench  # dataclasses look their module up there
+_spec.loader.exec_module(bench)
+
+
+def test_percentiles_in_milliseconds() -> None:
+    out = bench._percentiles([0.001 * k for k in range(1, 21)])
+    assert out == {"p50_ms": 10.5, "p95_ms": 19.0, "max_ms": 20.0, "n": 20}
+    assert bench._percentiles([])["n"] == 0
+
+
+def test_defaults_and_bad_particles(capsys: pytest.CaptureFixture[str]) -> None:
+    args = bench._parser().parse_args([])
+    assert (args.particles, args.scenarios, args.sim_duration) == ("default", "sim5,shortbag", 30.0)
+    assert bench.main(["--particles", "many", "--scenarios", "sim5"]) == 2
+    assert "--particles must be" in capsys.readouterr().err
