@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import logging
 import shutil
-import tempfile
 from collections.abc import Callable, Collection, Iterator
 from contextlib import contextmanager, suppress
 from dataclasses import replace
@@ -60,6 +59,7 @@ from relloc.sources.ingest import (
     match_range_topics,
     team_routes,
 )
+from relloc.sources.salvage import readable_rows, salvaged_copy
 
 __all__ = ["BagError", "RosbagSource", "read_messages", "recording_name"]
 
@@ -88,13 +88,13 @@ def recording_name(path: str | Path) -> str:
 @contextmanager
 def _open_reader(path: Path, on_damage: Callable[[str], None] | None = None) -> Iterator[Reader]:
     """Open a bag, turning every way it can fail into a :class:`BagError`. With ``on_damage``,
-    a ``.db3`` bag whose database cannot be opened is salvaged instead (:func:`_salvaged`):
+    a ``.db3`` bag whose database cannot be opened is salvaged instead (:func:`~relloc.sources.salvage.salvaged_copy`):
     the reader reads what is readable, and ``on_damage`` gets a line saying how much was lost."""
     folder: Path | None = None
     try:
         reader = _opened(path)
     except BagError as exc:
-        salvage = _salvaged(path) if on_damage is not None and "corrupted or truncated" in str(exc) else None
+        salvage = salvaged_copy(path) if on_damage is not None and "corrupted or truncated" in str(exc) else None
         if salvage is None:
             raise
         folder, line = salvage
@@ -109,54 +109,6 @@ def _open_reader(path: Path, on_damage: Callable[[str], None] | None = None) -> 
             reader.close()
         if folder is not None:
             shutil.rmtree(folder, ignore_errors=True)
-
-
-def _salvaged(path: Path) -> tuple[Path, str] | None:
-    """A copy of a damaged ``.db3`` bag folder holding every message row sqlite can still read
-    (in storage order, up to the first unreadable page of each file), with how many of the
-    messages its metadata lists that is; ``None`` when nothing can be read."""
-    import sqlite3
-
-    if not path.is_dir() or not (path / "metadata.yaml").exists():
-        return None
-    folder = Path(tempfile.mkdtemp(prefix="relloc-salvage-"))
-    shutil.copy(path / "metadata.yaml", folder / "metadata.yaml")
-    kept = 0
-    for db in sorted(path.glob("*.db3")):
-        try:
-            src = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
-            dst = sqlite3.connect(folder / db.name)
-            tables = src.execute("SELECT name, sql FROM sqlite_master WHERE type = 'table'").fetchall()
-        except sqlite3.Error:
-            continue
-        for name, sql in tables:
-            dst.execute(sql)
-            try:
-                for row in src.execute(f'SELECT * FROM "{name}"'):
-                    dst.execute(f'INSERT INTO "{name}" VALUES ({", ".join("?" * len(row))})', row)
-                    kept += name == "messages"
-            except sqlite3.Error:
-                pass  # the first damaged page: what came before it is kept
-        dst.commit()
-        dst.close()
-        src.close()
-    if not kept:
-        shutil.rmtree(folder, ignore_errors=True)
-        return None
-    listed = _listed_messages(path / "metadata.yaml")
-    lost = max(listed - kept, 0)
-    return folder, f"{kept} of its {listed} messages readable, {lost} ({100.0 * lost / max(listed, 1):.0f} %) lost"
-
-
-def _listed_messages(metadata: Path) -> int:
-    """The message count a bag's metadata lists (0 if it cannot say)."""
-    from ruamel.yaml import YAML
-
-    try:
-        info = YAML(typ="safe").load(metadata.read_text())["rosbag2_bagfile_information"]
-        return int(info["message_count"])
-    except Exception:
-        return 0
 
 
 def _opened(path: Path) -> Reader:
@@ -225,7 +177,7 @@ def _messages(
         except Exception as exc:  # apsw, sqlite, mcap, zstd: a damaged file
             if on_damage is None:
                 raise BagError(f"cannot read bag {path}: {_reason(exc)}") from exc
-            rest = _readable_rows(path, conns, after=read)
+            rest = readable_rows(path, conns, after=read)
             listed = sum(c.msgcount for c in conns)
             lost = max(listed - read - len(rest), 0)
             on_damage(
@@ -236,33 +188,6 @@ def _messages(
             return
         read += 1
         yield item
-
-
-def _readable_rows(path: Path, conns: list[Any], after: int) -> list[tuple[Any, int, bytes]]:
-    """What sqlite can still read of a damaged ``.db3`` bag: its message rows in storage order
-    up to the first unreadable page, for ``conns``' topics, in receive order, less the first
-    ``after`` (already read in order). Empty for other storage."""
-    import sqlite3
-
-    files = [path] if path.suffix == ".db3" else sorted(path.glob("*.db3"))
-    by_topic = {c.topic: c for c in conns}
-    rows: list[tuple[Any, int, bytes]] = []
-    for db in files:
-        try:
-            con = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
-        except sqlite3.Error:
-            continue
-        try:
-            topics = {i: by_topic[n] for i, n in con.execute("SELECT id, name FROM topics") if n in by_topic}
-            for topic_id, stamp, data in con.execute("SELECT topic_id, timestamp, data FROM messages"):
-                if topic_id in topics:
-                    rows.append((topics[topic_id], int(stamp), bytes(data)))
-        except sqlite3.Error:
-            pass  # the first damaged page: what came before it is kept
-        finally:
-            con.close()
-    rows.sort(key=lambda r: r[1])
-    return rows[after:]
 
 
 def read_messages(path: str | Path, topics: Collection[str]) -> Iterator[tuple[str, float, Any]]:
