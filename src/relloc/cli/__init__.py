@@ -81,7 +81,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
     from relloc.methods import parse_methods
     from relloc.sources.rosbag import recording_name
 
-    config = TeamConfig.load(args.config)
+    config = TeamConfig.load(args.config) if args.config else None
     if args.out is None:
         args.out = Path("out") / recording_name(args.bag)
     opts = options_from_args(RunOptions, args, methods=tuple(parse_methods(args.methods)), faults=_faults(args))
@@ -183,13 +183,19 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = sub.add_parser(
         "run",
-        help="run methods over a rosbag2 recording (or an MRCLAM data set folder) and evaluate them",
-        description="Stream a rosbag2 recording through each method, evaluate against its motion "
-        "capture, print APE per method and robot, and write plots and TUM trajectories to "
-        "out/<recording>/ (or --out). The filter never sees the motion capture.",
+        help="run methods over a rosbag2 recording (an MRCLAM data set folder, a simulated scenario) and evaluate them",
+        description="Stream a rosbag2 recording (an MRCLAM data set, or a simulated scenario) through "
+        "each method, evaluate against its motion capture, print APE per method and robot, and "
+        "write plots and TUM trajectories to out/<recording>/ (or --out). The filter never sees "
+        "the motion capture.",
     )
-    run.add_argument("bag", help="bag folder (metadata.yaml) or .db3/.mcap file")
-    run.add_argument("--config", required=True, help="team config (TOML), e.g. configs/tiers/...")
+    run.add_argument(
+        "bag", help="bag folder (metadata.yaml) or .db3/.mcap file, an MRCLAM data set folder, or a scenario name (multi, single, ...)"
+    )
+    run.add_argument(
+        "--config", default=None,
+        help="team config (TOML), e.g. configs/tiers/...; required but for a simulated scenario, which brings its own",
+    )
     run.add_argument("--methods", default="pf,multilateration", help=METHODS_HELP)
     run.add_argument("--seed", type=argtypes.seed, default=0, help="seed of the filters")
     run.add_argument("--warmup", type=argtypes.non_negative, default=5.0, help="seconds excluded from APE")

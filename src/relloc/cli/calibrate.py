@@ -25,6 +25,7 @@ import tomlkit
 from tomlkit.items import Item, Table
 
 from relloc.config import ConfigError, PairCalibration, TeamConfig
+from relloc.sources.table import SourceError, source_kind
 
 
 @dataclass(frozen=True)
@@ -55,8 +56,9 @@ def calibrate(
     headings: bool = False,
     fit_scale: bool = False,
 ) -> Calibration:
-    """Pair calibration (and optionally heading offsets) from ``source``: a rosbag2 recording
-    with motion capture, or a CSV of UWB errors (``node_map``: CSV robot number -> node)."""
+    """Pair calibration (and optionally heading offsets) from ``source``: a recording with UWB
+    ranges and motion capture (:attr:`~relloc.sources.table.SourceKind.calibrates`: a rosbag2
+    bag), or a CSV of UWB errors (``node_map``: CSV robot number -> node)."""
     from relloc.evaluation import calibration
 
     if source.suffix.lower() == ".csv":
@@ -66,6 +68,12 @@ def calibrate(
             source, node_map or {1: "n_7", 3: "n_3", 4: "n_4", 5: "n_5"}, fit_scale=fit_scale
         )
     else:
+        kind = source_kind(source)
+        if not kind.calibrates:
+            raise SourceError(
+                f"{source} is {kind.what}: calibration needs UWB ranges with motion capture "
+                "(a rosbag2 recording) or a CSV of UWB errors"
+            )
         pairs = calibration.pair_biases_from_bag(source, config, fit_scale=fit_scale)
     offsets: dict[str, float] = {}
     if headings:

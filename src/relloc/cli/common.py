@@ -60,8 +60,9 @@ def is_user_error(exc: Exception) -> bool:
     from relloc.methods import MethodError
     from relloc.ranging.manifest import ModelDirError
     from relloc.sources.rosbag import BagError
+    from relloc.sources.table import SourceError
 
-    known = (UserError, ConfigError, MethodError, BagError, CalibrationError, ModelDirError, FileNotFoundError)
+    known = (UserError, ConfigError, MethodError, BagError, SourceError, CalibrationError, ModelDirError, FileNotFoundError)
     return isinstance(exc, known)
 
 

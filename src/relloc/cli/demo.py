@@ -15,7 +15,6 @@ the static reference robot with the particle filter's estimate as its only posit
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -32,8 +31,8 @@ from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajector
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.faults import Faults, inject
 from relloc.methods import DETECTION_METHODS, build_pipeline
-from relloc.simulator import Simulation, multi_scenario, single_scenario
-from relloc.simulator.scenarios import grid_scenario, static_scenario, static_then_move_scenario
+from relloc.simulator import Simulation
+from relloc.simulator.scenarios import SCENARIOS
 
 
 @dataclass(frozen=True)
@@ -56,18 +55,6 @@ class DemoOptions:
     """Faults injected into every scenario's event stream (:mod:`relloc.faults`)."""
     robots: int = 5
     """Team size of the ``grid`` scenario."""
-
-
-SCENARIOS: dict[str, Callable[..., Simulation]] = {
-    "multi": multi_scenario,
-    "single": single_scenario,
-    "static": static_scenario,
-    "static_then_move": static_then_move_scenario,
-    "grid": grid_scenario,
-}
-"""The open-loop scenarios (``nav`` is run apart). ``static`` and ``static_then_move`` are not in
-the default set: they show how the estimate reports an unobservable orientation; nor is ``grid``
-(the scaling scenario, ``DemoOptions.robots`` robots)."""
 
 
 def build_simulation(name: str, opts: DemoOptions, **kwargs: Any) -> Simulation:

@@ -24,6 +24,7 @@ from relloc.faults import add_arguments as add_fault_arguments
 from relloc.faults import from_args as faults_from_args
 from relloc.live.publish import ReplayOptions, replay_bag
 from relloc.live.server import LiveServer, ServeOptions
+from relloc.sources.table import source_kind
 
 __all__ = ["register"]
 
@@ -91,6 +92,9 @@ def _print_summary(s: dict[str, Any]) -> None:
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
+    kind = source_kind(args.bag)
+    if not kind.replayable:
+        raise UserError(f"{args.bag} is {kind.what}: relloc replay publishes the ROS 2 messages of a rosbag2 recording")
     config = TeamConfig.load(args.config)
     opts = options_from_args(ReplayOptions, args, interface=interface_from_args(args, config), faults=_faults(args))
     session = open_command_session(args)

@@ -1,14 +1,15 @@
-"""``relloc run``: recorded data (a rosbag2 folder, or an MRCLAM data set folder) through the engine.
+"""``relloc run``: a source (a rosbag2 recording, an MRCLAM data set, a simulated scenario) through the engine.
 
-``run_recording`` streams a bag through every requested method (the same engine as the demo
-and the live server), evaluates against motion capture when the bag has it, prints the APE
-table, writes plots, TUM trajectories (by default to ``out/<recording>/``) and a JSON with the
-demo's schema (the scenario named after the bag's folder). No ground truth ever reaches a
-localizer.
+``run_recording`` streams the source the path names (:mod:`relloc.sources.table`) through every
+requested method (the same engine as the demo and the live server), evaluates against its
+motion capture (or the simulator's ground truth), prints the APE table, writes plots, TUM
+trajectories (by default to ``out/<recording>/``) and a JSON with the demo's schema (the
+scenario named after the recording). No ground truth ever reaches a localizer.
 
-Everything that would make the run useless is checked before it starts, once the bag is open:
-a warm-up as long as the recording, a robot whose ``uwb_node`` matches no range topic (a
-warning), no range at all between the team's robots (an error: every method fuses ranges).
+Everything that would make the run useless is checked before it starts, once the source is
+open: a warm-up as long as the recording, and for a bag a robot whose ``uwb_node`` matches no
+range topic (a warning) or no range at all between the team's robots (an error: every method
+fuses ranges, :meth:`~relloc.sources.rosbag.RosbagSource.check_ranges`).
 ``relloc calibrate`` lives in :mod:`relloc.cli.calibrate`.
 """
 
@@ -22,7 +23,7 @@ from typing import Any
 from rich.console import Console
 from rich.markup import escape
 
-from relloc.cli.common import UserError, check_warmup
+from relloc.cli.common import check_warmup
 from relloc.cli.progress import run_with_progress
 from relloc.cli.rejections import rejection_lines
 from relloc.config import TeamConfig
@@ -31,11 +32,9 @@ from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.faults import Faults, inject
-from relloc.methods import build_pipeline
+from relloc.methods import DETECTION_METHODS, build_pipeline
 from relloc.sinks.tum import write_tum
-from relloc.sources.ingest import match_range_topics
-from relloc.sources.mrclam import MrclamSource, is_mrclam
-from relloc.sources.rosbag import RosbagSource, recording_name
+from relloc.sources.table import SourceOptions, source_kind
 
 
 @dataclass(frozen=True)
@@ -62,24 +61,25 @@ class RunOptions:
     """Faults injected into the recording's event stream (:mod:`relloc.faults`)."""
 
 
-def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Console | None = None) -> ScenarioReport:
-    """Run every method of ``opts`` over ``bag`` and report APE against motion capture."""
+def run_recording(
+    path: Path, config: TeamConfig | None, opts: RunOptions, console: Console | None = None
+) -> ScenarioReport:
+    """Run every method of ``opts`` over the source ``path`` names (:mod:`relloc.sources.table`)
+    and report APE against its ground truth; ``config`` is ``None`` for a simulated scenario."""
     console = console or make_console()
-    config = config.with_modes(
-        heading=opts.heading, bias=opts.bias, odom_scale=opts.odom_scale, reference=opts.reference
+    kind = source_kind(path)
+    options = SourceOptions(
+        seed=opts.seed, sightings=opts.sightings, detections=bool(DETECTION_METHODS & set(opts.methods))
     )
-    if opts.particles:
-        config = config.with_filter(particles=opts.particles, selfcal_particles=opts.particles)
-    mrclam = is_mrclam(bag)
-    source: RosbagSource | MrclamSource = MrclamSource(bag, config, sightings=opts.sightings) if mrclam else RosbagSource(bag, config)
-    name = recording_name(bag)
-    oracle = source.initial_poses() if isinstance(source, MrclamSource) else None
+    source = kind.open(path, None if config is None else _with_options(config, opts), options)
+    config = source.config if config is not None else _with_options(source.config, opts)
+    name = source.name
+    oracle = source.initial_poses()
     pipelines = [
         build_pipeline(m, config, seed=opts.seed, models=opts.models, oracle_start=oracle) for m in opts.methods
     ]
     check_warmup(opts.warmup, source.duration, name)
-    warnings = source.warnings if isinstance(source, MrclamSource) else [*source.warnings, *range_warnings(source)]
-    for warning in warnings:
+    for warning in source.warnings:
         console.print(f"[yellow]warning:[/] {escape(warning)}", soft_wrap=True)
     gt = GroundTruth(config.reference)
     engine = Engine(pipelines, truth_sinks=[gt.add])
@@ -93,8 +93,8 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
         start=source.start_time,
     )
     online = config.filter.self_calibration.bias_mode == "online"
-    bias_truth = _bag_bias_truth(bag, config) if online and not mrclam else None
-    report = evaluate(engine, gt, name, opts.warmup, bias_truth=bias_truth, truth_name="motion capture")
+    bias_truth = _bag_bias_truth(path, config) if online and kind.calibrates else None
+    report = evaluate(engine, gt, name, opts.warmup, bias_truth=bias_truth, truth_name=kind.truth_name)
     print_table(report, console)
     lines = rejection_lines("the source", source.stats.rejected)
     for p in engine.pipelines:
@@ -114,28 +114,14 @@ def run_recording(bag: Path, config: TeamConfig, opts: RunOptions, console: Cons
     return report
 
 
-def range_warnings(source: RosbagSource) -> list[str]:
-    """Robots whose ``uwb_node`` matches no range topic of the bag (they get no range).
-
-    With no range between any two of the team's robots, raises :class:`UserError`: every
-    method fuses ranges (``pf_uv``/``pf_ulv`` add detections to them), so the run would only
-    say "no estimate" everywhere."""
-    template = source.config.uwb.range_topic
-    found = match_range_topics(source.topics, template)
-    ranged = {node for pair in found.values() for node in pair}
-    robots = [r for r in source.config.robots if r.uwb_node]
-    if len(robots) >= 2 and not found:
-        nodes = ", ".join(f"{r.name}={r.uwb_node}" for r in robots)
-        raise UserError(
-            f"no UWB range topic of the bag joins two of the team's nodes ({nodes}; template "
-            f"{template!r}): every method needs ranges; check uwb_node and uwb.range_topic"
-        )
-    return [
-        f"{r.name}: uwb_node {r.uwb_node!r} matches no range topic of the bag (template "
-        f"{template!r}): it gets no range, so only its odometry moves it from the uniform prior"
-        for r in robots
-        if found and r.uwb_node not in ranged
-    ]
+def _with_options(config: TeamConfig, opts: RunOptions) -> TeamConfig:
+    """``config`` with the run's self-calibration modes, reference and particle count."""
+    config = config.with_modes(
+        heading=opts.heading, bias=opts.bias, odom_scale=opts.odom_scale, reference=opts.reference
+    )
+    if opts.particles:
+        config = config.with_filter(particles=opts.particles, selfcal_particles=opts.particles)
+    return config
 
 
 def _bag_bias_truth(bag: Path, config: TeamConfig) -> dict[str, float] | None:

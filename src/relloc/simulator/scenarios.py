@@ -13,7 +13,7 @@ observable from ranges, and these scenarios test that the estimate says so.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 from typing import Literal
 
@@ -396,3 +396,15 @@ def grid_scenario(
         odometry=odometry,
         area=area,
     )
+
+
+SCENARIOS: dict[str, Callable[..., Simulation]] = {
+    "multi": multi_scenario,
+    "single": single_scenario,
+    "static": static_scenario,
+    "static_then_move": static_then_move_scenario,
+    "grid": grid_scenario,
+}
+"""The open-loop scenarios by name, each called as ``scenario(seed, **options)`` (``nav`` is
+closed-loop and run apart). ``static`` and ``static_then_move`` show how the estimate reports an
+unobservable orientation; ``grid`` is the scaling scenario (``robots=N``)."""

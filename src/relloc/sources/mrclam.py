@@ -123,6 +123,7 @@ class MrclamSource:
         if sightings not in ("both", "range", "bearing"):
             raise ValueError(f"sightings must be both, range or bearing, not {sightings!r}")
         self.folder = Path(folder)
+        self.name = self.folder.name
         self.use = sightings
         """What of each sighting to pass on: ``both``, ``range`` (bearing left out) or ``bearing``."""
         if not is_mrclam(self.folder):

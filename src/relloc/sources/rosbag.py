@@ -302,6 +302,32 @@ class RosbagSource:
     def __repr__(self) -> str:
         return f"RosbagSource({str(self.path)!r}, team={self.config.name!r})"
 
+    def initial_poses(self) -> None:
+        """A bag says nothing of the true start beyond its motion capture: ``None``."""
+        return None
+
+    def check_ranges(self) -> None:
+        """What a run over this bag needs of its UWB topics: robots whose ``uwb_node`` matches
+        no range topic get a warning (only their odometry moves them from the uniform prior);
+        no range at all between the team's robots is a :class:`BagError`, since every method
+        fuses ranges."""
+        template = self.config.uwb.range_topic
+        found = match_range_topics(self.topics, template)
+        ranged = {node for pair in found.values() for node in pair}
+        robots = [r for r in self.config.robots if r.uwb_node]
+        if len(robots) >= 2 and not found:
+            nodes = ", ".join(f"{r.name}={r.uwb_node}" for r in robots)
+            raise BagError(
+                f"no UWB range topic of the bag joins two of the team's nodes ({nodes}; template "
+                f"{template!r}): every method needs ranges; check uwb_node and uwb.range_topic"
+            )
+        self.warnings += [
+            f"{r.name}: uwb_node {r.uwb_node!r} matches no range topic of the bag (template "
+            f"{template!r}): it gets no range, so only its odometry moves it from the uniform prior"
+            for r in robots
+            if found and r.uwb_node not in ranged
+        ]
+
     # ------------------------------------------------------------------ topics against the bag
     def _resolve(self, routes: list[Route], *, odometry: bool, ranges: bool) -> dict[str, Route]:
         """The routes whose topics the bag has, each with the bag's message type."""
