@@ -13,6 +13,7 @@ from rich.console import Console
 from relloc.evaluation.metrics import ApeStats, Paired, convergence_time
 from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories, robot_colors
 from relloc.evaluation.report import MethodReport, ScenarioReport, print_table
+from relloc.evaluation.scores import ApeResult, AteResult, ConvergenceResult
 
 T = np.round(np.arange(0.0, 60.0, 0.1), 6)
 
@@ -52,16 +53,23 @@ def _report(with_empty: bool = True) -> ScenarioReport:
     robots = {f"r{k}": _paired(np.abs(rng.normal(0.1, 0.05, T.size))) for k in range(1, 4)}
     methods = {
         "pf": MethodReport(
-            robots={r: ApeStats.of(p.errors[p.t >= 10.0]) for r, p in robots.items()},
-            ate={r: 0.05 for r in robots},
-            convergence_s=convergence_time(robots),
+            {
+                "ape": ApeResult({r: ApeStats.of(p.errors[p.t >= 10.0]) for r, p in robots.items()}),
+                "ate": AteResult({r: 0.05 for r in robots}, {r: len(p.t) for r, p in robots.items()}),
+                "convergence": ConvergenceResult(convergence_time(robots)),
+            },
             paired=robots,
         )
     }
     if with_empty:
         empty = {r: _paired(np.zeros(0), np.zeros(0)) for r in robots}
         methods["multilateration"] = MethodReport(
-            robots={r: ApeStats.of(np.zeros(0)) for r in robots}, ate={}, convergence_s=math.nan, paired=empty
+            {
+                "ape": ApeResult({r: ApeStats.of(np.zeros(0)) for r in robots}),
+                "ate": AteResult({}),
+                "convergence": ConvergenceResult(math.nan),
+            },
+            paired=empty,
         )
     return ScenarioReport("toy", 10.0, 60.0, methods, 0.0, reference="r0", truth_name="ground truth")
 

@@ -88,7 +88,7 @@ def test_the_report_and_the_live_status_show_the_unseen_robot() -> None:
     """``--json`` carries each unseen stretch per robot; the live status the last estimate's."""
     from test_zenoh_source import _Nothing, team
 
-    from relloc.evaluation.report import unseen_intervals
+    from relloc.evaluation.scores import unseen_intervals
     from relloc.live.server import LiveServer, ServeOptions
 
     ests, _ = _run()
