@@ -2,7 +2,8 @@
 
 ``evaluate`` turns the estimates an :class:`~relloc.engine.Engine` collected into a
 :class:`ScenarioReport`: for every method it computes each metric of
-:data:`relloc.evaluation.metric.METRICS` (the shipped ones: :mod:`relloc.evaluation.scores`) on
+:data:`relloc.evaluation.metric.METRICS` (the shipped ones: :mod:`relloc.evaluation.scores`,
+:mod:`relloc.evaluation.selfcal_scores`) on
 a :class:`~relloc.evaluation.metric.MethodRun`, and :meth:`MethodReport.to_json` and
 :func:`print_table` show whatever those results show. Estimates from the warm-up window are
 excluded from the figures (the filter is still converging from its uniform prior then) and the
@@ -23,7 +24,7 @@ from rich.console import Console
 from rich.table import Table
 
 from relloc.engine import Engine
-from relloc.evaluation import scores
+from relloc.evaluation import scores, selfcal_scores
 from relloc.evaluation.metric import METRICS, Column, MethodRun, MetricResult
 from relloc.evaluation.metrics import (
     ApeStats,
@@ -95,20 +96,20 @@ class MethodReport:
 
     @property
     def headings(self) -> dict[str, HeadingPaired]:
-        r = self.result(scores.HeadingsResult)
+        r = self.result(selfcal_scores.HeadingsResult)
         return r.headings if r is not None else {}
 
     def heading_median_deg(self, robot: str) -> float:
-        r = self.result(scores.HeadingsResult)
+        r = self.result(selfcal_scores.HeadingsResult)
         return r.median_deg(robot) if r is not None else math.nan
 
     @property
     def final_biases(self) -> dict[str, tuple[float, float]]:
-        r = self.result(scores.BiasResult)
+        r = self.result(selfcal_scores.BiasResult)
         return r.final if r is not None else {}
 
     def bias_error_median(self, pair: str) -> float:
-        r = self.result(scores.BiasResult)
+        r = self.result(selfcal_scores.BiasResult)
         return r.error_median(pair) if r is not None else math.nan
 
     def to_json(self) -> dict[str, Any]:

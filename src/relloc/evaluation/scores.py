@@ -1,6 +1,7 @@
-"""The shipped metrics, one class each, in the order the report shows them.
+"""The shipped metrics of positions and their uncertainty, one class each, in the order the
+report shows them (the self-calibration ones: :mod:`relloc.evaluation.selfcal_scores`).
 
-The definitions (APE, ATE, convergence, NEES, body frame, shapes, headings) are those of
+The definitions (APE, ATE, convergence, NEES, body frame, shapes) are those of
 :mod:`relloc.evaluation.metrics`; each class here scores one method's run with one of them and
 says how its figures appear in the JSON and the tables (:mod:`relloc.evaluation.metric`).
 """
@@ -23,13 +24,10 @@ from relloc.evaluation.metrics import (
     CONVERGENCE_TOLERANCE,
     ApeStats,
     Consistency,
-    HeadingPaired,
     after,
     align,
-    associate_headings,
     associate_shapes,
     ate,
-    bias_errors,
     body_frame_paired,
     consistency,
     convergence_time,
@@ -172,88 +170,6 @@ class BodyFrameApe(Metric):
         return BodyFrameResult({r: ApeStats.of(after(q, run.start).errors) for r, q in pairs.items()})
 
 
-# ---------------------------------------------------------------------------- headings and scales
-UNOBSERVABLE_SPREAD_DEG = 45.0
-"""A published heading spread above this says: not observable yet (the robot has not moved)."""
-
-
-@dataclass(frozen=True)
-class HeadingsResult(MetricResult):
-    headings: dict[str, HeadingPaired]
-    """Heading-estimate mode: published relative headings against the truth, after the warm-up."""
-    scales: dict[str, tuple[float, float]]
-    """Online odometry scales: the last published (mean, std) per robot."""
-    frame_rotation_deg: float | None = None
-    """Heading-estimate mode: rotation of the reference's odometry frame in the mocap frame
-    (its mocap yaw minus odometry yaw at its first odometry message), by which the ground
-    truth is turned for evaluation."""
-
-    def median_deg(self, robot: str) -> float:
-        h = self.headings.get(robot)
-        return math.degrees(float(np.median(h.errors))) if h is not None and len(h.t) else math.nan
-
-    def spread_deg(self, robot: str) -> float:
-        """Median published heading spread (circular std) after the warm-up (deg)."""
-        h = self.headings.get(robot)
-        return math.degrees(float(np.median(h.spread))) if h is not None and len(h.t) else math.nan
-
-    def robot_json(self) -> dict[str, dict[str, Any]]:
-        out: dict[str, dict[str, Any]] = {}
-        for r in self.headings:
-            out[r] = {"heading_median_deg": num(self.median_deg(r)), "heading_spread_deg": num(self.spread_deg(r))}
-        for r, (mean, std) in self.scales.items():
-            out.setdefault(r, {}).update({"odom_scale": num(mean), "odom_scale_std": num(std)})
-        return out
-
-    def method_json(self) -> dict[str, Any]:
-        return {} if self.frame_rotation_deg is None else {"frame_rotation_deg": num(self.frame_rotation_deg)}
-
-    def tables(self, scenario: str, method: str) -> list[Table]:
-        if not self.headings and not self.scales:
-            return []
-        table = Table(title=f"{scenario} / {method}: headings (reference's odometry frame) and odometry scales")
-        for col in ("robot", "heading", "spread", "heading error (median)", "scale"):
-            table.add_column(col, justify="left" if col == "robot" else "right")
-        for robot in sorted(set(self.headings) | set(self.scales)):
-            h = self.headings.get(robot)
-            cells = ["", "", ""]
-            if h is not None and len(h.t):
-                spread = math.degrees(float(h.spread[-1]))
-                note = " (unobservable)" if spread > UNOBSERVABLE_SPREAD_DEG else ""
-                cells = [
-                    f"{math.degrees(float(h.mean[-1])):.1f} deg",
-                    f"{spread:.1f} deg{note}",
-                    f"{self.median_deg(robot):.2f} deg",
-                ]
-            scale = self.scales.get(robot)
-            cells.append("" if scale is None or not math.isfinite(scale[0]) else f"{scale[0]:.3f} +- {scale[1]:.3f}")
-            table.add_row(robot, *cells)
-        return [table]
-
-
-@register_metric
-class Headings(Metric):
-    """Self-calibrated robot states: published relative headings scored against the truth
-    (heading-estimate mode) and the last published odometry scales."""
-
-    name = "headings"
-    table_group = 2
-
-    def compute(self, run: MethodRun) -> HeadingsResult:
-        headings: dict[str, HeadingPaired] = {}
-        if run.frame_rotation_deg is not None:
-            pairs = associate_headings(run.estimates, run.truth, run.odometry_yaws, run.rotation)
-            headings = {r: _after_heading(h, run.start) for r, h in pairs.items()}
-        last = run.estimates[-1] if run.estimates else None
-        scales = dict(last.scales) if last is not None else {}
-        return HeadingsResult(headings, scales, run.frame_rotation_deg)
-
-
-def _after_heading(h: HeadingPaired, t_start: float) -> HeadingPaired:
-    keep = h.t >= t_start
-    return HeadingPaired(h.t[keep], h.mean[keep], h.spread[keep], h.truth[keep])
-
-
 # ---------------------------------------------------------------------------- consistency
 NEES_CAPTION = (
     "NEES: median normalised estimation error squared of the published covariance after the "
@@ -392,67 +308,6 @@ class FinalShape(Metric):
                 "distances": {p: [num(m), num(s)] for p, (m, s) in last.distances.items()},
                 "status": last.status,
             }
-        )
-
-
-# ---------------------------------------------------------------------------- online biases
-@dataclass(frozen=True)
-class BiasResult(MetricResult):
-    final: dict[str, tuple[float, float]]
-    """The last published (mean, std) per node pair."""
-    truth: dict[str, float]
-    errors: dict[str, FloatArray]
-    """``|estimate - truth|`` per node pair after the warm-up (where a truth is known)."""
-
-    def error_median(self, pair: str) -> float:
-        e = self.errors.get(pair)
-        return float(np.median(e)) if e is not None and e.size else math.nan
-
-    def method_json(self) -> dict[str, Any]:
-        if not self.final:
-            return {}
-        return {
-            "pairs": {
-                pair: {
-                    "bias": num(mean),
-                    "bias_std": num(std),
-                    "bias_true": num(self.truth.get(pair, math.nan)),
-                    "bias_error_median": num(self.error_median(pair)),
-                }
-                for pair, (mean, std) in self.final.items()
-            }
-        }
-
-    def tables(self, scenario: str, method: str) -> list[Table]:
-        if not self.final:
-            return []
-        table = Table(title=f"{scenario} / {method}: online range biases (m)")
-        for col in ("pair", "bias", "std", "true", "error (median)"):
-            table.add_column(col, justify="left" if col == "pair" else "right")
-        for pair, (mean, std) in sorted(self.final.items()):
-            true = self.truth.get(pair)
-            table.add_row(
-                pair,
-                f"{mean:.3f}",
-                f"{std:.3f}",
-                "" if true is None else f"{true:.3f}",
-                "" if true is None else f"{self.error_median(pair):.3f}",
-            )
-        return [table]
-
-
-@register_metric
-class OnlineBiases(Metric):
-    """Online range biases: the last published ones, scored against the truth where known."""
-
-    name = "biases"
-    table_group = 2
-
-    def compute(self, run: MethodRun) -> BiasResult:
-        last = run.estimates[-1] if run.estimates else None
-        truth = {k: v for k, v in run.bias_truth.items() if last is not None and k in last.biases}
-        return BiasResult(
-            dict(last.biases) if last is not None else {}, truth, bias_errors(run.estimates, dict(run.bias_truth), run.start)
         )
 
 

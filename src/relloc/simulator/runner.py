@@ -51,7 +51,6 @@ from relloc.simulator.error_models import (
     OdometryErrorModel,
     SightingSensorModel,
     UwbErrorModel,
-    UwbPair,
     camera_view,
     in_view,
 )
@@ -62,7 +61,13 @@ from relloc.simulator.kinematics import (
     accumulate,
     arc_displacement,
 )
-from relloc.simulator.streams import stream
+from relloc.simulator.schedules import (
+    draw_actuation,
+    draw_camera,
+    draw_odometry,
+    draw_sightings,
+    draw_uwb,
+)
 
 __all__ = ["ARENA", "SIM_PARTICLES", "Simulation", "covisibility"]
 
@@ -150,12 +155,18 @@ class Simulation:
             m.name: float(wrap_angle(m.yaw)) for m in self.motions
         }
 
-        self._build_odometry()
-        self._build_uwb()
-        self._build_camera()
-        self._build_actuation()
+        self.true_odom_scales, self.true_gyro_biases, self._odom = draw_odometry(
+            self.seed, self.motions, self.odometry_model, self.duration
+        )
+        self.true_biases, self._uwb = draw_uwb(self.seed, self.motions, self.uwb_model, self.duration)
+        self._cam = (
+            draw_camera(self.seed, self.motions, self.detection_model, len(self.sim_objects), self.duration)
+            if self.detections_enabled
+            else {}
+        )
+        self._act = draw_actuation(self.seed, self.commanded, self.actuation_model, self.duration)
         self.sighting_models: tuple[SightingSensorModel, ...] = tuple(sightings)
-        self._build_sightings()
+        self._sight = draw_sightings(self.seed, self.robots, self.sighting_models, self.duration)
         self._gt_times = np.arange(0.0, self.duration + 1e-9, 0.05)
 
         robot_cfgs = tuple(
@@ -186,122 +197,6 @@ class Simulation:
             filter=FilterConfig(particles=SIM_PARTICLES),
         )
         self._runner = _Runner(self)
-
-    # ------------------------------------------------------------------ construction
-    def _build_odometry(self) -> None:
-        om = self.odometry_model
-        self.true_odom_scales: dict[str, float] = {}
-        self.true_gyro_biases: dict[str, float] = {}
-        self._odom: dict[str, dict[str, FloatArray]] = {}
-        period = 1.0 / om.rate_hz
-        for m in self.motions:
-            rng = stream(self.seed, "odom-params", m.name)
-            self.true_odom_scales[m.name] = float(rng.uniform(*om.scale_range))
-            self.true_gyro_biases[m.name] = float(rng.uniform(-om.gyro_bias_max, om.gyro_bias_max))
-            phase = rng.uniform(0.0, period)
-            times = np.arange(phase, self.duration + 1e-9, period)
-            self._odom[m.name] = {
-                "t": times,
-                "nv": stream(self.seed, "odom-v", m.name).standard_normal(times.size),
-                "nw": stream(self.seed, "odom-w", m.name).standard_normal(times.size),
-            }
-
-    def _build_uwb(self) -> None:
-        um = self.uwb_model
-        period = 1.0 / um.rate_hz
-        nodes = [m.node for m in self.motions]
-        antenna = {n: float(stream(self.seed, "uwb-antenna", n).uniform(-0.5, 0.5)) for n in nodes}
-        self.true_biases: dict[str, float] = {}
-        self._uwb: list[UwbPair] = []
-        for ma, mb in combinations(self.motions, 2):
-            key = pair_key(ma.node, mb.node)
-            bias = float(stream(self.seed, "uwb-bias", key).uniform(*um.bias_range))
-            self.true_biases[key] = bias
-            amp = stream(self.seed, "uwb-orient", key).uniform(0.5, 1.5, size=2)
-            rng_t = stream(self.seed, "uwb-time", key)
-            phase = rng_t.uniform(0.0, period)
-            base = np.arange(phase, self.duration + period, period)
-            jitter = np.clip(rng_t.normal(0.0, um.jitter, base.size), -period / 4, period / 4)
-            times = base + jitter
-            n = times.size
-            spikes = stream(self.seed, "uwb-nlos", key).uniform(0.0, 1.0, size=(n, 2))
-            nlos = spikes[:, 0] < um.nlos_probability
-            lo, hi = um.nlos_range
-            mask = (times >= 0.0) & (times <= self.duration)
-            self._uwb.append(
-                UwbPair(
-                    robot_a=ma.name,
-                    robot_b=mb.name,
-                    node_a=ma.node,
-                    node_b=mb.node,
-                    bias=bias,
-                    amplitude=amp * um.orientation_amplitude,
-                    antenna=np.array([antenna[ma.node], antenna[mb.node]]),
-                    t=times[mask],
-                    noise=(stream(self.seed, "uwb-noise", key).standard_normal(n) * um.sigma)[
-                        mask
-                    ],
-                    spike=np.where(nlos, lo + spikes[:, 1] * (hi - lo), 0.0)[mask],
-                    keep=(
-                        stream(self.seed, "uwb-dropout", key).uniform(size=n)
-                        >= um.dropout_probability
-                    )[mask],
-                )
-            )
-
-    def _build_camera(self) -> None:
-        dm = self.detection_model
-        self._cam: dict[str, dict[str, FloatArray]] = {}
-        if not self.detections_enabled:
-            return
-        period = 1.0 / dm.rate_hz
-        n_obj = len(self.sim_objects)
-        for m in self.motions:
-            rng_t = stream(self.seed, "camera-time", m.name)
-            phase = rng_t.uniform(0.0, period)
-            times = np.arange(phase, self.duration + 1e-9, period)
-            rng = stream(self.seed, "camera-noise", m.name)
-            shape = (times.size, n_obj)
-            self._cam[m.name] = {
-                "t": times,
-                "miss": rng.uniform(size=shape) < dm.miss_probability,
-                "nd": rng.standard_normal(shape),
-                "nb": rng.standard_normal(shape),
-                "nz": rng.standard_normal(shape),
-                "score": rng.uniform(0.5, 0.95, size=shape),
-            }
-
-    def _build_sightings(self) -> None:
-        """Per sensor and ordered pair: sample times and noise, each from its own stream (so a
-        scenario without them draws exactly what it drew before they existed)."""
-        self._sight: list[tuple[SightingSensorModel, str, str, dict[str, FloatArray]]] = []
-        for sm in self.sighting_models:
-            period = 1.0 / sm.rate_hz
-            for obs in self.robots:
-                for tgt in self.robots:
-                    if obs == tgt:
-                        continue
-                    rng_t = stream(self.seed, "sighting-time", sm.sensor, obs, tgt)
-                    times = np.arange(rng_t.uniform(0.0, period), self.duration + 1e-9, period)
-                    rng = stream(self.seed, "sighting-noise", sm.sensor, obs, tgt)
-                    n = times.size
-                    draws = {
-                        "t": times,
-                        "nr": rng.standard_normal(n),
-                        "nb": rng.standard_normal(n),
-                        "outlier": rng.uniform(size=n) < sm.outlier_probability,
-                        "wild": rng.uniform(-0.5, 0.5, size=n),
-                        "miss": rng.uniform(size=n) < sm.miss_probability,
-                    }
-                    self._sight.append((sm, obs, tgt, draws))
-
-    def _build_actuation(self) -> None:
-        am = self.actuation_model
-        n = math.ceil(self.duration / am.dt) + 2
-        self._act: dict[str, FloatArray] = {
-            name: stream(self.seed, "actuation", name).standard_normal((n, 3))
-            for name in self.commanded
-        }
 
     # ------------------------------------------------------------------ public API
     def events(self) -> Iterator[Event]:
@@ -370,8 +265,6 @@ class Simulation:
                 pb = self._runner.traj[pair.robot_b].evaluate(t)
                 return pair.bias + pair.orientation_term(pa, pb)
         raise KeyError(f"no UWB pair {robot_a!r}-{robot_b!r}")
-
-
 
 
 class _Runner:
@@ -546,7 +439,6 @@ class _Runner:
                 )
                 out.append(DetectionEvent(t, name, objs))
 
-
     def _sightings(self, t0: float, t1: float, out: list[Event]) -> None:
         for sm, obs, tgt, d in self.sim._sight:
             i0, i1 = np.searchsorted(d["t"], [t0, t1], side="right")
@@ -575,7 +467,6 @@ def _window(times: FloatArray, t0: float, t1: float) -> FloatArray:
     """The sorted ``times`` in ``(t0, t1]``."""
     i0, i1 = np.searchsorted(times, [t0, t1], side="right")
     return times[i0:i1]
-
 
 
 def covisibility(sim: Simulation, dt: float = 0.2) -> dict[str, float]:
