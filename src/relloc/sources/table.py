@@ -1,12 +1,12 @@
 """Which source a path names: one table for ``relloc run``, ``calibrate`` and ``replay``.
 
-=============  ==========================================================  =====================
-kind           what the path is                                            source
-=============  ==========================================================  =====================
-``rosbag2``    a folder with ``metadata.yaml``, or a ``.db3``/``.mcap`` file  :class:`RosbagSource`
-``mrclam``     a folder with ``Barcodes.dat`` and ``Robot1_Odometry.dat``    :class:`MrclamSource`
-``scenario``   a simulated scenario's name (not an existing path)          :class:`SimulationSource`
-=============  ==========================================================  =====================
+=============  ==============================================================  ========================
+kind           what the path is                                                source
+=============  ==============================================================  ========================
+``rosbag2``    a folder with ``metadata.yaml``, or a ``.db3``/``.mcap`` file     :class:`RosbagSource`
+``mrclam``     a folder with ``Barcodes.dat`` and ``Robot1_Odometry.dat``        :class:`MrclamSource`
+``scenario``   a simulated scenario's name (not an existing path)              :class:`SimulationSource`
+=============  ==============================================================  ========================
 
 :func:`source_kind` looks a path up (the first row that matches, in this order: an existing path
 is never taken for a scenario's name); anything else is a :class:`SourceError` that lists the
