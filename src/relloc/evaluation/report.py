@@ -95,6 +95,11 @@ class MethodReport:
         return r.stats if r is not None else {}
 
     @property
+    def unobservable_fraction(self) -> float:
+        r = self.result(scores.ShapeResult)
+        return r.unobservable_fraction if r is not None else math.nan
+
+    @property
     def headings(self) -> dict[str, HeadingPaired]:
         r = self.result(selfcal_scores.HeadingsResult)
         return r.headings if r is not None else {}
@@ -102,6 +107,15 @@ class MethodReport:
     def heading_median_deg(self, robot: str) -> float:
         r = self.result(selfcal_scores.HeadingsResult)
         return r.median_deg(robot) if r is not None else math.nan
+
+    def heading_spread_deg(self, robot: str) -> float:
+        r = self.result(selfcal_scores.HeadingsResult)
+        return r.spread_deg(robot) if r is not None else math.nan
+
+    @property
+    def frame_rotation_deg(self) -> float | None:
+        r = self.result(selfcal_scores.HeadingsResult)
+        return r.frame_rotation_deg if r is not None else None
 
     @property
     def final_biases(self) -> dict[str, tuple[float, float]]:
