@@ -67,10 +67,10 @@ def test_commands_refuse_a_source_they_cannot_use(tmp_path: Path, capsys: pytest
     assert "is an MRCLAM data set: relloc replay publishes the ROS 2 messages of a rosbag2" in capsys.readouterr().err
     assert main(["calibrate", "single", "--config", str(config)]) == 2
     assert "single is a simulated scenario: calibration needs UWB ranges with motion capture" in capsys.readouterr().err
-    assert main(["run", str(tmp_path / "absent"), "--config", str(config), "--no-progress"]) == 2
+    assert main(["run", str(tmp_path / "absent"), "--config", str(config), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     err = capsys.readouterr().err
     assert "relloc run: error: " in err and "absent: not found; give a rosbag2 recording" in err
-    assert main(["run", "single", "--config", str(config), "--no-progress"]) == 2
+    assert main(["run", "single", "--config", str(config), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     assert "brings its own team config: leave out --config" in capsys.readouterr().err
 
 
