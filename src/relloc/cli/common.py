@@ -9,7 +9,9 @@
 * :func:`add_zenoh_args` and :func:`open_command_session`: every live command (``serve``,
   ``replay``, ``navigate``, ``sim-robots``) opens its Zenoh session from the same flags, and
   :func:`interface_from_args` gives its ROS interface (``--ros-interface``, ``--domain-id``,
-  else the team config's ``ros_interface`` and ``ROS_DOMAIN_ID``).
+  else the team config's ``ros_interface`` and ``ROS_DOMAIN_ID``); ``--secure DIR`` picks the
+  command's role config of ``relloc secure init`` and :func:`session_security` says what the
+  session's config makes of it (authenticated, as whom).
 * :func:`options_from_args` builds a command's option dataclass from the parsed arguments by
   field name, so a new option is one ``add_argument`` whose ``dest`` is the field's name.
 """
@@ -29,6 +31,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from relloc.config import TeamConfig
+from relloc.live.secure import AccessRefusals, Security, check_endpoints, security_of
 from relloc.live.session import ZenohOptions, open_session
 from relloc.ros.interfaces import ROS_INTERFACES, RosInterface
 
@@ -37,11 +40,13 @@ __all__ = [
     "add_zenoh_args",
     "check_warmup",
     "check_writable",
+    "counting_refusals",
     "format_stamp",
     "interface_from_args",
     "is_user_error",
     "open_command_session",
     "options_from_args",
+    "session_security",
     "stop_on_signals",
     "zenoh_options_from_args",
 ]
@@ -133,9 +138,11 @@ def options_from_args(cls: type[T], args: argparse.Namespace, **values: Any) -> 
     return cls(**kwargs)
 
 
-def add_zenoh_args(p: argparse.ArgumentParser) -> None:
-    """The Zenoh session options of every live command (``--mode``, ``--connect``, ...)."""
+def add_zenoh_args(p: argparse.ArgumentParser, role: str) -> None:
+    """The Zenoh session options of every live command (``--mode``, ``--connect``, ...);
+    ``role`` names its config in a ``relloc secure init`` directory (``--secure DIR``)."""
     g = p.add_argument_group("zenoh")
+    p.set_defaults(zenoh_role=role)
     g.add_argument(
         "--mode", choices=("peer", "client"), default="peer",
         help="Zenoh mode: peer (talks to every peer) or client (through a router)",
@@ -160,6 +167,13 @@ def add_zenoh_args(p: argparse.ArgumentParser) -> None:
         default=None,
         metavar="FILE",
         help="a Zenoh JSON5 config (the options above override it)",
+    )
+    g.add_argument(
+        "--secure",
+        default=None,
+        metavar="DIR",
+        help=f"mutual TLS and access control: DIR/{role}.json5 of relloc secure init "
+        "(tls/ endpoints only; docs/secure.md)",
     )
     g.add_argument(
         "--prefix", default="", help="key prefix of the robots' topics (the bridge namespace)"
@@ -198,13 +212,45 @@ def interface_from_args(args: argparse.Namespace, config: TeamConfig) -> RosInte
 
 def zenoh_options_from_args(args: argparse.Namespace) -> ZenohOptions:
     """The :class:`ZenohOptions` of arguments added by :func:`add_zenoh_args`."""
+    config_file = Path(args.zenoh_config) if args.zenoh_config else None
+    if args.secure:
+        if config_file is not None:
+            raise UserError("give --secure DIR or --zenoh-config FILE, not both")
+        config_file = Path(args.secure) / f"{args.zenoh_role}.json5"
+        if not config_file.is_file():
+            raise UserError(f"--secure {args.secure}: no {config_file.name} (relloc secure init)")
+        try:
+            check_endpoints([*args.connect, *args.listen])
+        except ValueError as exc:
+            raise UserError(str(exc)) from None
     return ZenohOptions(
         mode=args.mode,
         connect=tuple(args.connect),
         listen=tuple(args.listen),
         multicast=not args.no_multicast,
-        config_file=Path(args.zenoh_config) if args.zenoh_config else None,
+        config_file=config_file,
     )
+
+
+def session_security(args: argparse.Namespace) -> Security:
+    """Whether the session of a command is authenticated, and as whom (its config's word)."""
+    options = zenoh_options_from_args(args)
+    return security_of(options.to_config(), options.config_file)
+
+
+@contextmanager
+def counting_refusals(security: Security) -> Iterator[AccessRefusals | None]:
+    """While the block runs, count what the session's access control refuses (``None``
+    without access control): open the session inside the block."""
+    if not security.access_control:
+        yield None
+        return
+    refusals = AccessRefusals()
+    refusals.start()
+    try:
+        yield refusals
+    finally:
+        refusals.stop()
 
 
 def open_command_session(args: argparse.Namespace) -> Any:

@@ -11,10 +11,12 @@ from relloc.cli import argtypes
 from relloc.cli.common import (
     UserError,
     add_zenoh_args,
+    counting_refusals,
     format_stamp,
     interface_from_args,
     open_command_session,
     options_from_args,
+    session_security,
     stop_on_signals,
 )
 from relloc.cli.rejections import rejection_lines
@@ -40,6 +42,22 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         interface=interface_from_args(args, config),
         faults=_faults(args),
     )
+    security = session_security(args)
+    with counting_refusals(security) as refusals:
+        summary = _serve(config, opts, args, security.describe())
+    _print_summary(summary)
+    if refusals is not None:
+        summary["access_refused"] = refusals.as_dict()
+        print(f"  refused by access control: {refusals.total}")
+        for line in refusals.lines():
+            print(f"    {line}")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(summary, indent=2))
+    return 0
+
+
+def _serve(config: TeamConfig, opts: ServeOptions, args: argparse.Namespace, security: str) -> dict[str, Any]:
     session = open_command_session(args)
     try:
         server = LiveServer(config, session, opts)
@@ -56,15 +74,11 @@ def _cmd_serve(args: argparse.Namespace) -> int:
                 f"estimates on {server.sink.key('<robot>', opts.methods[0])}",
                 flush=True,
             )
-            summary = server.run(args.duration)
+            print(f"  zenoh session {security}", flush=True)
+            return server.run(args.duration)
     finally:
         server.close()
         session.close()
-    _print_summary(summary)
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(summary, indent=2))
-    return 0
 
 
 def _faults(args: argparse.Namespace) -> Faults:
@@ -163,7 +177,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.add_argument(
         "--json", default=None, metavar="FILE", help="write the final figures as JSON"
     )
-    add_zenoh_args(serve)
+    add_zenoh_args(serve, "serve")
     serve.set_defaults(handler=_cmd_serve)
 
     replay = sub.add_parser(
@@ -191,5 +205,5 @@ def register(sub: argparse._SubParsersAction) -> None:
     replay.add_argument("--start", type=float, default=0.0, metavar="S", help="skip S s of the bag")
     replay.add_argument("--duration", type=argtypes.positive, default=None, metavar="S", help="publish only S s")
     add_fault_arguments(replay)
-    add_zenoh_args(replay)
+    add_zenoh_args(replay, "team")
     replay.set_defaults(handler=_cmd_replay)

@@ -16,9 +16,11 @@ from relloc.cli import argtypes
 from relloc.cli.common import (
     UserError,
     add_zenoh_args,
+    counting_refusals,
     interface_from_args,
     open_command_session,
     options_from_args,
+    session_security,
     stop_on_signals,
 )
 
@@ -117,7 +119,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--duration", type=argtypes.positive, default=None, metavar="S", help="stop (zero velocity) after S s"
     )
     nav.add_argument("--json", default=None, metavar="FILE", help="write the summary as JSON")
-    add_zenoh_args(nav)
+    add_zenoh_args(nav, "navigate")
     nav.set_defaults(handler=_cmd_navigate)
 
     sim = sub.add_parser(
@@ -178,7 +180,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     sim.add_argument(
         "--json", default=None, metavar="FILE", help="write the summary and true trajectories"
     )
-    add_zenoh_args(sim)
+    add_zenoh_args(sim, "team")
     sim.set_defaults(handler=_cmd_sim_robots)
 
 
@@ -190,9 +192,10 @@ def _overrides(args: argparse.Namespace, names: dict[str, str]) -> dict[str, Any
 
 def _cmd_navigate(args: argparse.Namespace) -> int:
     from relloc.config import TeamConfig
+    from relloc.live.secure import SERVE
     from relloc.methods import parse_methods
     from relloc.navigation.controller import ControllerConfig
-    from relloc.navigation.live import LiveNavigation, NavigateOptions
+    from relloc.navigation.live import NavigateOptions
     from relloc.navigation.path import load_path
     from relloc.navigation.safety import SafetyConfig
 
@@ -241,7 +244,40 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
         safety=safety,
         methods=tuple(parse_methods(args.methods)),
         interface=interface_from_args(args, config),
+        pose_identity=SERVE if args.secure and not args.in_process else None,
     )
+    security = session_security(args)
+    with counting_refusals(security) as refusals:
+        summary = _navigate(config, opts, args, security.describe())
+    if refusals is not None:
+        summary["access_refused"] = refusals.as_dict()
+    t0 = summary["t0"] or 0.0
+    for rec in summary["stops"]:
+        verb = "stop" if rec["stop"] else "go  "
+        print(f"  {verb} at {rec['t'] - t0:6.2f} s: {rec['reason']} ({rec['detail']})")
+    print(
+        f"ended: {summary['ended']}; path {'completed' if summary['completed'] else 'not completed'}; "
+        f"{summary['received']['estimate']} estimates and {summary['received']['odometry']} "
+        f"odometry messages received, {summary['commands_sent']} commands sent"
+    )
+    if summary["received"]["unverified"]:
+        print(f"  estimates not used (publisher not verified): {summary['received']['unverified']}")
+    if refusals is not None:
+        print(f"  refused by access control: {refusals.total}")
+        for line in refusals.lines():
+            print(f"    {line}")
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(json.dumps(summary, indent=2))
+    if summary["ended"] == "interrupted":
+        return 130
+    return 0 if summary["completed"] or summary["ended"] == "duration" else 1
+
+
+def _navigate(config: Any, opts: Any, args: argparse.Namespace, security: str) -> dict[str, Any]:
+    from relloc.navigation.live import LiveNavigation
+
+    path = opts.path
     session = open_command_session(args)
     try:
         try:
@@ -255,29 +291,16 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
             f"{source}, odometry on {live.odom_key}, commands on {live.cmd_key}",
             flush=True,
         )
+        trusted = f"; poses only from {opts.pose_identity!r}" if opts.pose_identity else ""
+        print(f"  zenoh session {security}{trusted}", flush=True)
         with stop_on_signals() as stop:
             live.start()
             try:
-                summary = live.run(stop)
+                return live.run(stop)
             finally:
                 live.close()
     finally:
         session.close()
-    t0 = summary["t0"] or 0.0
-    for rec in summary["stops"]:
-        verb = "stop" if rec["stop"] else "go  "
-        print(f"  {verb} at {rec['t'] - t0:6.2f} s: {rec['reason']} ({rec['detail']})")
-    print(
-        f"ended: {summary['ended']}; path {'completed' if summary['completed'] else 'not completed'}; "
-        f"{summary['received']['estimate']} estimates and {summary['received']['odometry']} "
-        f"odometry messages received, {summary['commands_sent']} commands sent"
-    )
-    if args.json:
-        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.json).write_text(json.dumps(summary, indent=2))
-    if summary["ended"] == "interrupted":
-        return 130
-    return 0 if summary["completed"] or summary["ended"] == "duration" else 1
 
 
 def _cmd_sim_robots(args: argparse.Namespace) -> int:

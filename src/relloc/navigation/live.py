@@ -241,6 +241,9 @@ class NavigateOptions:
     particles: int | None = None
     latency_compensation: bool = True
     duration: float | None = None
+    pose_identity: str | None = None
+    """The certificate common name the estimates must come from (``--secure``): a pose is used
+    only while a link authenticated as it is up; otherwise the robot is held (``unverified``)."""
 
 
 class LiveNavigation:
@@ -289,7 +292,7 @@ class LiveNavigation:
         self.loop = NavigationLoop(
             self.navigator, self._publish, self.clock.now, clock_rate=opts.clock_rate
         )
-        self.received = {"odometry": 0, "estimate": 0, "decode_error": 0}
+        self.received = {"odometry": 0, "estimate": 0, "decode_error": 0, "unverified": 0}
         self.t0: float | None = None
         """Stamp of the first odometry message (the printed times are relative to it)."""
         self.server: Any = None
@@ -356,7 +359,27 @@ class LiveNavigation:
         self.clock.observe(stamp)
         self.received["odometry"] += 1
 
+    def _why_unverified(self) -> str | None:
+        """Why the pose that just came cannot be told to be from ``pose_identity`` (``None``
+        if it can). The access control lets only links authenticated as it deliver poses, so a
+        link of that identity must be up; Zenoh does not say which link a sample came on."""
+        identity = self.options.pose_identity
+        if identity is None:
+            return None
+        try:
+            linked = any(link.auth_identifier == identity for link in self.session.info.links())
+        except Exception as exc:  # a closing session
+            return f"cannot list the session's links: {exc}"
+        return None if linked else f"no link authenticated as {identity!r}"
+
     def _on_pose(self, sample: Any) -> None:
+        why = self._why_unverified()
+        if why is not None:
+            with self.loop.lock:
+                self.navigator.gate.untrusted = why
+            self.received["unverified"] += 1
+            log.warning("estimate on %s not used: %s", self.pose_key, why)
+            return
         try:
             est = decode_estimate(sample.payload.to_bytes(), self.robot.name, self.config.reference)
         except MessageDecodeError as exc:
@@ -364,6 +387,7 @@ class LiveNavigation:
             log.warning("undecodable estimate on %s: %s", self.pose_key, exc)
             return
         with self.loop.lock:
+            self.navigator.gate.untrusted = None
             self.navigator.on_estimate(est)
         self.received["estimate"] += 1
 

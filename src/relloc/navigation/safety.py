@@ -5,6 +5,9 @@ checks, at every control step, everything the command depends on and holds the r
 velocity) as soon as one of them fails:
 
 =====================  =====================================================================
+``unverified``         the latest estimate came while its publisher could not be told to be
+                       the configured ``relloc serve`` (``--secure``: no link authenticated
+                       as it)
 ``no_estimate``        no estimate of this robot has arrived yet
 ``stale_estimate``     the latest estimate is older than ``max_age`` (engine or link down)
 ``unseen``             nothing has been heard of this robot or of the reference for a while
@@ -93,6 +96,8 @@ class SafetyGate:
         self.records: list[StopRecord] = []
         self.reason: str | None = "no_estimate"
         """Why the robot is held now (``None`` while it may move)."""
+        self.untrusted: str | None = None
+        """Why the latest estimate cannot be trusted (set by the live layer), else ``None``."""
         self._ok_since: float | None = None
         self._terminal: str | None = None
         self._ever_released = False
@@ -104,6 +109,8 @@ class SafetyGate:
         """The first failed check as ``(reason, detail)``, or ``None`` if all pass now."""
         cfg = self.config
         robot = self.robot
+        if self.untrusted is not None:
+            return "unverified", self.untrusted
         if estimate is None or robot not in estimate.positions:
             return "no_estimate", f"no estimate of {robot} yet"
         if estimate.recovering:
