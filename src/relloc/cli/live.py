@@ -48,9 +48,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     _print_summary(summary)
     if refusals is not None:
         summary["access_refused"] = refusals.as_dict()
-        print(f"  refused by access control: {refusals.total}")
         for line in refusals.lines():
-            print(f"    {line}")
+            print(f"  {line}")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(summary, indent=2))

@@ -263,9 +263,8 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
     if summary["received"]["unverified"]:
         print(f"  estimates not used (publisher not verified): {summary['received']['unverified']}")
     if refusals is not None:
-        print(f"  refused by access control: {refusals.total}")
         for line in refusals.lines():
-            print(f"    {line}")
+            print(f"  {line}")
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(summary, indent=2))
