@@ -382,3 +382,99 @@ def test_secure_sim_robots_serve_and_navigate_drive_the_small_rectangle_under_at
     for key in ("r2/odom", "uwb/tof/n_2/n_0/distance", "relloc/r2/pose"):
         assert f"robot-r1 put ingress {key}" in serve_refused
     assert "robot-r1 put ingress relloc/r2/pose" in nav_refused
+
+
+# ============================================================================ navigate's poses
+class _Sample:
+    """What ``LiveNavigation`` reads of a Zenoh sample: its payload."""
+
+    def __init__(self, payload: bytes) -> None:
+        self.payload = self
+        self._bytes = payload
+
+    def to_bytes(self) -> bytes:
+        return self._bytes
+
+
+def test_navigate_acts_only_on_poses_it_can_tell_come_from_serve(team: tuple[TeamConfig, Path]) -> None:
+    """With ``pose_identity`` a pose is used only while a link authenticated as serve is up;
+    otherwise the robot is held (``unverified``) at the next control step."""
+    from relloc.navigation.live import LiveNavigation, NavigateOptions
+    from relloc.navigation.path import load_path
+
+    config, folder = team
+    x0, y0 = load_path(SMALL).waypoints[0]
+    pose = _Sample(encode(pose_with_covariance_msg(100.0, x0, y0, cov=[[1e-3, 0.0], [0.0, 1e-3]], frame_id="r0")))
+    opts = NavigateOptions(robot="r2", path=load_path(SMALL), pose_identity="serve")
+    port = free_tcp_port()
+    nav_session = open_role(folder, "navigate", listen=port)
+    live = LiveNavigation(config, nav_session, opts)
+    robot = open_role(folder, "robot-r1", connect=(port,))  # authenticated, but not serve
+    try:
+        assert wait_until(lambda: len(nav_session.info.links()) == 1, timeout=10)
+        live._on_pose(pose)
+        assert live.received == {"odometry": 0, "estimate": 0, "decode_error": 0, "unverified": 1}
+        assert live.navigator.gate.check(100.0, None, None) == ("unverified", "no link authenticated as 'serve'")
+        cmd = live.navigator.update(100.0)
+        assert (cmd.v, cmd.w) == (0.0, 0.0) and live.navigator.gate.reason == "unverified"
+        serve = open_role(folder, "serve", connect=(port,))
+        try:
+            assert wait_until(lambda: len(nav_session.info.links()) == 2, timeout=10)
+            live._on_pose(pose)
+            assert live.received["estimate"] == 1 and live.navigator.gate.untrusted is None
+            assert live.navigator.estimate is not None and live.navigator.estimate.t == 100.0
+        finally:
+            serve.close()
+    finally:
+        live.close()
+        robot.close()
+        nav_session.close()
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+def test_the_shortbag_replayed_into_a_secure_serve_gives_the_plain_runs_ape(
+    shared_data: Path, team: tuple[TeamConfig, Path], tmp_path: Path
+) -> None:
+    """``replay`` (``team``) into a server (``serve``) over mutual TLS with the access control:
+    the APE of ``relloc run`` on the same bag, particles and seed, as over plain TCP
+    (``test_zenoh_live.test_replayed_shortbag_matches_relloc_run``, the same bounds)."""
+    from test_zenoh_live import SHORTBAG, Running, _offline_shortbag
+
+    from relloc.live import ReplayOptions, ape_against_bag, replay_bag
+
+    bag = shared_data / "tiers" / SHORTBAG
+    config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")
+    folder = tmp_path / "sec"
+    write_secure_dir(config, folder)
+    particles, seed, rate = 4000, 0, 2.0
+    offline = _offline_shortbag(bag, particles, seed)
+    port = free_tcp_port()
+    serve = open_role(folder, "serve", listen=port)
+    client = open_role(folder, "team", connect=(port,))
+    try:
+        assert wait_until(lambda: len(serve.info.links()) == 1, timeout=10)
+        collector = EstimateCollector(client, config)
+        server = LiveServer(
+            config, serve, ServeOptions(particles=particles, seed=seed, reorder_window=1.0, clock_rate=rate)
+        )
+        with Running(server) as live:
+            stats = replay_bag(bag, config, client, ReplayOptions(rate=rate, wait=5.0))
+            assert stats.unmatched == []
+            expected = sum(n for k, n in stats.per_key.items() if k in live.source.routes)
+            assert wait_until(lambda: sum(live.source.stats.messages.values()) >= expected, timeout=20.0)
+        published = len(server.pipelines[0].estimates)
+        assert wait_until(lambda: len(collector.estimates()) >= published, timeout=20.0)
+        estimates = collector.estimates()
+        collector.close()
+    finally:
+        client.close()
+        serve.close()
+    pf = offline.methods["pf"]
+    served = ape_against_bag(estimates, bag, config, warmup=offline.warmup, t0=offline.t0)
+    print(
+        f"secure: served mean APE median {served['mean_median']:.3f} m over {len(estimates)} "
+        f"estimates; relloc run {pf.mean_ape_median:.3f} m over {pf.n_estimates}"
+    )
+    assert abs(len(estimates) - pf.n_estimates) <= 2
+    assert served["mean_median"] == pytest.approx(pf.mean_ape_median, rel=0.10)
