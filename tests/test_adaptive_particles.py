@@ -18,7 +18,6 @@ from relloc.events import GroundTruthEvent
 from relloc.faults import Faults, inject
 from relloc.filter.adaptive import KldSampling, kld_bound, occupied_cells
 from relloc.filter.pf import ParticleFilter
-from relloc.filter.resampling import systematic_resample
 from relloc.filter.state import StateLayout
 from relloc.localizers.sampled import ParticleFilterLocalizer, count_rule
 from relloc.methods import build_pipeline
@@ -160,8 +159,8 @@ def test_the_count_is_in_the_json_report() -> None:
 
 
 def test_the_adaptive_keys_are_validated() -> None:
-    fc = FilterConfig.from_dict({"adaptive": {"min_particles": 3000, "kld_epsilon": 0.02}})
-    assert fc.adaptive.min_particles == 3000 and fc.adaptive.kld_epsilon == 0.02
+    fc = FilterConfig.from_dict({"adaptive": {"min_particles": 3000, "mc_tolerance": 0.009}})
+    assert fc.adaptive.min_particles == 3000 and fc.adaptive.mc_tolerance == 0.009
     assert FilterConfig.section_of("mc_tolerance") == "adaptive"
     for bad in (
         {"min_particles": 0},
@@ -176,14 +175,18 @@ def test_the_adaptive_keys_are_validated() -> None:
     ):
         with pytest.raises(ConfigError, match=r"filter\.adaptive"):
             FilterConfig.from_dict({"adaptive": bad})
+    # what became a constant says so, and the rule's defaults are those constants
+    with pytest.raises(ConfigError, match=r"kld_bin is no longer a setting: it is the constant relloc\.filter\.adaptive\.KLD_BIN"):
+        FilterConfig.from_dict({"adaptive": {"kld_bin": 0.2}})
+    assert (KldSampling(1, 2).epsilon, KldSampling(1, 2).quantile, KldSampling(1, 2).bin_size) == (0.05, 0.99, 0.2)
     # min_particles above the full count caps at it; a pair (no orientation kernel) has its own
     # floor; "fixed" turns the rule off.
     sim = multi_scenario(seed=0, duration=1.0)
     config = sim.config.with_filter(particles=1500)
     team = StateLayout(config.robot_names, config.reference)
     assert count_rule(config, team) == KldSampling(1500, 1500, mc_tolerance=0.007)
-    ordered = config.with_filter(mc_tolerance_ordered=0.012)
-    assert count_rule(ordered, team) == KldSampling(1500, 1500, mc_tolerance=0.007, mc_tolerance_ordered=0.012)
+    with pytest.raises(ConfigError, match="mc_tolerance_ordered is no longer a setting"):
+        config.with_filter(mc_tolerance_ordered=0.012)
     big = config.with_filter(particles=30_000)
     assert count_rule(big, team).min_particles == 2000
     pair = StateLayout(config.robot_names[:2], config.robot_names[0])
@@ -192,106 +195,3 @@ def test_the_adaptive_keys_are_validated() -> None:
     assert count_rule(no_kernel, team).min_particles == 5000
     fixed = dataclasses.replace(config, filter=config.filter.with_changes(particle_count="fixed"))
     assert count_rule(fixed, team) is None
-
-
-def test_ordered_systematic_resampling_keeps_the_weighted_mean_along_the_order() -> None:
-    """Walking the particles sorted by a coordinate, the systematic draw takes the quantiles
-    of the weighted sample along it: the mean of the copies misses the weighted mean by
-    O(spread / M) instead of O(spread / sqrt(M)) in stored order; every particle is still
-    copied floor or ceil of M w times."""
-    rng = np.random.default_rng(3)
-    m = 2000
-    x = rng.normal(0.0, 0.5, m)
-    w = rng.random(m)
-    w /= w.sum()
-    target = float(w @ x)
-    plain, ordered = [], []
-    for _ in range(50):
-        plain.append(abs(x[systematic_resample(w, rng)].mean() - target))
-        idx = systematic_resample(w, rng, order=np.argsort(x))
-        ordered.append(abs(x[idx].mean() - target))
-        assert np.all(np.abs(np.bincount(idx, minlength=m) - m * w) < 1.0)
-    assert np.median(plain) == pytest.approx(0.00289, abs=1e-5)  # 0.5 / sqrt(2000) = 0.011 at most
-    assert np.median(ordered) == pytest.approx(0.00052, abs=1e-5)
-    assert max(ordered) < 0.001 < max(plain)
-
-
-def _wide_cloud(rule: KldSampling | None, seed: int) -> ParticleFilter:
-    """A formation 0.5 m wide along its orientation (0.25 rad at 2 m) and 0.03 m across, with
-    uneven weights."""
-    pf = _ring_filter(3000, rule)
-    pf.rotate(pf.rng.normal(0.0, 0.25, 3000))
-    lw = np.log(pf.rng.uniform(0.5, 1.5, 3000))
-    pf.logw = lw - np.log(np.exp(lw).sum())
-    pf.estimate()  # one observable mode: the count rule may act
-    pf.rng = np.random.default_rng(100 + seed)
-    return pf
-
-
-def test_an_adaptive_filter_resamples_along_its_widest_direction() -> None:
-    """With a count rule the resampling walks the cloud along its principal axis (here the
-    orientation): the resampled mean stays within 0.6 mm of the weighted mean; a fixed-count
-    filter (stored order) moves it by 1.4-5.5 mm (20 resamplings each)."""
-    errors: dict[str, list[float]] = {}
-    ordered_rule = KldSampling(3000, 3000, mc_tolerance=0.007, mc_tolerance_ordered=0.012)
-    for label, rule in (("ordered", ordered_rule), ("stored", None)):
-        for k in range(20):
-            pf = _wide_cloud(rule, k)
-            before = np.exp(pf.logw) @ pf.particles
-            pf.resample()
-            errors.setdefault(label, []).append(float(np.abs(pf.particles.mean(axis=0) - before).max()))
-    assert np.median(errors["ordered"]) == pytest.approx(0.00047, abs=1e-5)
-    assert max(errors["ordered"]) < 0.00065
-    assert np.median(errors["stored"]) == pytest.approx(0.00321, abs=1e-5)
-    assert min(errors["stored"]) > 0.0014
-
-
-def test_the_kernel_of_an_adaptive_filter_keeps_the_orientations_mean_exactly() -> None:
-    """The Liu-West turn of every particle it moves: with a count rule its mean is zero to
-    round-off (moment-matched noise); with a fixed count it is the noise's sample mean."""
-    means = {}
-    for label, rule in (("adaptive", KldSampling(4000, 4000)), ("fixed", None)):
-        pf = _ring_filter(4000, rule)
-        pf.rotate(pf.rng.normal(0.0, 0.1, 4000))
-        pf._ordered = rule is not None  # as after an ordered resampling
-        turns: list[np.ndarray] = []
-        rotate = pf.rotate
-        pf.rotate = lambda t, rotate=rotate, turns=turns: (turns.append(t.copy()), rotate(t))[1]  # type: ignore[method-assign]
-        assert pf.rejuvenate_rotation(0.1)
-        moved = turns[0] != 0.0
-        assert moved.sum() == 4000
-        means[label] = float(turns[0][moved].mean())
-    assert abs(means["adaptive"]) < 1e-15
-    assert means["fixed"] == pytest.approx(-0.000376, abs=1e-6)  # about sqrt(0.1) 0.1 / sqrt(4000)
-
-
-def test_the_floor_of_an_ordered_resampling_counts_what_the_order_leaves() -> None:
-    """Along the principal axis the ordered draw leaves (0.007 / 0.01)^2 = 0.49 of the
-    variance to the Monte Carlo floor, across it all: a cloud 0.5 m wide along its orientation
-    (robots 2 m out, 0.25 rad) and 0.03 m across is sized for about 0.35 m instead of its
-    published 0.5 m, half the particles; without ``mc_tolerance_ordered`` the draw keeps the
-    stored order and the floor the published spread; a pair is never ordered."""
-    rule = KldSampling(500, 20_000, mc_tolerance=0.007, mc_tolerance_ordered=0.01)
-    assert rule.ordered_share == pytest.approx(0.49)
-    assert KldSampling(500, 20_000, mc_tolerance=0.007).ordered_share == 1.0
-    pf = _ring_filter(20_000, rule)
-    pf.rotate(pf.rng.normal(0.0, 0.25, 20_000))
-    pf.estimate()
-    published = pf.widest_std()
-    pf.resample()
-    assert pf._ordered
-    assert published == pytest.approx(0.4860, abs=1e-4)
-    assert pf._ordered_sigma == pytest.approx(0.3406, abs=1e-4)  # about sqrt(0.49) 0.4860
-    assert pf.n == rule.monte_carlo_bound(pf._ordered_sigma) == 4734
-    assert rule.monte_carlo_bound(published) == 9642
-    plain = _ring_filter(20_000, KldSampling(500, 20_000, mc_tolerance=0.007))  # no allowance: stored order
-    plain.rotate(plain.rng.normal(0.0, 0.25, 20_000))
-    plain.estimate()
-    plain.resample()
-    assert not plain._ordered and plain.n == rule.monte_carlo_bound(plain.widest_std()) > 4734
-    layout = StateLayout(("r", "a"), "r")
-    pair = ParticleFilter(layout, 20_000, (-5.0, 5.0, -5.0, 5.0), rng=np.random.default_rng(0), count_rule=rule)
-    pair.particles = pair.rng.normal(0.0, 0.3, (20_000, 2)) + np.array([2.0, 0.0])
-    pair.evidence.moved(np.array([[0.0, 0.0], [1.0, 0.0]]))
-    pair.estimate()
-    assert not pair.posterior_wide and pair._resampling_order(np.full(20_000, 1.0 / 20_000)) is None

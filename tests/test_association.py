@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from relloc.config import PairCalibration, RobotConfig, TeamConfig, UwbConfig
+from relloc.config import AssociationConfig, PairCalibration, RobotConfig, TeamConfig, UwbConfig
 from relloc.engine import Engine
 from relloc.estimate import Estimate
 from relloc.evaluation.metrics import GroundTruth
@@ -34,10 +34,10 @@ BIAS = 0.25
 """UWB bias of the n_0-n_1 pair in the hand-built team."""
 
 
-def _team(**filter_changes: float) -> TeamConfig:
+def _team(**association: float) -> TeamConfig:
     robots = (RobotConfig("r0", uwb_node="n_0"), RobotConfig("r1", uwb_node="n_1"))
     uwb = UwbConfig(pairs={"n_0-n_1": PairCalibration(bias=BIAS)})
-    return TeamConfig(robots, reference="r0", uwb=uwb).with_filter(**filter_changes)
+    return TeamConfig(robots, reference="r0", uwb=uwb, association=AssociationConfig(**association))
 
 
 # The scene: r0 at the origin facing +x, r1 at (4, 0) facing r0 (heading pi). The odometry
@@ -268,7 +268,7 @@ def test_sigma_grows_with_detection_distance() -> None:
     by_sigma = sorted(obs, key=lambda o: o.sigma)
     assert len(by_sigma) == 2
     assert by_sigma[0].sigma < by_sigma[1].sigma
-    assert by_sigma[0].sigma >= _team().filter.association.sigma_det
+    assert by_sigma[0].sigma >= _team().association.sigma_det
 
 
 def test_unlabelled_detections_match_any_label() -> None:

@@ -12,7 +12,7 @@ from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
 from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent, RelativeObservation
 from relloc.filter.measurement import ModelContext
-from relloc.filter.ranges import RangeBatch
+from relloc.filter.ranges import NLOS_FRACTION, RangeBatch
 from relloc.filter.state import StateLayout
 from relloc.localizers.multilateration import MultilaterationLocalizer
 from relloc.localizers.sampled import ParticleFilterLocalizer
@@ -236,4 +236,4 @@ def test_a_calibrated_range_scale_is_applied_to_range_bias_and_sigma() -> None:
         assert isinstance(model, RangeBatch)
         assert (model.distance - model.bias)[0] == pytest.approx((5.8 - 0.3) / 1.1)
         assert model.sigma[0] == pytest.approx(0.11 / 1.1)
-        assert model.nlos_fraction == (config.filter.likelihood.nlos_fraction if range_model == "nlos" else 0.0)
+        assert model.nlos_fraction == (NLOS_FRACTION if range_model == "nlos" else 0.0)

@@ -20,6 +20,8 @@ from relloc.config import RobotConfig, TeamConfig
 from relloc.events import WAKE_ALWAYS, OdometryEvent, RangeEvent, WakeRule
 from relloc.faults import FaultInjector, Faults
 from relloc.live import LiveServer, ServeOptions, event_messages, simulated_team
+from relloc.localizers.clock import MAX_TIME_JUMP
+from relloc.localizers.grid import UPDATE_PERIOD
 from relloc.methods import build_pipeline
 from relloc.ros.interfaces import encode_sent_time
 from relloc.ros.messages import encode, header_stamp_from_cdr, odometry_msg, range_msg
@@ -81,12 +83,12 @@ def test_localizer_rule_follows_the_batching_grid() -> None:
     while not loc.grid.pending or loc.clock.now == -math.inf:
         loc.process(events[k])
         k += 1
-    period = config.filter.update_period
+    period = UPDATE_PERIOD
     cell = math.floor(loc.grid.start / period)
     rule = loc.wake_rule()
     assert rule.measurement_from == pytest.approx((cell + 1) * period, abs=1e-4)
     assert rule.odometry_from == pytest.approx((cell + 2) * period, abs=1e-4)
-    assert rule.urgent(loc.clock.now + config.filter.max_time_jump + 0.1, odometry=True)
+    assert rule.urgent(loc.clock.now + MAX_TIME_JUMP + 0.1, odometry=True)
     loc.grid.pending.clear()  # nothing pending: every measurement opens a batch, no odometry fuses
     rule = loc.wake_rule()
     assert rule.measurement_from == -math.inf and rule.odometry_from == math.inf

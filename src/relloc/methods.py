@@ -25,6 +25,9 @@ from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
 
 METHODS = ("pf", "pf_ul", "pf_uv", "pf_ulv", "multilateration", "ekf_oracle")
 
+PARTICLE_METHODS: frozenset[str] = frozenset({"pf", "pf_ul", "pf_uv", "pf_ulv"})
+"""Methods that run the filter ``[filter] kind`` names (:func:`filter_localizer`)."""
+
 DETECTION_METHODS: frozenset[str] = frozenset({"pf_uv", "pf_ulv"})
 """Methods that fuse cooperative detections: only for them do sources read (and simulators
 simulate) cameras and objects."""
@@ -77,15 +80,40 @@ def build_pipeline(
     return Pipeline(method, filter_localizer(config, seed=seed, method=method), stages)
 
 
-def filter_localizer(config: TeamConfig, *, seed: int = 0, method: str = "pf") -> FilterLocalizer:
-    """The particle localizer the config's modes call for: the self-calibrating one where the
-    headings or the odometry scales are estimated, else the sampled one (which estimates
-    range biases itself with ``bias_mode = "online"``); for a large team in the shared heading
-    frame with calibrated biases, the Gaussian sum started from the range graph
-    (:mod:`relloc.localizers.range_graph`, docs/scaling.md)."""
+LOCALIZERS: dict[str, type[FilterLocalizer]] = {
+    "particle": ParticleFilterLocalizer,
+    "gaussian_sum": SelfCalibratingLocalizer,
+    "range_graph": RangeGraphLocalizer,
+}
+"""The localizer of each filter kind of ``[filter] kind`` (:data:`relloc.config.FilterKind`)."""
+
+
+def filter_kind(config: TeamConfig) -> str:
+    """The filter ``pf`` runs: the config's ``[filter] kind``, or for ``auto`` the one its
+    modes call for: the self-calibrating Gaussian sum where the headings or the odometry
+    scales are estimated, else the sampled particle filter (which estimates range biases
+    itself with ``bias_mode = "online"``); for a large team in the shared heading frame with
+    calibrated biases, the Gaussian sum started from the range graph
+    (:mod:`relloc.localizers.range_graph`, docs/scaling.md). A kind that cannot do what the
+    modes ask is refused by the config itself (:class:`relloc.config.FilterConfig`)."""
     fc = config.filter
+    if fc.kind != "auto":
+        return fc.kind
     if fc.self_calibration.heading_mode == "estimate" or fc.self_calibration.odom_scale_mode == "online":
-        return SelfCalibratingLocalizer(config, seed=seed, method=method)
+        return "gaussian_sum"
     if suits_range_graph(config):
-        return RangeGraphLocalizer(config, seed=seed, method=method)
-    return ParticleFilterLocalizer(config, seed=seed, method=method)
+        return "range_graph"
+    return "particle"
+
+
+def filter_localizer(config: TeamConfig, *, seed: int = 0, method: str = "pf") -> FilterLocalizer:
+    """The localizer of the filter :func:`filter_kind` names."""
+    return LOCALIZERS[filter_kind(config)](config, seed=seed, method=method)
+
+
+def filter_header(methods: list[str], config: TeamConfig) -> str | None:
+    """The run header's line naming the filter the particle methods of ``methods`` run
+    (``None`` if none of them does), e.g. ``filter: particle (kind "auto")``."""
+    if not any(m in PARTICLE_METHODS for m in methods):
+        return None
+    return f'filter: {filter_kind(config)} (kind "{config.filter.kind}")'

@@ -40,6 +40,11 @@ class _Sample:
     yaw: float
 
 
+MAX_EXTRAPOLATION = 0.5
+"""How far past a robot's last odometry message its motion is extrapolated (s): a few missed
+messages at 10-30 Hz, not a robot whose odometry has stopped."""
+
+
 class OdometryTrack:
     """Pose history of one robot in the shared heading frame."""
 
@@ -49,7 +54,7 @@ class OdometryTrack:
         scale: float = 1.0,
         mode: str = "pose",
         *,
-        max_extrapolation: float = 0.5,
+        max_extrapolation: float = MAX_EXTRAPOLATION,
         history: float = 30.0,
     ) -> None:
         if mode not in ("pose", "twist"):

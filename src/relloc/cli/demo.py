@@ -30,7 +30,7 @@ from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.faults import Faults, inject
-from relloc.methods import DETECTION_METHODS, build_pipeline
+from relloc.methods import DETECTION_METHODS, build_pipeline, filter_header
 from relloc.simulator import Simulation
 from relloc.simulator.scenarios import SCENARIOS
 
@@ -110,6 +110,8 @@ def run_scenario(name: str, opts: DemoOptions, console: Console) -> ScenarioRepo
             "estimates are in its odometry frame, which a static reference would leave unobservable)"
         )
     pipelines = [build_pipeline(m, config, seed=opts.seed) for m in opts.methods]
+    if (header := filter_header(opts.methods, config)) is not None:
+        console.print(f"{name}: {header}", soft_wrap=True, highlight=False, markup=False)
     gt = GroundTruth(config.reference)
     engine = Engine(pipelines, truth_sinks=[gt.add])
     run_with_progress(

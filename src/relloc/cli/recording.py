@@ -32,7 +32,7 @@ from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.faults import Faults, inject
-from relloc.methods import DETECTION_METHODS, build_pipeline
+from relloc.methods import DETECTION_METHODS, build_pipeline, filter_header
 from relloc.sinks.tum import write_tum
 from relloc.sources.table import SourceOptions, source_kind
 
@@ -79,6 +79,8 @@ def run_recording(
         build_pipeline(m, config, seed=opts.seed, models=opts.models, oracle_start=oracle) for m in opts.methods
     ]
     check_warmup(opts.warmup, source.duration, name)
+    if (header := filter_header(opts.methods, config)) is not None:
+        console.print(f"{name}: {header}", soft_wrap=True, highlight=False, markup=False)
     for warning in source.warnings:
         console.print(f"[yellow]warning:[/] {escape(warning)}", soft_wrap=True)
     gt = GroundTruth(config.reference)

@@ -38,13 +38,6 @@ A Monte Carlo floor: the spread the grid cannot see
     the published covariance's largest eigenvalue less the covariance floor) stays under
     ``mc_tolerance`` at the ESS that triggers a resampling.
 
-    With ``mc_tolerance_ordered`` (off by default) the filter resamples a formation in order
-    along its principal axis and moment-matches its orientation kernel (:mod:`relloc.filter.pf`),
-    which makes the drift along that axis several times smaller per particle; the floor then
-    sizes that axis to ``mc_tolerance_ordered`` and every other direction to ``mc_tolerance``
-    (:attr:`KldSampling.ordered_share`). Measured, with why it is off by default:
-    docs/adaptive-particles.md, "The shortbag's 5x".
-
 Where the bound must not be trusted: keep the full count
     Binning cannot see what makes this posterior hard. While the orientation is unobservable
     the posterior is a ring; at a few thousand particles a long rest lets resampling narrow the
@@ -72,7 +65,21 @@ from statistics import NormalDist
 import numpy as np
 from numpy.typing import NDArray
 
+from relloc.filter.base import ESS_THRESHOLD
+
 FloatArray = NDArray[np.float64]
+
+KLD_EPSILON = 0.05
+"""KLD-sampling's bound on the Kullback-Leibler divergence of the binned sample (Fox's value)."""
+KLD_QUANTILE = 0.99
+"""Confidence ``1 - delta`` of that bound."""
+KLD_BIN = 0.2
+"""Cell side (m) of the grid over the relative positions whose occupied cells are counted: about
+the range noise, so that cells resolve what the ranges resolve."""
+MIN_PARTICLES_NO_KERNEL = 5000
+"""Fewest particles where the orientation kernel cannot act (one non-reference robot, or
+``rotation_kernel = 0``): nothing but the count then keeps the diversity of the weakly observed
+bearing (capped at the full count)."""
 
 # Odd 64-bit multipliers of a multiplicative hash of a particle's integer cell coordinates: the
 # cells are counted by sorting one integer per particle instead of rows of D integers.
@@ -112,15 +119,11 @@ class KldSampling:
 
     min_particles: int
     max_particles: int
-    epsilon: float = 0.05
-    quantile: float = 0.99
-    bin_size: float = 0.2
+    epsilon: float = KLD_EPSILON
+    quantile: float = KLD_QUANTILE
+    bin_size: float = KLD_BIN
     mc_tolerance: float = 0.0
-    ess_fraction: float = 0.5
-    mc_tolerance_ordered: float = 0.0
-    """The tolerance along the principal axis of a formation, along which the filter then
-    resamples in order (:mod:`relloc.filter.pf`); 0: no ordered resampling, ``mc_tolerance``
-    everywhere."""
+    ess_fraction: float = ESS_THRESHOLD
 
     def __post_init__(self) -> None:
         if not 1 <= self.min_particles <= self.max_particles:
@@ -133,16 +136,6 @@ class KldSampling:
     @property
     def z(self) -> float:
         return NormalDist().inv_cdf(self.quantile)
-
-    @property
-    def ordered_share(self) -> float:
-        """The share of the principal axis's variance that the Monte Carlo floor still counts
-        when the resampling is ordered along it: ``(mc_tolerance / mc_tolerance_ordered)^2``
-        (at most 1). Sizing ``sigma_1^2 share`` to ``mc_tolerance`` is sizing ``sigma_1^2`` to
-        ``mc_tolerance_ordered``."""
-        if self.mc_tolerance <= 0.0 or self.mc_tolerance_ordered <= 0.0:
-            return 1.0
-        return min((self.mc_tolerance / self.mc_tolerance_ordered) ** 2, 1.0)
 
     def monte_carlo_bound(self, sigma: float) -> int:
         """Particles for a Monte Carlo standard error of the weighted mean below

@@ -34,11 +34,14 @@ from relloc.filter.measurement import MeasurementModel, stacked
 from relloc.filter.registry import model_for
 
 if TYPE_CHECKING:
-    from relloc.config import TeamConfig
     from relloc.filter.state import StateLayout
 
 FloatArray = NDArray[np.float64]
 
+MCMC_STEPS = 3
+"""Metropolis moves per temperature of the annealed start
+(:meth:`relloc.filter.pf.ParticleFilter.initialize_annealed`): enough to re-create the diversity
+each tempered resampling takes away."""
 REFERENCE_SIGMA = 0.5
 """Scale (m) of the robust fit of a re-annealed formation to the dead-reckoned reference: a
 robot farther off than this (moved unseen) hardly sways the orientation."""
@@ -54,7 +57,7 @@ class Annealable(Protocol):
 
     def initialize_annealed(
         self, loglik: Callable[[FloatArray, FloatArray], FloatArray],
-        guide: Callable[[FloatArray, FloatArray], FloatArray] | None = None, *, mcmc_steps: int = 3,
+        guide: Callable[[FloatArray, FloatArray], FloatArray] | None = None, *, mcmc_steps: int = MCMC_STEPS,
     ) -> int: ...  # fmt: skip
 
     def spread_symmetries(self) -> None: ...
@@ -67,11 +70,9 @@ class Annealable(Protocol):
 
 
 class StartContext(Protocol):
-    """What the start asks of its localizer: the configuration (``spread_rotations``,
-    ``mcmc_steps``), the statistics it counts into, and the measurement models of some events
-    for a given filter (robust, or the plain guide)."""
+    """What the start asks of its localizer: the statistics it counts into, and the measurement
+    models of some events for a given filter (robust, or the plain guide)."""
 
-    config: TeamConfig
     stats: Counter[str]
 
     def models(
@@ -84,15 +85,14 @@ def annealed_start(context: StartContext, pf: Annealable, batch: list[Any], *, s
     anneal on. ``shared_heading``: whether the localizer's filter has the shared heading frame
     (what makes a sighting invariant or not). Counts the tempering stages and any resampling in
     ``context.stats``."""
-    fc = context.config.filter
     invariant = [m for m in batch if _invariant(m, shared_heading)]
-    spread = fc.spread_rotations and bool(context.models(invariant, pf, count=False))
+    spread = bool(context.models(invariant, pf, count=False))
     anneal_on = invariant if spread else batch
     models = context.models(anneal_on, pf, count=False)
     guide = context.models(anneal_on, pf, robust=False, count=False)
     if not models or not guide:
         return False
-    stages = pf.initialize_annealed(stacked(models), stacked(guide), mcmc_steps=fc.mcmc_steps)
+    stages = pf.initialize_annealed(stacked(models), stacked(guide))
     context.stats["anneal_stages"] = stages
     if spread:
         pf.spread_symmetries()

@@ -52,6 +52,12 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
 RESAMPLE_MODES = ("ess", "every_step")
+ESS_THRESHOLD = 0.5
+"""Resample (mode ``ess``) when the effective sample size falls below this fraction of the
+count: the usual half, a resampling only once the weights have degenerated."""
+REINJECT_FRACTION = 0.01
+"""Fraction of the hypotheses re-drawn from the prior at each resampling, so that a filter on
+a wrong mode can recover (the paper's 1 %)."""
 
 
 @dataclass(frozen=True)
@@ -93,8 +99,8 @@ class WeightedFilter:
         *,
         rng: np.random.Generator,
         resample: str = "ess",
-        ess_threshold: float = 0.5,
-        reinject_fraction: float = 0.01,
+        ess_threshold: float = ESS_THRESHOLD,
+        reinject_fraction: float = REINJECT_FRACTION,
     ) -> None:
         if n < 1:
             raise ValueError("n_particles must be positive")
@@ -157,15 +163,13 @@ class WeightedFilter:
 
     def resample(self) -> None:
         """Systematic resampling (to the size :meth:`_resampled_size` asks for: the same, but
-        for an adaptive particle count; walking the hypotheses in the order
-        :meth:`_resampling_order` gives), then a ``reinject_fraction`` of the slots re-drawn
+        for an adaptive particle count), then a ``reinject_fraction`` of the slots re-drawn
         from the prior box; equal weights."""
         w = np.exp(self.logw)
-        order = self._resampling_order(w)
-        idx = systematic_resample(w, self.rng, order=order)
+        idx = systematic_resample(w, self.rng)
         n = self._resampled_size(idx)
         if n != self.n:
-            idx = systematic_resample(w, self.rng, n, order=order)
+            idx = systematic_resample(w, self.rng, n)
             self.n = n
         self._select(idx)
         slots = reinjection_slots(self.n, self.reinject_fraction, self.rng)
@@ -196,11 +200,6 @@ class WeightedFilter:
         self.logw = np.full(self.n, -math.log(self.n))
         self.resample_count += 1
         return slots
-
-    def _resampling_order(self, w: FloatArray) -> IntArray | None:
-        """The order in which the systematic resampling walks the hypotheses (``None``: as they
-        are stored)."""
-        return None
 
     def _resampled_size(self, idx: IntArray) -> int:
         """How many hypotheses a resampling keeps, given the systematic draw ``idx`` at the

@@ -45,18 +45,9 @@ integrates the evidence about the calibration step by step. A heading that no mo
 revealed is simply a Gaussian ``u ~ N(0, sigma_u^2 I)``, whose angle is uniform: no grid, no
 sampled angle, and no particle is spent on it.
 
-Range bias and heading-dependent range error
---------------------------------------------
-A UWB range is ``distance + bias + e(t) + noise``, where ``e`` depends on the headings of the
-two ends relative to the bearing between them (antenna pattern, the body in the way): it is
-zero-mean over headings, changes as the robots turn or pass each other, and is strongly
-correlated over seconds. White range noise cannot represent it: the Kalman filter would read
-its slow swings as evidence about the positions, the headings or the bias, and the bias's
-random walk would follow it. So each online pair also carries ``e`` as a first-order
-Gauss-Markov state (stationary std ``colored_sigma``, correlation time ``colored_time``); the
-range sees ``bias + e`` and the published bias is the constant part. A static robot's end
-contributes a constant ``e`` (its heading relative to the bearing barely changes), which no
-estimator can tell from the bias: docs/self-calibration.md, "Observability".
+The calibration blocks, their columns and noise, the time-correlated range error of an
+online pair and what is observable: :mod:`relloc.filter.calibration`; the split of a Gaussian
+whose heading has grown wide (``split_heading_std``): :mod:`relloc.filter.heading_split`.
 
 Robust ranges and pseudo-measurements
 -------------------------------------
@@ -68,181 +59,44 @@ per particle and robot, as a pseudo-measurement ``|u| = s0``, as soon as that pa
 of ``u`` is determined well enough (angular std below ``~15 deg``) for the linearisation to be
 valid.
 
-Splitting a heading that has grown wide
----------------------------------------
-A robot that nobody sees and that sees nobody is dead reckoning: its heading's random walk
-widens ``u`` tangentially, and its predicted position spreads along an arc (it drove some
-metres in a direction known to +-20 deg, say). One Gaussian is a poor fit to an arc, and a
-range linearised at its centre pulls the state the wrong way. With ``split_heading_std`` set,
-after each prediction every Gaussian whose widest known heading has an angular std above it is
-replaced by three, along that heading's tangent ``e`` in the full state: means ``mu + a_k s``
-and covariance ``P - (1 - sigma^2) s s^T`` with ``s = P e / sqrt(e^T P e)`` (so the positions
-correlated with the heading move with it), ``a = (-1.058, 0, 1.058)``, weights
-``(0.225, 0.550, 0.225)``, ``sigma = 0.672``: the three-component split of a unit Gaussian
-that keeps its mean and variance (the splitting library of Huber et al. and DeMars et al.).
-The enlarged mixture is resampled back to ``M`` Gaussians, so the count and the cost per step
-stay fixed. Range-only sightings are where this matters (docs/mrclam.md).
-
 Each range's covariance update ``P -= gain (P h)^T`` is deferred: the next range needs only
 ``P h``, which the pending updates give cheaply, and the ranges of a batch are applied to the
 covariance together, as one batched product, when it is next read (:meth:`GaussianSumFilter.cov`).
 The result is exactly that of the sequential updates.
-
-Observability is visible in the state: a robot that has not moved has ``A(d) = 0`` at every
-step, so its ``u`` keeps its prior and its published heading spread stays wide, while its
-position (which does not depend on ``u``) converges as the ranges allow. A pair whose distance
-never changes leaves its bias and its distance confounded; the bias variance stays at its prior.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.special import i0e, i1e
 
-from relloc.filter.base import FilterEstimate, WeightedFilter, renormalized
+from relloc.filter.base import (
+    ESS_THRESHOLD,
+    REINJECT_FRACTION,
+    FilterEstimate,
+    WeightedFilter,
+    renormalized,
+)
+from relloc.filter.calibration import (
+    CalibrationLayout,
+    CalibrationNoise,
+    calibration_prior,
+    circular_heading,
+    rotation_jacobian,
+)
+from relloc.filter.heading_split import split_headings
 from relloc.filter.measurement import MeasurementModel, robust_gaussian
 from relloc.filter.motion import OdometryMotion
-from relloc.filter.resampling import mixture_moments, systematic_resample
-from relloc.filter.state import TeamLayout
+from relloc.filter.resampling import mixture_moments
 from relloc.filter.summary import Evidence, summarize
+
+__all__ = ["CalibrationLayout", "CalibrationNoise", "GaussianSumFilter"]
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
-
-_SPLIT_W = (0.2252246249, 0.5495507502, 0.2252246249)
-_SPLIT_MU = (-1.0575154615, 0.0, 1.0575154615)
-_SPLIT_SIGMA = 0.6715662887
-
-
-def _rotation_jacobian(d: FloatArray) -> FloatArray:
-    """``A(d)`` with ``A(d) u = s R(theta) d`` for ``u = s (cos theta, sin theta)``."""
-    dx, dy = float(d[0]), float(d[1])
-    return np.array([[dx, -dy], [dy, dx]])
-
-
-@dataclass(frozen=True)
-class CalibrationLayout(TeamLayout):
-    """Which calibration blocks are estimated, and their state columns."""
-
-    heading: bool = False
-    """Estimate each non-reference robot's odometry-frame rotation (with its scale, as ``u``)."""
-    scale: bool = False
-    """Estimate odometry scales online (as ``|u|`` in heading mode, else as one scale column
-    per robot)."""
-    colored_bias: bool = True
-    """Beside each online pair's constant bias, a zero-mean, time-correlated range error (a
-    first-order Gauss-Markov process, :class:`CalibrationNoise` ``colored_sigma`` and
-    ``colored_time``): one more column per pair, after the biases. It takes up the
-    heading-dependent part of the UWB error (antenna pattern, body occlusion), which a white
-    range noise cannot: without it that error moves the bias estimate (through its random
-    walk) or the positions. The published bias is the constant part."""
-
-    @property
-    def dim(self) -> int:
-        """Position columns."""
-        return 2 * self.n_others
-
-    @property
-    def u_start(self) -> int:
-        return self.dim
-
-    @property
-    def scale_start(self) -> int:
-        """First column after the heading vectors (one ``u`` per robot, the reference's last)."""
-        return self.dim + (2 * len(self.robots) if self.heading else 0)
-
-    @property
-    def ref_scale_column(self) -> int:
-        """Column of the reference robot's scale in compass mode with online scale (-1
-        otherwise: fixed scales, or heading mode where it is ``|u_ref|``)."""
-        if not self.scale or self.heading:
-            return -1
-        return self.scale_start + self.n_others
-
-    @property
-    def bias_start(self) -> int:
-        n = self.scale_start
-        if self.scale and not self.heading:
-            n += 1 + self.n_others
-        return n
-
-    @property
-    def colored_start(self) -> int:
-        """First column of the time-correlated range errors (``colored_bias``)."""
-        return self.bias_start + len(self.bias_pairs)
-
-    @property
-    def width(self) -> int:
-        return self.colored_start + (len(self.bias_pairs) if self.colored_bias else 0)
-
-    def u_columns(self, robot: str) -> tuple[int, int]:
-        """Columns of ``robot``'s heading vector ``u`` (heading mode). The reference has one
-        too: its prior is ``(1, 0)`` (its odometry frame *is* the shared frame), and its
-        random walk follows the drift of its own odometry heading."""
-        k = self.n_others if robot == self.reference else self.others.index(robot)
-        return self.u_start + 2 * k, self.u_start + 2 * k + 1
-
-    def scale_column(self, robot: str) -> int:
-        """Column of ``robot``'s own scale in compass mode with online scale (-1 otherwise)."""
-        if not self.scale or self.heading:
-            return -1
-        if robot == self.reference:
-            return self.ref_scale_column
-        return self.scale_start + self.others.index(robot)
-
-    def bias_column(self, pair: str) -> int:
-        return self.bias_start + self.bias_pairs.index(pair)
-
-    def colored_column(self, pair: str) -> int:
-        """Column of ``pair``'s time-correlated range error (-1 without ``colored_bias``)."""
-        return self.colored_start + self.bias_pairs.index(pair) if self.colored_bias else -1
-
-    def bias_state_columns(self, pair: str) -> tuple[int, ...]:
-        """The pair's bias and, with ``colored_bias``, its time-correlated error: a range sees
-        their sum."""
-        if pair not in self.bias_pairs:
-            return ()
-        if self.colored_bias:
-            return (self.bias_column(pair), self.colored_column(pair))
-        return (self.bias_column(pair),)
-
-
-@dataclass(frozen=True)
-class CalibrationNoise:
-    """Per-step noise and prior parameters of the calibration blocks."""
-
-    heading_walk: float = 0.01
-    """Random walk of each relative heading (rad per sqrt(s)): gyro drift."""
-    reference_heading_walk: float = 0.003
-    """Random walk of the reference robot's own odometry heading in the frame it defines (rad
-    per sqrt(s)). Only the reference's motion against the ranges tells its drift, and only
-    weakly: a smaller walk than the others' keeps the frame from wandering more than the
-    odometry does."""
-    scale_walk: float = 0.001
-    """Random walk of each odometry scale (per sqrt(s))."""
-    bias_walk: float = 0.01
-    """Random walk of each online range bias (m per sqrt(s))."""
-    colored_sigma: float = 0.05
-    """Stationary standard deviation of a pair's time-correlated range error (m; layout
-    ``colored_bias``), of the order of the heading-dependent UWB error."""
-    colored_time: float = 10.0
-    """Correlation time of that error (s): how long the headings of the two ends relative to
-    the bearing between them take to change (a turn in place, a pass by the other robot)."""
-    u_prior_sigma: float = math.sqrt(0.5)
-    """Per-axis standard deviation of the heading vector ``u`` before any motion (its angle is
-    then uniform, ``E|u|^2 = 1``)."""
-    scale_prior_sigma: float = 0.15
-    """Prior standard deviation of an odometry scale when estimated online."""
-    scale_fixed_sigma: float = 0.02
-    """How tightly ``|u|`` is held to the configured scale when scales are fixed."""
-    magnitude_gate: float = 0.25
-    """Apply the ``|u|`` pseudo-measurement once the angular std of ``u`` is below this (rad)."""
-
 
 class GaussianSumFilter(WeightedFilter):
     """``M`` weighted Gaussians over positions and calibration parameters (see module doc)."""
@@ -260,8 +114,8 @@ class GaussianSumFilter(WeightedFilter):
         bias_prior: tuple[FloatArray, FloatArray] | None = None,
         position_sigma: float = 0.2,
         motion: OdometryMotion | None = None,
-        ess_threshold: float = 0.5,
-        reinject_fraction: float = 0.01,
+        ess_threshold: float = ESS_THRESHOLD,
+        reinject_fraction: float = REINJECT_FRACTION,
         heading_prior: dict[str, tuple[float, float]] | None = None,
         split_heading_std: float = 0.0,
     ) -> None:
@@ -287,7 +141,7 @@ class GaussianSumFilter(WeightedFilter):
         """Heading mode: split a Gaussian whose known heading's angular std exceeds this (rad;
         0: never) (:meth:`split_headings`)."""
         self.split_count = 0
-        self.prior_mean, self.prior_cov = self._calibration_prior()
+        self.prior_mean, self.prior_cov = calibration_prior(layout, self.noise, self.heading_prior, self.bias_prior_mean, self.bias_prior_var)
         self._pending: list[tuple[FloatArray, FloatArray]] = []
         self.mean = np.zeros((n_particles, layout.width))
         self.cov = np.zeros((n_particles, layout.width, layout.width))
@@ -335,46 +189,6 @@ class GaussianSumFilter(WeightedFilter):
         self._cov -= gains @ phts
 
     # ---------------------------------------------------------------- prior
-    def _calibration_prior(self) -> tuple[FloatArray, FloatArray]:
-        """Mean and covariance of the non-position columns (block diagonal)."""
-        lay, nz = self.layout, self.noise
-        d = lay.width - lay.dim
-        mean, cov = np.zeros(d), np.zeros((d, d))
-        off = lay.dim
-        if lay.heading:
-            c0, c1 = (c - off for c in lay.u_columns(lay.reference))
-            mean[c0] = 1.0
-            cov[c0, c0] = (nz.scale_prior_sigma if lay.scale else nz.scale_fixed_sigma) ** 2
-            cov[c1, c1] = 1e-12  # the reference's odometry frame defines the shared frame
-            for robot in lay.others:
-                c0, c1 = (c - off for c in lay.u_columns(robot))
-                if robot in self.heading_prior:
-                    angle, sigma = self.heading_prior[robot]
-                    mean[c0], mean[c1] = math.cos(angle), math.sin(angle)
-                    # angular sigma tangentially, the scale prior radially (so the |u|
-                    # pseudo-measurement is not applied again: see _set_prior_rows)
-                    radial = nz.scale_prior_sigma if lay.scale else nz.scale_fixed_sigma
-                    t = np.array([-math.sin(angle), math.cos(angle)])
-                    r = np.array([math.cos(angle), math.sin(angle)])
-                    block = sigma**2 * np.outer(t, t) + radial**2 * np.outer(r, r)
-                    cov[c0 : c1 + 1, c0 : c1 + 1] = block
-                else:
-                    cov[c0, c0] = cov[c1, c1] = nz.u_prior_sigma**2
-        if lay.scale:
-            for robot in lay.robots:
-                c = lay.scale_column(robot)
-                if c >= 0:
-                    mean[c - off] = 1.0
-                    cov[c - off, c - off] = nz.scale_prior_sigma**2
-        for k in range(len(lay.bias_pairs)):
-            c = lay.bias_start + k - off
-            mean[c] = self.bias_prior_mean[k]
-            cov[c, c] = self.bias_prior_var[k]
-            if lay.colored_bias:
-                c = lay.colored_start + k - off
-                cov[c, c] = nz.colored_sigma**2  # zero mean, stationary
-        return mean, cov
-
     def sample_positions(self, m: int) -> FloatArray:
         """``m`` relative formations uniform over the prior box, shape ``(m, 2(N-1))``."""
         return self.prior.sample(self.rng, m, self.layout.n_others)
@@ -417,14 +231,14 @@ class GaussianSumFilter(WeightedFilter):
             rows = slice(2 * k, 2 * k + 2)
             if lay.heading:
                 c0, _ = lay.u_columns(lay.reference)
-                g[rows, c0 : c0 + 2] = -_rotation_jacobian(d_ref)
+                g[rows, c0 : c0 + 2] = -rotation_jacobian(d_ref)
             elif s_ref >= 0:
                 g[rows, s_ref] = -d_ref
             else:
                 shift[rows] = -d_ref
             if lay.heading:
                 c0, _ = lay.u_columns(lay.robots[i])
-                g[rows, c0 : c0 + 2] = _rotation_jacobian(disp[i])
+                g[rows, c0 : c0 + 2] = rotation_jacobian(disp[i])
             elif lay.scale:
                 g[rows, lay.scale_column(lay.robots[i])] = disp[i]
             else:
@@ -499,43 +313,11 @@ class GaussianSumFilter(WeightedFilter):
         """Split every Gaussian whose widest known heading (angular std of ``u``: tangential std
         over ``|u|``) exceeds ``max_std`` (rad) into three along that heading, then resample the
         enlarged mixture back to ``M`` (systematic; equal weights). Returns how many Gaussians
-        were split (module docstring, "Splitting a heading that has grown wide")."""
-        lay = self.layout
-        cov = self.cov
-        n, width = self.n, lay.width
-        worst = np.zeros(n)
-        direction = np.zeros((n, width))
-        for robot in lay.robots:
-            c0, c1 = lay.u_columns(robot)
-            mu = self.mean[:, c0 : c1 + 1]
-            norm = np.sqrt(np.sum(mu * mu, axis=1))
-            t = np.stack([-mu[:, 1], mu[:, 0]], axis=1) / np.maximum(norm, 1e-9)[:, None]
-            var_t = np.einsum("ma,mab,mb->m", t, cov[:, c0 : c1 + 1, c0 : c1 + 1], t)
-            std = np.where(norm > 0.5, np.sqrt(np.maximum(var_t, 0.0)) / np.maximum(norm, 1e-9), 0.0)
-            better = std > worst
-            worst = np.where(better, std, worst)
-            direction[better] = 0.0
-            direction[better, c0] = t[better, 0]
-            direction[better, c1] = t[better, 1]
-        sel = np.flatnonzero(worst > max_std)
-        if not sel.size:
-            return 0
-        e = direction[sel]
-        pe = np.einsum("kde,ke->kd", cov[sel], e)
-        sd = pe / np.sqrt(np.maximum(np.einsum("kd,kd->k", pe, e), 1e-18))[:, None]
-        child_cov = cov[sel] - (1.0 - _SPLIT_SIGMA**2) * sd[:, :, None] * sd[:, None, :]
-        keep = np.setdiff1d(np.arange(n), sel)
-        means = [self.mean[keep]] + [self.mean[sel] + mu_k * sd for mu_k in _SPLIT_MU]
-        covs = [cov[keep]] + [child_cov] * 3
-        logws = [self.logw[keep]] + [self.logw[sel] + math.log(w_k) for w_k in _SPLIT_W]
-        done = [self.magnitude_done[keep]] + [self.magnitude_done[sel]] * 3
-        mean_all, cov_all = np.concatenate(means), np.concatenate(covs)
-        logw_all, done_all = np.concatenate(logws), np.concatenate(done)
-        w = np.exp(logw_all - logw_all.max())
-        idx = systematic_resample(w / w.sum(), self.rng, n)
-        self.mean, self.cov, self.magnitude_done = mean_all[idx], cov_all[idx], done_all[idx]
-        self.logw = np.full(n, -math.log(n))
-        return int(sel.size)
+        were split (:mod:`relloc.filter.heading_split`)."""
+        count, split = split_headings(self.layout, self.mean, self.cov, self.logw, self.magnitude_done, max_std, self.rng)
+        if split is not None:
+            self.mean, self.cov, self.logw, self.magnitude_done = split
+        return count
 
     # ---------------------------------------------------------------- updates
     def update(self, models: Sequence[MeasurementModel]) -> bool:
@@ -661,31 +443,10 @@ class GaussianSumFilter(WeightedFilter):
         return w / np.sum(w)
 
     def heading(self, robot: str) -> tuple[float, float]:
-        """Circular mean and circular standard deviation (rad) of ``robot``'s relative heading.
-
-        Each particle's ``u ~ N(mu, P)`` has an angle whose mean resultant length is that of a
-        Rice phase with signal ``|mu|`` and the tangential noise of ``P`` (1 when well
-        determined, 0 when ``u`` is still at its prior); the mixture's resultant is their
-        weighted vector sum. The spread is ``sqrt(-2 ln R)``, capped at pi (no information).
-        """
+        """Circular mean and circular standard deviation (rad) of ``robot``'s relative heading
+        (:func:`relloc.filter.calibration.circular_heading`)."""
         c0, c1 = self.layout.u_columns(robot)
-        mu = self.mean[:, c0 : c1 + 1]
-        a = np.sqrt(np.sum(mu * mu, axis=1))
-        t = np.stack([-mu[:, 1], mu[:, 0]], axis=1) / np.maximum(a, 1e-12)[:, None]
-        block = self.cov[:, c0 : c1 + 1, c0 : c1 + 1]
-        var_t = np.einsum("ma,mab,mb->m", t, block, t)
-        nu2 = a * a / np.maximum(var_t, 1e-18)
-        x = nu2 / 4.0
-        rho = np.sqrt(np.pi / 8.0) * np.sqrt(nu2) * (i0e(x) + i1e(x))
-        rho = np.clip(rho, 0.0, 1.0)
-        w = self.weights()
-        angle = np.arctan2(mu[:, 1], mu[:, 0])
-        cx = float(np.sum(w * rho * np.cos(angle)))
-        cy = float(np.sum(w * rho * np.sin(angle)))
-        r = math.hypot(cx, cy)
-        mean = math.atan2(cy, cx)
-        spread = math.pi if r <= math.exp(-0.5 * math.pi**2) else math.sqrt(-2.0 * math.log(r))
-        return mean, min(spread, math.pi)
+        return circular_heading(self.mean[:, c0 : c1 + 1], self.cov[:, c0 : c1 + 1, c0 : c1 + 1], self.weights())
 
     def scale(self, robot: str) -> tuple[float, float]:
         """Mean and std of ``robot``'s odometry scale (``|u|`` in heading mode)."""

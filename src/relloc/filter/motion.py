@@ -12,6 +12,14 @@ from numpy.typing import NDArray
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
+PROCESS_NOISE = 0.03
+"""Random-walk noise of every relative position (m per sqrt(s)): keeps static robots' particles
+diverse."""
+NOISE_PER_M = 0.05
+"""Odometry displacement noise: standard deviation per metre travelled (fraction)."""
+NOISE_PER_RAD = 0.02
+"""Lateral odometry noise per radian turned (m/rad), for heading errors during turns."""
+
 
 @dataclass(frozen=True)
 class OdometryMotion:
@@ -25,9 +33,9 @@ class OdometryMotion:
     random walk so that particles of static robots stay diverse.
     """
 
-    process_noise: float = 0.03
-    noise_per_m: float = 0.05
-    noise_per_rad: float = 0.02
+    process_noise: float = PROCESS_NOISE
+    noise_per_m: float = NOISE_PER_M
+    noise_per_rad: float = NOISE_PER_RAD
 
     def step_sigma(self, distance: float, turn: float) -> float:
         """Per-axis standard deviation of one robot's displacement over one step."""

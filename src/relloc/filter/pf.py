@@ -41,36 +41,8 @@ The formation's orientation: a nearly static, weakly observed quantity
     construction. It acts only on a formation (two robots or more besides the reference: with
     one, the state is a single relative position whose bearing the kernel would only blur) and
     only when the orientations form one mode
-    narrower than ``rotation_kernel_max_spread`` (robust std): never while rotations and mirror
-    images compete, nor on an unobservable bearing.
-
-Fewer particles, less Monte Carlo drift (a filter with an adaptive count)
-    What a small count loses on such a weakly observed direction is not the precision of one
-    estimate but a drift: every resampling moves the cloud's mean along it by a random amount
-    of order ``sigma / sqrt(M)`` (``sigma`` the posterior's spread along it), the ranges do not
-    pull it back, and the moves add up over the run. A filter with a count rule that sets
-    ``mc_tolerance_ordered`` (off by default) therefore removes, on a formation whose
-    posterior is one observable mode, the two random moves of the mean that the method does
-    not need:
-
-    * it resamples *in order*: the systematic draw walks the particles sorted by their
-      projection on the principal axis of the dominant mode's weighted positions (the widest
-      direction of the ``2(N-1)``-dimensional cloud: on a formation, its orientation about
-      the reference), so the resampled cloud takes the quantiles of the weighted one along
-      that axis and its mean moves by ``O(sigma / M)`` instead of ``O(sigma / sqrt(M))``
-      (sorted systematic resampling; the one-dimensional case of the ordered resampling of
-      Gerber, Chopin & Whiteley, 2019, "Negative association, ordering and convergence of
-      resampling methods", Annals of Statistics 47);
-    * its orientation kernel draws moment-matched noise (the draws centred and scaled to unit
-      sample variance), so that the kernel keeps the orientations' mean exactly, not only in
-      expectation (and their variance up to the draws' sample correlation with them).
-
-    Each particle still moves as before; only the common part of the random moves, which
-    carries no information, is gone. The count rule's Monte Carlo floor then counts only what
-    the order leaves of the principal axis's drift (:mod:`relloc.filter.adaptive`). A fixed
-    count, a pair, a wide or multi-modal posterior and ``mc_tolerance_ordered = 0`` keep the
-    plain systematic draw and kernel, draw for draw. Measured, and why it is off by default
-    (it costs accuracy through transients): docs/adaptive-particles.md, "The shortbag's 5x".
+    narrower than ``rotation_kernel_max_spread`` (robust std, :data:`ROTATION_KERNEL_MAX_SPREAD`):
+    never while rotations and mirror images compete, nor on an unobservable bearing.
 """
 
 from __future__ import annotations
@@ -83,8 +55,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from relloc.filter.adaptive import KldSampling
-from relloc.filter.annealing import StartContext, annealed_start, orient_by
-from relloc.filter.base import FilterEstimate, WeightedFilter, renormalized
+from relloc.filter.annealing import MCMC_STEPS, StartContext, annealed_start, orient_by
+from relloc.filter.base import (
+    ESS_THRESHOLD,
+    REINJECT_FRACTION,
+    FilterEstimate,
+    WeightedFilter,
+    renormalized,
+)
 from relloc.filter.measurement import MeasurementModel, stacked
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.resampling import ess, log_normalize, mixture_moments, systematic_resample
@@ -95,6 +73,10 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 _BLOCK = 4096
 """Particles per block when evaluating likelihoods (see ``ParticleFilter.log_likelihood``)."""
+
+ROTATION_KERNEL_MAX_SPREAD = 0.25
+"""The orientation kernel acts only while the orientations form one mode with a robust standard
+deviation below this (rad), never while rotations or mirror images compete."""
 
 LogLikelihood = Callable[[FloatArray, FloatArray], FloatArray]
 """Maps relative positions (coordinate planes ``(2, N, M)``) and the particle rows ``(M, D)``
@@ -115,12 +97,12 @@ class ParticleFilter(WeightedFilter):
         rng: np.random.Generator,
         motion: OdometryMotion | None = None,
         resample: str = "ess",
-        ess_threshold: float = 0.5,
-        reinject_fraction: float = 0.01,
+        ess_threshold: float = ESS_THRESHOLD,
+        reinject_fraction: float = REINJECT_FRACTION,
         extra_prior: FloatArray | None = None,
         rotation_noise: float = 0.0,
         rotation_kernel: float = 0.0,
-        rotation_kernel_max_spread: float = 0.25,
+        rotation_kernel_max_spread: float = ROTATION_KERNEL_MAX_SPREAD,
         bias_walk: float = 0.0,
         count_rule: KldSampling | None = None,
     ) -> None:
@@ -158,10 +140,6 @@ class ParticleFilter(WeightedFilter):
         ``max_particles`` is the count of every (re-)annealed start."""
         if count_rule is not None and count_rule.max_particles != n_particles:
             raise ValueError("count_rule.max_particles must be n_particles (the full count)")
-        self._ordered = False
-        """Whether the last resampling was ordered (and its kernel moment-matched)."""
-        self._ordered_sigma = 0.0
-        """The spread (m) the Monte Carlo floor of an ordered resampling is sized for."""
         self.last_summary: ModeSummary | None = None
         """The summary of the last ``estimate`` since the last (re-)annealed start."""
         self.covariance_floor = 0.0
@@ -275,33 +253,6 @@ class ParticleFilter(WeightedFilter):
         s = self.last_summary
         return s is None or not s.orientation_observable or s.n_modes > 1 or self.kernel_paused
 
-    def _resampling_order(self, w: FloatArray) -> IntArray | None:
-        """With a count rule that allows for it (``mc_tolerance_ordered``), on a formation
-        whose posterior is one observable mode: the particles sorted by their projection on
-        the principal axis of the dominant mode's weighted positions (module docstring: less
-        drift of the mean along the widest direction); else ``None`` (stored order). Also
-        sets the spread the Monte Carlo floor is then sized for (``_ordered_sigma``)."""
-        self._ordered = False
-        rule = self.count_rule
-        if rule is None or rule.mc_tolerance_ordered <= 0.0 or self.layout.n_others < 2 or self.posterior_wide:
-            return None
-        s = self.last_summary
-        wm = w * s.members if s is not None and s.members.shape == w.shape else w
-        wm = wm / wm.sum()
-        x = self.particles[:, : self.layout.dim]
-        xc = x - np.einsum("m,md->d", wm, x)
-        cov = (xc * wm[:, None]).T @ xc  # a (D, M) x (M, D) product: BLAS, no stall
-        lam, vec = np.linalg.eigh(cov)
-        axis = vec[:, -1]
-        # What the ordered draw leaves of the principal axis's drift (rule.ordered_share), and
-        # all of every other direction's; per robot, the widest of that.
-        residual = cov - (1.0 - rule.ordered_share) * lam[-1] * np.outer(axis, axis)
-        k = np.arange(self.layout.n_others)
-        blocks = residual.reshape(k.size, 2, k.size, 2)[k, :, k, :]
-        self._ordered_sigma = math.sqrt(max(float(np.linalg.eigvalsh(blocks).max()), 0.0))
-        self._ordered = True
-        return np.argsort(np.einsum("md,d->m", xc, axis), kind="stable")
-
     def _resampled_size(self, idx: IntArray) -> int:
         """The count rule's size for the systematic draw ``idx`` (with repetitions): the cells
         are counted over the distinct particles it keeps."""
@@ -309,9 +260,8 @@ class ParticleFilter(WeightedFilter):
             return self.n
         if self.posterior_wide:
             return self.count_rule.max_particles
-        kept = np.flatnonzero(np.bincount(idx, minlength=self.n))  # idx follows the resampling order
-        sigma = self._ordered_sigma if self._ordered else self.widest_std()
-        return self.count_rule.size(self.particles[kept, : self.layout.dim], wide=False, sigma=sigma)
+        kept = np.flatnonzero(np.bincount(idx, minlength=self.n))
+        return self.count_rule.size(self.particles[kept, : self.layout.dim], wide=False, sigma=self.widest_std())
 
     def widest_std(self) -> float:
         """Standard deviation (m) of the last summary's widest direction: the largest
@@ -339,8 +289,7 @@ class ParticleFilter(WeightedFilter):
         """Liu-West kernel along the formation's orientation on equally weighted particles:
         turn each particle of the main mode from ``theta`` to
         ``a theta + (1 - a) mean + sqrt(h) std eps`` (``a = sqrt(1 - h)``), keeping the mean and
-        variance of the orientations (the mean exactly after an ordered resampling:
-        moment-matched noise). Particles farther than 4 robust stds from the mode (other
+        variance of the orientations. Particles farther than 4 robust stds from the mode (other
         modes, re-injected ones) are left alone. Returns False (and does nothing) when the
         orientations do not form one mode narrower than ``rotation_kernel_max_spread``, or
         when there is no formation (a single non-reference robot)."""
@@ -357,11 +306,6 @@ class ParticleFilter(WeightedFilter):
         a = np.sqrt(1.0 - h)
         turn = np.zeros(self.particles.shape[0])
         eps = self.rng.standard_normal(dc.size)
-        if self._ordered and dc.size > 1:
-            # Moment-matched (module docstring): the mean kept exactly, not only in
-            # expectation, so that the kernel adds no drift to the orientation.
-            eps -= eps.mean()
-            eps /= max(float(eps.std()), 1e-12)
         turn[core] = (a - 1.0) * dc + (1.0 - a) * mean + np.sqrt(h) * std * eps
         self.rotate(turn)
         return True
@@ -392,7 +336,7 @@ class ParticleFilter(WeightedFilter):
         guide: LogLikelihood | None = None,
         *,
         max_stages: int = 60,
-        mcmc_steps: int = 3,
+        mcmc_steps: int = MCMC_STEPS,
         target_ess: float = 0.5,
     ) -> int:
         """Move the particles from the prior to ``prior * L`` by likelihood tempering.

@@ -65,6 +65,19 @@ _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 _LOGISTIC_PROBIT = 1.702
 """``Phi(x) ~ 1 / (1 + exp(-1.702 x))``: the logistic approximation of the normal CDF."""
 
+# The mixture of both models; the Gaussian noise is the sensor's (``[uwb] sigma``, ``los_sigma``).
+NLOS_FRACTION = 0.1
+"""NLOS-aware model: weight of the non-line-of-sight part, fitted to the TIERS training table."""
+NLOS_SIGMA = 0.3
+"""NLOS-aware model: scale (m) of the half-normal excess delay of a blocked path."""
+GROSS_FRACTION = 0.02
+"""NLOS-aware model: weight of the uniform part (gross errors of any sign)."""
+OUTLIER_FRACTION = 0.1
+"""Symmetric model: weight of the uniform (NLOS/outlier) part."""
+MAX_RANGE = 15.0
+"""Support (m) of the uniform outlier density, and the longest range accepted (UWB's reach
+indoors)."""
+
 
 def _robust_gaussian_loglik(residual: FloatArray, sigma: FloatArray, eps: float, support: float) -> FloatArray:
     """Elementwise log of ``(1-eps) N(residual; 0, sigma^2) + eps / support``.
@@ -150,8 +163,8 @@ class RangeBatch:
     distance: FloatArray
     bias: FloatArray
     sigma: FloatArray
-    outlier_fraction: float = 0.1
-    max_range: float = 15.0
+    outlier_fraction: float = OUTLIER_FRACTION
+    max_range: float = MAX_RANGE
     bias_columns: IntArray | None = None
     """Sampled filter, online biases: per range, the state column of the particle's bias mean
     (the variance is the next column), or -1 where the bias is the fixed ``bias``; ``None``:
@@ -159,7 +172,7 @@ class RangeBatch:
     nlos_fraction: float = 0.0
     """Weight of the non-line-of-sight (one-sided, too long) component; 0: the symmetric
     Gaussian-plus-uniform model. ``sigma`` is then the line-of-sight noise."""
-    nlos_sigma: float = 0.3
+    nlos_sigma: float = NLOS_SIGMA
     """Scale of the NLOS excess delay (half-normal, m)."""
     state_columns: tuple[tuple[int, ...], ...] = ()
     """Gaussian-sum filter, online biases: per range, the state columns whose sum the range
@@ -179,7 +192,7 @@ class RangeBatch:
         unknown bias and a one-sided excess are confounded), ranges corrected upstream by a
         learned model the symmetric one (the correction predicted the skewed part)."""
         config, layout = context.config, context.layout
-        fc, uwb = config.filter, config.uwb
+        uwb = config.uwb
         groups: dict[tuple[int, int], list[RangeEvent]] = {}
         for m in events:
             a, b = layout.index(m.robot_a), layout.index(m.robot_b)
@@ -192,12 +205,12 @@ class RangeBatch:
             node_pair = pair_key(*nodes)
             d = float(statistics.median(ev.distance for ev in group))  # a few values: no NumPy
             if all(ev.corrected for ev in group):
-                b, s, node_pair = 0.0, fc.likelihood.sigma_uwb, ""
+                b, s, node_pair = 0.0, uwb.sigma, ""
             elif node_pair in layout.bias_pairs:
-                b, s = 0.0, fc.likelihood.sigma_uwb  # the bias is in the state
+                b, s = 0.0, uwb.sigma  # the bias is in the state
             else:
                 b, scale, _ = uwb.calibration(*nodes)
-                d, b, s = d / scale, b / scale, pair_sigma(config, node_pair, fc.likelihood.sigma_uwb)
+                d, b, s = d / scale, b / scale, pair_sigma(config, node_pair, uwb.sigma)
             pairs.append(key)
             dist.append(d)
             bias.append(b)
@@ -218,19 +231,19 @@ class RangeBatch:
             if not np.any(sel):
                 continue
             if nlos:
-                s = np.array([pair_sigma(config, k, fc.likelihood.los_sigma) for k in keys])[sel]
-                eps = fc.likelihood.gross_fraction if context.robust else 0.0
+                s = np.array([pair_sigma(config, k, uwb.los_sigma) for k in keys])[sel]
+                eps = GROSS_FRACTION if context.robust else 0.0
             else:
                 s = sigma_a[sel]
-                eps = fc.likelihood.outlier_fraction if context.robust else 0.0
+                eps = OUTLIER_FRACTION if context.robust else 0.0
             s = np.maximum(s, np.array(model_sigma)[sel])  # an unsure correction weighs less
             rows = np.flatnonzero(sel)
             out.append(
                 cls(
-                    idx[sel, 0], idx[sel, 1], dist_a[sel], bias_a[sel], s, eps, fc.likelihood.max_range,
+                    idx[sel, 0], idx[sel, 1], dist_a[sel], bias_a[sel], s, eps, MAX_RANGE,
                     belief[sel] if np.any(belief >= 0) else None,
-                    nlos_fraction=fc.likelihood.nlos_fraction if nlos and context.robust else 0.0,
-                    nlos_sigma=fc.likelihood.nlos_sigma,
+                    nlos_fraction=NLOS_FRACTION if nlos and context.robust else 0.0,
+                    nlos_sigma=NLOS_SIGMA,
                     state_columns=tuple(state[i] for i in rows) if any(state) else (),
                     layout=layout,
                 )
@@ -257,7 +270,7 @@ class RangeBatch:
         if event.robot_a == event.robot_b:
             return "self_range"
         d = event.distance
-        if not finite(d) or d <= 0.0 or d > context.config.filter.likelihood.max_range:
+        if not finite(d) or d <= 0.0 or d > MAX_RANGE:
             return "invalid_range"
         if context.is_late(event.t):
             return "late_measurement"

@@ -7,11 +7,6 @@ with the log-sum-exp trick; ``ess`` is the effective sample size ``1 / sum(w^2)`
 Systematic resampling draws one uniform ``u ~ U[0, 1/M)`` and takes the particles at the
 points ``u + k/M``: it is unbiased (each particle is copied ``M w_i`` times in expectation) and
 has the lowest variance of the classic schemes for the cost of one cumulative sum (no search).
-Its variance depends on the order in which it walks the particles: walked in the order of a
-coordinate (``order``), the copies take the quantiles of the weighted sample along it, and
-their mean along that coordinate misses the weighted mean by ``O(spread / M)`` instead of
-``O(spread / sqrt(M))`` (ordered resampling: Gerber, Chopin & Whiteley 2019, "Negative
-association, ordering and convergence of resampling methods", Annals of Statistics 47).
 """
 
 from __future__ import annotations
@@ -57,17 +52,9 @@ def mixture_moments(w: FloatArray, mu: FloatArray, var: FloatArray) -> tuple[flo
     return mean, math.sqrt(max(float(w @ (var + (mu - mean) ** 2)), 0.0))
 
 
-def systematic_resample(
-    weights: FloatArray, rng: np.random.Generator, n: int | None = None, order: NDArray[np.intp] | None = None
-) -> NDArray[np.intp]:
-    """Indices of ``n`` (default ``len(weights)``) particles drawn by systematic resampling.
-
-    ``weights`` must be normalised (non-negative, summing to one). ``order`` (a permutation)
-    is the order in which the draw walks the particles (module docstring); the indices
-    returned are into ``weights`` either way.
-    """
-    if order is not None:
-        return order[systematic_resample(weights[order], rng, n)]
+def systematic_resample(weights: FloatArray, rng: np.random.Generator, n: int | None = None) -> NDArray[np.intp]:
+    """Indices of ``n`` (default ``len(weights)``) particles drawn by systematic resampling;
+    ``weights`` must be normalised (non-negative, summing to one)."""
     m = len(weights) if n is None else n
     u = rng.random()
     cumulative = np.cumsum(weights)

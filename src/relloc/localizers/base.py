@@ -13,10 +13,10 @@ own rates and lags. A :class:`Localizer`
   localizer holds move with it);
 * keeps each robot's odometry in a track (:mod:`~relloc.localizers.tracks`), so that it can
   predict to any instant; a reset or jump re-anchors the track (``odometry_reanchored``);
-* gathers the measurements of one cell of the ``update_period`` grid into one batch
+* gathers the measurements of one cell of the ``UPDATE_PERIOD`` grid into one batch
   (:mod:`~relloc.localizers.grid`, which also gives the live wake rule), and fuses it at the
   batch time (its newest stamp) in one step: subclasses differ only in ``_step``;
-* emits at most one estimate per ``estimate_period``.
+* emits at most one estimate per ``ESTIMATE_PERIOD``.
 
 :class:`~relloc.localizers.filtered.FilterLocalizer` is that step for a filter of
 :mod:`relloc.filter.base`.
@@ -36,7 +36,7 @@ from relloc.filter.measurement import MeasurementModel, finite
 from relloc.filter.registry import model_for
 from relloc.filter.state import StateLayout, TeamLayout
 from relloc.localizers.clock import TeamClock
-from relloc.localizers.grid import BatchGrid
+from relloc.localizers.grid import UPDATE_PERIOD, BatchGrid
 from relloc.localizers.tracks import OdometryTracks
 from relloc.odometry import OdometryTrack
 
@@ -44,6 +44,8 @@ log = logging.getLogger(__name__)
 
 Measurement = Any
 """An event some registered measurement model consumes."""
+ESTIMATE_PERIOD = 0.1
+"""Estimates are emitted at this period (s), the grid's."""
 
 _UNFUSED = (GroundTruthEvent, DetectionEvent)
 """Events of the vocabulary no localizer fuses: ground truth (for evaluation), raw detections
@@ -58,13 +60,12 @@ class Localizer:
     def __init__(self, config: TeamConfig, layout: StateLayout | None = None) -> None:
         self.config = config
         self._layout = layout or StateLayout(config.robot_names, config.reference)
-        fc = config.filter
-        self.update_period = fc.update_period
-        self.estimate_period = fc.estimate_period
+        self.update_period = UPDATE_PERIOD
+        self.estimate_period = ESTIMATE_PERIOD
         self.stats: Counter[str] = Counter()
         self.last_estimate: Estimate | None = None
-        self.clock = TeamClock(fc.max_time_jump)
-        self.grid = BatchGrid(fc.update_period)
+        self.clock = TeamClock()
+        self.grid = BatchGrid(UPDATE_PERIOD)
         self.odometry = OdometryTracks(config, self._track_frame)
         self._memory: dict[type, dict[Any, Any]] = {}
         self._last_emit = -math.inf

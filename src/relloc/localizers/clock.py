@@ -2,7 +2,7 @@
 
 The first events wait until ``_WARMUP_EVENTS`` of them, from two streams (robots' odometry,
 range pairs, ...: :func:`stream`), are in, or twice as many from one, and their median stamp
-sets the clock. After that a stamp more than ``max_time_jump`` ahead of the clock (the newest
+sets the clock. After that a stamp more than ``MAX_TIME_JUMP`` ahead of the clock (the newest
 accepted stamp), or behind it where the event could no longer be used, is rejected
 (``time_jump``, ``time_jump_backward``) and votes for a jump to its time. The clock follows
 once ``_JUMP_VOTES`` agreeing votes came from at least two streams (one if the team has only
@@ -23,6 +23,9 @@ from relloc.filter.registry import model_for
 
 _JUMP_VOTES = 3
 """Agreeing votes (from two streams at least) before the clock follows a jump."""
+MAX_TIME_JUMP = 5.0
+"""The clock's tolerance (s): farther than this from the clock, a stamp is rejected and votes
+for a jump (module docstring); minutes of real gaps pass, one corrupted stamp does not."""
 _WARMUP_EVENTS = 5
 """Events (from two streams, or twice as many from one) whose median stamp sets the clock."""
 
@@ -40,7 +43,7 @@ def stream(event: Event) -> tuple[str, ...]:
 class TeamClock:
     """The warm-up, the check of every later stamp, and the jump votes (module docstring)."""
 
-    def __init__(self, max_time_jump: float) -> None:
+    def __init__(self, max_time_jump: float = MAX_TIME_JUMP) -> None:
         self.limit = max_time_jump
         self.now = -math.inf
         """The newest accepted stamp (``-inf``: not set yet, the warm-up)."""

@@ -163,7 +163,7 @@ class DivergenceMonitor:
         rows, ref = self._rows, len(self._rows)
         nodes = config.range_nodes(m)
         bias, scale, sigma = (0.0, 1.0, None) if m.corrected else config.uwb.calibration(*nodes)
-        sig = sigma if sigma is not None else config.filter.likelihood.sigma_uwb
+        sig = sigma if sigma is not None else config.uwb.sigma
         return (
             rows.get(m.robot_a, ref), rows.get(m.robot_b, ref), bias, scale, sig**2,
             None if m.corrected else pair_key(*nodes),

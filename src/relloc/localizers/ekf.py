@@ -9,9 +9,9 @@ correct a teammate it never saw. Here:
 * **Prediction.** Each robot's odometry displacement since the last step, in its body frame at
   the start of the step (``delta``, ``dpsi``), moves its pose: ``p += R(theta) delta``,
   ``theta += dpsi``; the Jacobian turns the heading uncertainty into position uncertainty.
-  Noise: ``odom_noise_per_m`` per metre and ``process_noise`` per sqrt(s) on the displacement,
-  ``odom_noise_per_rad`` per radian turned and the heading random walk ``heading_walk`` per
-  sqrt(s) (:class:`relloc.config.FilterConfig`).
+  Noise: ``NOISE_PER_M`` per metre and ``PROCESS_NOISE`` per sqrt(s) on the displacement,
+  ``NOISE_PER_RAD`` per radian turned (:mod:`relloc.filter.motion`) and the heading random walk
+  ``heading_walk`` per sqrt(s) (:class:`relloc.config.SelfCalibrationConfig`).
 * **Update.** A sighting of ``j`` by ``i`` is ``r = |p_j - p_i|``, ``b = atan2(.) - theta_i``
   (bearing innovation wrapped), with the sighting's own noise; a UWB range is ``|p_j - p_i|``
   plus the pair's calibrated bias. An innovation beyond a chi-square gate (99.9 %) is counted
@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
 from relloc.events import RangeEvent, SightingEvent
+from relloc.filter.motion import NOISE_PER_M, NOISE_PER_RAD, PROCESS_NOISE
 from relloc.localizers.base import Localizer, Measurement
 
 FloatArray = NDArray[np.float64]
@@ -72,9 +73,7 @@ class EkfOracleLocalizer(Localizer):
 
     # ---------------------------------------------------------------- prediction
     def _predict(self, t: float) -> None:
-        fc = self.config.filter
-        odo = fc.odometry
-        walk = fc.self_calibration.heading_walk
+        walk = self.config.filter.self_calibration.heading_walk
         dt = 0.0 if math.isnan(self.t) else max(t - self.t, 0.0)
         self.t = t
         n = len(self.layout.robots)
@@ -104,9 +103,9 @@ class EkfOracleLocalizer(Localizer):
             F[k, k + 2] = -s * fwd - c * left
             F[k + 1, k + 2] = c * fwd - s * left
             dist = math.hypot(fwd, left)
-            var_d = (odo.odom_noise_per_m * dist) ** 2 + odo.process_noise**2 * dt
+            var_d = (NOISE_PER_M * dist) ** 2 + PROCESS_NOISE**2 * dt
             Q[k, k] = Q[k + 1, k + 1] = var_d
-            Q[k + 2, k + 2] = (odo.odom_noise_per_rad * abs(dpsi)) ** 2 + walk**2 * dt
+            Q[k + 2, k + 2] = (NOISE_PER_RAD * abs(dpsi)) ** 2 + walk**2 * dt
         self.P = F @ self.P @ F.T + Q
 
     # ---------------------------------------------------------------- update
@@ -163,7 +162,7 @@ class EkfOracleLocalizer(Localizer):
         row = np.zeros(len(self.x))
         row[3 * j : 3 * j + 2] = (dx / r, dy / r)
         row[3 * i : 3 * i + 2] = (-dx / r, -dy / r)
-        sigma = self.config.filter.likelihood.sigma_uwb
+        sigma = self.config.uwb.sigma
         self._fuse(np.array([ev.distance]), np.array([scale * r + bias]), scale * row[None, :], np.array([[sigma**2]]), [False])
 
     # ---------------------------------------------------------------- one batch

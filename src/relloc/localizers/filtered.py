@@ -46,9 +46,8 @@ class FilterLocalizer(Localizer):
 
     def __init__(self, config: TeamConfig, layout: StateLayout | None = None, *, seed: int = 0) -> None:
         super().__init__(config, layout)
-        fc = config.filter
         self.rng = np.random.default_rng(seed)
-        self.motion = OdometryMotion(fc.odometry.process_noise, fc.odometry.odom_noise_per_m, fc.odometry.odom_noise_per_rad)
+        self.motion = OdometryMotion()
         self.initialized = False
         self.t = math.nan
         self._anchor: dict[str, tuple[float, float, float]] = {}

@@ -1,6 +1,6 @@
 """The batching grid, and the live wake rule it implies.
 
-Measurements stamped within one cell of a fixed ``update_period`` grid are fused as one batch
+Measurements stamped within one cell of a fixed ``UPDATE_PERIOD`` grid are fused as one batch
 (the stacked measurement vector of the paper), at the batch's newest stamp. A grid, not a
 window opened by the first measurement: a pair ranging at the update rate with some jitter
 then gives one range per batch, not now one, now two. A batch closes when a measurement of a
@@ -20,6 +20,9 @@ from typing import Any
 
 from relloc.events import WAKE_ALWAYS, WakeRule
 
+UPDATE_PERIOD = 0.1
+"""The grid's cell (s): measurements within one are fused in one update, a tenth of a second
+like the sensors' fastest rates."""
 _MAX_PENDING = 5000
 """A batch this large is fused at once (counted ``batches_forced``): a batch never grows."""
 _WAKE_MARGIN = 1e-5
@@ -30,7 +33,7 @@ rounding of ``floor(t / period)`` at epoch stamps (about 4e-7 s)."""
 class BatchGrid:
     """The pending batch on the ``update_period`` grid (module docstring)."""
 
-    def __init__(self, update_period: float) -> None:
+    def __init__(self, update_period: float = UPDATE_PERIOD) -> None:
         self.period = update_period
         self.pending: list[Any] = []
         self.start = math.nan

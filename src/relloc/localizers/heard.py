@@ -25,7 +25,7 @@ from relloc.config import TeamConfig
 from relloc.filter.measurement import hook
 from relloc.filter.registry import model_for
 from relloc.filter.state import TeamLayout
-from relloc.odometry import OdometryTrack
+from relloc.odometry import MAX_EXTRAPOLATION, OdometryTrack
 
 _UNRANGED_AFTER = 2.0
 """Seconds without a range after which a robot pauses the orientation kernel (and, without
@@ -39,8 +39,7 @@ class Heard:
 
     def __init__(self, config: TeamConfig, layout: TeamLayout) -> None:
         self.robots, self.reference = layout.robots, layout.reference
-        oc = config.filter.odometry
-        self.unseen_speed, self.horizon = oc.unseen_speed, oc.max_odom_extrapolation
+        self.unseen_speed, self.horizon = config.filter.odometry.unseen_speed, MAX_EXTRAPOLATION
         self.ranged: dict[str, float] = {}
         """Each robot's newest range (counted from the start's end)."""
         self.measured: dict[str, float] = {}

@@ -22,6 +22,7 @@ from relloc.config import TeamConfig
 from relloc.filter.base import FilterEstimate, WeightedFilter
 from relloc.filter.state import TeamLayout
 from relloc.localizers.divergence import DivergenceMonitor
+from relloc.localizers.grid import UPDATE_PERIOD
 
 FloatArray = NDArray[np.float64]
 Restart = Callable[[list[Any], FloatArray | None], bool]
@@ -43,8 +44,7 @@ class Recovery:
 
     def __init__(self, config: TeamConfig, layout: TeamLayout, rng: np.random.Generator, stats: Counter[str]) -> None:
         self.layout, self.rng, self.stats = layout, rng, stats
-        fc = config.filter
-        self.horizon = max(fc.init_window, fc.update_period)
+        self.horizon = max(config.filter.init_window, UPDATE_PERIOD)
         """Seconds of measurements kept for a restart."""
         self.monitor = DivergenceMonitor(config, layout)
         self.recent: deque[Any] = deque()

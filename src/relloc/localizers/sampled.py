@@ -21,20 +21,29 @@ import numpy as np
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
 from relloc.events import pair_key
-from relloc.filter.adaptive import KldSampling
+from relloc.filter.adaptive import MIN_PARTICLES_NO_KERNEL, KldSampling
 from relloc.filter.annealing import annealed_start
-from relloc.filter.motion import OdometryMotion
 from relloc.filter.pf import ParticleFilter
 from relloc.filter.state import StateLayout
 from relloc.localizers.base import Measurement
 from relloc.localizers.filtered import FilterLocalizer
+
+BIAS_PRIOR_SIGMA = 0.05
+"""Online biases: prior standard deviation (m) of a calibrated pair's bias about its
+calibration (the spread of the pair biases between sessions)."""
+BIAS_PRIOR_SIGMA_UNCALIBRATED = 0.25
+"""Online biases in the Gaussian-sum filter (headings or scales estimated as well): prior
+standard deviation (m) of an uncalibrated pair's bias. The sampled filter uses
+``uwb.default_bias_sigma`` instead, the width its default mode assumes for the same pair: a
+wider prior let the bias run, on a new session, along what one range cannot tell apart (a
+longer bias, a nearer robot) (docs/self-calibration.md, "Online bias on a new session")."""
 
 
 def bias_layout(config: TeamConfig, *, uncalibrated_sigma: float | None = None) -> tuple[StateLayout, list[float]]:
     """The sampled state's layout and the prior of its non-position columns: with online
     biases a (mean, variance) belief per UWB node pair of the team, none otherwise. An
     uncalibrated pair's prior is ``uwb.default_bias`` +- ``uncalibrated_sigma`` (default:
-    ``bias_prior_sigma_uncalibrated``)."""
+    ``BIAS_PRIOR_SIGMA_UNCALIBRATED``), a calibrated pair's its bias +- ``BIAS_PRIOR_SIGMA``."""
     fc = config.filter
     names = config.robot_names
     if fc.self_calibration.bias_mode != "online":
@@ -44,9 +53,9 @@ def bias_layout(config: TeamConfig, *, uncalibrated_sigma: float | None = None) 
     for pair in node_pairs:
         cal = config.uwb.pairs.get(pair)
         if cal is not None:
-            prior += [cal.bias, fc.self_calibration.bias_prior_sigma**2]
+            prior += [cal.bias, BIAS_PRIOR_SIGMA**2]
         else:
-            sigma = fc.self_calibration.bias_prior_sigma_uncalibrated if uncalibrated_sigma is None else uncalibrated_sigma
+            sigma = BIAS_PRIOR_SIGMA_UNCALIBRATED if uncalibrated_sigma is None else uncalibrated_sigma
             prior += [config.uwb.default_bias, sigma**2]
     return StateLayout(names, config.reference, tuple(node_pairs)), prior
 
@@ -61,19 +70,15 @@ def _node_pair(config: TeamConfig, robot_a: str, robot_b: str) -> str:
 def count_rule(config: TeamConfig, layout: StateLayout) -> KldSampling | None:
     """The adaptive particle count of ``[filter.adaptive]`` for ``layout`` (``None`` where it
     is ``fixed``): from ``[filter] particles`` down to ``min_particles``, or to
-    ``min_particles_no_kernel`` where the orientation kernel cannot act (a single
+    ``MIN_PARTICLES_NO_KERNEL`` where the orientation kernel cannot act (a single
     non-reference robot, or no kernel), each at most ``particles``."""
     fc = config.filter
     ac = fc.adaptive
     if ac.particle_count == "fixed":
         return None
     kernel = fc.resampling.rotation_kernel > 0.0 and layout.n_others >= 2
-    floor = ac.min_particles if kernel else ac.min_particles_no_kernel
-    return KldSampling(
-        min(floor, fc.particles), fc.particles, epsilon=ac.kld_epsilon, quantile=ac.kld_quantile,
-        bin_size=ac.kld_bin, mc_tolerance=ac.mc_tolerance, ess_fraction=fc.resampling.ess_threshold,
-        mc_tolerance_ordered=ac.mc_tolerance_ordered,
-    )
+    floor = ac.min_particles if kernel else MIN_PARTICLES_NO_KERNEL
+    return KldSampling(min(floor, fc.particles), fc.particles, mc_tolerance=ac.mc_tolerance)
 
 
 def particle_filter(
@@ -92,14 +97,9 @@ def particle_filter(
         n,
         config.area,
         rng=rng,
-        motion=OdometryMotion(fc.odometry.process_noise, fc.odometry.odom_noise_per_m, fc.odometry.odom_noise_per_rad),
-        resample=fc.resampling.resample,
-        ess_threshold=fc.resampling.ess_threshold,
-        reinject_fraction=fc.resampling.reinject_fraction,
         extra_prior=np.array(prior),
         rotation_noise=fc.odometry.rotation_noise,
         rotation_kernel=fc.resampling.rotation_kernel,
-        rotation_kernel_max_spread=fc.resampling.rotation_kernel_max_spread,
         bias_walk=fc.self_calibration.bias_walk,
         count_rule=rule,
     )
@@ -107,11 +107,10 @@ def particle_filter(
 
 def covariance_floor(config: TeamConfig, range_model: str) -> float:
     """Variance (m^2) per axis the filter adds to what it publishes: one range's noise under
-    the localizer's range model (``los_sigma``, or ``sigma_uwb`` for the symmetric model). Range
-    errors are correlated in time, so fusing many cannot average them below that
+    the localizer's range model (``[uwb] los_sigma``, or ``sigma`` for the symmetric model).
+    Range errors are correlated in time, so fusing many cannot average them below that
     (:mod:`relloc.filter.summary`)."""
-    lk = config.filter.likelihood
-    sigma = lk.los_sigma if range_model == "nlos" else lk.sigma_uwb
+    sigma = config.uwb.los_sigma if range_model == "nlos" else config.uwb.sigma
     return float(sigma) ** 2
 
 

@@ -22,7 +22,6 @@ from relloc.config import TeamConfig
 from relloc.estimate import Estimate
 from relloc.filter.annealing import annealed_start
 from relloc.filter.gaussian_sum import CalibrationLayout, CalibrationNoise, GaussianSumFilter
-from relloc.filter.motion import OdometryMotion
 from relloc.filter.pf import ParticleFilter
 from relloc.filter.resampling import normalize, systematic_resample
 from relloc.localizers.base import Measurement
@@ -80,9 +79,7 @@ class SelfCalibratingLocalizer(FilterLocalizer):
         noise = CalibrationNoise(
             heading_walk=fc.self_calibration.heading_walk,
             reference_heading_walk=fc.self_calibration.reference_heading_walk,
-            scale_walk=fc.self_calibration.scale_walk,
             bias_walk=fc.self_calibration.bias_walk,
-            scale_prior_sigma=fc.self_calibration.scale_prior_sigma,
         )
         return GaussianSumFilter(
             layout,
@@ -92,9 +89,6 @@ class SelfCalibratingLocalizer(FilterLocalizer):
             noise=noise,
             bias_prior=prior,
             position_sigma=fc.self_calibration.selfcal_position_sigma,
-            motion=OdometryMotion(fc.odometry.process_noise, fc.odometry.odom_noise_per_m, fc.odometry.odom_noise_per_rad),
-            ess_threshold=fc.resampling.ess_threshold,
-            reinject_fraction=fc.resampling.reinject_fraction,
             heading_prior=heading_prior,
             split_heading_std=fc.self_calibration.heading_split_std,
         )

@@ -3,7 +3,7 @@
 Each robot's odometry goes into an :class:`~relloc.odometry.OdometryTrack` (in the frame the
 localizer asks for: the shared heading frame, or the robot's own where the filter estimates
 the heading), so that the localizer can predict to any instant. A message that moves its robot
-faster than ``max_speed`` / ``max_yaw_rate`` (``[filter.odometry]``) is a reset or a step of
+faster than ``MAX_SPEED`` / ``MAX_YAW_RATE`` is a reset or a step of
 the integrator: it re-anchors the track instead of moving the robot (counted per robot in
 :attr:`OdometryTracks.faults`). The tracks also keep each robot's first sample and a bounded
 log of odometry yaws at estimate times (for evaluating headings; the filter does not use it).
@@ -23,10 +23,15 @@ from relloc.odometry import OdometryTrack
 log = logging.getLogger(__name__)
 
 _TIME_TOLERANCE = 1e-9
+MAX_SPEED = 1.5
+"""Fastest a robot's odometry may move it (m/s; ground robots): a faster step between two
+messages (beyond ``_SPEED_SLACK``) is a reset or a jump."""
+MAX_YAW_RATE = 4.0
+"""Fastest a robot's odometry may turn it (rad/s; beyond ``_YAW_SLACK``), as ``MAX_SPEED``."""
 _SPEED_SLACK = 0.25
-"""Odometry displacement (m) allowed beyond ``max_speed * dt`` (jitter over short intervals)."""
+"""Odometry displacement (m) allowed beyond ``MAX_SPEED * dt`` (jitter over short intervals)."""
 _YAW_SLACK = 0.3
-"""Odometry turn (rad) allowed beyond ``max_yaw_rate * dt``."""
+"""Odometry turn (rad) allowed beyond ``MAX_YAW_RATE * dt``."""
 _YAW_LOG = 200_000
 """Odometry yaws kept per robot for evaluating estimated headings: 5.5 h at 10 Hz."""
 
@@ -36,11 +41,7 @@ class OdometryTracks:
 
     def __init__(self, config: TeamConfig, frame: Callable[[str], tuple[float, float]]) -> None:
         """``frame(robot)``: the heading offset and odometry scale that robot's track applies."""
-        self._odometry = oc = config.filter.odometry
-        self.tracks = {
-            r.name: OdometryTrack(*frame(r.name), r.odom_mode, max_extrapolation=oc.max_odom_extrapolation)
-            for r in config.robots
-        }
+        self.tracks = {r.name: OdometryTrack(*frame(r.name), r.odom_mode) for r in config.robots}
         self.first: dict[str, tuple[float, float]] = {}
         """Per robot, ``(t, yaw)`` of its first odometry sample (in its track's frame)."""
         self.yaws: dict[str, deque[tuple[float, float]]] = {}
@@ -69,16 +70,15 @@ class OdometryTracks:
     def _implausible(self, track: OdometryTrack, event: OdometryEvent) -> bool:
         """Whether ``event`` moves its robot faster than a ground robot can (a reset, a step
         of the integrator), with a slack for jitter over short intervals."""
-        oc = self._odometry
         last = track.last_event
         if last is None:
             return False
         dt = max(event.t - last.t, 0.0)
         if track.mode == "twist":
-            return abs(event.v) > oc.max_speed or abs(event.w) > oc.max_yaw_rate
+            return abs(event.v) > MAX_SPEED or abs(event.w) > MAX_YAW_RATE
         dist = math.hypot(event.x - last.x, event.y - last.y) * track.scale
         turn = abs(math.remainder(event.yaw - last.yaw, math.tau))
-        return dist > oc.max_speed * dt + _SPEED_SLACK or turn > oc.max_yaw_rate * dt + _YAW_SLACK
+        return dist > MAX_SPEED * dt + _SPEED_SLACK or turn > MAX_YAW_RATE * dt + _YAW_SLACK
 
     def pose(self, robot: str, t: float) -> tuple[float, float, float]:
         """``robot``'s odometry pose ``(x, y, yaw)`` at ``t`` (NaN before its first sample)."""

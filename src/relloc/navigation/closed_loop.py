@@ -226,7 +226,6 @@ def run_nav_scenario(
         controller=ctrl,
         safety=safe,
         latency_compensation=latency_compensation,
-        max_odom_extrapolation=config.filter.odometry.max_odom_extrapolation,
     )
     gt = GroundTruth(config.reference)
     engine = Engine([pipeline], sinks=[nav.on_estimate], truth_sinks=[gt.add])

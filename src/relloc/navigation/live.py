@@ -273,7 +273,6 @@ class LiveNavigation:
             controller=opts.controller,
             safety=opts.safety,
             latency_compensation=opts.latency_compensation,
-            max_odom_extrapolation=config.filter.odometry.max_odom_extrapolation,
         )
         self.clock = DataClock(opts.clock_rate)
         from relloc.sinks.zenoh_sink import pose_topic

@@ -34,7 +34,7 @@ from relloc.events import OdometryEvent
 from relloc.navigation.controller import Command, ControllerConfig, PathFollower
 from relloc.navigation.path import WaypointPath
 from relloc.navigation.safety import SafetyConfig, SafetyGate
-from relloc.odometry import OdometryTrack
+from relloc.odometry import MAX_EXTRAPOLATION, OdometryTrack
 
 __all__ = ["Feedback", "Navigator"]
 
@@ -64,7 +64,7 @@ class Navigator:
         controller: ControllerConfig | None = None,
         safety: SafetyConfig | None = None,
         latency_compensation: bool = True,
-        max_odom_extrapolation: float = 0.5,
+        max_odom_extrapolation: float = MAX_EXTRAPOLATION,
     ) -> None:
         self.path = path
         self.robot = robot.name

@@ -30,9 +30,9 @@ partner. For every detection frame of robot ``i`` the stage
 2. **proposes** every (object of ``i``, object of ``j``) with the same label (an empty label,
    from unlabelled detections, matches any label): the *proposed* pairs;
 3. **gates** each proposed pair. Once the filter has converged on the pair (both robots'
-   position standard deviation below ``det_converged_std``, from the estimates fed back with
+   position standard deviation below ``CONVERGED_STD``, from the estimates fed back with
    :meth:`DetectionAssociator.feedback`), the vector must agree with the estimated
-   ``p_j - p_i`` (carried to ``t`` by odometry) within ``d_th + det_gate_sigmas * std``: the
+   ``p_j - p_i`` (carried to ``t`` by odometry) within ``d_th + GATE_SIGMAS * std``: the
    paper's threshold widened by what the estimate itself does not know. Before that, its length
    must agree with the pair's latest UWB range (bias of the node pair removed, at most
    ``det_range_max_age`` old) within ``det_range_gate``, as the research code did; a weaker
@@ -100,6 +100,12 @@ FloatArray = NDArray[np.float64]
 
 MAX_ESTIMATE_AGE = 2.0
 """An estimate older than this (s) no longer gates detections (the range gate takes over)."""
+CONVERGED_STD = 0.5
+"""The estimate of a pair counts as converged (and gates detections) when both robots' position
+standard deviations are below this (m): a few times the paper's ``d_th``."""
+GATE_SIGMAS = 2.0
+"""Widening of the estimate gate by the estimate's standard deviation (multiples: about 95 %
+of a consistent estimate's errors)."""
 
 REJECTIONS: tuple[str, ...] = (
     "rejected_gate",
@@ -152,20 +158,18 @@ class DetectionAssociator:
 
     def __init__(self, config: TeamConfig) -> None:
         self.config = config
-        fc = config.filter
-        self.window = fc.association.detection_window
-        self.d_th = fc.association.d_th
-        self.sigma_det = fc.association.sigma_det
-        self.sigma_per_m = fc.association.det_sigma_per_m
-        self.converged_std = fc.association.det_converged_std
-        self.gate_sigmas = fc.association.det_gate_sigmas
-        self.range_gate = fc.association.det_range_gate
-        self.range_max_age = fc.association.det_range_max_age
-        self.heading_drift = fc.association.det_heading_drift
+        fc, ac = config.filter, config.association
+        self.window = ac.detection_window
+        self.d_th = ac.d_th
+        self.sigma_det = ac.sigma_det
+        self.sigma_per_m = ac.det_sigma_per_m
+        self.range_gate = ac.det_range_gate
+        self.range_max_age = ac.det_range_max_age
+        self.heading_drift = ac.det_heading_drift
         for name in ("detection_window", "d_th", "sigma_det", "det_range_gate"):
-            value = getattr(fc.association, name)
+            value = getattr(ac, name)
             if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"filter.association.{name} must be positive, got {value!r}")
+                raise ValueError(f"association.{name} must be positive, got {value!r}")
         if fc.self_calibration.heading_mode != "compass":
             raise ValueError(
                 "cooperative detections need each robot's heading in the shared frame "
@@ -174,12 +178,7 @@ class DetectionAssociator:
             )
         online_scale = fc.self_calibration.odom_scale_mode == "online"  # then the config's scale is not read
         self.tracks: dict[str, OdometryTrack] = {
-            r.name: OdometryTrack(
-                r.heading_offset,
-                1.0 if online_scale else r.odom_scale,
-                r.odom_mode,
-                max_extrapolation=fc.odometry.max_odom_extrapolation,
-            )
+            r.name: OdometryTrack(r.heading_offset, 1.0 if online_scale else r.odom_scale, r.odom_mode)
             for r in config.robots
         }
         self.stats: Counter[str] = Counter({"proposed": 0, "accepted": 0, "rejected": 0})
@@ -364,13 +363,13 @@ class DetectionAssociator:
         est = self.estimate
         if est is not None and t - est.t <= MAX_ESTIMATE_AGE:
             std_i, std_j = (0.0 if r == est.reference else est.std(r) for r in (i, j))
-            if max(std_i, std_j) < self.converged_std:  # NaN (unknown robot) compares False
+            if max(std_i, std_j) < CONVERGED_STD:  # NaN (unknown robot) compares False
                 p_i = self._position(est, i, t)
                 p_j = self._position(est, j, t)
                 return _Gate(
                     "estimate",
                     predicted=(p_j[0] - p_i[0], p_j[1] - p_i[1]),
-                    threshold=self.d_th + self.gate_sigmas * math.hypot(std_i, std_j),
+                    threshold=self.d_th + GATE_SIGMAS * math.hypot(std_i, std_j),
                 )
         latest = self._ranges.get(frozenset((i, j)))
         if latest is not None and abs(t - latest[0]) <= self.range_max_age:

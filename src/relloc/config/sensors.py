@@ -1,0 +1,160 @@
+"""The sensors' sections of a team config: each robot (odometry, camera, sightings), the UWB
+transceivers (topics, per-pair calibration, range noise) and the cooperative detections
+(noise and association gates). A sensor's noise lives here, with the sensor, not under
+``[filter]``."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+from relloc.config.checks import Checked, ConfigError, require
+from relloc.events import pair_key
+
+
+@dataclass(frozen=True)
+class CameraConfig(Checked):
+    """Pose of the camera optical frame on the robot (x right, y down, z forward in the image).
+
+    ``x, y, z`` is the optical centre in the robot body frame (m); ``yaw_deg`` and ``pitch_deg``
+    turn a forward-looking, level camera (yaw left positive, pitch down positive).
+    """
+
+    x: float = 0.0
+    y: float = 0.0
+    z: float = 0.0
+    yaw_deg: float = 0.0
+    pitch_deg: float = 0.0
+    fov_deg: float = 70.0
+    max_range: float = 5.0
+
+
+@dataclass(frozen=True)
+class RobotConfig(Checked):
+    """One robot of the team and where its data comes from."""
+
+    name: str
+    uwb_node: str = ""
+    odom_topic: str = ""
+    odom_mode: Literal["pose", "twist"] = "pose"
+    heading_offset_deg: float = 0.0
+    """Rotation from this robot's odometry frame to the shared heading frame (the compass)."""
+    odom_scale: float = 1.0
+    """Multiplies odometry displacements (wheel-scale calibration)."""
+    odom_zero_stamps: bool = False
+    """The odometry topic has all-zero header stamps: use receive time minus the clock offset."""
+    mocap_body: str = ""
+    detection_topic: str = ""
+    detection_format: Literal["depthai", "posearray", ""] = ""
+    camera: CameraConfig = field(default_factory=CameraConfig)
+    zenoh_scope: str = ""
+    """Optional key prefix for this robot's topics in Zenoh (e.g. ``tb1``)."""
+    cmd_vel_topic: str = ""
+    sighting_topic: str = ""
+    """Teammates this robot sees (a camera reading markers, UWB angle of arrival): a topic
+    template with ``{target}`` (the teammate's name), ``geometry_msgs/PointStamped`` of the
+    teammate in this robot's body frame (docs/mrclam.md, "Sightings over ROS 2")."""
+    sighting_sigma_range: float = 0.1
+    """Range noise of those sightings (m)."""
+    sighting_sigma_bearing_deg: float = 1.0
+    """Bearing noise of those sightings (deg)."""
+
+    @property
+    def heading_offset(self) -> float:
+        """Heading offset in radians."""
+        return math.radians(self.heading_offset_deg)
+
+
+@dataclass(frozen=True)
+class PairCalibration(Checked):
+    """Range calibration of one UWB transceiver pair: ``measured = scale * true + bias``."""
+
+    bias: float = 0.0
+    scale: float = 1.0
+    sigma: float | None = None
+    """Range noise for this pair; ``None`` uses ``[uwb] sigma`` (``los_sigma`` for the
+    NLOS-aware likelihood)."""
+    source: str = ""
+    """Which recording this calibration was estimated from."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not self.scale > 0.0:
+            raise ConfigError(f"a pair's range scale must be > 0, got {self.scale}")
+        if self.sigma is not None and not self.sigma > 0.0:
+            raise ConfigError(f"a pair's sigma must be > 0, got {self.sigma}")
+
+
+@dataclass(frozen=True)
+class UwbConfig(Checked):
+    """UWB topics and per-transceiver-pair calibration."""
+
+    range_topic: str = "/uwb/tof/{a}/{b}/distance"
+    """Topic template; ``{a}`` and ``{b}`` are node ids."""
+    default_bias: float = 0.3
+    """Bias assumed for a pair with no calibration (m)."""
+    default_bias_sigma: float = 0.15
+    """Extra range noise for an uncalibrated pair (added in quadrature to ``sigma`` or
+    ``los_sigma``)."""
+    sigma: float = 0.15
+    """Range noise (m, one standard deviation) of the symmetric range likelihood (Gaussian plus
+    uniform outliers, :mod:`relloc.filter.ranges`): ranges corrected by a learned model, pairs
+    whose bias is estimated online, the self-calibrating filter and ``range_model =
+    "symmetric"``."""
+    los_sigma: float = 0.1
+    """Line-of-sight range noise (m) of the NLOS-aware likelihood (``range_model = "nlos"``,
+    the default for raw ranges), wider than the training residuals' for the pair biases moving
+    between sessions (docs/results.md, "Design measurements behind the filter's defaults")."""
+    pairs: dict[str, PairCalibration] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        require(self, "uwb", positive=("sigma", "los_sigma"), non_negative=("default_bias_sigma",))
+
+    def calibration(self, node_a: str, node_b: str) -> tuple[float, float, float | None]:
+        """(bias, scale, extra_sigma or per-pair sigma) for a node pair.
+
+        Returns ``(bias, scale, sigma)`` where ``sigma`` is the pair's own noise if calibrated
+        with one, or ``None``; the caller adds ``default_bias_sigma`` for uncalibrated pairs via
+        :meth:`is_calibrated`.
+        """
+        cal = self.pairs.get(pair_key(node_a, node_b))
+        if cal is None:
+            return self.default_bias, 1.0, None
+        return cal.bias, cal.scale, cal.sigma
+
+    def is_calibrated(self, node_a: str, node_b: str) -> bool:
+        return pair_key(node_a, node_b) in self.pairs
+
+
+@dataclass(frozen=True)
+class AssociationConfig(Checked):
+    """Cooperative detections (``[association]``; :mod:`relloc.stages.association`, methods
+    ``pf_uv`` / ``pf_ulv``): the detections' noise and the gates that pair them."""
+
+    sigma_det: float = 0.15
+    """Standard deviation of a cooperative-detection relative position, per axis (m)."""
+    detection_window: float = 0.1
+    """Detections of two robots are paired when their capture times differ by at most this (s)."""
+    d_th: float = 0.15
+    """Association threshold: a detection pair must agree with the converged estimate within
+    this (m), widened by the estimate's own uncertainty
+    (:data:`relloc.stages.association.GATE_SIGMAS`)."""
+    det_sigma_per_m: float = 0.03
+    """Relative-position noise growing with detection distance (m per m, per detection, added
+    in quadrature to ``sigma_det``): stereo depth noise and heading error grow with range."""
+    det_range_gate: float = 0.3
+    """Before convergence: a pair's implied distance must match the pair's latest (bias-corrected)
+    UWB range within this (m)."""
+    det_range_max_age: float = 0.3
+    """The UWB range used by the range gate must be at most this old (s)."""
+    det_heading_drift: float = 0.003
+    """Growth of a robot's odometry-heading uncertainty per second of motion (rad/s), which
+    weakens its detection vectors over time."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        require(self, "association", positive=("sigma_det",), non_negative=(
+            "detection_window", "d_th", "det_sigma_per_m", "det_range_gate", "det_range_max_age", "det_heading_drift",
+        ))
