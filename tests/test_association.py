@@ -215,7 +215,7 @@ def test_without_estimate_or_range_there_is_no_gate() -> None:
     stage.process(_seen("r1", 1.0, ("chair", CHAIR_A)))
     assert _observations(stage.process(_seen("r0", 1.05, ("chair", CHAIR_A)))) == []
     assert stage.stats["rejected_no_gate"] == 1
-    # a range older than det_range_max_age does not gate either
+    # a range older than RANGE_MAX_AGE does not gate either
     stage.process(RangeEvent(1.1, "r0", "r1", 4.0 + BIAS, "n_0", "n_1"))
     stage.process(_seen("r1", 1.6, ("chair", CHAIR_A)))
     assert _observations(stage.process(_seen("r0", 1.65, ("chair", CHAIR_A)))) == []

@@ -70,7 +70,7 @@ MOVED: dict[str, tuple[str, str]] = {
     "detection_window": ("association", "moved to [association] detection_window"),
     "d_th": ("association", "moved to [association] d_th"),
     "det_range_gate": ("association", "moved to [association] det_range_gate"),
-    "det_range_max_age": ("association", "moved to [association] det_range_max_age"),
+    "det_range_max_age": ("association", _constant("relloc.stages.association.RANGE_MAX_AGE", "0.3 s")),
     "det_converged_std": ("association", _constant("relloc.stages.association.CONVERGED_STD", "0.5 m")),
     "det_gate_sigmas": ("association", _constant("relloc.stages.association.GATE_SIGMAS", "2")),
 }

@@ -147,8 +147,6 @@ class AssociationConfig(Checked):
     det_range_gate: float = 0.3
     """Before convergence: a pair's implied distance must match the pair's latest (bias-corrected)
     UWB range within this (m)."""
-    det_range_max_age: float = 0.3
-    """The UWB range used by the range gate must be at most this old (s)."""
     det_heading_drift: float = 0.003
     """Growth of a robot's odometry-heading uncertainty per second of motion (rad/s), which
     weakens its detection vectors over time."""
@@ -156,5 +154,5 @@ class AssociationConfig(Checked):
     def __post_init__(self) -> None:
         super().__post_init__()
         require(self, "association", positive=("sigma_det",), non_negative=(
-            "detection_window", "d_th", "det_sigma_per_m", "det_range_gate", "det_range_max_age", "det_heading_drift",
+            "detection_window", "d_th", "det_sigma_per_m", "det_range_gate", "det_heading_drift",
         ))

@@ -35,7 +35,7 @@ partner. For every detection frame of robot ``i`` the stage
    ``p_j - p_i`` (carried to ``t`` by odometry) within ``d_th + GATE_SIGMAS * std``: the
    paper's threshold widened by what the estimate itself does not know. Before that, its length
    must agree with the pair's latest UWB range (bias of the node pair removed, at most
-   ``det_range_max_age`` old) within ``det_range_gate``, as the research code did; a weaker
+   ``RANGE_MAX_AGE`` old) within ``det_range_gate``, as the research code did; a weaker
    test (one dimension) but one available from the start. With neither there is no way to tell
    one object from two look-alikes: the pair is rejected (``no_gate``);
 4. **takes the consensus**: every true pair of one frame pair implies the same vector, whereas
@@ -103,6 +103,9 @@ MAX_ESTIMATE_AGE = 2.0
 CONVERGED_STD = 0.5
 """The estimate of a pair counts as converged (and gates detections) when both robots' position
 standard deviations are below this (m): a few times the paper's ``d_th``."""
+RANGE_MAX_AGE = 0.3
+"""The UWB range the range gate compares with must be at most this old (s): a few range
+periods, so that the robots have barely moved since."""
 GATE_SIGMAS = 2.0
 """Widening of the estimate gate by the estimate's standard deviation (multiples: about 95 %
 of a consistent estimate's errors)."""
@@ -164,7 +167,6 @@ class DetectionAssociator:
         self.sigma_det = ac.sigma_det
         self.sigma_per_m = ac.det_sigma_per_m
         self.range_gate = ac.det_range_gate
-        self.range_max_age = ac.det_range_max_age
         self.heading_drift = ac.det_heading_drift
         for name in ("detection_window", "d_th", "sigma_det", "det_range_gate"):
             value = getattr(ac, name)
@@ -372,7 +374,7 @@ class DetectionAssociator:
                     threshold=self.d_th + GATE_SIGMAS * math.hypot(std_i, std_j),
                 )
         latest = self._ranges.get(frozenset((i, j)))
-        if latest is not None and abs(t - latest[0]) <= self.range_max_age:
+        if latest is not None and abs(t - latest[0]) <= RANGE_MAX_AGE:
             return _Gate("range", distance=latest[1], threshold=self.range_gate)
         return _Gate("none")
 
