@@ -30,7 +30,8 @@ A team is described by one TOML file (see ``configs/``)::
 Everything has a default except the robots; unknown keys are errors (a typo must not silently
 fall back to a default), and a key of an earlier version names what became of it
 (:mod:`relloc.config.moved`). The sections: the sensors' (:mod:`relloc.config.sensors`), the
-filter's (:mod:`relloc.config.filter`); the checks they share are :mod:`relloc.config.checks`. ``TeamConfig.to_toml`` writes the file back, which is how
+filter's (:mod:`relloc.config.filter`); the checks they share are :mod:`relloc.config.checks`.
+``TeamConfig.to_toml`` writes the file back (:mod:`relloc.config.dump`), which is how
 ``relloc calibrate`` stores what it estimated.
 """
 
