@@ -5,10 +5,12 @@ ask is a :class:`ConfigError`, and the run header says which filter ran."""
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
+from test_rosbag_source import synthetic_messages, synthetic_team
 
 from relloc.cli import main
 from relloc.config import ConfigError, TeamConfig
@@ -100,3 +102,16 @@ def test_the_run_header_names_the_filter(tmp_path: Path, capsys: pytest.CaptureF
     out = capsys.readouterr().out
     assert 'single: filter: particle (kind "auto")' in out
     assert json.loads(path.read_text())["scenarios"]["single"]["methods"]["pf"]["robots"]
+
+
+def test_the_run_header_of_a_recording_names_the_filter(
+    tmp_path: Path, bag_writer: Callable[..., Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    bag = bag_writer(tmp_path / "synthetic", synthetic_messages())
+    config = tmp_path / "team.toml"
+    synthetic_team().with_filter(particles=300, kind="gaussian_sum", selfcal_particles=50, selfcal_init_particles=300).save(config)
+    args = ["run", str(bag), "--config", str(config), "--methods", "pf", "--warmup", "0.5", "--no-progress"]
+    assert main([*args, "--out", str(tmp_path / "out")]) == 0
+    out = capsys.readouterr().out
+    assert 'synthetic: filter: gaussian_sum (kind "gaussian_sum")' in out
+    assert out.index("synthetic: filter:") < out.index("APE after 0.5 s warm-up")
