@@ -16,7 +16,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "relloc"
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("events", "config", "estimate", "odometry", "malloc"),
     ("filter",),
-    ("localizers", "stages", "ranging", "ros", "simulator", "faults"),
+    ("localizers", "stages", "ranging", "ros", "simulator", "faults", "sensors"),
     ("sources",),
     ("engine", "methods"),
     ("sinks", "evaluation"),

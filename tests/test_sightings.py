@@ -349,7 +349,8 @@ def test_sightings_arrive_as_point_stamped_in_the_observers_body_frame() -> None
     ordered pair from the observer's ``sighting_topic`` template, through the shared ingestion
     layer (the rosbag and Zenoh sources) to a range-and-bearing sighting."""
     from relloc.ros.messages import POINT_STAMPED, encode, sighting_msg
-    from relloc.sources.ingest import Converter, HeaderClock, IngestStats, team_routes
+    from relloc.sources.clock import HeaderClock
+    from relloc.sources.ingest import Converter, IngestStats, team_routes
 
     config = TeamConfig(
         (

@@ -19,11 +19,8 @@ from relloc.events import OdometryEvent, RangeEvent
 from relloc.live import LiveServer, ServeOptions, event_messages, simulated_team
 from relloc.ros.interfaces import decode_sent_time, encode_sent_time, key_for_topic
 from relloc.ros.messages import encode, odometry_msg, range_msg
-from relloc.sources.zenoh_source import (
-    ZenohSource,
-    ZenohSourceOptions,
-    build_routes,
-)
+from relloc.sources.zenoh_keys import build_routes
+from relloc.sources.zenoh_source import ZenohSource, ZenohSourceOptions
 
 T0 = 1_700_000_000.0
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "tiers"

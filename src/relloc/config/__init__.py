@@ -103,9 +103,14 @@ class TeamConfig(Checked):
     ros_interface: Literal["bridge", "rmw_zenoh"] = "bridge"
     """How the robots are on Zenoh live: zenoh-bridge-ros2dds or rmw_zenoh (``--ros-interface``
     overrides it; see ``relloc.ros.interfaces``)."""
+    sensors: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """One raw ``[sensors.<kind>]`` table per sensor plug-in, parsed and checked by the plug-in's
+    descriptor (:mod:`relloc.sensors`; a table of no registered sensor is a ``ConfigError``)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        if not all(isinstance(v, dict) for v in self.sensors.values()):
+            raise ConfigError(f"sensors: each entry must be a [sensors.<kind>] table, got {self.sensors!r}")
         names = [r.name for r in self.robots]
         if len(names) < 2:
             raise ConfigError("a team needs at least two robots")
@@ -246,6 +251,8 @@ class TeamConfig(Checked):
         d["area"] = list(self.area)
         d["robots"] = [asdict(r) for r in self.robots]
         d["uwb"]["pairs"] = {k: drop_none(asdict(v)) for k, v in self.uwb.pairs.items()}
+        if not self.sensors:
+            del d["sensors"]
         return drop_none(d)
 
     def to_toml(self) -> str:

@@ -1,10 +1,11 @@
 """Faults injected into ROS 2 messages on their way out (``relloc replay --drop ...``).
 
 :mod:`relloc.faults` transforms relloc events. A replay publishes a bag's raw CDR messages, so
-here each message of a team topic (odometry, UWB ranges, motion capture, detections) is
-decoded, turned into its event as the ingestion layer would (:mod:`relloc.ros.messages`), put
-through the same :class:`~relloc.faults.FaultInjector`, and, if the fault changed it, the
-changed fields are written back into the decoded message and it is encoded again; every other
+here each message of a team topic whose sensor can be faulted (odometry, UWB ranges, motion
+capture, detections: :meth:`~relloc.sensors.Sensor.fault_event`) is decoded, turned into its
+event as the ingestion layer would, put through the same :class:`~relloc.faults.FaultInjector`,
+and, if the fault changed it, the changed fields are written back into the decoded message
+(:meth:`~relloc.sensors.Sensor.write_back`) and it is encoded again; every other
 field (covariances, twist, frame ids) is kept. A message the fault leaves alone goes out as the
 very bytes of the bag, and a topic that is not the team's is never touched.
 
@@ -23,19 +24,11 @@ from collections import deque
 from typing import Any
 
 from relloc.config import TeamConfig
-from relloc.events import DetectionEvent, Event, GroundTruthEvent, OdometryEvent, RangeEvent
+from relloc.events import Event
 from relloc.faults import FaultInjector, Faults
-from relloc.ros.messages import (
-    decode,
-    encode,
-    odometry_to_event,
-    pose_to_ground_truth,
-    quaternion_from_yaw,
-    range_to_event,
-    stamp_to_sec,
-    time_msg,
-)
-from relloc.sources.ingest import Route, team_routes
+from relloc.ros.messages import decode, encode, stamp_to_sec, time_msg
+from relloc.sensors import Route, Sensor, sensor
+from relloc.sources.ingest import team_routes
 
 __all__ = ["MessageFaults"]
 
@@ -50,9 +43,11 @@ class MessageFaults:
 
     def __init__(self, config: TeamConfig, faults: Faults) -> None:
         self.injector = FaultInjector(faults)
-        self.routes: dict[str, Route] = {
-            r.topic: r for r in team_routes(config, ground_truth=True) if r.kind in _KINDS
-        }
+        self.routes: dict[str, Route] = {}
+        """The team's topics whose sensor is ``faulted``."""
+        for r in team_routes(config, ground_truth=True):
+            if sensor(r.kind).faulted:
+                self.routes[r.topic] = r
         self._offsets: deque[float] = deque(maxlen=_OFFSETS)
 
     @property
@@ -75,45 +70,20 @@ class MessageFaults:
         else:
             t = stamp
             self._offsets.append(stamp - received)
-        event = _event(route, msg, t)
+        own = sensor(route.kind)
+        event = own.fault_event(route, msg, t)
         out = self.injector(event)
         if out is None:
             return None
         if out == event:
             return raw
         self.counts["changed"] = self.counts.get("changed", 0) + 1
-        return encode(_written_back(msg, event, out, zero), msgtype)
+        return encode(_written_back(own, msg, event, out, zero), msgtype)
 
 
-_KINDS = ("odometry", "range", "ground_truth", "detection")
-
-
-def _event(route: Route, msg: Any, t: float) -> Event:
-    if route.kind == "odometry":
-        return odometry_to_event(msg, route.robot, t=t)
-    if route.kind == "range":
-        return range_to_event(msg, route.robot, route.robot_b, node_a=route.node_a, node_b=route.node_b, t=t)
-    if route.kind == "ground_truth":
-        return pose_to_ground_truth(msg, route.robot, t=t)
-    return DetectionEvent(t, route.robot)  # what a loss or a silence needs of a detection
-
-
-def _written_back(msg: Any, before: Event, after: Event, zero_stamp: bool) -> Any:
+def _written_back(own: Sensor, msg: Any, before: Event, after: Event, zero_stamp: bool) -> Any:
     """``msg`` with the fields the fault changed (``before`` -> ``after``) set to their new
-    values."""
+    values: the stamp here, the rest by the sensor (:meth:`~relloc.sensors.Sensor.write_back`)."""
     if after.t != before.t and not zero_stamp:
         msg = dataclasses.replace(msg, header=dataclasses.replace(msg.header, stamp=time_msg(after.t)))
-    if isinstance(after, RangeEvent) and isinstance(before, RangeEvent) and after.distance != before.distance:
-        msg = dataclasses.replace(msg, range=after.distance)
-    elif isinstance(after, OdometryEvent) and isinstance(before, OdometryEvent):
-        pose = msg.pose.pose
-        if (after.x, after.y) != (before.x, before.y):
-            position = dataclasses.replace(pose.position, x=after.x, y=after.y)
-            pose = dataclasses.replace(pose, position=position)
-        if after.yaw != before.yaw:
-            pose = dataclasses.replace(pose, orientation=quaternion_from_yaw(after.yaw))
-        msg = dataclasses.replace(msg, pose=dataclasses.replace(msg.pose, pose=pose))
-    elif isinstance(after, GroundTruthEvent) and (after.x, after.y) != (getattr(before, "x", 0.0), getattr(before, "y", 0.0)):
-        position = dataclasses.replace(msg.pose.position, x=after.x, y=after.y)
-        msg = dataclasses.replace(msg, pose=dataclasses.replace(msg.pose, position=position))
-    return msg
+    return own.write_back(msg, before, after)

@@ -18,19 +18,20 @@ import math
 import re
 import time
 from collections import Counter
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Hashable, Iterable, Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from relloc.config import RobotConfig, TeamConfig
-from relloc.events import Event, GroundTruthEvent, OdometryEvent, RangeEvent
+from relloc.events import Event
 from relloc.faults import Faults
 from relloc.live.message_faults import MessageFaults
 from relloc.ros.interfaces import Channel, RosInterface
-from relloc.ros.messages import ODOMETRY, POSE_STAMPED, RANGE, TWIST, MessageDecodeError
+from relloc.ros.messages import ODOMETRY, POSE_STAMPED, TWIST, MessageDecodeError, encode
 from relloc.ros.zenoh_node import ZenohNode
-from relloc.sources.zenoh_source import route_scopes
+from relloc.sensors import GROUND_TRUTH, ODOMETRY_SENSOR, RANGE_SENSOR, sensor, sensor_of
+from relloc.sources.zenoh_keys import route_scopes
 
 __all__ = [
     "SIM_TIME_BASE",
@@ -130,9 +131,10 @@ def _topic_channels(
 
 def _required(config: TeamConfig, channels: dict[str, Channel]) -> list[Channel]:
     """Channels, among those about to be published, that any server of ``config`` subscribes
-    to (odometry and ranges; detections only with detection methods)."""
+    to (the topics of ``essential`` sensors: odometry and ranges; detections only with
+    detection methods)."""
     kinds = {r.topic: r.kind for r, _ in route_scopes(config)}
-    return [c for t, c in sorted(channels.items()) if kinds.get(t) in ("odometry", "range")]
+    return [c for t, c in sorted(channels.items()) if t in kinds and sensor(kinds[t]).essential]
 
 
 def _run_schedule(
@@ -318,12 +320,14 @@ def odom_channel(
 class EventEncoder:
     """Relloc events as the ROS 2 messages a team would publish, on the channels it would use.
 
-    Odometry becomes ``nav_msgs/Odometry`` on the robot's odometry topic, a range
-    ``sensor_msgs/Range`` on the topic of its node pair (in the event's node order), and, with
-    ``ground_truth``, a ground-truth pose ``geometry_msgs/PoseStamped`` on the robot's
-    motion-capture topic (``mocap_topic``); other events have no message. The keys are those a
-    server of ``config`` on the same interface subscribes to
-    (:func:`~relloc.sources.zenoh_source.build_routes`).
+    Each event goes out as its sensor's :meth:`~relloc.sensors.Sensor.message` on the topic
+    its sensor's :meth:`~relloc.sensors.Sensor.event_key` picks among that sensor's routes:
+    odometry as ``nav_msgs/Odometry`` on the robot's odometry topic, a range as
+    ``sensor_msgs/Range`` on the topic of its node pair (in the event's node order), a plug-in's
+    events as its own messages, and, with ``ground_truth``, a ground-truth pose
+    ``geometry_msgs/PoseStamped`` on the robot's motion-capture topic (``mocap_topic``); other
+    events have no message. The keys are those a server of ``config`` on the same interface
+    subscribes to (:func:`~relloc.sources.zenoh_keys.build_routes`; detections left out).
     """
 
     def __init__(
@@ -335,49 +339,40 @@ class EventEncoder:
         ground_truth: bool = False,
     ) -> None:
         iface = interface or RosInterface()
-        self.odom_channels: dict[str, Channel] = {}
-        self.range_channels: dict[tuple[str, str], Channel] = {}
+        self._channels: dict[str, dict[Hashable, Channel]] = {}
+        """Per sensor kind, its channels by :meth:`~relloc.sensors.Sensor.channel_key`."""
         for route, scope in route_scopes(config, detections=False):
-            if route.kind == "odometry":
-                self.odom_channels.setdefault(
-                    route.robot, iface.channel(route.topic, ODOMETRY, prefix=prefix, scope=scope)
-                )
-            elif route.kind == "range":
-                self.range_channels.setdefault(
-                    (route.node_a, route.node_b),
-                    iface.channel(route.topic, RANGE, prefix=prefix, scope=scope),
-                )
-        self.mocap_channels = {
+            own = sensor(route.kind)
+            self._channels.setdefault(route.kind, {}).setdefault(
+                own.channel_key(route), iface.channel(route.topic, own.msgtypes[0], prefix=prefix, scope=scope)
+            )
+        self._channels[GROUND_TRUTH.kind] = {
             r.name: iface.channel(
                 config.mocap_topic.format(body=r.mocap_body or r.name), POSE_STAMPED, prefix=prefix
             )
             for r in config.robots
         }
-        self.odom_keys = {r: c.key for r, c in self.odom_channels.items()}
-        self.range_keys = {p: c.key for p, c in self.range_channels.items()}
+        self.odom_keys = {r: c.key for r, c in self._channels.get(ODOMETRY_SENSOR.kind, {}).items()}
+        self.range_keys = {p: c.key for p, c in self._channels.get(RANGE_SENSOR.kind, {}).items()}
         self.ground_truth = ground_truth
 
     @property
     def channels(self) -> list[Channel]:
-        """The odometry and range channels (what a server subscribes to)."""
-        return [*self.odom_channels.values(), *self.range_channels.values()]
+        """The channels of the ``essential`` sensors (odometry, ranges: what a server subscribes to)."""
+        return [c for kind, of_kind in self._channels.items() if sensor(kind).essential for c in of_kind.values()]
 
     def encode(self, ev: Event, time_base: float = 0.0) -> tuple[Channel, bytes] | None:
         """``(channel, CDR payload)`` of one event, ``None`` if it has no message. ``time_base``
         is added to the header stamp (the simulator starts at 0, and a zero stamp means "no
         stamp" on the wire)."""
-        from relloc.ros.messages import encode, odometry_msg, pose_stamped_msg, range_msg
-
-        if isinstance(ev, OdometryEvent):
-            ch = self.odom_channels.get(ev.robot)
-            return None if ch is None else (ch, encode(odometry_msg(replace(ev, t=ev.t + time_base))))
-        if isinstance(ev, RangeEvent):
-            ch = self.range_channels.get((ev.node_a, ev.node_b))
-            return None if ch is None else (ch, encode(range_msg(replace(ev, t=ev.t + time_base))))
-        if isinstance(ev, GroundTruthEvent) and self.ground_truth:
-            msg = pose_stamped_msg(replace(ev, t=ev.t + time_base))
-            return self.mocap_channels[ev.robot], encode(msg)
-        return None
+        own = sensor_of(ev)
+        if own is None or (own is GROUND_TRUTH and not self.ground_truth):
+            return None
+        ch = self._channels.get(own.kind, {}).get(own.event_key(ev))
+        if ch is None:
+            return None
+        msg = own.message(replace(ev, t=ev.t + time_base))
+        return None if msg is None else (ch, encode(msg))
 
 
 def event_messages(

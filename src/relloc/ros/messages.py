@@ -30,7 +30,7 @@ from __future__ import annotations
 import math
 import struct
 from collections import Counter
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -78,6 +78,7 @@ __all__ = [
     "range_msg",
     "range_rejection",
     "range_to_event",
+    "register_types",
     "sighting_msg",
     "stamp_to_sec",
     "time_msg",
@@ -115,13 +116,20 @@ def typestore() -> Typestore:
     return store
 
 
-def custom_types() -> dict[str, Any]:
-    """Parse every shipped ``.msg`` file into a ``rosbags`` types dict (name -> definition)."""
+def custom_types(folder: Path = MSG_DIR) -> dict[str, Any]:
+    """Parse every ``.msg`` file of ``folder`` (laid out ``<pkg>/msg/<Type>.msg``; the shipped
+    ones by default) into a ``rosbags`` types dict (name -> definition)."""
     types: dict[str, Any] = {}
-    for path in sorted(MSG_DIR.glob("*/msg/*.msg")):
+    for path in sorted(folder.glob("*/msg/*.msg")):
         name = f"{path.parent.parent.name}/msg/{path.stem}"
         types.update(get_types_from_msg(path.read_text(), name))
     return types
+
+
+def register_types(types: Mapping[str, Any]) -> None:
+    """Add message definitions (a ``rosbags`` types dict, e.g. :func:`custom_types` of a
+    sensor plug-in's folder) to the type store every decoder and encoder uses."""
+    typestore().register(dict(types))
 
 
 def decode(raw: bytes | memoryview, msgtype: str) -> Any:

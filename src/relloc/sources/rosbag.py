@@ -9,11 +9,12 @@ ingestion layer, :mod:`relloc.sources.ingest`, which the live Zenoh source uses 
 Which topics
 ------------
 The routes of :func:`~relloc.sources.ingest.team_routes`, checked against the bag: every
-configured odometry, motion-capture (``ground_truth``, on by default) and detection topic must
-be in it with the right message type, or :class:`BagError` says which one is missing and lists
-the bag's topics. UWB range topics are taken where the bag has them; range topics involving a
-node no robot of the team carries (static anchors) are listed in
-:attr:`RosbagSource.ignored_range_topics` and not read: the method is infrastructure-free.
+topic of a sensor that is ``required`` (odometry, motion capture: ``ground_truth``, on by
+default, detections) must be in it with the right message type, or :class:`BagError` says which
+one is missing and lists the bag's topics. The others (UWB ranges, sightings) are taken where
+the bag has them; range topics involving a node no robot of the team carries (static anchors)
+are listed in :attr:`RosbagSource.ignored_range_topics` and not read: the method is
+infrastructure-free.
 
 Time
 ----
@@ -50,15 +51,11 @@ from rosbags.rosbag2 import Reader
 from relloc.config import ConfigError, TeamConfig
 from relloc.events import Event
 from relloc.ros.messages import MessageDecodeError, decode, header_stamp_from_cdr, typestore
-from relloc.sources.ingest import (
-    Converter,
-    HeaderClock,
-    IngestStats,
-    ReorderBuffer,
-    Route,
-    match_range_topics,
-    team_routes,
-)
+from relloc.sensors import Route, Sensor, sensor
+from relloc.sensors.builtin import match_range_topics
+from relloc.sources.clock import HeaderClock
+from relloc.sources.ingest import Converter, IngestStats, switched_on, team_routes
+from relloc.sources.reorder import ReorderBuffer
 from relloc.sources.salvage import readable_rows, salvaged_copy
 
 __all__ = ["BagError", "RosbagSource", "read_messages", "recording_name"]
@@ -244,7 +241,8 @@ class RosbagSource:
         self.warnings: list[str] = []
         """Non-fatal problems found when opening the bag (empty topics, odd clocks...)."""
         self.ignored_range_topics: list[str] = []
-        """UWB topics of the bag involving a node that no robot of the team carries."""
+        """UWB topics of the bag involving a node that no robot of the team carries (what the
+        sensors' :meth:`~relloc.sensors.Sensor.bag_check` leave unread)."""
         with _open_reader(self.path, self._damaged) as reader:
             self.bag_topics: dict[str, tuple[str, int]] = {
                 name: (info.msgtype or "?", info.msgcount) for name, info in reader.topics.items()
@@ -261,7 +259,8 @@ class RosbagSource:
                 )
             except ConfigError as exc:
                 raise BagError(str(exc)) from None
-            self._routes = self._resolve(routes, odometry=odometry, ranges=ranges)
+            on = switched_on(odometry=odometry, ranges=ranges, detections=detections, ground_truth=ground_truth)
+            self._routes = self._resolve(routes, on)
             if reader.message_count:
                 self._bag_start_ns, self._bag_end_ns = reader.start_time, reader.end_time
             else:
@@ -329,15 +328,16 @@ class RosbagSource:
         ]
 
     # ------------------------------------------------------------------ topics against the bag
-    def _resolve(self, routes: list[Route], *, odometry: bool, ranges: bool) -> dict[str, Route]:
-        """The routes whose topics the bag has, each with the bag's message type."""
-        if odometry:
-            for robot in self.config.robots:
-                if not robot.odom_topic:
-                    self.warnings.append(f"{robot.name} has no odom_topic: no odometry for it")
+    def _resolve(self, routes: list[Route], sensors: list[Sensor]) -> dict[str, Route]:
+        """The routes whose topics the bag has, each with the bag's message type; what the
+        switched-on ``sensors`` say about the config and the bag goes to the warnings."""
+        for s in sensors:
+            self.warnings += s.config_warnings(self.config)
         resolved: dict[str, Route] = {}
+        of_kind: dict[str, list[Route]] = {s.kind: [] for s in sensors}
         for route in routes:
-            if route.kind in ("range", "sighting") and route.topic not in self.bag_topics:
+            own = sensor(route.kind)
+            if not own.required and route.topic not in self.bag_topics:
                 continue  # a pair without a topic simply has no ranges (sightings)
             if route.topic not in self.bag_topics:
                 raise self._missing(route)
@@ -347,20 +347,14 @@ class RosbagSource:
                     f"topic {route.topic!r} ({route.what}) has type {msgtype}, "
                     f"expected {' or '.join(route.msgtypes)}"
                 )
-            if count == 0 and route.kind != "range":
+            if count == 0 and own.warn_empty:
                 self.warnings.append(f"topic {route.topic} ({route.what}) has no messages")
             resolved[route.topic] = replace(route, msgtypes=(msgtype,))
-        if ranges:
-            template = self.config.uwb.range_topic
-            self.ignored_range_topics = [
-                t for t in match_range_topics(self.bag_topics, template) if t not in resolved
-            ]
-            nodes = [r.uwb_node for r in self.config.robots if r.uwb_node]
-            if len(nodes) >= 2 and not any(r.kind == "range" for r in resolved.values()):
-                self.warnings.append(
-                    f"no UWB range topic between the team's nodes {nodes} "
-                    f"(template {template!r}): no ranges"
-                )
+            of_kind.setdefault(route.kind, []).append(resolved[route.topic])
+        for s in sensors:
+            ignored, warnings = s.bag_check(self.config, self.bag_topics, of_kind[s.kind])
+            self.ignored_range_topics += ignored
+            self.warnings += warnings
         return resolved
 
     def _missing(self, route: Route) -> BagError:

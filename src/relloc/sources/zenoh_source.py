@@ -14,12 +14,12 @@ below the bridge's namespace if it has one. With ``rmw_zenoh`` it is on
 ``<domain>/tb1/odom/<type name>/<type hash>``, subscribed as ``<domain>/tb1/odom/*/*`` (any
 type, any hash: each sample's type name is checked against the route, its hash against the one
 relloc computes, and its attachment gives the source timestamp and, per publisher, the
-sequence numbers that count lost samples: :class:`TransportStats`). :func:`build_routes` puts
-the team's routes (:func:`~relloc.sources.ingest.team_routes`: odometry, UWB ranges of every
-pair in both node orders, and detections only when the methods use them, since decoding them
-costs CPU for nothing otherwise) on their topic keys (``[<global prefix>/][<robot
-zenoh_scope>/]<topic without leading slash>`` on the bridge). A range topic belongs to no single
-robot, so it is subscribed below the scope of each of its two robots.
+sequence numbers that count lost samples: :mod:`relloc.sources.rmw_envelope`).
+:func:`~relloc.sources.zenoh_keys.build_routes` puts the team's routes
+(:func:`~relloc.sources.ingest.team_routes`: odometry, UWB ranges of every pair in both node
+orders, each sensor plug-in's topics, and detections only when the methods use them, since
+decoding them costs CPU for nothing otherwise) on their topic keys; a range topic is subscribed
+below the scope of each of its two robots.
 
 Threads
 -------
@@ -32,7 +32,7 @@ cannot block Zenoh's network threads (a full queue drops the sample and counts i
 
 The callback wakes the engine thread only for a message that could make an estimate: the
 consumer's :class:`~relloc.events.WakeRule` (:meth:`ZenohSource.rearm`, after each wake) judges
-the message's kind and header stamp, read from the CDR bytes without decoding (a restamped
+the message's kind (its sensor's ``wake``) and header stamp, read from the CDR bytes without decoding (a restamped
 message: its receive time on the header clock). Any other message waits in the queue and is
 handled with the next urgent one, in arrival order, or at the next poll timeout: the same
 events in the same order. A thread woken for each message runs cold, and that cost, not the
@@ -67,90 +67,30 @@ import queue
 import struct
 import threading
 import time
-from collections import Counter, deque
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
 from relloc.config import ConfigError, TeamConfig
 from relloc.events import Event, WakeRule
 from relloc.ros.interfaces import (
-    RmwAttachment,
     RosInterface,
     dds_type_name,
     decode_sent_time,
-    ros_type_name,
 )
 from relloc.ros.messages import typestore
 from relloc.ros.type_hash import type_hash
 from relloc.ros.zenoh_node import ZenohNode
-from relloc.sources.ingest import (
-    Converter,
-    HeaderClock,
-    IngestStats,
-    ReorderBuffer,
-    Route,
-    team_routes,
-)
+from relloc.sensors import sensor
+from relloc.sources.clock import HeaderClock
+from relloc.sources.ingest import Converter, IngestStats
+from relloc.sources.reorder import ReorderBuffer
+from relloc.sources.rmw_envelope import RmwEnvelope, TransportStats
+from relloc.sources.zenoh_keys import build_routes, route_scopes
 
-__all__ = [
-    "Arrival",
-    "TransportStats",
-    "ZenohSource",
-    "ZenohSourceOptions",
-    "build_routes",
-    "route_scopes",
-]
+__all__ = ["Arrival", "ZenohSource", "ZenohSourceOptions"]
 
 log = logging.getLogger(__name__)
-
-
-def route_scopes(
-    config: TeamConfig,
-    *,
-    odometry: bool = True,
-    ranges: bool = True,
-    detections: bool = True,
-) -> list[tuple[Route, str]]:
-    """Every route of the team with each namespace (robot ``zenoh_scope``) it arrives below:
-    a robot's topics below its own, a range topic below each of its two robots'."""
-    out: list[tuple[Route, str]] = []
-    for route in team_routes(config, odometry=odometry, ranges=ranges, detections=detections):
-        robots = (route.robot, route.robot_b) if route.robot_b else (route.robot,)
-        for scope in dict.fromkeys(config.robot(r).zenoh_scope for r in robots):
-            out.append((route, scope))
-    return out
-
-
-def build_routes(
-    config: TeamConfig,
-    *,
-    interface: RosInterface | None = None,
-    prefix: str = "",
-    odometry: bool = True,
-    ranges: bool = True,
-    detections: bool = True,
-) -> dict[str, Route]:
-    """Every topic key the team's data arrives on (:meth:`RosInterface.topic_key
-    <relloc.ros.interfaces.RosInterface.topic_key>`, the bridge's by default), mapped to its
-    :class:`~relloc.sources.ingest.Route`.
-
-    Raises :class:`~relloc.config.ConfigError` if two routes would share one key (e.g. two robots
-    configured with the same odometry topic and no scopes).
-    """
-    iface = interface or RosInterface()
-    routes: dict[str, Route] = {}
-    for route, scope in route_scopes(
-        config, odometry=odometry, ranges=ranges, detections=detections
-    ):
-        key = iface.topic_key(route.topic, prefix=prefix, scope=scope)
-        old = routes.get(key)
-        if old is not None and old != route:
-            raise ConfigError(
-                f"Zenoh key {key!r} would carry both {old.kind} of {old.robot} and "
-                f"{route.kind} of {route.robot}; give the robots a zenoh_scope"
-            )
-        routes[key] = route
-    return routes
 
 
 @dataclass(frozen=True, slots=True)
@@ -164,40 +104,6 @@ class Arrival:
     sent: float | None = None
     """Wall time the publisher sent it: a relloc publisher's attachment on the bridge, the
     source timestamp of the rmw_zenoh attachment."""
-
-
-@dataclass
-class TransportStats:
-    """What the interface's own envelope of the messages told (counted, never fatal).
-
-    With rmw_zenoh: samples without the attachment or with a malformed one (the message is
-    still used; only latency and loss cannot be known for it), samples whose key names a type
-    the topic's route does not take (dropped, and also counted as the rejection
-    ``unknown_type``), samples whose type hash is not the one relloc computes for the type
-    (decoded all the same: the layout decides, and a layout that does not fit is a
-    ``decode_error``), and samples lost: gaps in a publisher's sequence numbers.
-    """
-
-    attachment_missing: int = 0
-    attachment_malformed: int = 0
-    unknown_type_hash: Counter[str] = field(default_factory=Counter)
-    """Per ``<type name>/<hash>`` seen."""
-    lost: Counter[str] = field(default_factory=Counter)
-    """Samples missing from the sequence numbers, per topic key."""
-    sequence_restarts: int = 0
-    """A publisher's sequence number went back (it restarted, or duplicates)."""
-    publishers: int = 0
-    """Distinct publisher GIDs seen."""
-
-    def as_dict(self) -> dict[str, Any]:
-        return {
-            "attachment_missing": self.attachment_missing,
-            "attachment_malformed": self.attachment_malformed,
-            "unknown_type_hash": dict(self.unknown_type_hash),
-            "lost": dict(self.lost),
-            "sequence_restarts": self.sequence_restarts,
-            "publishers": self.publishers,
-        }
 
 
 @dataclass(frozen=True)
@@ -270,12 +176,12 @@ class ZenohSource:
             if missing:  # cannot happen with the shipped type store; guards a broken install
                 raise ConfigError(f"message type(s) {missing} of {key!r} are unknown")
         self.stats = IngestStats()
-        self.transport = TransportStats()
         self._dds_types = {
             key: {dds_type_name(t): type_hash(t) for t in route.msgtypes}
             for key, route in self.routes.items()
         }
-        self._last_sequence: dict[bytes, int] = {}
+        self._envelope = RmwEnvelope(self._dds_types)
+        self.transport: TransportStats = self._envelope.stats
         self.clock = HeaderClock(opts.clock_rate, config.clock_offset)
         self.buffer: ReorderBuffer[Arrival] = ReorderBuffer(
             opts.reorder_window, hold=opts.reorder_window / opts.clock_rate
@@ -293,9 +199,10 @@ class ZenohSource:
         # expects): odometry and measurements, each with its kind and whether it is restamped.
         self._judged: dict[str, tuple[bool, str, bool]] = {}
         for key, route in self.routes.items():
-            if route.kind not in ("odometry", "range", "sighting"):
+            wake = sensor(route.kind).wake
+            if wake is None:
                 continue
-            judged = (route.kind == "odometry", route.kind, route.zero_stamps)
+            judged = (wake == "odometry", route.kind, route.zero_stamps)
             if opts.interface.rmw:
                 for name, hash_ in self._dds_types[key].items():
                     self._judged[f"{key}/{name}/{hash_}"] = judged
@@ -491,7 +398,7 @@ class ZenohSource:
             self._converter.reject("unknown_key", key)
             return
         if self.interface.rmw:
-            sent = self._rmw_envelope(topic_key, dds_type, type_hash_, attachment)
+            sent = self._envelope.open(topic_key, dds_type, type_hash_, attachment, self._converter.reject)
             if sent is False:
                 return
         else:
@@ -506,50 +413,6 @@ class ZenohSource:
             if self.buffer.window > 0.0:
                 t = min(t, self.clock.offset(route.kind) + self.clock.rate * received + _FUTURE_SLACK)
             self.buffer.advance(t)
-
-    def _rmw_envelope(
-        self, topic_key: str, dds_type: str | None, hash_: str | None, attachment: bytes | None
-    ) -> float | bool | None:
-        """Check an rmw_zenoh sample's type and read its attachment: the source timestamp
-        (``None`` without a usable attachment), or ``False`` if the sample is to be dropped."""
-        expected = self._dds_types[topic_key]
-        if dds_type not in expected:
-            name = ros_type_name(dds_type or "") or dds_type
-            self._converter.reject("unknown_type", topic_key, f"type {name!r}")
-            return False
-        tr = self.transport
-        if hash_ != expected[dds_type]:
-            tr.unknown_type_hash[f"{dds_type}/{hash_}"] += 1
-            n = tr.unknown_type_hash.total()
-            if n == 1 or n % 1000 == 0:
-                log.warning(
-                    "%s: type hash %s is not relloc's %s for %s (%d so far); decoding anyway",
-                    topic_key, hash_, expected[dds_type], dds_type, n,
-                )  # fmt: skip
-        if attachment is None:
-            tr.attachment_missing += 1
-            if tr.attachment_missing == 1:
-                log.warning("%s: a sample without the rmw_zenoh attachment", topic_key)
-            return None
-        try:
-            att = RmwAttachment.decode(attachment)
-        except ValueError as exc:
-            tr.attachment_malformed += 1
-            if tr.attachment_malformed == 1 or tr.attachment_malformed % 1000 == 0:
-                log.warning(
-                    "%s: malformed rmw_zenoh attachment (%s; %d so far)",
-                    topic_key, exc, tr.attachment_malformed,
-                )  # fmt: skip
-            return None
-        last = self._last_sequence.get(att.gid)
-        if last is None:
-            tr.publishers += 1
-        elif att.sequence > last + 1:
-            tr.lost[topic_key] += att.sequence - last - 1
-        elif att.sequence <= last:
-            tr.sequence_restarts += 1
-        self._last_sequence[att.gid] = att.sequence
-        return att.timestamp
 
     def release(self, now: float) -> list[Arrival]:
         """Events due at wall time ``now`` (for callers driving :meth:`handle` themselves)."""
