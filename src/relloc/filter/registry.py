@@ -1,9 +1,10 @@
 """Which measurement model consumes which event type.
 
 The localizers look every measurement event up here: its model validates it, and builds the
-likelihoods (and the Gaussian-sum filter's linear rows) of a batch of them. A new sensor is one
-model class (:mod:`relloc.filter.measurement`) and one :func:`register` call; neither filter nor
-any localizer changes. Models are built and fused in registration order.
+likelihoods (and the Gaussian-sum filter's linear rows) of a batch of them. A new sensor's model
+is one class (:mod:`relloc.filter.measurement`) registered here, by its sensor descriptor's
+registration (:func:`relloc.sensors.register`) or by a :func:`register` call of its own; neither
+filter nor any localizer changes. Models are built and fused in registration order.
 """
 
 from __future__ import annotations
