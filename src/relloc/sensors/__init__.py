@@ -21,6 +21,11 @@ from relloc.sensors.registry import (
 )
 
 __all__ = [
+    "DETECTION",
+    "GROUND_TRUTH",
+    "ODOMETRY_SENSOR",
+    "RANGE_SENSOR",
+    "SIGHTING",
     "Conversion",
     "Route",
     "Sensor",
