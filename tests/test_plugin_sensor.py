@@ -179,3 +179,29 @@ def test_the_toy_sensor_replays_over_zenoh(toy: None, recording: Any, sessions: 
     assert np.allclose([(e.t - SIM_TIME_BASE, e.x, e.y) for e in toy_fixes], [(f.t, f.x, f.y) for f in fixes], atol=1e-6)
     assert source.stats.events["toy_fix"] == len(fixes)
     assert not source.stats.rejected
+
+
+def test_the_toy_models_rows_are_its_log_likelihood_and_its_gradient(toy: None) -> None:
+    """The check every built-in model passes (``test_measurement_models``), for the toy."""
+    from relloc.filter.measurement import ModelContext
+    from relloc.filter.state import StateLayout
+
+    _, config = simulated_team(seed=0, duration=2.0)
+    layout = StateLayout(config.robot_names, config.reference)
+    fixes = [ToyFixEvent(0.0, "r2", 1.0, -2.0, 0.2), ToyFixEvent(0.0, "r4", -0.5, 0.7, 0.3)]
+    (model,) = ToyFixBatch.build(fixes, ModelContext(with_toy(config), layout))
+    x = np.random.default_rng(0).normal(0.0, 2.0, (4, layout.width))
+    dens, grad = np.zeros(4), np.zeros_like(x)
+    for k in range(model.rows):
+        row = model.row(k, x)
+        logd, inlier = row.density(row.residual, np.full(4, row.variance))
+        dens += logd
+        grad[:, row.columns] += (inlier * row.residual / row.variance)[:, None] * row.jacobian
+    np.testing.assert_allclose(dens, model.log_likelihood(layout.positions(x), x), rtol=1e-12)
+    h = 1e-6
+    for c in range(layout.width):
+        up, down = x.copy(), x.copy()
+        up[:, c] += h
+        down[:, c] -= h
+        fd = (model.log_likelihood(layout.positions(up), up) - model.log_likelihood(layout.positions(down), down)) / (2 * h)
+        np.testing.assert_allclose(grad[:, c], fd, rtol=1e-5, atol=1e-6)
