@@ -5,7 +5,7 @@ one it runs on. The recorded and simulated ones follow one protocol,
 :class:`~relloc.sources.protocol.Source` (events, name, time span, counters, warnings, optional
 true initial poses), and one table, :mod:`relloc.sources.table`, says which source a path names:
 
-* :mod:`relloc.sources.ingest`: the ingestion layer shared by the two that read ROS 2
+* :mod:`relloc.sources.ingest` (with ``clock`` and ``reorder``): the ingestion layer shared by the two that read ROS 2
   messages (routes from the team config, message-to-event conversion, header clock and
   zero-stamp restamping, reorder buffer, one stats record);
 * :mod:`relloc.sources.rosbag`: rosbag2 recordings read with ``rosbags`` (the transport only;

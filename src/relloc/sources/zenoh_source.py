@@ -32,8 +32,8 @@ cannot block Zenoh's network threads (a full queue drops the sample and counts i
 
 The callback wakes the engine thread only for a message that could make an estimate: the
 consumer's :class:`~relloc.events.WakeRule` (:meth:`ZenohSource.rearm`, after each wake) judges
-the message's kind (its sensor's ``wake``) and header stamp, read from the CDR bytes without decoding (a restamped
-message: its receive time on the header clock). Any other message waits in the queue and is
+the message's kind (its sensor's ``wake``) and header stamp, read from the CDR bytes without
+decoding (a restamped message: its receive time on the header clock). Any other message waits in the queue and is
 handled with the next urgent one, in arrival order, or at the next poll timeout: the same
 events in the same order. A thread woken for each message runs cold, and that cost, not the
 decoding itself, was most of the live engine's CPU (``docs/adaptive-particles.md``).
