@@ -29,9 +29,14 @@ from relloc.ros.messages import (
     typestore,
 )
 from relloc.sensors import Route
-from relloc.sensors.builtin import match_range_topics
 from relloc.sources.clock import HeaderClock
-from relloc.sources.ingest import Converter, IngestStats, event_kind, team_routes
+from relloc.sources.ingest import (
+    Converter,
+    IngestStats,
+    event_kind,
+    match_range_topics,
+    team_routes,
+)
 from relloc.sources.reorder import ReorderBuffer
 
 T0 = 1_700_000_000.0

@@ -404,7 +404,7 @@ def rank_node_assignments(
     a wrong one leaves metres. With two robots the two nodes of the pair cannot be told apart
     (both orders score the same). ``config.robots[*].uwb_node`` is not used.
     """
-    from relloc.sensors.builtin import match_range_topics
+    from relloc.sources.ingest import match_range_topics
     from relloc.sources.rosbag import BagError, read_messages
 
     robots = [r for r in config.robots if r.mocap_body]

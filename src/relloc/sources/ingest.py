@@ -17,6 +17,7 @@ they have (:mod:`relloc.sensors.builtin`: each robot's odometry, motion capture 
 the teammates each observer sights, extra motion-capture objects, the UWB pairs in both node
 orders; a plug-in's own). A source maps its own names onto routes (a bag keeps the routes whose
 topic it holds; Zenoh puts each route on the key expressions of the bridge convention).
+:func:`match_range_topics` (the UWB sensor's) lists the range topics of a bag, any nodes.
 
 Zero stamps
 -----------
@@ -52,9 +53,17 @@ from relloc.config import TeamConfig
 from relloc.events import Event
 from relloc.ros.messages import MessageDecodeError, decode, stamp_to_sec
 from relloc.sensors import Route, Sensor, check_config, kind_of, registered, sensor
+from relloc.sensors.builtin import match_range_topics
 from relloc.sources.clock import HeaderClock
 
-__all__ = ["Converter", "IngestStats", "event_kind", "switched_on", "team_routes"]
+__all__ = [
+    "Converter",
+    "IngestStats",
+    "event_kind",
+    "match_range_topics",
+    "switched_on",
+    "team_routes",
+]
 
 RESTAMP_STEP = 1e-6
 """Smallest step (s) between two restamped times of one topic."""
