@@ -82,6 +82,11 @@ class ToyFixBatch(MeasurementModel):
         ]
 
     @classmethod
+    def heard(cls, event: ToyFixEvent) -> tuple[str, ...]:
+        """A fix is news of where its robot is (the unseen-robot rule)."""
+        return (event.robot,)
+
+    @classmethod
     def rejection(cls, event: ToyFixEvent, context: ValidationContext) -> str | None:
         if event.robot not in context.layout.robots or event.robot == context.layout.reference:
             return "toy_fix_robot"
