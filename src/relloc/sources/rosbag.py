@@ -20,7 +20,7 @@ Time
 ----
 Events carry header stamps. Before streaming, the source reads the header stamps of the bag's
 first seconds (12 bytes per message, no decoding) into a
-:class:`~relloc.sources.ingest.HeaderClock` and freezes it: a recording's clock offset (header
+:class:`~relloc.sources.clock.HeaderClock` and freezes it: a recording's clock offset (header
 minus receive time) is constant, so one estimate at the start serves the whole bag and
 already restamps the first zero-stamped message. The reorder buffer then releases an event
 once the newest receive time, put on the header clock, is ``max_lag`` past it; memory stays
@@ -52,9 +52,14 @@ from relloc.config import ConfigError, TeamConfig
 from relloc.events import Event
 from relloc.ros.messages import MessageDecodeError, decode, header_stamp_from_cdr, typestore
 from relloc.sensors import Route, Sensor, sensor
-from relloc.sensors.builtin import match_range_topics
 from relloc.sources.clock import HeaderClock
-from relloc.sources.ingest import Converter, IngestStats, switched_on, team_routes
+from relloc.sources.ingest import (
+    Converter,
+    IngestStats,
+    match_range_topics,
+    switched_on,
+    team_routes,
+)
 from relloc.sources.reorder import ReorderBuffer
 from relloc.sources.salvage import readable_rows, salvaged_copy
 

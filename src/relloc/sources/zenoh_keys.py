@@ -46,7 +46,7 @@ def build_routes(
 ) -> dict[str, Route]:
     """Every topic key the team's data arrives on (:meth:`RosInterface.topic_key
     <relloc.ros.interfaces.RosInterface.topic_key>`, the bridge's by default), mapped to its
-    :class:`~relloc.sources.ingest.Route`.
+    :class:`~relloc.sensors.Route`.
 
     Raises :class:`~relloc.config.ConfigError` if two routes would share one key (e.g. two robots
     configured with the same odometry topic and no scopes).
