@@ -47,7 +47,7 @@ from typing import Any
 from relloc.config import TeamConfig
 from relloc.live.publish import cmd_vel_channel
 from relloc.ros.interfaces import RosInterface
-from relloc.sources.zenoh_source import route_scopes
+from relloc.sources.zenoh_keys import route_scopes
 
 __all__ = [
     "NAVIGATE",
