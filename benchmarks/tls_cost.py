@@ -41,7 +41,7 @@ import numpy as np
 
 from relloc.events import OdometryEvent
 from relloc.live import ZenohOptions, free_tcp_port, open_session, simulated_team
-from relloc.live.secure import write_secure_dir
+from relloc.live.secure.certificates import write_secure_dir
 from relloc.ros.messages import encode, odometry_msg
 
 REPO = Path(__file__).resolve().parents[1]

@@ -33,14 +33,10 @@ from relloc.live import (
     publish_events,
     simulated_team,
 )
-from relloc.live.secure import (
-    AccessRefusals,
-    SecureDirError,
-    grants,
-    roles,
-    security_of,
-    write_secure_dir,
-)
+from relloc.live.secure.access import grants, roles
+from relloc.live.secure.certificates import SecureDirError, write_secure_dir
+from relloc.live.secure.identity import security_of
+from relloc.live.secure.refusals import AccessRefusals
 from relloc.navigation.live import decode_estimate
 from relloc.ros.messages import (
     TWIST,

@@ -31,7 +31,8 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 from relloc.config import TeamConfig
-from relloc.live.secure import AccessRefusals, Security, check_endpoints, security_of
+from relloc.live.secure.identity import Security, check_endpoints, security_of
+from relloc.live.secure.refusals import AccessRefusals
 from relloc.live.session import ZenohOptions, open_session
 from relloc.ros.interfaces import ROS_INTERFACES, RosInterface
 

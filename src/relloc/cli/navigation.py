@@ -192,7 +192,7 @@ def _overrides(args: argparse.Namespace, names: dict[str, str]) -> dict[str, Any
 
 def _cmd_navigate(args: argparse.Namespace) -> int:
     from relloc.config import TeamConfig
-    from relloc.live.secure import SERVE
+    from relloc.live.secure.access import SERVE
     from relloc.methods import parse_methods
     from relloc.navigation.controller import ControllerConfig
     from relloc.navigation.live import NavigateOptions

@@ -1,6 +1,6 @@
 """``relloc secure init``: a team's CA, certificates and Zenoh role configs (docs/secure.md).
 
-Thin layer over :func:`relloc.live.secure.write_secure_dir`: load the team config, write the
+Thin layer over :func:`relloc.live.secure.certificates.write_secure_dir`: load the team config, write the
 directory (never over an existing one without ``--force``), list what was written and what
 each role may publish.
 """
@@ -17,7 +17,8 @@ __all__ = ["register"]
 
 def _cmd_init(args: argparse.Namespace) -> int:
     from relloc.config import TeamConfig
-    from relloc.live.secure import SecureDirError, grants, write_secure_dir
+    from relloc.live.secure.access import grants
+    from relloc.live.secure.certificates import SecureDirError, write_secure_dir
 
     config = TeamConfig.load(args.config)
     interface = interface_from_args(args, config)
