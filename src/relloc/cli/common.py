@@ -65,10 +65,14 @@ def is_user_error(exc: Exception) -> bool:
     from relloc.evaluation.calibration import CalibrationError
     from relloc.methods import MethodError
     from relloc.ranging.manifest import ModelDirError
+    from relloc.sources.mrclam import MrclamError
     from relloc.sources.rosbag import BagError
     from relloc.sources.table import SourceError
 
-    known = (UserError, ConfigError, MethodError, BagError, SourceError, CalibrationError, ModelDirError, FileNotFoundError)
+    known = (
+        UserError, ConfigError, MethodError, BagError, MrclamError, SourceError, CalibrationError, ModelDirError,
+        FileNotFoundError,
+    )
     return isinstance(exc, known)
 
 

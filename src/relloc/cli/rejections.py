@@ -24,6 +24,10 @@ REASONS: dict[str, tuple[str, str]] = {
         "harmless: the camera's value for a box without depth",
     ),
     "bag_damaged": ("times the bag's storage was found damaged (the rest read as far as readable)", "matters: messages lost"),
+    "malformed_row": (
+        "MRCLAM rows with another column count, text, NaN or infinity (warned by file and line)",
+        "harmless if few: the rest of the file is used",
+    ),
     "detection_nonfinite": ("detections with NaN or infinite positions", "harmless"),
     "detection_behind_camera": ("detections with depth <= 0", "harmless: impossible positions"),
     # ------------------------------------------------------------------ localizers

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import heapq
 import math
+import warnings
 from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -55,6 +56,10 @@ ROBOT_SUBJECTS = range(1, 6)
 """Subject numbers of the robots in ``Barcodes.dat``."""
 
 
+MALFORMED_SHOWN = 5
+"""Malformed rows a file's warning names by line; :attr:`MrclamSource.malformed` holds all."""
+
+
 class MrclamError(Exception):
     """The folder is not an MRCLAM data set (the message says what is missing)."""
 
@@ -65,16 +70,72 @@ def is_mrclam(path: str | Path) -> bool:
     return p.is_dir() and (p / "Barcodes.dat").is_file() and (p / "Robot1_Odometry.dat").is_file()
 
 
-def read_table(path: Path, columns: int) -> FloatArray:
-    """The numeric rows of an MRCLAM ``.dat`` file as ``(n, columns)`` (comments skipped)."""
+@dataclass(frozen=True)
+class MalformedRow:
+    """One row of a ``.dat`` file the reader skipped: where it is and why."""
+
+    file: str
+    line: int
+    """1-based line number in the file."""
+    reason: str
+    """``columns`` (another column count), ``text`` (a field that is no number) or
+    ``nonfinite`` (NaN or infinity)."""
+
+
+def read_table(path: Path, columns: int, malformed: list[MalformedRow] | None = None) -> FloatArray:
+    """The numeric rows of an MRCLAM ``.dat`` file as ``(n, columns)`` (comments skipped).
+
+    A row with another column count, a field that is no number, NaN or infinity (a garbage
+    line, a file cut off mid-line) is skipped and appended to ``malformed``; without that list
+    it is an error. A missing file, or one without a single valid row, is a
+    :class:`MrclamError` naming it. Clean files take numpy's parser, damaged ones a
+    line-by-line pass; both read the same numbers."""
     if not path.is_file():
         raise MrclamError(f"{path} is missing")
-    rows = np.loadtxt(path, comments="#", ndmin=2)
-    if rows.size == 0:
-        return np.zeros((0, columns))
-    if rows.shape[1] != columns:
-        raise MrclamError(f"{path}: expected {columns} columns, found {rows.shape[1]}")
-    return rows
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # numpy's "no data" warning: an empty file is an error below
+            rows = np.loadtxt(path, comments="#", ndmin=2)
+    except ValueError:
+        rows = None
+    if rows is not None and rows.size and rows.shape[1] == columns and np.isfinite(rows).all():
+        return rows
+    skipped: list[MalformedRow] = []
+    good = _read_rows(path, columns, skipped)
+    if not len(good):
+        raise MrclamError(f"{path} holds no valid {columns}-column rows" + (f" ({len(skipped)} malformed)" if skipped else ""))
+    if skipped and malformed is None:
+        first = skipped[0]
+        raise MrclamError(f"{path}: line {first.line} is malformed ({first.reason})")
+    if malformed is not None:
+        malformed.extend(skipped)
+    return good
+
+
+def _read_rows(path: Path, columns: int, skipped: list[MalformedRow]) -> FloatArray:
+    """The valid rows of ``path``, line by line; the others appended to ``skipped``."""
+    rows: list[list[float]] = []
+    with path.open(errors="replace") as f:
+        for number, line in enumerate(f, start=1):
+            fields = line.split("#", 1)[0].split()
+            if not fields:
+                continue
+            reason = None
+            if len(fields) != columns:
+                reason = "columns"
+            else:
+                try:
+                    values = [float(v) for v in fields]
+                except ValueError:
+                    reason = "text"
+                else:
+                    if not all(math.isfinite(v) for v in values):
+                        reason = "nonfinite"
+            if reason is None:
+                rows.append(values)
+            else:
+                skipped.append(MalformedRow(path.name, number, reason))
+    return np.array(rows, dtype=float).reshape(-1, columns)
 
 
 def integrate_odometry(table: FloatArray) -> FloatArray:
@@ -133,17 +194,31 @@ class MrclamSource:
         self.warnings: list[str] = []
         self.stats = MrclamStats(Counter())
         self.robots = {self._subject(r.name): r.name for r in config.robots}
-        barcodes = read_table(self.folder / "Barcodes.dat", 2)
+        self.malformed: list[MalformedRow] = []
+        """Every row skipped as malformed, with its file, line and reason."""
+        barcodes = self._table("Barcodes.dat", 2)
         self.barcode_subject = {int(b): int(s) for s, b in barcodes}
-        self.odometry = {i: read_table(self.folder / f"Robot{i}_Odometry.dat", 3) for i in self.robots}
-        self.measurements = {i: read_table(self.folder / f"Robot{i}_Measurement.dat", 4) for i in self.robots}
-        self.truth = {i: read_table(self.folder / f"Robot{i}_Groundtruth.dat", 4) for i in self.robots}
+        self.odometry = {i: self._table(f"Robot{i}_Odometry.dat", 3) for i in self.robots}
+        self.measurements = {i: self._table(f"Robot{i}_Measurement.dat", 4) for i in self.robots}
+        self.truth = {i: self._table(f"Robot{i}_Groundtruth.dat", 4) for i in self.robots}
         starts = [t[0, 0] for t in self.odometry.values() if len(t)]
         ends = [t[-1, 0] for t in self.odometry.values() if len(t)]
         if not starts:
             raise MrclamError(f"{self.folder}: no odometry")
         self.start_time = float(min(starts))
         self.end_time = float(max(ends))
+
+    def _table(self, name: str, columns: int) -> FloatArray:
+        """``name``'s valid rows; its malformed ones counted, kept and summed up in a warning."""
+        before = len(self.malformed)
+        rows = read_table(self.folder / name, columns, self.malformed)
+        skipped = self.malformed[before:]
+        if skipped:
+            self.stats.counts["rejected_malformed_row"] += len(skipped)
+            shown = ", ".join(f"line {m.line} ({m.reason})" for m in skipped[:MALFORMED_SHOWN])
+            more = f" and {len(skipped) - MALFORMED_SHOWN} more" if len(skipped) > MALFORMED_SHOWN else ""
+            self.warnings.append(f"{name}: {len(skipped)} malformed rows skipped: {shown}{more}")
+        return rows
 
     def initial_poses(self) -> dict[str, tuple[float, float, float]]:
         """Every robot's Vicon pose at its first odometry sample: the start of an oracle
