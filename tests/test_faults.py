@@ -199,6 +199,7 @@ def test_no_divergence_is_flagged_on_clean_runs() -> None:
     for seed in (0, 1, 2):
         _, _, loc = _run(seed, Faults(), duration=30.0)
         assert loc.stats["divergence_detected"] == 0 and loc.stats["recovery_injections"] == 0, seed
+        assert loc.fault_counters()["inconsistency_detected"] == 0, seed  # nor by the watchdog
 
 
 def test_the_navigation_gate_holds_while_recovering() -> None:

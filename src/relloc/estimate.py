@@ -67,6 +67,10 @@ class Estimate:
     recovering: bool = False
     """The localizer found itself lost (most of a robot's ranges disagree with the estimate)
     and is re-injecting hypotheses: the positions are not to be trusted until it clears."""
+    inconsistent: bool = False
+    """The published covariance stopped covering the filter's own innovations
+    (:mod:`relloc.localizers.watchdog`): the covariances are widened by what the innovations
+    say and the localizer restarts; the positions are not to be trusted until it clears."""
     particles: int | None = None
     """Particles (hypotheses) the filter held for this estimate: the adaptive count of the
     sampled filter (:mod:`relloc.filter.adaptive`); ``None`` for methods without."""
@@ -80,9 +84,11 @@ class Estimate:
     @property
     def status(self) -> str:
         """One line on what the estimate means: what would resolve the orientation, or that
-        the posterior has competing modes, that the localizer is recovering, or ``ok``."""
+        the posterior has competing modes, that the localizer is recovering or inconsistent, or ``ok``."""
         if self.recovering:
             return "recovering: the measurements stopped fitting the estimate; hypotheses are being re-injected"
+        if self.inconsistent:
+            return "inconsistent: the innovations exceed the published covariance; widened, restarting"
         if self.unseen:
             who = ", ".join(f"{r} for {s:.1f} s" for r, s in sorted(self.unseen.items()))
             return f"unseen: {who} (no odometry, no range): positions are where last seen, covariances widened"

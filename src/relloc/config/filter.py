@@ -100,6 +100,11 @@ class SelfCalibrationConfig(Checked):
     robot's odometry scale is estimated (prior
     :attr:`relloc.filter.gaussian_sum.CalibrationNoise.scale_prior_sigma` around 1; not read
     from the config)."""
+    scale_min: float = 0.5
+    """Online scale: the smallest physical odometry scale; below it the calibration restarts
+    (:mod:`relloc.localizers.bounds`)."""
+    scale_max: float = 1.5
+    """Online scale: the largest physical odometry scale; above it the calibration restarts."""
     bias_mode: Literal["calibrated", "online"] = "calibrated"
     """``calibrated``: each pair's bias is the config's (or ``uwb.default_bias``);
     ``online``: every particle carries a Kalman belief about each pair's bias (Rao-Blackwellised),
@@ -132,7 +137,7 @@ class SelfCalibrationConfig(Checked):
         super().__post_init__()
         require(
             self, "filter.self_calibration", at_least_one=("selfcal_particles", "selfcal_init_particles"),
-            positive=("selfcal_position_sigma",),
+            positive=("selfcal_position_sigma", "scale_min", "scale_max"),
             non_negative=(
                 "bias_walk", "heading_walk", "reference_heading_walk", "heading_split_std", "heading_prior_sigma_deg",
             ),

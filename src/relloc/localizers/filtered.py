@@ -7,6 +7,12 @@ measurement models, and estimated; then the localizer's collaborators read the e
 * :class:`~relloc.localizers.recovery.Recovery` watches for divergence and restarts the
   filter when it is lost (``WeightedFilter.restart``; the range-graph localizer overrides
   :meth:`FilterLocalizer._restart`);
+* :class:`~relloc.localizers.watchdog.ConsistencyWatchdog` judges the published covariance
+  against the filter's own innovations: while it does not cover them the estimate says
+  ``inconsistent``, its covariance is widened, and the recovery restarts the filter;
+* :class:`~relloc.localizers.bounds.CalibrationBounds` says when an online scale or bias has
+  left its physical bound: the calibration then restarts from its prior
+  (:meth:`FilterLocalizer._restart_calibration`);
 * :class:`~relloc.localizers.heard.Heard` widens the covariances of robots nothing is heard of
   and tells the filter whether the formation is split (``WeightedFilter.pause_kernel``).
 
@@ -17,7 +23,9 @@ and the filter resamples when due.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,10 +39,13 @@ from relloc.filter.registry import MODELS, model_for
 from relloc.filter.state import StateLayout
 from relloc.filter.summary import estimate_fields
 from relloc.localizers.base import Localizer, Measurement
+from relloc.localizers.bounds import CalibrationBounds
 from relloc.localizers.heard import Heard
 from relloc.localizers.recovery import Recovery
+from relloc.localizers.watchdog import ConsistencyWatchdog
 
 FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
 
 
 class FilterLocalizer(Localizer):
@@ -54,15 +65,38 @@ class FilterLocalizer(Localizer):
         self._init_batch: list[Measurement] = []
         self.recovery = Recovery(config, self.layout, self.rng, self.stats)
         self.heard = Heard(config, self.layout)
+        self.watchdog = ConsistencyWatchdog(config, self.layout)
+        self.bounds: CalibrationBounds | None = None
+        """The bounds of the online calibration (a filter that estimates it sets them)."""
+        self.calibration_restart_reason = ""
+        """Why the calibration was last restarted (empty: never)."""
 
     @property
     def recovering(self) -> bool:
         return self.recovery.monitor.lost
 
+    @property
+    def inconsistent(self) -> bool:
+        """Whether the published covariance no longer covers the filter's innovations
+        (:mod:`relloc.localizers.watchdog`)."""
+        return self.watchdog.inconsistent
+
+    def fault_counters(self) -> dict[str, Any]:
+        """The base's, and the watchdog's: inconsistent now, episodes, restarts."""
+        out = super().fault_counters()
+        out["inconsistent"] = self.inconsistent
+        out["inconsistency_detected"] = self.watchdog.episodes
+        out["inconsistency_restarts"] = self.stats.get("inconsistency_restarts", 0)
+        out["calibration_restarts"] = self.stats.get("calibration_restarts", 0)
+        if self.calibration_restart_reason:
+            out["calibration_restart_reason"] = self.calibration_restart_reason
+        return out
+
     def _shift_time(self, dt: float) -> None:
         self.t += dt
         self.recovery.shift_time(dt)
         self.heard.shift_time(dt)
+        self.watchdog.shift_time(dt)
         self._init_batch = [dataclasses.replace(m, t=m.t + dt) for m in self._init_batch]
 
     def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
@@ -85,8 +119,21 @@ class FilterLocalizer(Localizer):
         lost = self.recovery.observe(t, batch, fe, float(getattr(self.filter, "covariance_floor", 0.0)))
         self.recovery.remember(t, batch, fe)
         self.heard.note(batch)
+        framed = self.filter.shared_heading or bool(fe.headings)
+        yaws = {r: self.odometry.pose(r, t)[2] for r in self.layout.robots} if framed else None
+        if self.watchdog.observe(t, batch, fe, yaws):
+            self.stats["inconsistency_restarts"] += 1
+            lost = lost or set(self.layout.others)
         if lost:
             self.recovery.recover(t, fe, lost, self.filter, self._restart)
+            self.watchdog.restart(t)
+            fe = self.filter.estimate()
+        reason = None if self.bounds is None else self.bounds.violation(fe)
+        if reason is not None and self._restart_calibration():
+            log.warning("calibration restarted at t=%.2f: %s", t, reason)
+            self.stats["calibration_restarts"] += 1
+            self.calibration_restart_reason = reason
+            self.watchdog.restart(t)
             fe = self.filter.estimate()
         est = self._emit(t, fe)
         self.filter.pause_kernel(self.heard.split(t))
@@ -101,6 +148,11 @@ class FilterLocalizer(Localizer):
         the ``reference`` formation (``None``: none trusted): the filter's own
         (``WeightedFilter.restart``); False if it cannot (hypotheses are then re-injected)."""
         return self.filter.restart(recent, reference, self)
+
+    def _restart_calibration(self) -> bool:
+        """Start the online calibration again from its prior (:mod:`relloc.localizers.bounds`);
+        False where the filter estimates none."""
+        return False
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
         raise NotImplementedError
@@ -165,7 +217,8 @@ class FilterLocalizer(Localizer):
     def _emit(self, t: float, fe: FilterEstimate) -> Estimate:
         """The :class:`Estimate` of a filter's moments at ``t`` (and, where it estimates
         headings, each robot's odometry yaw then, for evaluating them), the covariances of
-        unseen robots widened (:mod:`relloc.localizers.heard`)."""
+        unseen robots widened (:mod:`relloc.localizers.heard`), all of them while the
+        watchdog finds the estimate inconsistent (by its :attr:`~ConsistencyWatchdog.widening`)."""
         positions, covs = {}, {}
         for k, robot in enumerate(self.layout.others):
             positions[robot] = (float(fe.mean[k, 0]), float(fe.mean[k, 1]))
@@ -174,13 +227,16 @@ class FilterLocalizer(Localizer):
         for robot in {*fe.headings, self.layout.reference}:  # the reference's: body-frame evaluation
             self.odometry.log_yaw(robot, t)
         honest = {} if fe.summary is None else estimate_fields(fe.summary, self.layout.reference, self.layout.others)
+        widening = self.watchdog.widening
+        if widening > 1.0:
+            covs = {r: tuple(tuple(widening * v for v in row) for row in c) for r, c in covs.items()}  # type: ignore[misc]
         unseen = self.heard.unseen(t, self.tracks)
         if unseen:
             covs = self.heard.widen(covs, unseen)
         est = Estimate(
             t, self.method, self.layout.reference, positions, covs, fe.ess, fe.headings, fe.biases, fe.scales,
             **honest,
-            recovering=self.recovering, particles=fe.particles, unseen=unseen,
+            recovering=self.recovering, inconsistent=self.inconsistent, particles=fe.particles, unseen=unseen,
         )
         self.last_estimate = est
         return est

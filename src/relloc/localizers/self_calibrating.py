@@ -25,6 +25,7 @@ from relloc.filter.gaussian_sum import CalibrationLayout, CalibrationNoise, Gaus
 from relloc.filter.pf import ParticleFilter
 from relloc.filter.resampling import normalize, systematic_resample
 from relloc.localizers.base import Measurement
+from relloc.localizers.bounds import CalibrationBounds
 from relloc.localizers.filtered import FilterLocalizer
 from relloc.localizers.sampled import bias_layout, covariance_floor, particle_filter
 
@@ -57,6 +58,11 @@ class SelfCalibratingLocalizer(FilterLocalizer):
         fc = config.filter
         self.filter = self._gaussian_sum(np.array(prior))
         self.filter.covariance_floor = covariance_floor(config, self.range_model)
+        gsf = self.filter
+        self.bounds = CalibrationBounds(config, {
+            pair: (float(m), math.sqrt(float(v)))
+            for pair, m, v in zip(self.calibration.bias_pairs, gsf.bias_prior_mean, gsf.bias_prior_var, strict=True)
+        })
         # the annealed start: a sampled filter over positions (and bias beliefs)
         n_start = max(fc.self_calibration.selfcal_init_particles, fc.self_calibration.selfcal_particles)
         self.start_filter: ParticleFilter | None = particle_filter(config, layout, prior, n_start, self.rng)
@@ -92,6 +98,15 @@ class SelfCalibratingLocalizer(FilterLocalizer):
             heading_prior=heading_prior,
             split_heading_std=fc.self_calibration.heading_split_std,
         )
+
+    def _restart_calibration(self) -> bool:
+        """Every Gaussian's calibration back at its prior, its positions kept (their spread
+        back to the start's), its weight kept."""
+        gsf = self.filter
+        logw = gsf.logw.copy()
+        gsf.initialize(gsf.mean[:, : gsf.layout.dim].copy())
+        gsf.logw = logw
+        return True
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
         """Anneal the sampled start, then hand its particles to the Gaussian-sum filter (one

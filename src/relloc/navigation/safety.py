@@ -115,6 +115,8 @@ class SafetyGate:
             return "no_estimate", f"no estimate of {robot} yet"
         if estimate.recovering:
             return "recovering", "the localizer found itself lost and is recovering"
+        if estimate.inconsistent:
+            return "inconsistent", "the estimate's covariance no longer covers its innovations"
         age = now - estimate.t
         if age > cfg.max_age:
             return "stale_estimate", f"estimate is {age:.2f} s old (max {cfg.max_age:g} s)"
