@@ -13,6 +13,7 @@ from relloc.config import RobotConfig, TeamConfig
 from relloc.estimate import Estimate
 from relloc.events import GroundTruthEvent, RangeEvent, SightingEvent
 from relloc.filter.base import FilterEstimate
+from relloc.filter.calibration import CalibrationNoise
 from relloc.filter.state import StateLayout
 from relloc.localizers.bounds import CalibrationBounds
 from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
@@ -26,7 +27,7 @@ TRUTH = {"r0": (0.0, 0.0), "r1": (3.0, 0.0), "r2": (0.0, 4.0)}
 
 def _ranges(t: float, where: dict[str, tuple[float, float]], rng: np.random.Generator) -> list[RangeEvent]:
     """The three pairs' ranges of the formation ``where``, with the config's noise."""
-    sigma = TEAM.filter.likelihood.sigma_uwb
+    sigma = TEAM.uwb.sigma
     out = []
     for a, b in (("r0", "r1"), ("r0", "r2"), ("r1", "r2")):
         d = math.dist(where[a], where[b]) + float(rng.normal(0.0, sigma))
@@ -118,7 +119,7 @@ def test_a_scale_driven_out_of_its_interval_is_restarted() -> None:
     assert counters["calibration_restarts"] == 1
     assert counters["calibration_restart_reason"] == "odometry scale of r2 at 0.299, outside 0.5..1.5"  # after one update
     assert all(0.5 < s < 1.5 for e in ests for s, _ in e.scales.values())
-    prior = loc.config.filter.self_calibration.scale_prior_sigma
+    prior = CalibrationNoise().scale_prior_sigma
     assert ests[0].scales["r2"][1] == pytest.approx(prior, rel=0.2)  # its prior again
 
 

@@ -128,7 +128,7 @@ class ConsistencyWatchdog:
                 online = fe.biases.get(pair_key(*nodes))
                 if online is not None:
                     bias = online[0]
-            var = (sigma if sigma is not None else self.config.filter.likelihood.sigma_uwb) ** 2
+            var = (sigma if sigma is not None else self.config.uwb.sigma) ** 2
             a, b = m.robot_a, m.robot_b
             return self._judged(a, b, fe, (m.distance - bias) / scale, var, None)
         if isinstance(m, SightingEvent):
