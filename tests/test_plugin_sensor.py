@@ -205,3 +205,20 @@ def test_the_toy_models_rows_are_its_log_likelihood_and_its_gradient(toy: None) 
         down[:, c] -= h
         fd = (model.log_likelihood(layout.positions(up), up) - model.log_likelihood(layout.positions(down), down)) / (2 * h)
         np.testing.assert_allclose(grad[:, c], fd, rtol=1e-5, atol=1e-6)
+
+
+def test_the_simulator_runs_the_toy_sensors_hook(toy: None) -> None:
+    """A registered plug-in adds its events to a simulation; the simulator's own are unchanged."""
+    sim, config = simulated_team(seed=0, duration=5.0)
+    sim.config = with_toy(config)  # the team as configured with the toy sensor
+    with_fixes = list(sim.advance(2.0)) + list(sim.advance(5.0))  # cut into steps: the same ticks
+    unregister(TOY)
+    plain, _ = simulated_team(seed=0, duration=5.0)
+    register(TOY)
+    fixes = [e for e in with_fixes if isinstance(e, ToyFixEvent)]
+    assert [e.t for e in fixes] == [0.5 * k for k in range(1, 11)]
+    for e in fixes:
+        x, y, _ = sim.true_pose(TARGET, e.t)
+        rx, ry, _ = sim.true_pose(config.reference, e.t)
+        assert (e.robot, e.x, e.y, e.sigma) == (TARGET, x - rx, y - ry, SIGMA)
+    assert [e for e in with_fixes if not isinstance(e, ToyFixEvent)] == list(plain.events())

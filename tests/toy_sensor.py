@@ -162,6 +162,20 @@ class ToyFixSensor(Sensor):
     ) -> ToyFixEvent:
         return ToyFixEvent(stamp, route.robot, float(msg.x), float(msg.y), route.params)
 
+    def simulate(self, sim: Any, t0: float, t1: float) -> list[ToyFixEvent]:
+        """Exact fixes at 2 Hz (on the half second) of the robots of ``sim.config``'s table."""
+        s = self.settings(sim.config)
+        if s is None:
+            return []
+        ticks = [0.5 * k for k in range(max(math.floor(2 * t0) + 1, 1), math.floor(2 * t1) + 1)]
+        out = []
+        for t in ticks:
+            rx, ry, _ = sim.true_pose(sim.config.reference, t)
+            for robot in s.robots:
+                x, y, _ = sim.true_pose(robot, t)
+                out.append(ToyFixEvent(t, robot, x - rx, y - ry, s.sigma))
+        return out
+
     def message(self, event: ToyFixEvent) -> Any:
         types = typestore().types
         header = types["std_msgs/msg/Header"](stamp=time_msg(event.t), frame_id="")

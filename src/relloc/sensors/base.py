@@ -174,6 +174,13 @@ class Sensor:
         """``msg`` with the fields a fault changed (``before`` -> ``after``; not the stamp)."""
         return msg
 
+    # ------------------------------------------------------------------ simulation
+    def simulate(self, sim: Any, t0: float, t1: float) -> list[Event]:
+        """The events it produces in ``(t0, t1]`` of a :class:`relloc.simulator.Simulation`
+        (``sim.true_pose(robot, t)``, ``sim.config``), for a plug-in the simulator does not
+        know. The built-in sensors are simulated by the simulator itself: none here."""
+        return []
+
     # ------------------------------------------------------------------ bag checks
     def config_warnings(self, config: TeamConfig) -> list[str]:
         """What a bag source warns about before it looks at the bag."""

@@ -10,10 +10,9 @@ robot's forward camera at about 5 Hz, in the body frame, and ground truth ("moti
   is built, each from its own stream (:mod:`relloc.simulator.streams`), so the step-wise API
   (:meth:`Simulation.advance`) returns the same events however the run is cut into steps.
 * **Truthful configuration.** :attr:`Simulation.config` is the team configuration a user would
-  write for this team: UWB node ids, the true per-pair biases and the true heading offset of
-  each odometry frame (the "compass" the paper assumes). What a real team would *not* know
-  (wheel scales, gyro biases, the orientation-dependent range error) stays in the simulation,
-  exposed as attributes for tests and calibration experiments.
+  write for this team: UWB node ids, true per-pair biases, true heading offsets (the paper's
+  compass). What a real team would *not* know (wheel scales, gyro biases, the
+  orientation-dependent range error) stays in the simulation, as attributes for tests.
 """
 
 from __future__ import annotations
@@ -45,6 +44,7 @@ from relloc.events import (
     pair_key,
 )
 from relloc.odometry import wrap_angle
+from relloc.sensors.registry import registered
 from relloc.simulator.error_models import (
     ActuationModel,
     DetectionErrorModel,
@@ -295,6 +295,8 @@ class _Runner:
         self._ranges(t0, t_until, out)
         self._detections(t0, t_until, out)
         self._sightings(t0, t_until, out)
+        for plugin in registered():
+            out += plugin.simulate(self.sim, t0, t_until)
         out.sort(key=attrgetter("t"))
         self.t_done = t_until
         return out
