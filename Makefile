@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup setup-test demo test lint bench clean
+.PHONY: setup setup-test demo test docs lint bench clean
 
 # A .venv made by another Python cannot be reused (pip refuses relloc with "requires a different
 # Python", and `python -m venv` keeps the old interpreter): say so and rebuild it.
@@ -41,6 +41,19 @@ test: setup-test
 	$(BIN)/ruff check src tests benchmarks examples scripts
 	$(BIN)/python -m pytest -q
 
+# The documentation site: its own environment (relloc and the `docs` extra); the command and
+# config reference pages are generated at build time by the hook docs/gen_reference.py.
+DOCS_VENV := .venv-docs
+
+$(DOCS_VENV)/.installed: pyproject.toml
+	$(PYTHON) -m venv $(DOCS_VENV)
+	$(DOCS_VENV)/bin/python -m pip install -q --upgrade pip
+	$(DOCS_VENV)/bin/python -m pip install -q -e '.[docs]'
+	touch $@
+
+docs: $(DOCS_VENV)/.installed
+	NO_MKDOCS_2_WARNING=1 $(DOCS_VENV)/bin/mkdocs build --strict --quiet
+
 # The benchmark has an environment of its own: relloc plus the pfilter reference (not a dependency).
 BENCH_VENV := .venv-bench
 BENCH_ARGS ?= --json out/bench/filter_vs_pfilter.json
@@ -55,4 +68,4 @@ bench: $(BENCH_VENV)/.installed
 	$(BENCH_VENV)/bin/python benchmarks/filter_vs_pfilter.py $(BENCH_ARGS)
 
 clean:
-	rm -rf $(VENV) $(BENCH_VENV) out build *.egg-info
+	rm -rf $(VENV) $(BENCH_VENV) $(DOCS_VENV) out build *.egg-info
