@@ -1,4 +1,4 @@
-"""The layers of the README hold: no module of ``src/relloc`` imports one of a higher layer.
+"""The layers of the architecture page (docs/explanation/architecture.md) hold: no module of ``src/relloc`` imports one of a higher layer.
 
 Every ``import relloc.x`` and ``from relloc.x import ...`` counts, inside functions too (a lazy
 import is still a dependency).
@@ -24,7 +24,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("navigation",),
     ("cli",),
 )
-"""Bottom first, as in the README: a module may import its own layer and those before it."""
+"""Bottom first, as on the architecture page: a module may import its own layer and those before it."""
 
 LAYER_OF = {part: i for i, parts in enumerate(LAYERS) for part in parts}
 

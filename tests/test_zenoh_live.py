@@ -71,9 +71,8 @@ def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
 
     A reorder window of 0.4 s of header time (0.1 s of wall time at 4x): Zenoh's threads
     deliver the keys' messages in a slightly different interleaving from run to run, and
-    without the window the filter was fed each run another order (in one loaded run of twelve it
-    then lost track, median error 0.34 m); with it, the stamp order, the same every run
-    (docs/faults.md, session 6)."""
+    without the window the filter is fed each run another order (and may lose track); with it,
+    the stamp order, the same every run."""
     srv_session, client = sessions
     sim, config = simulated_team(seed=0, duration=16.0)
     rate = 4.0
@@ -239,9 +238,9 @@ def test_replayed_shortbag_matches_relloc_run(
     Same particles, same seed; the reorder window restores the header order the rosbag source
     produces, so the filter sees the same event sequence. A wide one (1 s of header time, held
     at most 0.5 s of wall time at 2x): the replay shares this process, and its thread, starved
-    of the GIL by the engine's on a loaded machine, falls behind its schedule; with 0.2 s some
-    ten events of each run came out of order under load, and the filter, fed another sequence,
-    was off by up to 22 % (docs/faults.md, session 6).
+    of the GIL by the engine's on a loaded machine, falls behind its schedule; with a 0.2 s window
+    some events come out of order under load, and the filter, fed another sequence, lands
+    elsewhere.
     """
     bag = shared_data / "tiers" / SHORTBAG
     config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")
