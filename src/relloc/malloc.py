@@ -5,9 +5,7 @@ to a few MB each). With glibc's default settings a freed block at the top of the
 ``M_TRIM_THRESHOLD`` (128 kB, adapted upwards at run time) is returned to the kernel, and a
 block above ``M_MMAP_THRESHOLD`` gets its own ``mmap``: the next step's temporaries then touch
 fresh pages, and every 4 kB page costs a minor page fault (a few microseconds on a virtual
-machine). Measured on the TIERS four-robot recording (docs/adaptive-particles.md, "Where the time goes"): 230
-faults per posterior summary at 2000 particles, 1600 at 50 000, about half of the summary's
-time. :func:`tune_malloc` keeps a pad of heap instead, so those pages stay mapped and are
+machine), which can be a large share of a small filter step's time. :func:`tune_malloc` keeps a pad of heap instead, so those pages stay mapped and are
 reused; it changes no result, only where the memory comes from.
 
 It is a process-wide setting, so the library never calls it on import: the ``relloc``

@@ -1,38 +1,6 @@
 """Team configuration: robots, reference robot, prior area, sensors and filter parameters.
 
-A team is described by one TOML file (see ``configs/``)::
-
-    name = "multi4_shortbag_20221011"
-    reference = "turtle04"
-    area = [-4.0, 4.0, -4.5, 4.5]          # xmin, xmax, ymin, ymax of the arena (m)
-
-    [[robots]]
-    name = "turtle01"
-    uwb_node = "n_7"
-    odom_topic = "/cali/turtle01/odom"
-    odom_mode = "twist"                   # integrate the twist ("twist") or use the pose ("pose")
-    heading_offset_deg = 12.0             # odometry frame -> shared heading frame (the compass)
-    odom_scale = 1.0
-    mocap_body = "turtlebot1_cap"
-
-    [uwb]
-    default_bias = 0.3
-    sigma = 0.15                          # range noise (m): a sensor's noise lives with it
-    [uwb.pairs."n_3-n_7"]
-    bias = 0.39
-
-    [filter]
-    kind = "auto"                         # or "particle", "gaussian_sum", "range_graph"
-    particles = 20000
-    [filter.likelihood]
-    range_model = "nlos"
-
-Everything has a default except the robots; unknown keys are errors (a typo must not silently
-fall back to a default), and a key of an earlier version names what became of it
-(:mod:`relloc.config.moved`). The sections: the sensors' (:mod:`relloc.config.sensors`), the
-filter's (:mod:`relloc.config.filter`); the checks they share are :mod:`relloc.config.checks`.
-``TeamConfig.to_toml`` writes the file back (:mod:`relloc.config.dump`), which is how
-``relloc calibrate`` stores what it estimated.
+The derivation: docs/explanation/internals.md, section ``relloc.config``.
 """
 
 from __future__ import annotations

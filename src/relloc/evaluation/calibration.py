@@ -1,31 +1,6 @@
 """Calibration from recordings: UWB range error per transceiver pair, odometry heading offsets.
 
-UWB ranges are biased (by tens of centimetres on the TIERS DWM1001 nodes) and the bias belongs to the pair
-of transceivers, not to the robots that carry them. The range model of the filter is
-``measured = scale * true + bias + noise`` (:class:`~relloc.config.PairCalibration`); this module
-estimates it from data where the true distance is known:
-
-* :func:`pair_biases_from_bag`: a rosbag2 recording with motion capture. Each range is
-  compared with the distance between the two robots' mocap positions interpolated at the
-  range's **header time**; an interpolation across a mocap gap longer than ``max_gap`` is not
-  trusted and the range is skipped.
-* :func:`pair_biases_from_csv`: the TIERS training table (``timestamp, node1, node2,
-  uwb_range, mocap_range, ...``), where ``node1``/``node2`` are robot numbers. Its rows come from
-  a 70 Hz timer while each pair updates at about 7 Hz, so a row that repeats the previous range
-  of its pair is the same measurement again and is dropped.
-
-Both are robust, because the recordings have NLOS spikes (ranges far longer than the
-distance, a few per cent of some pairs' ranges; docs/results.md): the bias is the **median** error, ``sigma`` the scaled median absolute
-deviation (1.4826 MAD, the standard deviation for Gaussian data), and the optional scale a
-Huber-weighted linear fit, attempted only when the true distances span enough to tell a scale
-from a bias.
-
-Calibrate on one recording and evaluate on another: a configuration calibrated on the bag it is
-evaluated on hides the error it is meant to measure. Every :class:`PairCalibration` records
-its ``source``.
-
-:func:`heading_offsets_from_bag` estimates each robot's rotation from its odometry frame to the
-mocap frame (the paper's compass) from the first odometry pose and the mocap pose at that time.
+The derivation: docs/explanation/internals.md, section ``relloc.evaluation.calibration``.
 """
 
 from __future__ import annotations

@@ -6,54 +6,7 @@ not observable (a team at rest: the posterior is a ring of rotations and mirror 
 :mod:`relloc.filter.summary`). Once the posterior is one narrow mode, a few thousand particles
 represent it as well as fifty thousand, at a tenth of the cost per update.
 
-The rule: KLD-sampling at resampling time
-    Fox (2003, "Adapting the sample size in particle filters through KLD-sampling", IJRR 22)
-    bounds the number of particles needed so that, with probability ``1 - delta``, the
-    Kullback-Leibler divergence between the sample-based (binned) posterior and the true one is
-    below ``epsilon``. If the posterior occupies ``k`` bins of a fixed grid over the state, the
-    bound (Wilson-Hilferty approximation of the chi-square quantile) is::
-
-        n(k) = (k - 1) / (2 epsilon) * (1 - 2 / (9 (k - 1)) + sqrt(2 / (9 (k - 1))) z)^3
-
-    with ``z`` the standard normal ``1 - delta`` quantile. AMCL applies it while drawing new
-    particles one by one; this filter applies it at resampling, as KLD-resampling (Li, Sun &
-    Sattar, 2013, "Adapting sample size in particle filters through KLD-resampling",
-    Electronics Letters 49): ``k`` is the number of grid cells (side ``bin_size`` metres in
-    every coordinate of the relative positions, online-bias columns excluded) holding at least
-    one particle that the systematic resampling keeps; the particles re-drawn from the prior
-    box are not counted (they are the recovery's, not the posterior's). The filter then
-    resamples, systematically, to ``n(k)`` particles clamped to ``[min_particles,
-    max_particles]``. A posterior that widens is seen through ``k``: when every kept particle
-    sits in its own cell (``k`` near the count) the bound asks for about ``1 / (2 epsilon)``
-    times as many, so the count grows geometrically, resampling after resampling, back to the
-    maximum.
-
-A Monte Carlo floor: the spread the grid cannot see
-    A posterior 0.5 m wide along one direction occupies few 0.2 m cells there, and Fox's bound
-    asks for a thousand particles or two; but the mean of a direction that the measurements
-    barely constrain is then carried by the particles themselves, and every resampling moves
-    it by a random amount that nothing pulls back (the drift of :mod:`relloc.filter.pf`). So
-    the count is at least ``sigma^2 / (ess_fraction tol^2)``: enough particles that the
-    Monte Carlo standard error of the published mean along the widest direction (``sigma``,
-    the published covariance's largest eigenvalue less the covariance floor) stays under
-    ``mc_tolerance`` at the ESS that triggers a resampling.
-
-Where the bound must not be trusted: keep the full count
-    Binning cannot see what makes this posterior hard. While the orientation is unobservable
-    the posterior is a ring; at a few thousand particles a long rest lets resampling narrow the
-    ring by chance (the orientations "hitchhike" on a few ancestors), and the first motion can
-    then select a wrong orientation, which is why the default is 50 000. So the rule is
-    overridden, and the filter keeps ``max_particles``, whenever the last summary says the
-    orientation is not observable or the posterior has more than one mode, while the
-    localizer has paused the orientation kernel because a robot is out of ranging (the parts
-    of the formation then turn apart, and only the count keeps their orientations diverse:
-    the shortbag with turtle05 silent 10 s lost 0.04-0.05 m more at the adaptive count), and
-    from every (re-)annealed start until the first summary after it (the divergence monitor's
-    recovery re-anneals, :mod:`relloc.localizers.divergence`, and so starts again at the full
-    count).
-
-Measured figures (time per update, APE against the fixed count) are in
-docs/adaptive-particles.md.
+The derivation: docs/explanation/internals.md, section ``relloc.filter.adaptive``.
 """
 
 from __future__ import annotations

@@ -1,32 +1,6 @@
 """The one interface of relloc's filters, and what they share.
 
-Both filters hold ``M`` weighted hypotheses about the team (particles, or Gaussians each carrying
-a Kalman filter) and run the same cycle, which is all a localizer calls:
-
-``predict(disp, sigma, dt)``
-    move every hypothesis by each robot's odometry displacement ``disp`` (N, 2) with per-axis
-    standard deviation ``sigma`` (N,) over ``dt`` seconds (random walks of any calibration
-    state included);
-``update(models)``
-    fuse the measurement models of one batch (:mod:`relloc.filter.measurement`) and normalise
-    the log-weights; returns False, the weights kept, when no hypothesis explains the batch;
-``estimate()``
-    the weighted moments as a :class:`FilterEstimate`;
-``maybe_resample()``
-    resample when due (every step, or when the effective sample size falls below
-    ``ess_threshold * M``), re-drawing a ``reinject_fraction`` of the hypotheses from the
-    uniform prior box so that a filter locked on a wrong mode can still find the right one.
-
-A localizer that found the filter lost (:class:`relloc.localizers.divergence.DivergenceMonitor`)
-calls ``restart(recent, reference, context)``: start again from the recent measurements,
-oriented by a trusted formation (a particle filter re-anneals); where a filter cannot (the
-default), it calls ``inject(formations)``, which restarts some hypotheses at given formations.
-``pause_kernel(paused)`` tells a filter that moves the formation's orientation on its own (the
-particle filter's kernel) whether the formation is one rigid body now; the others ignore it.
-
-:class:`WeightedFilter` implements the weights, the resampling schedule and the re-injection
-once; a filter supplies how to copy hypotheses (``_select``) and how to re-draw some from its
-prior (``_reinject``).
+The derivation: docs/explanation/internals.md, section ``relloc.filter.base``.
 """
 
 from __future__ import annotations

@@ -6,23 +6,7 @@ A robot's unknown odometry rotation and scale are one 2-vector ``u = s (cos thet
 so that its displacement ``d`` moves it by ``A(d) u`` (:func:`rotation_jacobian`), linear in
 ``u``; a range is linear in its pair's bias.
 
-Range bias and heading-dependent range error
---------------------------------------------
-A UWB range is ``distance + bias + e(t) + noise``, where ``e`` depends on the headings of the
-two ends relative to the bearing between them (antenna pattern, the body in the way): it is
-zero-mean over headings, changes as the robots turn or pass each other, and is strongly
-correlated over seconds. White range noise cannot represent it: the Kalman filter would read
-its slow swings as evidence about the positions, the headings or the bias, and the bias's
-random walk would follow it. So each online pair also carries ``e`` as a first-order
-Gauss-Markov state (stationary std ``colored_sigma``, correlation time ``colored_time``); the
-range sees ``bias + e`` and the published bias is the constant part. A static robot's end
-contributes a constant ``e`` (its heading relative to the bearing barely changes), which no
-estimator can tell from the bias: docs/self-calibration.md, "Observability".
-
-Observability is visible in the state: a robot that has not moved has ``A(d) = 0`` at every
-step, so its ``u`` keeps its prior and its published heading spread stays wide, while its
-position (which does not depend on ``u``) converges as the ranges allow. A pair whose distance
-never changes leaves its bias and its distance confounded; the bias variance stays at its prior.
+The derivation: docs/explanation/internals.md, section ``relloc.filter.calibration``.
 """
 
 from __future__ import annotations

@@ -1,7 +1,5 @@
 """A Gaussian-sum particle filter for self-calibration: headings, odometry scales, range biases.
 
-Why not just more particle dimensions
--------------------------------------
 Self-calibration adds, per robot, the rotation of its odometry frame relative to the
 reference robot's (uniform on the circle a priori) and an odometry scale, and, per UWB pair,
 a range bias. Sampling them as particle coordinates multiplies the dimension: five robots give
@@ -11,58 +9,7 @@ about a heading arrives a little at every step (odometry increments compared wit
 changes); a particle that carries one sampled trajectory cannot integrate it, it can only be
 selected, so brute force stays hopeless at any affordable count.
 
-The structure that avoids it
-----------------------------
-Given a robot's odometry displacement ``d`` (in its own odometry frame, over one step), its
-position in the reference robot's odometry frame moves by ``s R(theta) d``. Write the unknown
-rotation and scale as one 2-vector ``u = s (cos theta, sin theta)``; then::
-
-    s R(theta) d = A(d) u,      A(d) = [[d_x, -d_y], [d_y, d_x]]
-
-is **linear** in ``u``. Likewise the reference robot's own displacement enters every relative
-position linearly in its scale, and a range is linear in its pair's bias. Conditioned on the
-discrete choices a particle filter is good at (which rotation/reflection of the formation, the
-rough shape), the rest is a nearly linear-Gaussian system. So each particle here carries a
-**Gaussian** over the continuous state::
-
-    x = [positions of the non-reference robots (2(N-1)),
-         u of every robot, the reference's last (2 each; heading mode)
-           or  s of every robot, the reference's last (1 each; compass heading, online scale),
-         bias of every UWB node pair (online bias),
-         time-correlated range error of every pair (online bias, ``colored_bias``)]
-
-with mean ``(M, D)`` and covariance ``(M, D, D)`` arrays, and a log-weight. The reference
-robot's own ``u`` starts at ``(1, 0)`` with no angular uncertainty (its odometry frame is the
-shared frame) but follows the same slow random walk as the others: its odometry heading drifts
-too, and that drift turns its displacements in the frame it defines. Prediction is
-exact (linear): ``x' = (I + G) x + c``, ``P' = (I + G) P (I + G)^T + Q``. Each range is a
-scalar extended-Kalman update of every particle at once (linearised at that particle's
-predicted mean), and the particle's weight is multiplied by the predictive density of the
-range. This is a Gaussian-sum particle filter (a bank of EKFs with particle weights, also
-called a mixture Kalman filter): the particles supply the multi-modality (formation rotations
-and mirror images, shapes ranges cannot yet tell apart), the per-particle Kalman filter
-integrates the evidence about the calibration step by step. A heading that no motion has yet
-revealed is simply a Gaussian ``u ~ N(0, sigma_u^2 I)``, whose angle is uniform: no grid, no
-sampled angle, and no particle is spent on it.
-
-The calibration blocks, their columns and noise, the time-correlated range error of an
-online pair and what is observable: :mod:`relloc.filter.calibration`; the split of a Gaussian
-whose heading has grown wide (``split_heading_std``): :mod:`relloc.filter.heading_split`.
-
-Robust ranges and pseudo-measurements
--------------------------------------
-Ranges use the same Gaussian-plus-uniform likelihood as :mod:`relloc.filter.ranges`; the
-Kalman gain is scaled by the probability that the range is an inlier, so an NLOS spike barely
-moves the state. The prior on the *magnitude* of ``u`` (the odometry scale, ``1 +- 0.15`` when
-estimated online, the configured scale otherwise) is not Gaussian in ``u``; it is applied once
-per particle and robot, as a pseudo-measurement ``|u| = s0``, as soon as that particle's angle
-of ``u`` is determined well enough (angular std below ``~15 deg``) for the linearisation to be
-valid.
-
-Each range's covariance update ``P -= gain (P h)^T`` is deferred: the next range needs only
-``P h``, which the pending updates give cheaply, and the ranges of a batch are applied to the
-covariance together, as one batched product, when it is next read (:meth:`GaussianSumFilter.cov`).
-The result is exactly that of the sequential updates.
+The derivation: docs/explanation/internals.md, section ``relloc.filter.gaussian_sum``.
 """
 
 from __future__ import annotations

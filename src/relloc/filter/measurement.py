@@ -1,48 +1,6 @@
 """Measurement models: what a sensor tells the filters, in one protocol both filters call.
 
-A measurement model is an immutable batch of measurements of one kind (all the ranges of one
-update, all the detection vectors, ...) that knows everything sensor-specific, so that neither
-filter nor any localizer does:
-
-``events`` (class)
-    The event types it is built from; :mod:`relloc.filter.registry` maps each to its model.
-``build(events, context)`` (class)
-    The models of one batch of those events (a list: one kind of event may need two
-    likelihoods, e.g. raw and learned-corrected ranges), for the state layout of the filter
-    that will fuse them (:class:`ModelContext`).
-``rejection(event, context)`` (class)
-    Its validation rule: the counted reason a bad event is dropped, or ``None``.
-``log_likelihood(positions, particles)``
-    ``log p(z | x)`` of every particle: the sampled filter's update. ``positions`` holds the
-    robots' relative positions as coordinate planes ``(2, N, M)``
-    (:meth:`~relloc.filter.state.StateLayout.positions`), ``particles`` the rows ``(M, D)``
-    themselves (for state blocks beyond the positions).
-``rows`` and ``row(k, mean)``
-    Its linearisation for the Gaussian-sum filter: scalar measurement rows
-    (:class:`LinearRow`), each linearised at the current means ``(M, D)``, fused one after
-    the other by the filter's one robust scalar Kalman step.
-``condition(positions, particles)``
-    After the sampled filter has re-weighted its particles, update any sufficient statistics
-    the model owns in the state (the online range bias's per-particle Kalman filter); most
-    models have none (``conditions`` False).
-``invariant`` (class)
-    Whether its likelihood is unchanged when the whole formation is rotated about the
-    reference or mirrored. The annealed start anneals on the invariant models only, spreads
-    the result over those symmetries (exact for an invariant target) and then weighs by the
-    others; with no invariant model it anneals on everything and does not spread.
-``needs_shared_heading`` (class)
-    Whether the measurement is expressed in the team's shared (compass) heading frame: a
-    filter that estimates the headings has no such frame and cannot fuse it.
-``stream(event)``, ``heard(event)``, ``ranged`` (class, optional)
-    What the localizer's bookkeeping reads of an event: the stream it belongs to (the team
-    clock's warm-up and jump votes count streams), the robots it is news of (the unseen-robot
-    rule) and whether those count as ranged (the orientation kernel waits while a robot is
-    not). A model that follows the protocol without subclassing it may leave them out:
-    :func:`hook` then reads the protocol's defaults (one stream per event type and robot,
-    news of nobody, not ranged).
-
-The linearisation and the likelihood are two views of one model; the test suite checks every
-registered model's rows against finite differences of its log-likelihood.
+The derivation: docs/explanation/internals.md, section ``relloc.filter.measurement``.
 """
 
 from __future__ import annotations

@@ -1,48 +1,6 @@
 """The particle filter over relative positions: pure NumPy, no I/O, no knowledge of sensors.
 
-State
-    ``particles`` has shape ``(M, D)``; the column blocks are named by :class:`StateLayout`
-    (positions of the non-reference robots relative to the reference, shared heading frame).
-    ``logw`` holds one log-weight per particle.
-
-Cycle (the interface of :mod:`relloc.filter.base`, driven by :mod:`relloc.localizers`)
-    ``predict`` moves every particle with the odometry of every robot (and walks the variance
-    of each online bias belief); ``update`` adds the log-likelihoods of whatever measurement
-    models arrived and lets them condition their sufficient statistics (the online biases);
-    ``estimate`` returns the weighted moments; ``maybe_resample`` resamples (every step, as in
-    the paper, or when the effective sample size falls below a threshold) and re-draws a small
-    fraction from the prior so that the filter can recover from a wrong mode.
-
-Starting from a uniform prior
-    A uniform prior over an 8 m x 9 m arena is very wide compared with a 0.15 m range noise: in
-    6-8 dimensions hardly any of 20 000 uniform particles lands near the posterior, and a plain
-    update collapses on whichever few did. ``initialize_annealed`` therefore reaches the first
-    posterior through a sequence of tempered likelihoods ``L^beta`` (beta from 0 to 1, each step
-    chosen so the effective sample size halves), with resampling and Metropolis moves at every
-    temperature (annealed importance sampling / SMC sampler). Ranges alone cannot tell the
-    formation from its rotations and reflections about the reference robot, so the result is
-    then spread uniformly over those (``spread_symmetries``): exact while only ranges have been
-    seen, and the odometry motion that follows selects the right orientation.
-
-The formation's orientation: a nearly static, weakly observed quantity
-    A rotation of the whole formation about the reference robot changes no range; only the
-    robots' motion in the shared heading frame tells it, slowly. Resampling selects particles
-    for how well their *shape* fits the ranges, and the orientation of the survivors is just
-    inherited ("hitchhiking"): after a few seconds the cloud's orientations descend from a handful
-    of ancestors, and the estimate's orientation becomes a random draw rather than the
-    posterior mean; more particles do not cure it (docs/results.md, "Design measurements
-    behind the filter's defaults"). As for a static parameter,
-    the remedy is a kernel move with shrinkage (Liu & West, 2001), here along the one direction
-    the ranges cannot see: after each resampling every particle's formation is turned from
-    its orientation ``theta`` (relative to the median formation) to
-    ``a theta + (1 - a) mean + sqrt(1 - a^2) std eps`` with ``a = sqrt(1 - h)``, which keeps the
-    mean and variance of the orientations and re-creates their diversity (``h``:
-    ``rotation_kernel``, the fraction of the variance re-drawn). The ranges are unchanged by
-    construction. It acts only on a formation (two robots or more besides the reference: with
-    one, the state is a single relative position whose bearing the kernel would only blur) and
-    only when the orientations form one mode
-    narrower than ``rotation_kernel_max_spread`` (robust std, :data:`ROTATION_KERNEL_MAX_SPREAD`):
-    never while rotations and mirror images compete, nor on an unobservable bearing.
+The derivation: docs/explanation/internals.md, section ``relloc.filter.pf``.
 """
 
 from __future__ import annotations

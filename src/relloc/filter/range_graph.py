@@ -1,8 +1,6 @@
 """The formation from the range graph: its shape by multidimensional scaling, and the handful of
 orientation hypotheses that ranges cannot tell apart.
 
-Why not sample the start
-------------------------
 A uniform prior over relative positions has ``2(N-1)`` dimensions. The annealed start of the
 sampled filter (:meth:`relloc.filter.pf.ParticleFilter.initialize_annealed`) finds a five-robot
 formation (8 dimensions) among 20 000 particles; at twenty robots (38 dimensions) it does not
@@ -10,28 +8,7 @@ formation (8 dimensions) among 20 000 particles; at twenty robots (38 dimensions
 the formation directly: with every pair, the distance matrix *is* the shape, up to the
 rotations and reflections about the reference that no range can see.
 
-The method, all in NumPy on ``N x N`` matrices (no particles):
-
-1. **Distances.** The ranges of the start window (less each pair's bias, a batch's median per
-   pair: :class:`relloc.filter.ranges.RangeBatch`) fill a symmetric distance matrix; pairs
-   that did not range are completed by shortest paths through the graph (as Isomap does: an
-   upper bound, and weight zero in step 3). Robots not connected to the reference cannot be
-   placed and are reported as such.
-2. **Classical MDS** (Torgerson): double-centre the squared distances,
-   ``B = -1/2 J D^2 J``, and take the two leading eigenvectors scaled by the square roots of
-   their eigenvalues. Exact for noise-free complete distances, and the usual start for:
-3. **SMACOF** (de Leeuw's majorisation of the weighted stress
-   ``sum_ij w_ij (|x_i - x_j| - d_ij)^2``): the Guttman transform
-   ``X <- V^+ B(X) X`` decreases the stress monotonically. Weights 1 for measured pairs, 0 for
-   completed ones. Its residuals (``rms``) say how well the shape fits. Where pairs are
-   missing, the completed distances are only bounds and the classical start may lie in a
-   local minimum: ``RESTARTS`` seeded random starts, the lowest stress kept.
-4. **Relative to the reference** and its symmetries: the positions less the reference's, then
-   :func:`orientation_hypotheses` turns that shape about the reference to ``rotations`` evenly
-   spaced angles, each mirrored too: ``2 x rotations`` formations of which one is within half a
-   step of the truth. A filter that carries one Gaussian per hypothesis, its covariance widened
-   along the rotation by :func:`start_covariance`, lets odometry motion in the shared heading
-   frame select the right one (:mod:`relloc.filter.graph_filter`).
+The derivation: docs/explanation/internals.md, section ``relloc.filter.range_graph``.
 """
 
 from __future__ import annotations

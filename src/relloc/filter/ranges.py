@@ -8,32 +8,7 @@ With ``r = z - b - ||p_a - p_b||`` the residual of a range after the pair's bias
 with ``eps`` the outlier fraction and ``R`` the support of the outliers. The uniform floor
 bounds the damage one spike can do to a good particle.
 
-A time-of-flight range can only be *too long* when the direct path is blocked: the signal that
-arrives first took a detour. The *NLOS-aware* model (``nlos_fraction > 0``) adds that one-sided
-component: a line-of-sight range has Gaussian noise; a non-line-of-sight one has, on top, a
-positive excess delay ``e ~ |N(0, sigma_n^2)|`` (half-normal), so its residual is skew-normal::
-
-    p(r) = (1 - eps_n - eps) N(r; 0, sigma^2) + eps_n SN(r; sigma, sigma_n) + eps / R
-    SN(r; sigma, sigma_n) = 2/w phi(r/w) Phi(alpha r/w),  w^2 = sigma^2 + sigma_n^2,
-                                                           alpha = sigma_n / sigma
-
-(``Phi`` by its logistic approximation ``1 / (1 + exp(-1.702 x))``, within 0.01). A run of long
-ranges is thus explained as a blocked path rather than pulling the particles apart, while a
-range that is too *short* stays as informative as the line-of-sight noise says. The parameters
-are fitted to the TIERS training table (docs/results.md, "Design measurements behind the
-filter's defaults").
-
-Online biases. In the sampled filter each particle holds a Gaussian belief ``N(mu, v)`` about a
-pair's bias (two state columns, Rao-Blackwellised) and the range likelihood marginalises it:
-``N(z - mu; ||p_a - p_b||, sigma^2 + v)``; after the weights are updated, :meth:`RangeBatch.condition`
-updates ``mu, v`` (a scalar Kalman filter per particle and pair), weighting each range by the
-probability that it is line-of-sight. In the Gaussian-sum filter the bias (and its
-time-correlated part) are ordinary state columns that the range's linearisation includes.
-
-Several ranges of one pair in a batch are not independent evidence (their errors are strongly
-correlated over a tenth of a second): :meth:`RangeBatch.build` takes their median. A calibrated
-pair's scale (``measured = scale * true + bias``) is divided out there, from range, bias and
-sigma alike, so every likelihood sees ``range = true + bias + noise``.
+The derivation: docs/explanation/internals.md, section ``relloc.filter.ranges``.
 """
 
 from __future__ import annotations

@@ -12,40 +12,7 @@ each with a Gaussian-plus-uniform density (a misread marker, a reflection):
 it is scored (a bearing of 179 deg and a prediction of -179 deg are 2 deg apart), its floor
 uniform over the circle.
 
-Where the heading comes from
-----------------------------
-* **Compass** (the sampled filter; the Gaussian-sum filter without heading estimation): the
-  observer's odometry yaw in the shared heading frame (``ModelContext.yaws``) is ``psi_i``. A
-  bearing then fixes the formation's orientation: the model is not invariant.
-* **Headings estimated** (the Gaussian-sum filter's heading mode): the frame is the reference
-  robot's odometry frame and the observer's odometry frame is turned from it by the unknown
-  ``theta_i``, held in the state as ``u_i = s_i (cos theta_i, sin theta_i)``. The measured
-  direction in the observer's odometry frame, ``w = (cos(b + yaw_i), sin(b + yaw_i))`` (``yaw_i``
-  its own odometry yaw), is ``A(w) u_i / s_i`` in the filter's frame, linear in ``u_i``
-  (:func:`relloc.filter.gaussian_sum._rotation_jacobian`). So a range-and-bearing sighting is
-  fused as two rows, linearised at each Gaussian's mean. While ``u_i`` is still at its prior
-  (zero mean: heading unknown) they are bilinear in ``(u_i, v)``:
-
-      along:  (A(w) u_i) . v        = r     (noise sigma_r)
-      cross:  (A(w) u_i) x v / |v|  = 0     (noise sigma_b)
-
-  linear in ``u_i`` at the particle's positions, so one sighting already turns ``u_i``
-  towards the right heading (and sets its length near 1): a bearing pins the relative heading
-  directly, where odometry and ranges reveal it only as the robots move. Once ``u_i`` is
-  known (``|u_i| > 0.5``) the rows are the range ``|v| = r`` and the bearing itself,
-  ``angle(v) - angle(A(w) u_i) = 0``: ``A(w) u_i . v`` is ``s_i |v|``, so the bilinear along
-  row would read the range as the observer's odometry scale times the distance and hold the
-  scale near 1 (on MRCLAM, where the Creates drive 4-9 % less than their odometry says, the
-  scales came out at 1.00-1.12 and the body-frame errors 0.03 m larger). A bearing-only
-  sighting is the cross row alone.
-* **No heading** (the sampled start of the heading-estimating localizer: its particles hold
-  positions only): the range alone, which is invariant under rotations and reflections of the
-  formation (:attr:`SightingBatch.invariant_without_shared_heading`); bearings are left to the
-  Gaussian-sum filter.
-
-Every row is one scalar measurement with a fixed variance; the sampled filter's log-likelihood
-is the sum of the rows' robust densities, so the two filters fuse the same model (the test
-suite checks the rows against finite differences of it).
+The derivation: docs/explanation/internals.md, section ``relloc.filter.sightings``.
 """
 
 from __future__ import annotations

@@ -8,50 +8,7 @@ its rotations about the reference robot or its mirror image, so a team at rest h
 spread over a ring (two rings, one per handedness), and before motion has resolved them the
 mirror images are separate modes. The mean of separated modes is a place where no mode is.
 
-The method (:func:`summarize`), vectorised over hypotheses:
-
-1. **Gauge.** Each hypothesis's formation ``P_m`` (``K`` robots x 2) is put in the declared
-   gauge: turned about the reference so that the gauge robot (the first non-reference robot)
-   lies on the reference's +x axis, then mirrored (``y -> -y``) if the next robot lies on the
-   -y side. Two formations that differ only by a rotation/reflection about the reference have
-   the same gauge form. The weighted mean of the gauge forms of an even stride through the
-   cloud (``SUMMARY_SAMPLE`` hypotheses) is the template ``S``.
-2. **Orientation and handedness** of every hypothesis relative to ``S`` by an orthogonal
-   Procrustes (Kabsch) fit about the reference, which uses every robot, not only the gauge
-   robot: with ``H = sum_k s_k p_k^T`` (2x2 per hypothesis) the best proper rotation has angle
-   ``atan2(H01 - H10, H00 + H11)`` and the best reflection explains the formation better
-   exactly when ``det H < 0`` (handedness ``-1``). With a single non-reference robot there is
-   no handedness (``H`` has rank one): only the bearing's angle.
-3. **Modes.** The angles are binned on the circle (``MODE_BINS`` bins, separately per
-   handedness); the bins holding more than ``MODE_MIN_BIN_WEIGHT`` of the weight, and their
-   neighbours (a mode's tails), are joined into circular runs, each run one mode. Hypotheses re-drawn from the prior (a percent of the
-   cloud, spread over every bin) stay below the threshold. A ring is one run all round.
-4. **Summary.** The dominant (heaviest) mode's weighted mean and covariance (for Gaussians,
-   plus the members' own covariances), its weight, its angular spread and the number of modes
-   are reported; the weighted mean of everything stays available as a diagnostic.
-5. **Shape.** The hypotheses of the stride are turned and mirrored onto ``S`` (their fits from
-   step 2), averaged (a Procrustes mean, less noisy than the single-robot gauge), and the mean
-   put back into the declared gauge exactly. Pairwise distances (reference included) are
-   weighted moments over the same stride; they need no gauge.
-
-Observability of the orientation is decided from both sides (:class:`Evidence`,
-:func:`summarize`): the filter must have fused something that is not invariant under the
-symmetry (a detection vector) or seen some robot move ``MOTION_TO_RESOLVE`` from where it
-started, *and* the dominant mode's orientation must be concentrated (circular std below
-``ORIENTATION_MAX_STD``). While nothing that could break the symmetry has been fused, the exact
-posterior is invariant under rotations about the reference whatever the cloud looks like (a
-cloud narrows by resampling alone, a hypothesis "hitchhiking" on the ancestors that fitted the
-shape), so the published moments are those of the posterior symmetrised over the ring: mean at
-the reference, covariance ``E|p|^2 / 2 I`` per robot. That covariance covers the truth (its
-NEES is about 2 against a 95 % bound of 5.99) and the estimate says what it is.
-
-A covariance floor. The hypotheses' spread is the posterior of a model whose range errors are
-independent from one range to the next; real errors are not (a pair's residual bias, its
-antenna pattern at the robots' headings change slowly), so after many ranges the cloud is far
-narrower than the error it carries (simulated multi team: cloud std about 0.03 m, errors about
-0.1 m). Fusing correlated errors cannot average them below one range's noise, so the filters
-add one range's noise variance per axis (``floor``, set by the localizer from its range model)
-to what they publish. The estimate itself does not change.
+The derivation: docs/explanation/internals.md, section ``relloc.filter.summary``.
 """
 
 from __future__ import annotations

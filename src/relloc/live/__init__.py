@@ -8,21 +8,9 @@ topics as bridged by zenoh-bridge-ros2dds, or as robots on rmw_zenoh publish the
 enqueue. ``replay`` publishes a rosbag2 recording's raw CDR messages on the interface's keys at
 the recorded pace (times ``--rate``), so a recording stands in for the robots;
 ``benchmarks/serve_resources.py`` runs both on loopback and measures the server process (CPU,
-peak RSS, end-to-end latency). ``docs/live.md`` tells the whole story and gives the measured figures.
+peak RSS, end-to-end latency). ``docs/live.md`` tells the whole story.
 
-Latency is traced, not guessed: the replay attaches its send wall time to every message
-(:func:`~relloc.ros.interfaces.encode_sent_time`, or the rmw_zenoh attachment); the server, run with ``--trace``,
-publishes for each estimate the message whose arrival produced it (its key, header stamp and
-send/receive times) and the estimate's publication time on ``relloc/trace``. Both ends share the
-host's wall clock on loopback.
-
-=======================  ==================================================================
-:mod:`.session`          Zenoh session options and opening
-:mod:`.server`           :class:`LiveServer` (the engine loop) and :class:`ServeOptions`
-:mod:`.publish`          :func:`replay_bag`, :func:`publish_events`: data into Zenoh
-:mod:`.message_faults`   :class:`MessageFaults`: ``replay``'s faults on the messages it sends
-:mod:`.collect`          :class:`EstimateCollector`, :func:`ape_against_bag` (tests, benchmarks)
-=======================  ==================================================================
+The derivation: docs/explanation/internals.md, section ``relloc.live``.
 """
 
 from relloc.live.collect import EstimateCollector, ape_against_bag

@@ -1,31 +1,6 @@
 """Closed-loop navigation in the simulator: the paper's last experiment, reproducible.
 
-One robot of the simulated team drives a path (by default a rectangle around the static
-reference robot) using **only the relative estimate** as position feedback, while the other
-robots keep driving their patterns. The loop is the live system's, in simulated time:
-
-1. ``Simulation.advance(t)`` to the next control tick (``1 / rate_hz``) returns the events of
-   that interval: odometry, UWB ranges, ground truth;
-2. every event goes through the same :class:`~relloc.engine.Engine`, pipeline and
-   :class:`~relloc.localizers.sampled.ParticleFilterLocalizer` as every other relloc run (the engine
-   keeps ground truth aside; the localizer never sees it); the robot's own odometry also goes
-   to the :class:`~relloc.navigation.navigator.Navigator` (its heading in the shared frame);
-3. the navigator turns the latest estimate + odometry into a command, through the safety gate
-   (nothing moves until the estimate has converged), and ``Simulation.set_command`` applies it
-   from the next simulation step, through the actuation model (speed and turn-rate errors).
-
-Figures (:meth:`NavResult.summary`):
-
-* **positioning APE** of the navigating robot: ``|| estimate - true relative position ||`` at
-  every estimate from the moment the gate released the robot until the path was complete (or
-  the run ended), median and std;
-* **tracking error**: distance from the robot's *true* relative position to the planned path,
-  sampled with the ground truth (20 Hz) from the moment it reached the first waypoint until it
-  completed the path (the approach from wherever it stood is not part of the path), median and
-  std; ``tracking_moving_median`` uses only the samples where the robot was moving (turning in
-  place at a corner keeps it on the path, so it lowers the time-sampled figure a little).
-
-Ground truth is used for these figures and for nothing else.
+The derivation: docs/explanation/internals.md, section ``relloc.navigation.closed_loop``.
 """
 
 from __future__ import annotations

@@ -1,35 +1,7 @@
 """A path follower for a differential-drive robot: pure pursuit on the current segment, turning
 in place at corners.
 
-What it does
-------------
-Given the robot's position and heading (in the team's relative frame) it returns a velocity
-command ``(v, w)`` that drives the robot along a :class:`~relloc.navigation.path.WaypointPath`,
-segment by segment:
-
-* **Line following by pure pursuit.** The *carrot* is the point ``lookahead`` metres ahead of
-  the robot's projection on the current segment, on the segment's line (the line is extended
-  past the segment's end, so the steering stays smooth right up to a corner). The command
-  follows the arc through the carrot: curvature ``2 sin(alpha) / d`` with ``alpha`` the
-  carrot's bearing from the robot's heading and ``d`` its distance.
-* **Corners by turning in place.** The speed falls linearly over the last ``slowdown_distance``
-  of a segment (to ``min_v``); within ``corner_tolerance`` of the segment's end (along the
-  segment) the follower switches to the next segment. If the carrot is then more than
-  ``rotate_threshold_deg`` off the heading, the robot turns in place (``v = 0``) until it is
-  within ``align_tolerance_deg`` (hysteresis, so a noisy estimate does not make it dither).
-  This is how a differential-drive robot drives a rectangle without cutting its corners, and
-  how Nav2's Regulated Pure Pursuit handles large heading errors.
-* **Approach.** If the robot is not at the first waypoint when it starts, the follower first
-  drives a straight *approach* segment from where it is to the first waypoint; :attr:`on_path`
-  tells when the path proper has begun (tracking error is measured from then).
-* **Goal.** The path is complete when the robot is within ``goal_tolerance`` of its last
-  point (along the final segment); the command is then zero for good.
-* **Limits.** ``|v| <= max_v``, ``|w| <= max_w``; when the arc would need more turn rate than
-  ``max_w``, ``v`` is reduced to keep the arc's curvature (the robot stays on the arc).
-
-The follower is pure geometry: it trusts the pose it is given. Where that pose comes from (the
-localizer's estimate plus odometry heading) and when not to move at all (stale or uncertain
-estimate, Ctrl-C) is :mod:`relloc.navigation.navigator` and :mod:`relloc.navigation.safety`.
+The derivation: docs/explanation/internals.md, section ``relloc.navigation.controller``.
 """
 
 from __future__ import annotations

@@ -1,43 +1,6 @@
 """Navigation over Eclipse Zenoh (``relloc navigate``).
 
-Keys are the interface's (:class:`relloc.ros.interfaces.RosInterface`, ``--ros-interface``).
-On the bridge (the default) a ROS topic ``/tb1/odom`` is the key ``tb1/odom``, below the global
-``--prefix`` and the robot's ``zenoh_scope``; with rmw_zenoh it is
-``<domain>/tb1/odom/<type name>/<type hash>``, with the rmw_zenoh attachments and liveliness
-tokens of a node ``relloc_navigate``. Payloads are ROS 2 CDR. So a TurtleBot 4 behind the
-bridge or on rmw_zenoh needs no change (bridge keys shown):
-
-=================================  =========================================  ===============
-key                                message                                    who publishes
-=================================  =========================================  ===============
-``<robot>/odom``                   ``nav_msgs/Odometry``                      robot / sim-robots
-``uwb/tof/<a>/<b>/distance``       ``sensor_msgs/Range``                      robot / sim-robots
-``relloc/<robot>/pose``            ``geometry_msgs/PoseWithCovarianceStamped``  ``relloc serve``
-``<robot>/cmd_vel``                ``geometry_msgs/Twist``                    ``relloc navigate``
-``vrpn_client_node/<body>/pose``   ``geometry_msgs/PoseStamped`` (truth)      sim-robots only
-=================================  =========================================  ===============
-
-``relloc navigate``
-    :class:`LiveNavigation` subscribes to the robot's odometry (its heading in the shared frame,
-    and the clock) and to the estimate ``relloc serve`` publishes for it, or, with
-    ``--in-process``, runs the server (:class:`relloc.live.LiveServer`) on its own session and
-    takes the estimates straight from the engine. A :class:`NavigationLoop` then publishes a
-    ``Twist`` at the control rate: the :class:`~relloc.navigation.navigator.Navigator`'s command,
-    zero while the safety gate holds the robot, and zero (three times) when it stops for good
-    (path complete, Ctrl-C, SIGTERM, ``--duration``).
-
-The robots can be simulated: ``relloc sim-robots`` (:mod:`relloc.live.sim_robots`) publishes a
-simulated team's sensors on these keys and obeys ``cmd_vel``, so ``relloc serve`` and
-``relloc navigate`` run the whole live system on one machine.
-
-Clocks
-------
-Estimates and odometry carry header stamps (robot time). The navigator's "now" is
-:class:`DataClock`: the newest odometry stamp of the robot plus the wall time since it arrived
-(times the clock rate). Ages are therefore measured on the robots' clock, whatever the offset
-of this machine's clock, and keep growing when the data stops (so the gate stops the robot).
-With ``--rate R`` on sim-robots, give ``--clock-rate R`` to serve and navigate: everything,
-the control period included, then runs R times faster, consistently.
+The derivation: docs/explanation/internals.md, section ``relloc.navigation.live``.
 """
 
 from __future__ import annotations

@@ -5,26 +5,7 @@ the reference robot in the shared heading frame** (the reference robot is the or
 are those of the team's compass). A rectangle "around the reference robot" is therefore just
 four corners around ``(0, 0)``; the robot drives it wherever the reference robot stands.
 
-File format (``configs/paths/*.toml``)::
-
-    name = "rectangle"
-    closed = true                 # drive back to the first waypoint at the end
-    reference = "r0"              # optional: refuse to run with a team whose reference differs
-    waypoints = [[2.0, 2.0], [-1.0, 2.0], [-1.0, -0.6], [2.0, -0.6]]
-
-    [controller]                  # optional: overrides of ControllerConfig for this path
-    max_v = 0.25
-
-    [safety]                      # optional: overrides of SafetyConfig
-    max_std = 0.3
-
-Everything the user can get wrong (fewer than two waypoints, a non-numeric or non-finite
-coordinate, a waypoint that is not a pair, an unknown key) raises :class:`PathError` naming
-the key and the reason; it is a :class:`~relloc.config.ConfigError`, so the CLI prints it as
-one line.
-
-The geometric helpers (:func:`distance_to_polyline`) are vectorised: the tracking error of a
-whole run is one call.
+The derivation: docs/explanation/internals.md, section ``relloc.navigation.path``.
 """
 
 from __future__ import annotations

@@ -1,37 +1,6 @@
 """When a robot navigating on the relative estimate must not move, and why.
 
-A controller that trusts a wrong position drives the robot into whatever is there. The gate
-checks, at every control step, everything the command depends on and holds the robot (zero
-velocity) as soon as one of them fails:
-
-=====================  =====================================================================
-``unverified``         the latest estimate came while its publisher could not be told to be
-                       the configured ``relloc serve`` (``--secure``: no link authenticated
-                       as it)
-``no_estimate``        no estimate of this robot has arrived yet
-``stale_estimate``     the latest estimate is older than ``max_age`` (engine or link down)
-``unseen``             nothing has been heard of this robot or of the reference for a while
-                       (``Estimate.unseen``): its position is where it was last seen
-``uncertain``          the estimate's position std exceeds ``max_std`` (the filter has not
-                       converged yet, or has diverged: e.g. its particles split between a
-                       formation and its mirror image)
-``unobservable``       the formation's orientation about the reference is not observable yet
-                       (a team at rest: the position is the middle of a ring of candidates)
-``modes``              the published mode holds less than ``min_mode_weight`` of the
-                       posterior (a formation and its mirror image, or rotations, compete)
-``no_odometry``        no odometry of this robot yet (the controller's heading comes from it)
-``stale_odometry``     the robot's odometry is older than ``max_age``
-``interrupted``        Ctrl-C or an explicit stop (terminal)
-``goal reached``       the path is complete (terminal)
-=====================  =====================================================================
-
-Before moving at all, and again after any hold, every check must have passed for
-``settle_time`` seconds in a row: the start gate ("the estimate has converged") and a guard
-against a single good-looking estimate in a diverging run. Each stop and each resume is logged
-(``logging``, logger ``relloc.navigation``) and recorded as a :class:`StopRecord`.
-
-Times are *data* times (the clock of the estimates' and odometry's header stamps), so the same
-gate works in the simulator (sim time) and live (robot clocks).
+The derivation: docs/explanation/internals.md, section ``relloc.navigation.safety``.
 """
 
 from __future__ import annotations

@@ -11,21 +11,7 @@ nodes, from motion capture. ``node1``/``node2`` are *robot numbers*; ranging err
 transceivers, so :data:`DEFAULT_NODE_MAP` turns them into UWB node ids and every series is keyed
 by :func:`relloc.events.pair_key` of the nodes (``"n_3-n_7"``).
 
-Three things matter for models that generalise beyond the session they were trained on:
-
-* **Canonical order.** A pair's frames are ``[range, yaw_a, yaw_b]`` where ``a`` is the node that
-  sorts first in the pair key, whatever order the CSV (or a live ``RangeEvent``) names them in.
-* **Repeats are not measurements.** The CSV is written by a timer faster than the UWB updates,
-  so about 17 % of a pair's consecutive rows repeat the previous range exactly. A window full of
-  copies would tell the model that the range is frozen; :func:`drop_repeats` keeps only rows
-  whose range differs from the pair's previous row, and the run-time stage does the same.
-* **Time order.** Splits are by blocks of time, never shuffled across time: neighbouring
-  ranging errors are strongly correlated, so a random split would score a model on
-  near-copies of its training rows. The test part is the pair's last rows; the validation rows
-  (early stopping, the fallback guard, the uncertainty's calibration) are a few blocks spread
-  over the rest, far apart in time (:func:`block_split`), each with a gap of excluded rows on
-  both sides, so that model selection rewards what holds minutes later, not what fits the
-  neighbouring seconds.
+The derivation: docs/explanation/internals.md, section ``relloc.ranging.dataset``.
 """
 
 from __future__ import annotations

@@ -1,30 +1,6 @@
 """Score range-error models against honest baselines (NumPy and onnxruntime only).
 
-For every node pair of a CSV that every given model directory covers, the same target rows are
-predicted by:
-
-* ``zero``: no correction (the raw range); its MSE is the mean squared ranging error;
-* ``bias``: one constant per pair, the mean error of the rows the models were trained on
-  (everything before the test part; the research code's approach, done per pair);
-* ``constant``: one constant for every pair (the mean error over all pairs' training rows);
-* each model directory (one per variant): as deployed, the pair's constant plus the clipped
-  residual of its ONNX model (or the constant alone where the guard made the pair fall back),
-  on the repeat-free windows; with the calibration of its sigma (``sigma_z_rms``, the RMS of
-  error / sigma, 1 when calibrated; ``sigma_cover_2``, the fraction within two sigmas);
-* ``bias+online`` and ``<variant>+online``: the same with the pair's constant replaced by an
-  offset estimated online, causally, from the rows already seen (see :func:`online_offset`).
-  It uses the true errors, so it is what an online bias estimator could reach at best; the
-  difference between ``<variant>+online`` and ``bias+online`` is what the learned
-  orientation/motion part adds once the session's offset is known.
-
-Which rows: if the CSV is the one the models were trained on (same SHA-256), the chronological
-test part recorded in the manifest; otherwise every row with a full window (``part="all"``),
-which is how another session is scored. Targets start ``max(n_steps) - 1`` rows into the part
-or later, so every method predicts exactly the same rows.
-
-MSE is reported per pair, as the mean over pairs (each pair counts once, as in the paper's
-table) and pooled over all predictions. Compute time per prediction is the median wall time of
-single-window onnxruntime calls on one thread, Python overhead included.
+The derivation: docs/explanation/internals.md, section ``relloc.ranging.evaluate``.
 """
 
 from __future__ import annotations

@@ -1,45 +1,6 @@
 """The trained-model directory: one ONNX file per node pair and a JSON manifest.
 
-Layout (written by ``relloc ranging train``, read by evaluation and the run-time stage)::
-
-    DIR/
-      manifest.json        # this module's schema, below
-      n_3-n_7.onnx         # raw window (B, n_steps, 3) -> residual, sigma (B, 1), metres
-      n_3-n_7.pt           # torch checkpoint, only for `relloc ranging export` (re-export)
-      ...
-
-``manifest.json``::
-
-    {
-      "format": "relloc-ranging/2",
-      "variant": "stacked", "n_steps": 10,
-      "offset": "manifest",                       # run time: add train_bias, or "filter"
-      "constant": 0.32,                           # mean error over every pair (a baseline)
-      "architecture": {"variant": ..., "hidden": [50, 50], "dropout": 0.3, "features": ...},
-      "node_map": {"1": "n_7", ...},
-      "training": {"csv": ..., "csv_sha256": ..., "split": [0.7, 0.1, 0.2], "seed": 0, ...},
-      "pairs": {
-        "n_3-n_7": {
-          "nodes": ["n_3", "n_7"], "onnx": "n_3-n_7.onnx", "checkpoint": "n_3-n_7.pt",
-          "normalisation": {"feature_mean": [...], "feature_scale": [...],
-                            "target_mean": ..., "target_std": ...},
-          "train_bias": ...,                      # the pair's constant: mean error of the
-                                                  # rows before the test part (the offset)
-          "residual_min": ..., "residual_max": ..., # training residuals (run-time clip)
-          "fallback": false,                      # guard: true = apply the constant only
-          "fallback_sigma": ...,                  # the constant's validation RMSE
-          "test_rows": [start, stop], "val_blocks": [[start, stop], ...],
-          "val_mse": ..., "val_mse_bias": ..., "epochs": ..., "best_epoch": ..., ...
-        }, ...
-      }
-    }
-
-The model predicts the *residual* around the pair's constant; the predicted error is
-``train_bias + clip(residual, residual_min, residual_max)`` (or ``train_bias`` alone for a
-``fallback`` pair). The normalisation is also baked into each ONNX graph (the manifest copy is
-for people and for checks); the frames are ``[range, yaw_a, yaw_b]`` with ``a`` the node that
-sorts first. Directories of the first format (models of the full error) must be retrained.
-No torch here.
+The derivation: docs/explanation/internals.md, section ``relloc.ranging.manifest``.
 """
 
 from __future__ import annotations

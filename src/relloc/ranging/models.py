@@ -1,33 +1,6 @@
 """Range-error models (PyTorch): stacked LSTM, bidirectional LSTM and ConvLSTM.
 
-Each model maps a window of the last ``n_steps`` frames ``[range, yaw_a, yaw_b]`` of one UWB
-node pair (metres, radians, canonical node order, see :mod:`relloc.ranging.dataset`) to that
-pair's ranging error at the newest frame (metres). Everything between the raw window and the
-error in metres is *inside* the module, so the exported ONNX graph is self-contained and the run
-time cannot apply a different preprocessing than training did:
-
-1. :class:`FeatureTransform` turns the raw frames into features (see :data:`FEATURE_SETS`),
-2. fixed buffers z-normalise them with statistics of the training windows,
-3. the recurrent core and a dense layer predict a normalised error,
-4. fixed buffers map it back to metres (training mean and standard deviation of the target),
-5. a second dense head, on the same (detached) recurrent features, predicts the standard
-   deviation of the remaining error: a learned, input-dependent uncertainty.
-
-The target is the pair's error *minus the pair's constant* (the residual around the mean error
-of its training rows, see :mod:`relloc.ranging.train`): the constant moves between sessions, the
-orientation- and motion-dependent residual should not, so the run time adds the constant (or
-leaves it to the filter) separately. The uncertainty head is trained by the Gaussian negative
-log-likelihood of the detached residuals (so it cannot bend the error prediction), then scaled
-so that on the validation blocks ``mean((residual / sigma)^2) = 1`` (:attr:`sigma_scale`).
-
-Architectures follow the paper's defaults (two recurrent layers of 50 units, dropout 0.3, one
-dense output) and are configurable through :class:`Architecture`. PyTorch has no ConvLSTM layer;
-:class:`ConvLSTMCell1d` implements one (Shi et al., 2015) with 1-D convolutions: the window is
-cut into ``n_steps / conv_subseq`` sub-sequences that the cell steps through, and the
-convolution runs along the ``conv_subseq`` frames inside each one (the usual ConvLSTM recipe
-for univariate-style series).
-
-This module needs the optional extra ``relloc[train]``; nothing used at run time imports it.
+The derivation: docs/explanation/internals.md, section ``relloc.ranging.models``.
 """
 
 from __future__ import annotations

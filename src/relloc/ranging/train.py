@@ -9,23 +9,7 @@ the mean error of the rows before the test part), and the constant is stored bes
 manifest: the run time adds it back, or leaves the offset to the filter
 (``TrainConfig.offset``), and evaluation can estimate it online.
 
-For each pair of the CSV: drop repeated ranges; keep the last rows as the test part and take
-validation rows in blocks spread over the rest (:func:`relloc.ranging.dataset.block_split`,
-with a gap of ``val_gap`` rows around each); fit the normalisation on the training windows;
-train with AdamW (weight decay), dropout and gradient clipping on the MSE of the normalised
-residual, stopping early when the validation MSE has not improved for ``patience`` epochs (the
-best weights are kept). The uncertainty head learns a standard deviation by the Gaussian
-negative log-likelihood of the detached residuals and is then scaled so that it is calibrated
-on the validation blocks. Mini-batches are shuffled within the training rows only.
-
-**Guard**: a model that does not beat the constant on its validation blocks by at least
-``guard_margin`` (relative MSE) is marked ``fallback`` in the manifest; the run time then
-applies the constant alone, with the constant's validation RMSE as the sigma. Predictions are
-clipped at run time to the residuals seen in training (``residual_min``, ``residual_max``).
-
-Training is seeded per pair and single-threaded, so it is deterministic and does not depend
-on which other pairs are trained. The test rows are not touched here; ``relloc ranging eval``
-scores them.
+The derivation: docs/explanation/internals.md, section ``relloc.ranging.train``.
 """
 
 from __future__ import annotations

@@ -1,42 +1,6 @@
 """Estimates out over Eclipse Zenoh, as ROS 2 messages a bridge or rmw_zenoh hands to ROS.
 
-Topics (``prefix`` defaults to ``relloc``), on the keys of the interface
-(:class:`~relloc.ros.interfaces.RosInterface`: ``relloc/turtle01/pose`` on the bridge,
-``0/relloc/turtle01/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/RIHS01_...``
-with rmw_zenoh, published by a :class:`~relloc.ros.zenoh_node.ZenohNode` named ``relloc``
-with its liveliness tokens):
-
-``<prefix>/<robot>/pose``
-    Each non-reference robot's estimate as ``geometry_msgs/PoseWithCovarianceStamped`` CDR:
-    position relative to the reference robot in the shared heading frame (``frame_id`` = the
-    reference robot's name), header stamp = the estimate time (the newest measurement fused),
-    covariance of x and y from the particles. The orientation is not estimated: identity, with
-    yaw variance :data:`UNKNOWN_VARIANCE` so that no consumer mistakes it for a measurement.
-    Estimates of the primary (first) method use this key; other methods publish on
-    ``<prefix>/<method>/<robot>/pose``.
-    While the formation's orientation about the reference is unobservable (a team at rest) the
-    position is the middle of the ring of candidates and its covariance spans that ring
-    (:attr:`Estimate.orientation_observable <relloc.estimate.Estimate.orientation_observable>`):
-    honest, but the shape below is what is known.
-``<prefix>/shape``
-    JSON (text as the status), one per estimate of the primary method (other methods:
-    ``<prefix>/<method>/shape``): the estimate time, the reference, whether the orientation is
-    observable, the published mode's weight and the number of modes, the formation's shape in
-    its declared gauge (``gauge``: the robot on the reference's +x axis; the next robot on the
-    +y side), every pair's distance (mean, std) and the status line saying what would resolve
-    the orientation.
-``<prefix>/status``
-    JSON, about once per ``status_period``: whatever the server's status function returns
-    (rates, rejected counts, ESS, last estimate time, quiet robots; see ``relloc.live``). On the
-    bridge the UTF-8 text itself; with rmw_zenoh a ``std_msgs/msg/String`` holding it
-    (:meth:`RosInterface.text_payload <relloc.ros.interfaces.RosInterface.text_payload>`).
-``<prefix>/trace``
-    JSON (as the status), one per estimate, only with ``trace=True``: the estimate time and the
-    message that triggered it (key, header stamp, send and receive wall time) and the
-    publication wall time, from which ``benchmarks/serve_resources.py`` measures end-to-end latency.
-
-A zenoh-bridge-ros2dds on the receiving side turns ``relloc/turtle01/pose`` into the ROS topic
-``/relloc/turtle01/pose``; with rmw_zenoh it is that topic already.
+The derivation: docs/explanation/internals.md, section ``relloc.sinks.zenoh_sink``.
 """
 
 from __future__ import annotations

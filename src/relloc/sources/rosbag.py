@@ -6,34 +6,7 @@ the transport: opening and checking the bag, and reading its messages in receive
 the messages become (routes, conversion, clock, reorder buffer, counters) is the shared
 ingestion layer, :mod:`relloc.sources.ingest`, which the live Zenoh source uses too.
 
-Which topics
-------------
-The routes of :func:`~relloc.sources.ingest.team_routes`, checked against the bag: every
-topic of a sensor that is ``required`` (odometry, motion capture: ``ground_truth``, on by
-default, detections) must be in it with the right message type, or :class:`BagError` says which
-one is missing and lists the bag's topics. The others (UWB ranges, sightings) are taken where
-the bag has them; range topics involving a node no robot of the team carries (static anchors)
-are listed in :attr:`RosbagSource.ignored_range_topics` and not read: the method is
-infrastructure-free.
-
-Time
-----
-Events carry header stamps. Before streaming, the source reads the header stamps of the bag's
-first seconds (12 bytes per message, no decoding) into a
-:class:`~relloc.sources.clock.HeaderClock` and freezes it: a recording's clock offset (header
-minus receive time) is constant, so one estimate at the start serves the whole bag and
-already restamps the first zero-stamped message. The reorder buffer then releases an event
-once the newest receive time, put on the header clock, is ``max_lag`` past it; memory stays
-bounded by ``max_lag`` worth of messages (the bag is streamed, never loaded whole), and an event
-that would still come out of order (a message more than ``max_lag`` late) is dropped and
-counted as ``rejected["late"]``: an offline run sees strictly ordered events.
-
-Errors
-------
-Everything the user can get wrong (path missing, not a bag, corrupted or truncated database, a
-configured topic absent, a wrong message type) raises :class:`BagError` with a one-line
-explanation (the missing-topic message lists the bag's topics). A single undecodable message is
-skipped and counted (``decode_error``).
+The derivation: docs/explanation/internals.md, section ``relloc.sources.rosbag``.
 """
 
 from __future__ import annotations

@@ -1,76 +1,10 @@
 """Cooperative spatial detections (``PF_UV`` / ``PF_ULV``): the detection-association stage.
 
-The measurement
----------------
 Robot ``i`` sees an object at ``o_i`` (its body frame), robot ``j`` sees the same object at
 ``o_j``. With ``R_k`` the rotation by robot ``k``'s heading in the shared heading frame both
-point at one place, ``p_i + R_i o_i = p_j + R_j o_j``, hence
+point at one place, ``p_i + R_i o_i = p_j + R_j o_j``: the pair measures ``p_j - p_i``.
 
-    p_j - p_i = R_i o_i - R_j o_j,
-
-a measured relative position. The stage emits it as a
-:class:`~relloc.events.RelativeObservation` and the particle filter fuses it, in the same update
-as the ranges, with :class:`~relloc.filter.vectors.RelativePositionBatch`. Unlike a range, the
-vector fixes the bearing between the robots: it resolves the rotations and reflections that
-ranges alone cannot, and it is the only source of bearing for robots that do not move.
-
-Headings come from each robot's odometry in the shared frame: the stage keeps its own
-:class:`~relloc.odometry.OdometryTrack` per robot (heading offset, scale and mode from the team
-config), fed by the odometry events that pass through it.
-
-Which detections are the same object
-------------------------------------
-This is the hard part: two chairs look alike, and an object seen by one robot only has no
-partner. For every detection frame of robot ``i`` the stage
-
-1. **pairs frames**: the nearest frame of each other robot ``j`` captured within
-   ``detection_window`` seconds (each frame is paired at most once with each other robot, and
-   never with a frame of its own robot). Both sides are carried to the later capture time
-   ``t`` with their own odometry, so the vector is ``p_j(t) - p_i(t)`` even while they drive;
-2. **proposes** every (object of ``i``, object of ``j``) with the same label (an empty label,
-   from unlabelled detections, matches any label): the *proposed* pairs;
-3. **gates** each proposed pair. Once the filter has converged on the pair (both robots'
-   position standard deviation below ``CONVERGED_STD``, from the estimates fed back with
-   :meth:`DetectionAssociator.feedback`), the vector must agree with the estimated
-   ``p_j - p_i`` (carried to ``t`` by odometry) within ``d_th + GATE_SIGMAS * std``: the
-   paper's threshold widened by what the estimate itself does not know. Before that, its length
-   must agree with the pair's latest UWB range (bias of the node pair removed, at most
-   ``RANGE_MAX_AGE`` old) within ``det_range_gate``, as the research code did; a weaker
-   test (one dimension) but one available from the start. With neither there is no way to tell
-   one object from two look-alikes: the pair is rejected (``no_gate``);
-4. **takes the consensus**: every true pair of one frame pair implies the same vector, whereas
-   a wrong pairing is off by the distance between two objects. For each pair that passed the
-   gate, the pairs consistent with it (vectors within twice their combined sigma) are matched
-   one-to-one (Hungarian assignment on the disagreement); the largest matching wins, ties
-   going to the smaller gate residual. If another matching of the same size implies an
-   inconsistent vector, the frame pair is *ambiguous* and nothing of it is accepted;
-5. **emits** one ``RelativeObservation(t, observer=i, target=j, dx, dy, sigma)`` per accepted
-   pair (``i`` the robot whose frame arrived first, ``t`` the later capture time), with
-   ``sigma^2 = sigma_det^2 + sum over both sides of (det_sigma_per_m^2 + psi^2 / 2) d^2``:
-   depth noise and the effect of heading errors grow with the distance ``d`` of each
-   detection, and ``psi = det_heading_drift * (seconds the robot has moved)`` is how far its
-   odometry heading may have drifted from the shared frame by now. Detection vectors are only
-   as good as the headings that rotate them; ranges do not depend on headings at all.
-
-Every event passes through unchanged; the stage only *adds* observations, after the detection
-event that completed them.
-
-Counters (:attr:`DetectionAssociator.stats`)
---------------------------------------------
-``proposed`` = ``accepted`` + ``rejected``; each proposed pair counts once:
-
-==========================  ===================================================================
-``accepted_by_estimate``    accepted, gated on the converged estimate
-``accepted_by_range``       accepted, gated on the UWB range
-``rejected_gate``           disagrees with the estimate or the range
-``rejected_inconsistent``   passed the gate, but not in the consensus matching
-``rejected_ambiguous``      passed the gate, but two inconsistent matchings fit equally well
-``rejected_no_gate``        no converged estimate and no fresh range for the pair
-``rejected_no_odometry``    no odometry yet for one of the two robots (heading unknown)
-==========================  ===================================================================
-
-and, per detection: ``frames``, ``objects`` (valid ones), ``invalid_object`` (non-finite or
-all-zero position: no depth), ``unknown_robot`` (frames of robots outside the team).
+The derivation: docs/explanation/internals.md, section ``relloc.stages.association``.
 """
 
 from __future__ import annotations

@@ -1,65 +1,6 @@
 """Learned UWB range correction (``PF_UL``): a stage between the source and the localizer.
 
-For each UWB node pair with a trained model (``relloc ranging train``), the stage keeps the
-pair's window of the last ``n_steps`` frames ``[range, yaw_a, yaw_b]`` from the live events and
-removes the predicted error. The models predict the **residual** around the pair's constant
-(the part that depends on orientation and motion, which should hold on another session); the
-constant itself (the pair's bias, which moves between sessions) is applied by the offset mode
-(the manifest's ``offset``, or the ``offset`` argument):
-
-* ``manifest``: ``range - (constant + residual)``, marked ``corrected=True`` so the filter
-  applies no bias of its own;
-* ``filter``: ``range - residual``, left ``corrected=False``: the filter applies its own pair
-  bias (calibrated in the team config, or estimated online with ``--bias online``), which is
-  how a session-level offset estimated online combines with the learned part.
-
-Every range the stage changes carries ``sigma``, the model's standard deviation of what remains
-(see :class:`relloc.events.RangeEvent`), so the filter can weigh an unsure correction less.
-A pair whose model fell back to the constant (the training guard, ``fallback`` in the manifest)
-gets the constant from its first range on, with the constant's validation RMSE as sigma.
-Inference is onnxruntime only: nothing here imports torch.
-
-Usage by the engine::
-
-    corrector = RangeCorrector.from_config(team, "models/ranging/bilstm")
-    for event in events:
-        corrector.observe(event)            # odometry -> headings; other events ignored
-        if isinstance(event, RangeEvent):
-            event = corrector.correct(event)
-
-The frames must look like the training frames:
-
-* **Headings** in the shared heading frame, which must be the frame of the training yaws (the
-  motion-capture frame for the TIERS CSV) unless the models were trained with the
-  heading-free ``invariant`` features. The stage integrates odometry itself (one
-  :class:`relloc.odometry.OdometryTrack` per robot: heading offset, pose or twist mode from the
-  team config) and reads the heading interpolated at the range's time; or the engine tells it
-  headings with :meth:`RangeCorrector.set_yaw`, or gives it a ``yaw_provider`` function.
-* **Canonical order**: ``yaw_a`` belongs to the node that sorts first in the pair key,
-  whichever order the event names the robots in.
-* **No repeats**: a range equal to the pair's previous one is the same measurement read again
-  (training dropped those rows); it is not pushed into the window a second time and gets the
-  correction already computed for that window.
-
-A range passes through unchanged (``corrected=False``) when the stage cannot correct it, and
-:attr:`RangeCorrector.stats` counts every range by what happened to it:
-
-==================== ==========================================================
-``corrected``         corrected with a fresh prediction
-``fallback``          the pair's model fell back: corrected by the constant alone
-``corrected_repeat``  a repeated range, corrected with the window's prediction
-``window_not_full``   fewer than ``n_steps`` distinct ranges since start or reset
-``no_model``          no model for this node pair
-``no_yaw``            no heading yet for one of the two robots
-``stale_yaw``         the last heading is older than ``max_yaw_age``
-``invalid_range``     distance not finite or not positive
-``out_of_order``      older than the pair's previous range
-``already_corrected`` the event was corrected upstream (``corrected`` or a ``sigma``)
-==================== ==========================================================
-
-plus two occurrence counters that are not outcomes: ``window_reset`` (a gap longer than
-``max_gap`` emptied the pair's window) and ``clipped`` (a residual was clipped to the
-training residuals' range).
+The derivation: docs/explanation/internals.md, section ``relloc.stages.range_correction``.
 """
 
 from __future__ import annotations
