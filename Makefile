@@ -5,7 +5,7 @@ PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup setup-test demo test docs lint bench clean
+.PHONY: setup setup-test demo test docs results lint bench clean
 
 # A .venv made by another Python cannot be reused (pip refuses relloc with "requires a different
 # Python", and `python -m venv` keeps the old interpreter): say so and rebuild it.
@@ -53,6 +53,10 @@ $(DOCS_VENV)/.installed: pyproject.toml
 
 docs: $(DOCS_VENV)/.installed
 	NO_MKDOCS_2_WARNING=1 $(DOCS_VENV)/bin/mkdocs build --strict --quiet
+
+# Reruns the evaluation commands and writes docs/results_generated.md from their JSON.
+results: setup
+	$(BIN)/python scripts/results_pages.py --out docs/results_generated.md
 
 # The benchmark has an environment of its own: relloc plus the pfilter reference (not a dependency).
 BENCH_VENV := .venv-bench
