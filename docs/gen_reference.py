@@ -24,8 +24,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 UNIT = re.compile(
     r"\(((?:m|s|ms|rad|deg|Hz|m/s|rad/s|m per sqrt\(s\)|rad per sqrt\(s\)|s\^-1|1/s|"
-    r"m\^2|rad\^2|bytes|MiB|particles|robots)(?:[ ,;)][^)]*)?)\)"
+    r"m\^2|rad\^2|bytes|MiB|particles|robots|dimensionless)(?:[ ,;)][^)]*)?)\)"
 )
+
+SUFFIX_UNITS = {"_deg": "deg", "_s": "s", "_m": "m"}
 
 
 # ---------------------------------------------------------------- command line
@@ -122,9 +124,12 @@ def _default(f: dataclasses.Field[Any]) -> str:
     return "**required**"
 
 
-def _unit(doc: str) -> str:
+def _unit(name: str, doc: str) -> str:
+    """The first unit the docstring names in parentheses, else the one the name ends in."""
     m = UNIT.search(doc)
-    return m.group(1).split(",")[0].split(";")[0] if m else ""
+    if m:
+        return m.group(1).split(",")[0].split(";")[0]
+    return next((u for suffix, u in SUFFIX_UNITS.items() if name.endswith(suffix)), "")
 
 
 def _config_section(cls: type, section: str, seen: set[type]) -> list[str]:
@@ -149,7 +154,7 @@ def _config_section(cls: type, section: str, seen: set[type]) -> list[str]:
         if _is_config(inner):
             meaning = (meaning + " " if meaning else "") + f"See `{key}` below."
         out.append(
-            f"| `{f.name}` | `{_type_name(tp)}` | {_default(f)} | {_unit(doc)} | {meaning} |"
+            f"| `{f.name}` | `{_type_name(tp)}` | {_default(f)} | {_unit(f.name, doc)} | {meaning} |"
         )
     out.append("")
     for sub, key in nested:

@@ -22,12 +22,19 @@ class CameraConfig(Checked):
     """
 
     x: float = 0.0
+    """The optical centre's ``x`` in the robot body frame (m)."""
     y: float = 0.0
+    """The optical centre's ``y`` in the robot body frame (m)."""
     z: float = 0.0
+    """The optical centre's ``z`` in the robot body frame (m)."""
     yaw_deg: float = 0.0
+    """Turn of the camera, left positive (deg)."""
     pitch_deg: float = 0.0
+    """Tilt of the camera, down positive (deg)."""
     fov_deg: float = 70.0
+    """Horizontal field of view (deg)."""
     max_range: float = 5.0
+    """Farthest detection the camera reports (m)."""
 
 
 @dataclass(frozen=True)
@@ -71,9 +78,11 @@ class PairCalibration(Checked):
     """Range calibration of one UWB transceiver pair: ``measured = scale * true + bias``."""
 
     bias: float = 0.0
+    """Range bias of the pair (m)."""
     scale: float = 1.0
+    """Range scale of the pair (dimensionless)."""
     sigma: float | None = None
-    """Range noise for this pair; ``None`` uses ``[uwb] sigma`` (``los_sigma`` for the
+    """Range noise for this pair (m); ``None`` uses ``[uwb] sigma`` (``los_sigma`` for the
     NLOS-aware likelihood)."""
     source: str = ""
     """Which recording this calibration was estimated from."""
@@ -95,7 +104,7 @@ class UwbConfig(Checked):
     default_bias: float = 0.3
     """Bias assumed for a pair with no calibration (m)."""
     default_bias_sigma: float = 0.15
-    """Extra range noise for an uncalibrated pair (added in quadrature to ``sigma`` or
+    """Extra range noise for an uncalibrated pair (m; added in quadrature to ``sigma`` or
     ``los_sigma``)."""
     sigma: float = 0.15
     """Range noise (m, one standard deviation) of the symmetric range likelihood (Gaussian plus
