@@ -15,8 +15,8 @@ topics; with nothing seen at all the offset is 0, which is right live: ROS stamp
 ``rate`` is header seconds per receive second (a recording replayed twice as fast: 2).
 
 The two clocks need not be close. A recording that was re-recorded from a replay has receive
-times from the day of the replay and header stamps from the day of the experiment (the
-shortbag's differ by weeks: ``docs/results.md``), but the offset between them is constant over
+times from the day of the replay and header stamps from the day of the experiment (weeks
+apart, on one of the shared recordings), but the offset between them is constant over
 the recording. A bag source can therefore estimate it once, from the header stamps at the start
 of the bag, and :meth:`HeaderClock.freeze` it; a live source cannot look ahead and learns it as
 messages come (a running median over each topic's last ``window`` stamped messages).

@@ -21,7 +21,7 @@ topic it holds; Zenoh puts each route on the key expressions of the bridge conve
 
 Zero stamps
 -----------
-Some drivers publish all-zero header stamps (the shortbag's ``/cali/turtle05/odom``), and
+Some drivers publish all-zero header stamps (an odometry topic of a shared recording), and
 a robot can be flagged ``odom_zero_stamps`` when its odometry stamps are not to be trusted.
 :class:`Converter` gives such a message ``HeaderClock.stamp(kind, receive time)`` and counts it
 in ``restamped``; successive restamped times of one topic always increase (arrival order is the
