@@ -10,6 +10,7 @@ from typing import ClassVar
 
 import numpy as np
 import pytest
+from model_checks import assert_rows_are_the_log_likelihood_and_its_gradient
 
 from relloc.config import TeamConfig
 from relloc.events import GroundTruthEvent, RangeEvent, RelativeObservation, SightingEvent
@@ -192,22 +193,7 @@ def test_every_models_rows_are_the_gradient_of_its_log_likelihood(online: bool, 
     checked = 0
     for event_type, cls in MODELS.items():
         for model in cls.build(samples[event_type], context):
-            ll = model.log_likelihood(layout.positions(x), x)
-            grad = np.zeros_like(x)
-            dens = np.zeros(x.shape[0])
-            for k in range(model.rows):
-                row = model.row(k, x)
-                logd, inlier = row.density(row.residual, np.full(x.shape[0], row.variance))
-                dens += logd
-                grad[:, row.columns] += (inlier * row.residual / row.variance)[:, None] * row.jacobian
-            np.testing.assert_allclose(dens, ll, rtol=1e-12)
-            h = 1e-6
-            for c in range(layout.width):
-                up, down = x.copy(), x.copy()
-                up[:, c] += h
-                down[:, c] -= h
-                fd = (model.log_likelihood(layout.positions(up), up) - model.log_likelihood(layout.positions(down), down)) / (2 * h)
-                np.testing.assert_allclose(grad[:, c], fd, rtol=1e-5, atol=1e-6)
+            assert_rows_are_the_log_likelihood_and_its_gradient(model, layout, x)
             checked += 1
     assert checked == len(MODELS)
 

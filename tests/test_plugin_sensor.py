@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from model_checks import assert_rows_are_the_log_likelihood_and_its_gradient
 from toy_sensor import TOY, TOY_FIX, ToyFixBatch, ToyFixEvent
 from waiting import wait_until
 
@@ -191,21 +192,7 @@ def test_the_toy_models_rows_are_its_log_likelihood_and_its_gradient(toy: None) 
     fixes = [ToyFixEvent(0.0, "r2", 1.0, -2.0, 0.2), ToyFixEvent(0.0, "r4", -0.5, 0.7, 0.3)]
     (model,) = ToyFixBatch.build(fixes, ModelContext(with_toy(config), layout))
     x = np.random.default_rng(0).normal(0.0, 2.0, (4, layout.width))
-    dens, grad = np.zeros(4), np.zeros_like(x)
-    for k in range(model.rows):
-        row = model.row(k, x)
-        logd, inlier = row.density(row.residual, np.full(4, row.variance))
-        dens += logd
-        grad[:, row.columns] += (inlier * row.residual / row.variance)[:, None] * row.jacobian
-    np.testing.assert_allclose(dens, model.log_likelihood(layout.positions(x), x), rtol=1e-12)
-    h = 1e-6
-    for c in range(layout.width):
-        up, down = x.copy(), x.copy()
-        up[:, c] += h
-        down[:, c] -= h
-        fd = (model.log_likelihood(layout.positions(up), up) - model.log_likelihood(layout.positions(down), down)) / (2 * h)
-        np.testing.assert_allclose(grad[:, c], fd, rtol=1e-5, atol=1e-6)
-
+    assert_rows_are_the_log_likelihood_and_its_gradient(model, layout, x)
 
 def test_the_simulator_runs_the_toy_sensors_hook(toy: None) -> None:
     """A registered plug-in adds its events to a simulation; the simulator's own are unchanged."""
