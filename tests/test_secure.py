@@ -436,9 +436,9 @@ def test_the_shortbag_replayed_into_a_secure_serve_gives_the_plain_runs_ape(
     """``replay`` (``team``) into a server (``serve``) over mutual TLS with the access control:
     the APE of ``relloc run`` on the same bag, particles and seed, as over plain TCP
     (``test_zenoh_live.test_replayed_shortbag_matches_relloc_run``, the same bounds)."""
-    from test_zenoh_live import SHORTBAG, Running, _offline_shortbag
+    from test_zenoh_live import SHORTBAG, _offline_shortbag, serve_replayed
 
-    from relloc.live import ReplayOptions, ape_against_bag, replay_bag
+    from relloc.live import ape_against_bag
 
     bag = shared_data / "tiers" / SHORTBAG
     config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")
@@ -451,19 +451,7 @@ def test_the_shortbag_replayed_into_a_secure_serve_gives_the_plain_runs_ape(
     client = open_role(folder, "team", connect=(port,))
     try:
         assert wait_until(lambda: len(serve.info.links()) == 1, timeout=10)
-        collector = EstimateCollector(client, config)
-        server = LiveServer(
-            config, serve, ServeOptions(particles=particles, seed=seed, reorder_window=1.0, clock_rate=rate)
-        )
-        with Running(server) as live:
-            stats = replay_bag(bag, config, client, ReplayOptions(rate=rate, wait=5.0))
-            assert stats.unmatched == []
-            expected = sum(n for k, n in stats.per_key.items() if k in live.source.routes)
-            assert wait_until(lambda: sum(live.source.stats.messages.values()) >= expected, timeout=20.0)
-        published = len(server.pipelines[0].estimates)
-        assert wait_until(lambda: len(collector.estimates()) >= published, timeout=20.0)
-        estimates = collector.estimates()
-        collector.close()
+        estimates, _, _ = serve_replayed(bag, config, serve, client, particles, seed, rate)
     finally:
         client.close()
         serve.close()

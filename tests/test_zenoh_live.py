@@ -226,6 +226,33 @@ def _offline_shortbag(bag: Path, particles: int, seed: int) -> Any:
     )
 
 
+def serve_replayed(
+    bag: Path, config: TeamConfig, serve: Any, client: Any, particles: int, seed: int, rate: float,
+    interface: RosInterface | None = None,
+) -> tuple[list[Any], Any, LiveServer]:
+    """Replay ``bag`` at ``rate`` from ``client`` into a live server on ``serve``: every estimate
+    it published, as collected on ``client``, the replay's stats and the server (a reorder window
+    of 1 s: the replay shares the process; see :func:`test_replayed_shortbag_matches_relloc_run`)."""
+    interface = interface or RosInterface()
+    collector = EstimateCollector(client, config, interface=interface)
+    server = LiveServer(
+        config,
+        serve,
+        ServeOptions(particles=particles, seed=seed, reorder_window=1.0, clock_rate=rate, interface=interface),
+    )
+    with Running(server) as live:
+        stats = replay_bag(bag, config, client, ReplayOptions(rate=rate, wait=5.0, interface=interface))
+        assert stats.unmatched == []
+        expected = sum(n for k, n in stats.per_key.items() if k in live.source.routes)
+        assert wait_until(lambda: sum(live.source.stats.messages.values()) >= expected, timeout=20.0)
+    # What the server held is fused and published as it ends: let all of it arrive.
+    published = len(server.pipelines[0].estimates)
+    assert wait_until(lambda: len(collector.estimates()) >= published, timeout=20.0)
+    estimates = collector.estimates()
+    collector.close()
+    return estimates, stats, server
+
+
 @pytest.mark.slow
 @pytest.mark.shared_data
 @pytest.mark.parametrize("kind", [BRIDGE, RMW_ZENOH])
@@ -250,24 +277,7 @@ def test_replayed_shortbag_matches_relloc_run(
     offline = report.methods["pf"]
 
     srv_session, client = sessions
-    collector = EstimateCollector(client, config, interface=interface)
-    server = LiveServer(
-        config,
-        srv_session,
-        ServeOptions(
-            particles=particles, seed=seed, reorder_window=1.0, clock_rate=rate, interface=interface
-        ),
-    )
-    with Running(server) as live:
-        stats = replay_bag(bag, config, client, ReplayOptions(rate=rate, wait=5.0, interface=interface))
-        assert stats.unmatched == []
-        expected = sum(n for k, n in stats.per_key.items() if k in live.source.routes)
-        assert wait_until(lambda: sum(live.source.stats.messages.values()) >= expected, timeout=20.0)
-    # What the server held is fused and published as it ends: let all of it arrive.
-    published = len(server.pipelines[0].estimates)
-    assert wait_until(lambda: len(collector.estimates()) >= published, timeout=20.0)
-    estimates = collector.estimates()
-    collector.close()
+    estimates, stats, server = serve_replayed(bag, config, srv_session, client, particles, seed, rate, interface)
 
     served = ape_against_bag(estimates, bag, config, warmup=report.warmup, t0=report.t0)
     print(
