@@ -91,14 +91,16 @@ def test_the_sdk_reads_the_folder_and_never_clones(tmp_path: Path) -> None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize(
-    ("distro", "serve_distro"), [("jazzy", "jazzy"), ("humble", "humble"), ("humble", "jazzy")]
+    ("distro", "serve_distro"),
+    [("jazzy", "jazzy"), ("humble", "humble"), ("humble", "jazzy"), ("jazzy", "humble")],
 )
 def test_serve_localizes_a_team_published_by_the_sdk(
     distro: str, serve_distro: str, tmp_path_factory: pytest.TempPathFactory
 ) -> None:
     """A clean 4-robot team, 30 simulated s at 6x, through SDK publishers with ``distro``'s
-    definitions: serve (``--ros-distro serve_distro``) takes every message, estimates every
-    robot, and the SDK's subscribers get each pose, within 5 cm of the truth (median)."""
+    definitions: serve (``--ros-distro serve_distro``: either reads both layouts of Range)
+    takes every message, estimates every robot, and the SDK's subscribers get each pose,
+    within 5 cm of the truth (median)."""
     out = served(distro, serve_distro, tmp_path_factory)
     assert out["clone_attempts"] == []
     assert out["serve_exit"] == 0, out["serve_output"]
