@@ -22,6 +22,7 @@ import signal
 import socket
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 import tomllib
@@ -413,10 +414,12 @@ class TeamPublisher:
                 time.sleep(delay)
             else:
                 self.max_behind = max(self.max_behind, -delay)
-            header = types["std_msgs/msg/Header"](stamp=_stamp(t + time_base, types), frame_id="")
+            stamp = _stamp(t + time_base, types)
             if isinstance(ev, OdometryEvent):
+                header = types["std_msgs/msg/Header"](stamp=stamp, frame_id="odom")
                 self.pubs[topic].publish(**self._odometry(ev, header, types))
             else:
+                header = types["std_msgs/msg/Header"](stamp=stamp, frame_id="")
                 self.pubs[topic].publish(**self._range(ev, header))
             self.sent[topic] += 1
         return sum(self.sent.values())
@@ -424,7 +427,6 @@ class TeamPublisher:
     @staticmethod
     def _odometry(ev: Any, header: Any, types: Any) -> dict[str, Any]:
         vec, zero36 = types["geometry_msgs/msg/Vector3"], np.zeros(36, dtype=np.float64)
-        header.frame_id = "odom"
         pose = types["geometry_msgs/msg/Pose"](
             position=types["geometry_msgs/msg/Point"](x=float(ev.x), y=float(ev.y), z=0.0),
             orientation=types["geometry_msgs/msg/Quaternion"](
@@ -570,7 +572,8 @@ def _listening(port: int) -> bool:
 
 class RellocProcess:
     """A ``relloc`` command listening on ``tcp/127.0.0.1:port`` (multicast off); stopped with
-    SIGTERM (its output kept in :attr:`output`)."""
+    SIGTERM. Its output goes to a file (a pipe could fill and block it), read into
+    :attr:`output` when it has stopped."""
 
     def __init__(self, args: Sequence[str], port: int, *, startup: float = 30.0) -> None:
         self.port = port
@@ -578,27 +581,29 @@ class RellocProcess:
             sys.executable, "-m", "relloc.cli", *args,
             "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast",
         ]  # fmt: skip
-        self.proc = subprocess.Popen(
-            self.args, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True
-        )
+        self._log = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 (closed by stop)
+        self.proc = subprocess.Popen(self.args, stdout=self._log, stderr=subprocess.STDOUT, text=True)
         self.output = ""
         if not wait_for(lambda: _listening(port) or self.proc.poll() is not None, startup, 0.05):
             self.stop()
-            raise RuntimeError(f"{' '.join(args[:1])} never listened: {self.output}")
+            raise RuntimeError(f"{' '.join(self.args)} never listened: {self.output}")
         if self.proc.poll() is not None:
             self.stop()
             raise RuntimeError(f"{' '.join(self.args)} exited: {self.output}")
 
     def stop(self, timeout: float = 30.0) -> int:
-        """SIGTERM, wait, return the exit code."""
+        """SIGTERM (unless it has ended), wait, return the exit code."""
         if self.proc.poll() is None:
             self.proc.send_signal(signal.SIGTERM)
-        try:
-            out, _ = self.proc.communicate(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            out, _ = self.proc.communicate()
-        self.output += out or ""
+            try:
+                self.proc.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+        if not self._log.closed:
+            self._log.seek(0)
+            self.output = self._log.read()
+            self._log.close()
         return int(self.proc.returncode)
 
     def __enter__(self) -> RellocProcess:
