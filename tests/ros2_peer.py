@@ -10,7 +10,8 @@ functions replaced by ones that only record the attempt (:attr:`Ros2Peer.clone_a
 The rest is the team and the measurement: :class:`TeamTopics` reads a relloc team config,
 :class:`TeamPublisher` publishes a simulated team's odometry and ranges through SDK publishers,
 :class:`PoseInbox` collects what ``relloc serve`` publishes, :func:`ape_medians` scores it
-against the simulator's truth, and :class:`ServeProcess` runs ``relloc serve`` itself.
+against the simulator's truth, :class:`RellocProcess` runs ``relloc serve`` or ``sim-robots``
+itself and :func:`run_against_serve` is the whole run (``scripts/ros2_peer_check.py``).
 """
 
 from __future__ import annotations
