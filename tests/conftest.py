@@ -33,22 +33,25 @@ def shared_data() -> Path:
 def bag_writer() -> Callable[..., Path]:
     """A function writing messages to a new rosbag2 bag (sqlite3 or mcap) and returning its path.
 
-    Topics are registered in first-appearance order; the relloc type store (with the custom
-    detection types) serialises the messages.
+    Topics are registered in first-appearance order; the relloc type store of a distribution
+    (with the custom detection types) serialises the messages.
     """
     from rosbags.rosbag2 import StoragePlugin, Writer
 
     from relloc.ros.messages import encode, typestore
 
-    def write(path: Path, messages: Iterable[BagMessage], *, storage: str = "sqlite3") -> Path:
+    def write(
+        path: Path, messages: Iterable[BagMessage], *, storage: str = "sqlite3", distro: str = "jazzy"
+    ) -> Path:
+        """Messages in ``distro``'s layouts, with that distribution's definitions stored."""
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
-        store = typestore()
+        store = typestore(distro)
         with Writer(path, version=9, storage_plugin=plugin) as writer:
             conns: dict[str, Any] = {}
             for topic, msgtype, recv, msg in messages:
                 if topic not in conns:
                     conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
-                writer.write(conns[topic], round(recv * 1e9), encode(msg, msgtype))
+                writer.write(conns[topic], round(recv * 1e9), encode(msg, msgtype, distro))
         return path
 
     return write

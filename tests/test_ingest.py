@@ -323,6 +323,7 @@ def test_stats_record_counts_emitted_kinds_and_has_one_plain_view() -> None:
         "rejected": {"late": 1},
         "restamped": {},
         "repeated_ranges": 0,
+        "layouts": {},
         "out_of_order": 0,
         "clock_offset": -2.5,
     }

@@ -87,17 +87,30 @@ def test_type_hashes_are_those_ros2_publishes(msgtype: str) -> None:
     assert type_hash(msgtype) == "RIHS01_" + PUBLISHED_HASHES[msgtype]
 
 
-def test_type_hashes_agree_with_rosbags_on_every_type_without_char_fields() -> None:
-    """An independent implementation (rosbags' ``hash_rihs01``) agrees on all 150 other types
-    of the store; it maps ``char`` to FIELD_TYPE_CHAR where rosidl has uint8 (see Char above)."""
-    store = typestore()
-    differ = {t for t in store.fielddefs if type_hash(t) != store.hash_rihs01(t)}
-    assert differ == {
-        "std_msgs/msg/Char",
-        "rmw_dds_common/msg/Gid",  # char[24] in the Humble definitions
-        "rmw_dds_common/msg/NodeEntitiesInfo",
-        "rmw_dds_common/msg/ParticipantEntitiesInfo",
-    }
+HUMBLE_CHAR_TYPES = {
+    "std_msgs/msg/Char",
+    "rmw_dds_common/msg/Gid",  # char[24] (char[16] since Iron)
+    "rmw_dds_common/msg/NodeEntitiesInfo",
+    "rmw_dds_common/msg/ParticipantEntitiesInfo",
+}
+
+
+@pytest.mark.parametrize(
+    ("distro", "with_char"),
+    [
+        ("humble", HUMBLE_CHAR_TYPES),
+        ("jazzy", {*HUMBLE_CHAR_TYPES, "service_msgs/msg/ServiceEventInfo"}),  # char[16] client_gid
+    ],
+)
+def test_type_hashes_agree_with_rosbags_on_every_type_without_char_fields(
+    distro: str, with_char: set[str]
+) -> None:
+    """An independent implementation (rosbags' ``hash_rihs01``) agrees on the 150-odd other
+    types of each distribution's store; it maps ``char`` to FIELD_TYPE_CHAR where rosidl has
+    uint8 (see Char above)."""
+    store = typestore(distro)
+    differ = {t for t in store.fielddefs if type_hash(t, distro) != store.hash_rihs01(t)}
+    assert differ == with_char
     assert len(store.fielddefs) - len(differ) > 100
 
 
@@ -179,6 +192,8 @@ def test_rmw_source_checks_types_and_hashes_and_counts_loss_and_bad_attachments(
     assert tr == {
         "attachment_missing": 1,
         "attachment_malformed": 1,
+        "layout_by_hash": 7,
+        "hash_not_supported": 0,
         "unknown_type_hash": {f"{dds_type_name(ODOMETRY)}/RIHS01_{'0' * 64}": 1},
         "lost": {"0/r1/odom": 2},
         "sequence_restarts": 0,

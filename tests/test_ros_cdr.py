@@ -35,9 +35,12 @@ def _odometry(rng: np.random.Generator, frame: str, child: str):
     )
 
 
-def _range(rng: np.random.Generator, frame: str):
-    return _types()[rm.RANGE](
-        header=_types()["std_msgs/msg/Header"](
+def _range(rng: np.random.Generator, frame: str, distro: str):
+    """A Range of ``distro``'s layout (since Iron with a variance) with every field random."""
+    types = rm.typestore(distro).types
+    extra = {"variance": float(rng.normal())} if distro != "humble" else {}
+    return types[rm.RANGE](
+        header=types["std_msgs/msg/Header"](
             stamp=rm.time_msg(rng.uniform(0, 2e9)), frame_id=frame
         ),
         radiation_type=int(rng.integers(0, 3)),
@@ -45,11 +48,13 @@ def _range(rng: np.random.Generator, frame: str):
         min_range=float(rng.normal()),
         max_range=float(rng.normal()),
         range=float(rng.normal()),
+        **extra,
     )
 
 
-def _serialize(msg, little_endian: bool) -> bytes:
-    return bytes(rm.typestore().serialize_cdr(msg, msg.__msgtype__, little_endian=little_endian))
+def _serialize(msg, little_endian: bool, distro: str = "jazzy") -> bytes:
+    store = rm.typestore(distro)
+    return bytes(store.serialize_cdr(msg, msg.__msgtype__, little_endian=little_endian))
 
 
 # Frame ids of every length modulo 8 exercise every alignment of what follows them.
@@ -70,13 +75,19 @@ def test_odometry_fields_match_rosbags(little_endian: bool) -> None:
             assert got == pytest.approx(want, rel=0, abs=1e-12)
 
 
+@pytest.mark.parametrize("distro", ["humble", "jazzy"])
 @pytest.mark.parametrize("little_endian", [True, False])
-def test_range_fields_match_rosbags(little_endian: bool) -> None:
+def test_range_fields_match_rosbags(little_endian: bool, distro: str) -> None:
+    """Both layouts of Range (Humble's, and Iron's on with a variance) are read, each by its
+    own size; the other layout's size is refused."""
     rng = np.random.default_rng(1)
     for frame in FRAMES:
-        raw = _serialize(_range(rng, frame), little_endian)
+        raw = _serialize(_range(rng, frame, distro), little_endian, distro)
         msg = rm.decode(raw, rm.RANGE)
-        assert ros_cdr.decode_range(raw) == (rm.stamp_to_sec(msg.header.stamp), msg.range)
+        want = (rm.stamp_to_sec(msg.header.stamp), msg.range)
+        assert ros_cdr.decode_range(raw) == want
+        assert ros_cdr.decode_range(raw, distro != "humble") == want
+        assert ros_cdr.decode_range(raw, distro == "humble") is None
 
 
 def test_nan_range_is_passed_through_for_the_caller_to_reject() -> None:
@@ -99,16 +110,20 @@ def _malformed(raw: bytes, rng: np.random.Generator) -> list[bytes]:
 
 
 @pytest.mark.parametrize(
-    ("msgtype", "fast"),
-    [(rm.ODOMETRY, ros_cdr.decode_odometry), (rm.RANGE, ros_cdr.decode_range)],
+    ("msgtype", "fast", "distro"),
+    [
+        (rm.ODOMETRY, ros_cdr.decode_odometry, "jazzy"),
+        (rm.RANGE, lambda raw: ros_cdr.decode_range(raw, True), "jazzy"),
+        (rm.RANGE, lambda raw: ros_cdr.decode_range(raw, False), "humble"),
+    ],
 )
-def test_malformed_payloads_defer_to_the_full_decoder(msgtype: str, fast) -> None:
-    """Whenever the fast path answers, rosbags decodes the same bytes to the same values; a
-    truncated, padded or re-headed payload is never answered by the fast path."""
+def test_malformed_payloads_defer_to_the_full_decoder(msgtype: str, fast, distro: str) -> None:
+    """Whenever the fast path of a layout answers, rosbags decodes the same bytes to the same
+    values; a truncated, padded or re-headed payload is never answered by the fast path."""
     rng = np.random.default_rng(2)
     odom = OdometryEvent(t=5.5, robot="a", x=1.0, y=2.0, yaw=0.3, v=0.1, w=0.2)
     rng_ev = RangeEvent(t=5.5, robot_a="a", robot_b="b", distance=3.0)
-    msg = rm.odometry_msg(odom) if msgtype == rm.ODOMETRY else rm.range_msg(rng_ev)
+    msg = rm.odometry_msg(odom) if msgtype == rm.ODOMETRY else rm.range_msg(rng_ev, distro=distro)
     raw = rm.encode(msg)
     answered = 0
     for payload in _malformed(raw, rng):

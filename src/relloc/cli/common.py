@@ -35,6 +35,7 @@ from relloc.live.secure.identity import Security, check_endpoints, security_of
 from relloc.live.secure.refusals import AccessRefusals
 from relloc.live.session import ZenohOptions, open_session
 from relloc.ros.interfaces import ROS_INTERFACES, RosInterface
+from relloc.ros.stores import DISTROS
 
 __all__ = [
     "UserError",
@@ -191,6 +192,14 @@ def add_zenoh_args(p: argparse.ArgumentParser, role: str) -> None:
         "keys, attachments and liveliness tokens (default: the config's ros_interface, bridge)",
     )
     g.add_argument(
+        "--ros-distro",
+        choices=DISTROS,
+        default=None,
+        help="the robots' ROS 2 distribution: the message layouts relloc publishes and, with "
+        "rmw_zenoh, the type hashes of its keys and tokens; received messages of any known "
+        "layout are read (default: the config's ros_distro, jazzy)",
+    )
+    g.add_argument(
         "--domain-id",
         type=int,
         default=None,
@@ -202,6 +211,7 @@ def add_zenoh_args(p: argparse.ArgumentParser, role: str) -> None:
 def interface_from_args(args: argparse.Namespace, config: TeamConfig) -> RosInterface:
     """The :class:`RosInterface` of a command: its flags, else the config and the environment."""
     kind = args.ros_interface or config.ros_interface
+    distro = getattr(args, "ros_distro", None) or config.ros_distro
     domain = args.domain_id
     if domain is None:
         env = os.environ.get("ROS_DOMAIN_ID", "").strip()
@@ -210,7 +220,7 @@ def interface_from_args(args: argparse.Namespace, config: TeamConfig) -> RosInte
         except ValueError:
             raise UserError(f"ROS_DOMAIN_ID={env!r} is not an integer") from None
     try:
-        return RosInterface(kind, domain)
+        return RosInterface(kind, domain, distro)
     except ValueError as exc:
         raise UserError(str(exc)) from None
 

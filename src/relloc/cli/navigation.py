@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -322,6 +323,9 @@ def _cmd_sim_robots(args: argparse.Namespace) -> int:
         if type(exc) is not ValueError:
             raise
         raise UserError(str(exc)) from None
+    interface = interface_from_args(args, config)
+    # the config a server of this team needs: the interface and distribution it was given
+    config = replace(config, ros_interface=interface.kind, ros_distro=interface.distro)
     if args.write_config:
         Path(args.write_config).parent.mkdir(parents=True, exist_ok=True)
         config.save(args.write_config)
@@ -330,7 +334,7 @@ def _cmd_sim_robots(args: argparse.Namespace) -> int:
         if not args.write_config:
             raise UserError("--config-only needs --write-config FILE")
         return 0
-    opts = options_from_args(SimRobotsOptions, args, interface=interface_from_args(args, config))
+    opts = options_from_args(SimRobotsOptions, args, interface=interface)
     session = open_command_session(args)
     try:
         robots = SimRobots(sim, config, session, opts)

@@ -45,11 +45,17 @@ __all__ = [
     "PairCalibration",
     "ResamplingConfig",
     "RobotConfig",
+    "RosDistro",
     "SelfCalibrationConfig",
     "TeamConfig",
     "UwbConfig",
     "with_numeric_overrides",
 ]
+
+
+RosDistro = Literal["humble", "iron", "jazzy", "kilted", "lyrical", "rolling"]
+"""The ROS 2 distributions relloc knows, oldest first (``rolling``: the newest ``rosbags`` ships;
+their type stores: ``relloc.ros.distros``)."""
 
 
 @dataclass(frozen=True)
@@ -71,6 +77,10 @@ class TeamConfig(Checked):
     ros_interface: Literal["bridge", "rmw_zenoh"] = "bridge"
     """How the robots are on Zenoh live: zenoh-bridge-ros2dds or rmw_zenoh (``--ros-interface``
     overrides it; see ``relloc.ros.interfaces``)."""
+    ros_distro: RosDistro = "jazzy"
+    """The robots' ROS 2 distribution (``humble``, ``iron``, ``jazzy``, ``kilted``, ``lyrical``,
+    ``rolling``; ``--ros-distro`` overrides it): the message layouts and type hashes relloc
+    publishes live (``relloc.ros.distros``; received messages of any known layout are read)."""
     sensors: dict[str, dict[str, Any]] = field(default_factory=dict)
     """One raw ``[sensors.<kind>]`` table per sensor plug-in, parsed and checked by the plug-in's
     descriptor (:mod:`relloc.sensors`; a table of no registered sensor is a ``ConfigError``)."""
@@ -207,6 +217,9 @@ class TeamConfig(Checked):
             raise ConfigError(f"cannot read config {path}: {exc}") from None
         except tomllib.TOMLDecodeError as exc:
             raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+        uwb = data.get("uwb")
+        if isinstance(uwb, dict) and isinstance(uwb.get("msg_dirs"), list):
+            uwb["msg_dirs"] = [str(path.parent / d) if isinstance(d, str) else d for d in uwb["msg_dirs"]]
         try:
             return cls.from_dict(data)
         except ConfigError as exc:

@@ -100,7 +100,19 @@ class UwbConfig(Checked):
     """UWB topics and per-transceiver-pair calibration."""
 
     range_topic: str = "/uwb/tof/{a}/{b}/distance"
-    """Topic template; ``{a}`` and ``{b}`` are node ids."""
+    """Topic template; ``{a}`` and ``{b}`` are node ids. With ``peer_field`` (one message per
+    node listing its peers) ``{a}`` is the publishing node's id, or ``{robot}`` its robot."""
+    range_type: str = "sensor_msgs/msg/Range"
+    """Message type of the range topics: ``sensor_msgs/msg/Range`` or a UWB driver's own
+    (``nlink_parser/msg/LinktrackNodeframe2``), defined in ``msg_dirs``."""
+    distance_field: str = "range"
+    """Field path of the distance (m): ``range``, or ``nodes[].dis`` in a sequence of peers."""
+    peer_field: str = ""
+    """Field path of a peer's node id in a type listing peers (``nodes[].id``); empty: one
+    range per message, the topic names the pair."""
+    msg_dirs: tuple[str, ...] = ()
+    """Folders of ``.msg`` files (``<package>/msg/<Type>.msg``) defining ``range_type``;
+    relative to the config file."""
     default_bias: float = 0.3
     """Bias assumed for a pair with no calibration (m)."""
     default_bias_sigma: float = 0.15
@@ -120,6 +132,10 @@ class UwbConfig(Checked):
     def __post_init__(self) -> None:
         super().__post_init__()
         require(self, "uwb", positive=("sigma", "los_sigma"), non_negative=("default_bias_sigma",))
+        dirs = self.msg_dirs
+        if isinstance(dirs, str) or not all(isinstance(d, str) for d in dirs):
+            raise ConfigError(f"uwb.msg_dirs must be a list of folders, got {dirs!r}")
+        object.__setattr__(self, "msg_dirs", tuple(dirs))
 
     def calibration(self, node_a: str, node_b: str) -> tuple[float, float, float | None]:
         """(bias, scale, extra_sigma or per-pair sigma) for a node pair.

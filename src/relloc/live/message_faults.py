@@ -46,7 +46,8 @@ class MessageFaults:
         self.routes: dict[str, Route] = {}
         """The team's topics whose sensor is ``faulted``."""
         for r in team_routes(config, ground_truth=True):
-            if sensor(r.kind).faulted:
+            own = sensor(r.kind)
+            if own.faulted and r.msgtypes[0] in own.msgtypes:  # not a driver's own range type
                 self.routes[r.topic] = r
         self._offsets: deque[float] = deque(maxlen=_OFFSETS)
 

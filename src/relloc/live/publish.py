@@ -28,7 +28,14 @@ from relloc.events import Event
 from relloc.faults import Faults
 from relloc.live.message_faults import MessageFaults
 from relloc.ros.interfaces import Channel, RosInterface
-from relloc.ros.messages import ODOMETRY, POSE_STAMPED, TWIST, MessageDecodeError, encode
+from relloc.ros.messages import (
+    ODOMETRY,
+    POSE_STAMPED,
+    TWIST,
+    MessageDecodeError,
+    encode,
+    in_distro,
+)
 from relloc.ros.zenoh_node import ZenohNode
 from relloc.sensors import GROUND_TRUTH, ODOMETRY_SENSOR, RANGE_SENSOR, sensor, sensor_of
 from relloc.sources.zenoh_keys import route_scopes
@@ -200,7 +207,8 @@ def replay_bag(
     stop: Callable[[], bool] = lambda: False,
     on_start: Callable[[], None] | None = None,
 ) -> PublishStats:
-    """Publish a bag's messages (raw CDR as stored) as the robots would, on the interface's keys.
+    """Publish a bag's messages (raw CDR as stored) as the robots would, on the interface's keys
+    (a type whose layout differs in the interface's distribution is written in that layout).
 
     Messages go out in receive order at the recorded pace divided by ``rate``; each carries the
     interface's attachment (the send wall time). The team's topics are published on exactly the
@@ -274,7 +282,8 @@ def replay_bag(
                     except MessageDecodeError as exc:  # a damaged message goes out as it is
                         log.warning("%s: not faulted (%s)", conn.topic, exc)
                 if payload is not None and conn.topic in channels:
-                    yield recv_ns * 1e-9, channels[conn.topic], payload
+                    channel = channels[conn.topic]
+                    yield recv_ns * 1e-9, channel, in_distro(payload, channel.msgtype, channel.distro)
 
         _run_schedule(items(), pubs, opts.rate, stop, stats, on_start)
         if faulted is not None:
@@ -343,8 +352,10 @@ class EventEncoder:
         """Per sensor kind, its channels by :meth:`~relloc.sensors.Sensor.channel_key`."""
         for route, scope in route_scopes(config, detections=False):
             own = sensor(route.kind)
+            if route.msgtypes[0] not in own.msgtypes:  # a driver's own type: not made from events
+                continue
             self._channels.setdefault(route.kind, {}).setdefault(
-                own.channel_key(route), iface.channel(route.topic, own.msgtypes[0], prefix=prefix, scope=scope)
+                own.channel_key(route), iface.channel(route.topic, route.msgtypes[0], prefix=prefix, scope=scope)
             )
         self._channels[GROUND_TRUTH.kind] = {
             r.name: iface.channel(
@@ -352,6 +363,7 @@ class EventEncoder:
             )
             for r in config.robots
         }
+        self.distro = iface.distro
         self.odom_keys = {r: c.key for r, c in self._channels.get(ODOMETRY_SENSOR.kind, {}).items()}
         self.range_keys = {p: c.key for p, c in self._channels.get(RANGE_SENSOR.kind, {}).items()}
         self.ground_truth = ground_truth
@@ -372,7 +384,7 @@ class EventEncoder:
         if ch is None:
             return None
         msg = own.message(replace(ev, t=ev.t + time_base))
-        return None if msg is None else (ch, encode(msg))
+        return None if msg is None else (ch, encode(msg, distro=self.distro))
 
 
 def event_messages(

@@ -272,6 +272,7 @@ class LiveServer:
                 "rejected": dict(st.rejected),
                 "out_of_order": st.out_of_order,
                 "restamped": sum(st.restamped.values()),
+                "layouts": dict(st.layouts),
                 "transport": self.source.transport.as_dict(),
                 "queue_depth": self.source.queue_depth,
                 "own_outputs": self.source.own_outputs,

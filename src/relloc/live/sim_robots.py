@@ -57,6 +57,7 @@ def sim_team_config(
             filter=base.filter,
             uwb=replace(config.uwb, range_topic=base.uwb.range_topic),
             ros_interface=base.ros_interface,
+            ros_distro=base.ros_distro,
         )
     for r in config.robots:
         own = base.robot(r.name) if base is not None else None

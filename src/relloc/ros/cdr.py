@@ -38,8 +38,9 @@ _STAMP = {e: struct.Struct(e + "iI") for e in "<>"}
 # twist (linear 3, angular 3), its covariance 36; all float64.
 _ODOM_BODY = {e: struct.Struct(e + "85d") for e in "<>"}
 # sensor_msgs/Range after the header: radiation_type (uint8), then, aligned to 4,
-# field_of_view, min_range, max_range, range (float32).
+# field_of_view, min_range, max_range, range (float32), and since Iron variance (float32).
 _RANGE_FLOATS = {e: struct.Struct(e + "4f") for e in "<>"}
+_RANGE_SIZES = {False: 16, True: 20}
 
 
 def split_stamp(t: float) -> tuple[int, int]:
@@ -106,18 +107,22 @@ def decode_odometry(raw: bytes) -> tuple[float, float, float, float, float, floa
     return stamp, f[0], f[1], yaw_from_xyzw(*f[3:7]), f[43], f[48]
 
 
-def decode_range(raw: bytes) -> tuple[float, float] | None:
-    """``sensor_msgs/Range`` -> ``(stamp, range)``, or ``None`` (use the full decoder)."""
+def decode_range(raw: bytes, variance: bool | None = None) -> tuple[float, float] | None:
+    """``sensor_msgs/Range`` -> ``(stamp, range)``, or ``None`` (use the full decoder).
+
+    ``variance``: the layout since Iron (``True``), Humble's (``False``) or either (``None``;
+    their sizes differ by the one float).
+    """
     head = _header(raw)
     if head is None:
         return None
     endian, stamp, pos = head
     pos += 1  # radiation_type
     pos += -(pos - 4) % 4
-    floats = _RANGE_FLOATS[endian]
-    if pos + floats.size != len(raw):
+    rest = len(raw) - pos
+    if rest != _RANGE_SIZES.get(variance, rest) or rest not in (16, 20):
         return None
-    return stamp, floats.unpack_from(raw, pos)[3]
+    return stamp, _RANGE_FLOATS[endian].unpack_from(raw, pos)[3]
 
 
 def encode_pose_with_covariance_stamped(

@@ -16,8 +16,8 @@ This module is the one place that knows the keys. The source, the sink, the publ
 
     * a topic's data key is ``<domain_id>/<fully qualified name>/<type name>/<type hash>``,
       e.g. ``0/tb1/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_3cc97dc7...``: the DDS type name
-      (:func:`dds_type_name`) and the RIHS01 hash of the type
-      (:func:`relloc.ros.type_hash.type_hash`);
+      (:func:`dds_type_name`) and the RIHS01 hash of the type in the robots' distribution
+      (``TypeHashNotSupported`` on Humble: :func:`relloc.ros.distros.key_hash`);
     * every sample carries a 33-byte attachment (:class:`RmwAttachment`): the publisher's
       sequence number (int64), the source timestamp (int64 ns since the epoch), both little
       endian, the GID length (one byte, 16) and the 16-byte publisher GID;
@@ -28,8 +28,9 @@ This module is the one place that knows the keys. The source, the sink, the publ
       subscription (``MS``), every name *mangled* (``/`` -> ``%``; an empty one is ``%``).
 
     relloc subscribes to ``<domain>/<topic>/*/*``: the topic's samples whatever their type name
-    and hash (a robot on another distribution may hash a type differently), and checks the
-    type name and hash of each sample itself (:meth:`RosInterface.split_key`).
+    and hash (a robot on another distribution may lay a type out differently), and picks each
+    sample's layout from its hash (:mod:`relloc.sources.rmw_envelope`). It declares and
+    publishes under the hashes of its own ``distro``.
 
 In both interfaces a robot's ``zenoh_scope`` is a namespace in front of its topics, and
 ``--prefix`` a prefix in front of every key of the robots: the bridge's namespace, or, with
@@ -46,6 +47,8 @@ from dataclasses import dataclass
 from typing import Final
 
 from relloc.config import ConfigError
+from relloc.ros.distros import key_hash
+from relloc.ros.stores import DEFAULT_DISTRO, check_distro
 
 __all__ = [
     "BRIDGE",
@@ -178,18 +181,24 @@ class Channel:
     """The fully qualified ROS topic name (``/tb1/odom``)."""
     msgtype: str
     """``pkg/msg/Name``."""
+    distro: str = DEFAULT_DISTRO
+    """The ROS 2 distribution whose layout of ``msgtype`` its payloads have."""
 
 
 @dataclass(frozen=True)
 class RosInterface:
     """Key formats, attachments and liveliness tokens of one interface (``bridge`` or
-    ``rmw_zenoh``) on one ROS domain."""
+    ``rmw_zenoh``) on one ROS domain, for robots of one ROS 2 distribution."""
 
     kind: str = BRIDGE
     domain_id: int = 0
     """``ROS_DOMAIN_ID`` (rmw_zenoh only: the first chunk of every key)."""
+    distro: str = DEFAULT_DISTRO
+    """The robots' ROS 2 distribution: the layouts relloc publishes and, with rmw_zenoh, the
+    type hashes of its keys and tokens (:mod:`relloc.ros.distros`)."""
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "distro", check_distro(self.distro))
         if self.kind not in ROS_INTERFACES:
             raise ConfigError(f"ros_interface must be one of {ROS_INTERFACES}, got {self.kind!r}")
         if isinstance(self.domain_id, bool) or not isinstance(self.domain_id, int) or self.domain_id < 0:
@@ -211,11 +220,11 @@ class RosInterface:
 
     def channel(self, topic: str, msgtype: str, *, prefix: str = "", scope: str = "") -> Channel:
         """The :class:`Channel` of ``topic`` carrying ``msgtype``."""
-        from relloc.ros.type_hash import type_hash
-
         topic_key = self.topic_key(topic, prefix=prefix, scope=scope)
-        key = f"{topic_key}/{dds_type_name(msgtype)}/{type_hash(msgtype)}" if self.rmw else topic_key
-        return Channel(key, topic_key, ros_name(topic, scope), msgtype)
+        key = topic_key
+        if self.rmw:
+            key = f"{topic_key}/{dds_type_name(msgtype)}/{key_hash(msgtype, self.distro)}"
+        return Channel(key, topic_key, ros_name(topic, scope), msgtype, self.distro)
 
     def subscription_expr(self, topic_key: str) -> str:
         """The key expression receiving a topic's samples: the topic key itself on the bridge,
@@ -280,14 +289,12 @@ class RosInterface:
         qos: str = DEFAULT_QOS,
     ) -> str:
         """The liveliness token of a publisher (``kind="MP"``) or subscription (``"MS"``)."""
-        from relloc.ros.type_hash import type_hash
-
         if kind not in ("MP", "MS"):
             raise ValueError(f"endpoint kind must be MP or MS, got {kind!r}")
         return (
             f"{LIVELINESS_PREFIX}/{self.domain_id}/{session_id}/{node_id}/{entity_id}/{kind}/%/"
             f"{mangle(namespace)}/{node}/{mangle(channel.name)}/{dds_type_name(channel.msgtype)}/"
-            f"{type_hash(channel.msgtype)}/{qos}"
+            f"{key_hash(channel.msgtype, channel.distro)}/{qos}"
         )
 
     def liveliness_expr(self) -> str:

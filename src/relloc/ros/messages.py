@@ -5,14 +5,15 @@ them, and a Zenoh bridge (zenoh-bridge-ros2dds, rmw_zenoh) forwards the very sam
 module is the one place that knows the message layouts, so the rosbag source, the live Zenoh
 engine and the simulator that publishes over Zenoh all share it. It has three parts:
 
-* **Type store.** :func:`typestore` is the ``rosbags`` ROS 2 Humble store plus the custom
-  detection types of the TIERS robots (``depthai_ros_msgs/msg/SpatialDetectionArray`` and the
-  ``vision_msgs`` types it uses, in the Humble-era layout), parsed from the ``.msg`` files
-  shipped in ``relloc/ros/msg``. Bags recorded by these robots do not store the definitions.
-* **CDR.** :func:`decode` / :func:`encode` wrap ``deserialize_cdr`` / ``serialize_cdr``. A
-  malformed payload raises :class:`MessageDecodeError` (a ``ValueError``) with the type name and
-  the reason, never an ``IndexError`` from deep inside the deserialiser: a live engine must be
-  able to drop one bad packet and go on.
+* **Type store.** :func:`typestore` is a distribution's ``rosbags`` store
+  (:mod:`relloc.ros.stores`) plus the custom detection types of the TIERS robots
+  (``depthai_ros_msgs/msg/SpatialDetectionArray`` and the ``vision_msgs`` types it uses),
+  parsed from the ``.msg`` files shipped in ``relloc/ros/msg``.
+* **CDR.** :func:`decode` / :func:`encode` wrap ``deserialize_cdr`` / ``serialize_cdr``;
+  :func:`decode` tries each known layout of the type unless told which. A malformed payload
+  raises :class:`MessageDecodeError` (a ``ValueError``) with the type name and the reason,
+  never an ``IndexError`` from deep inside the deserialiser: a live engine must be able to drop
+  one bad packet and go on.
 * **Converters.** Pure functions from decoded messages to :mod:`relloc.events` (odometry, UWB
   ranges, motion-capture poses, spatial detections) and builders from relloc values to messages
   (estimate -> ``PoseWithCovarianceStamped``, ``(v, w)`` -> ``Twist``, odometry/range events ->
@@ -30,13 +31,10 @@ from __future__ import annotations
 import math
 import struct
 from collections import Counter
-from collections.abc import Iterable, Mapping, Sequence
-from functools import cache
-from pathlib import Path
+from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosbags.typesys.store import Typestore
 
 from relloc.config import CameraConfig
@@ -49,6 +47,16 @@ from relloc.events import (
     SightingEvent,
 )
 from relloc.ros.cdr import split_stamp, yaw_from_xyzw
+from relloc.ros.distros import Layout, layouts
+from relloc.ros.stores import (
+    DEFAULT_DISTRO,
+    DISTROS,
+    MSG_DIR,
+    MessageDecodeError,
+    custom_types,
+    register_types,
+    store,
+)
 
 __all__ = [
     "MSG_DIR",
@@ -68,6 +76,8 @@ __all__ = [
     "detections_to_event",
     "encode",
     "header_stamp_from_cdr",
+    "in_distro",
+    "in_layout",
     "odometry_msg",
     "odometry_to_event",
     "point_to_sighting",
@@ -85,6 +95,7 @@ __all__ = [
     "twist_msg",
     "typestore",
     "yaw_from_quaternion",
+    "zero_message",
 ]
 
 ODOMETRY = "nav_msgs/msg/Odometry"
@@ -96,67 +107,131 @@ POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TWIST = "geometry_msgs/msg/Twist"
 SPATIAL_DETECTION_ARRAY = "depthai_ros_msgs/msg/SpatialDetectionArray"
 
-MSG_DIR = Path(__file__).resolve().parent / "msg"
-"""Custom ``.msg`` definitions shipped with the package, laid out ``<pkg>/msg/<Type>.msg``."""
-
-
-class MessageDecodeError(ValueError):
-    """A CDR payload could not be decoded as the expected message type (or the type is unknown)."""
-
-
 # ---------------------------------------------------------------------------- type store
-@cache
-def typestore() -> Typestore:
-    """The ROS 2 Humble type store with the custom TIERS detection types registered.
-
-    Built once per process (``rosbags`` generates Python classes for every registered type).
-    """
-    store = get_typestore(Stores.ROS2_HUMBLE)
-    store.register(custom_types())
-    return store
+def typestore(distro: str = DEFAULT_DISTRO) -> Typestore:
+    """The type store of ``distro`` (:func:`relloc.ros.distros.store`), built once per process
+    (``rosbags`` generates Python classes for every registered type)."""
+    return store(distro)
 
 
-def custom_types(folder: Path = MSG_DIR) -> dict[str, Any]:
-    """Parse every ``.msg`` file of ``folder`` (laid out ``<pkg>/msg/<Type>.msg``; the shipped
-    ones by default) into a ``rosbags`` types dict (name -> definition)."""
-    types: dict[str, Any] = {}
-    for path in sorted(folder.glob("*/msg/*.msg")):
-        name = f"{path.parent.parent.name}/msg/{path.stem}"
-        types.update(get_types_from_msg(path.read_text(), name))
-    return types
-
-
-def register_types(types: Mapping[str, Any]) -> None:
-    """Add message definitions (a ``rosbags`` types dict, e.g. :func:`custom_types` of a
-    sensor plug-in's folder) to the type store every decoder and encoder uses."""
-    typestore().register(dict(types))
-
-
-def decode(raw: bytes | memoryview, msgtype: str) -> Any:
-    """Deserialise a CDR payload (with its 4-byte encapsulation header) into a message object.
+def decode(raw: bytes | memoryview, msgtype: str, layout: Layout | None = None) -> Any:
+    """Deserialise a CDR payload (with its 4-byte encapsulation header) into a message object,
+    in ``layout``, else in the first known layout of the type it fits (the CDR size tells them
+    apart).
 
     Raises :class:`MessageDecodeError` for an unknown type or any malformed payload (truncated,
     garbage, trailing bytes, invalid strings).
     """
-    store = typestore()
-    if msgtype not in store.fielddefs:
+    tried = (layout,) if layout is not None else layouts(msgtype)
+    if not tried:
         raise MessageDecodeError(f"unknown message type {msgtype!r}")
-    try:
-        return store.deserialize_cdr(raw, msgtype)
-    except Exception as exc:  # the deserialiser raises many types on garbage; normalise them
-        size = len(raw)
-        raise MessageDecodeError(
-            f"malformed {msgtype} payload ({size} bytes): {type(exc).__name__}: {exc}"
-        ) from exc
+    error: Exception | None = None
+    for lay in tried:
+        try:
+            return lay.store.deserialize_cdr(raw, msgtype)
+        except Exception as exc:  # the deserialiser raises many types on garbage; normalise them
+            error = exc
+    assert error is not None
+    which = f" in layout {tried[0].name}" if len(tried) == 1 else f" in any of its {len(tried)} layouts"
+    raise MessageDecodeError(
+        f"malformed {msgtype} payload ({len(raw)} bytes){which}: {type(error).__name__}: {error}"
+    ) from error
 
 
-def encode(msg: Any, msgtype: str | None = None) -> bytes:
+def encode(msg: Any, msgtype: str | None = None, distro: str | None = None) -> bytes:
     """Serialise a message object to CDR (little endian, with encapsulation header).
 
-    ``msgtype`` defaults to the message's own ``__msgtype__``.
+    ``msgtype`` defaults to the message's own ``__msgtype__``. With ``distro`` the message is
+    written in that distribution's layout (fields it lacks are dropped, fields it adds are
+    zero); otherwise in the layout of the store that made it.
     """
     typename = msgtype or msg.__msgtype__
-    return bytes(typestore().serialize_cdr(msg, typename, little_endian=True))
+    if distro is not None:
+        target = store(distro)
+        return bytes(target.serialize_cdr(in_layout(msg, target), typename, little_endian=True))
+    return bytes(_store_of(msg).serialize_cdr(msg, typename, little_endian=True))
+
+
+def in_distro(raw: bytes, msgtype: str, distro: str) -> bytes:
+    """A CDR payload of ``msgtype`` in ``distro``'s layout: ``raw`` itself when the type has
+    one layout (or ``raw`` fits ``distro``'s), else decoded and written again. A payload no
+    layout fits is returned as it is (the receiver counts it)."""
+    known = layouts(msgtype, distro)
+    if len(known) < 2:
+        return raw
+    try:
+        decode(raw, msgtype, known[0])
+        return raw
+    except MessageDecodeError:
+        pass
+    try:
+        return encode(decode(raw, msgtype), msgtype, distro)
+    except MessageDecodeError:
+        return raw
+
+
+def _store_of(msg: Any) -> Typestore:
+    """The store whose class ``msg`` is an instance of (the default one for a foreign object)."""
+    name = getattr(msg, "__msgtype__", "")
+    for distro in (DEFAULT_DISTRO, *DISTROS):
+        st = store(distro)
+        if st.types.get(name) is type(msg):
+            return st
+    return store()
+
+
+def in_layout(msg: Any, target: Typestore) -> Any:
+    """``msg`` as an object of ``target``'s class of its type: fields copied by name (nested
+    messages converted), fields ``target`` adds set to zero, fields it lacks dropped."""
+    name = msg.__msgtype__
+    cls = target.types[name]
+    if type(msg) is cls:
+        return msg
+    values = {}
+    for field_name, (nodetype, detail) in target.fielddefs[name][1]:
+        if hasattr(msg, field_name):
+            value = getattr(msg, field_name)
+            if hasattr(value, "__msgtype__"):
+                value = in_layout(value, target)
+            elif isinstance(value, list):
+                value = [in_layout(v, target) if hasattr(v, "__msgtype__") else v for v in value]
+            values[field_name] = value
+        else:
+            values[field_name] = _zero(target, int(nodetype), detail)
+    return cls(**values)
+
+
+def zero_message(msgtype: str, distro: str = DEFAULT_DISTRO) -> Any:
+    """A message of ``msgtype`` (in ``distro``'s layout) with every field zero, empty or
+    false: a base to set the fields a publisher knows (a UWB driver's frame in a test)."""
+    target = store(distro)
+    return _zero(target, 2, msgtype)
+
+
+def _zero(target: Typestore, nodetype: int, detail: Any) -> Any:
+    """The zero value of a field (1 base, 2 message, 3 array, 4 sequence: rosbags' node types)."""
+    if nodetype == 2:
+        return target.types[str(detail)](**{
+            n: _zero(target, int(nt), d) for n, (nt, d) in target.fielddefs[str(detail)][1]
+        })  # fmt: skip
+    if nodetype == 3:  # a fixed-size array: that many zeros
+        (inner, inner_detail), size = detail
+        if int(inner) == 1 and inner_detail[0] not in ("string", "wstring", "bool"):
+            return np.zeros(size, dtype=_NUMPY.get(inner_detail[0], np.float64))
+        return [_zero(target, int(inner), inner_detail) for _ in range(size)]
+    if nodetype == 4:
+        return []
+    base = detail[0]
+    if base in ("string", "wstring"):
+        return ""
+    return False if base == "bool" else (0.0 if base.startswith("float") else 0)
+
+
+_NUMPY = {
+    "float32": np.float32, "float64": np.float64, "int8": np.int8, "uint8": np.uint8, "char": np.uint8,
+    "byte": np.uint8, "int16": np.int16, "uint16": np.uint16, "int32": np.int32, "uint32": np.uint32,
+    "int64": np.int64, "uint64": np.uint64,
+}  # fmt: skip
 
 
 def header_stamp_from_cdr(raw: bytes | memoryview) -> float:
@@ -434,16 +509,20 @@ def odometry_msg(
     )
 
 
-def range_msg(event: RangeEvent, *, frame_id: str = "") -> Any:
-    """A :class:`RangeEvent` as ``sensor_msgs/Range``, laid out like the TIERS UWB driver's
-    messages (radiation type 0, field of view and limits 0; ``range`` in metres)."""
-    return typestore().types[RANGE](
+def range_msg(event: RangeEvent, *, frame_id: str = "", distro: str = DEFAULT_DISTRO) -> Any:
+    """A :class:`RangeEvent` as ``sensor_msgs/Range`` of ``distro``, laid out like the TIERS
+    UWB driver's messages (radiation type 0, field of view and limits 0; ``range`` in metres;
+    since Iron a ``variance`` of 0, "unknown")."""
+    msg = typestore(distro).types[RANGE]
+    extra = {"variance": 0.0} if "variance" in msg.__dataclass_fields__ else {}
+    return msg(
         header=_header(event.t, frame_id),
         radiation_type=0,
         field_of_view=0.0,
         min_range=0.0,
         max_range=0.0,
         range=float(event.distance),
+        **extra,
     )
 
 

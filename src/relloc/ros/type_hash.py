@@ -22,8 +22,9 @@ size or the sequence bound (0 otherwise), ``string_capacity`` the bound of a bou
 has the one ``uint8 structure_needs_at_least_one_member`` rosidl adds. The JSON is written with
 the separators ``", "`` and ``": "``, ASCII only, no sorting of keys.
 
-The definitions come from the ``rosbags`` type store of :func:`relloc.ros.messages.typestore`
-(the ROS 2 message definitions plus the ``.msg`` files shipped in ``relloc/ros/msg``).
+The definitions come from a distribution's ``rosbags`` type store
+(:func:`relloc.ros.stores.store`: the ROS 2 message definitions plus relloc's ``.msg`` files);
+a type whose definition changed between distributions has one hash per layout.
 ``tests/test_rmw_zenoh.py`` checks the result against hashes published by ROS 2 itself.
 """
 
@@ -34,7 +35,7 @@ import json
 from functools import cache
 from typing import Any
 
-from relloc.ros.messages import MessageDecodeError, typestore
+from relloc.ros.stores import DEFAULT_DISTRO, MessageDecodeError, generation, store
 
 __all__ = ["RIHS01_PREFIX", "type_description", "type_hash"]
 
@@ -101,8 +102,8 @@ def _field_type(nodetype: int, detail: Any) -> dict[str, Any]:
     }
 
 
-def _individual(msgtype: str) -> dict[str, Any]:
-    fielddefs = typestore().fielddefs
+def _individual(msgtype: str, distro: str) -> dict[str, Any]:
+    fielddefs = store(distro).fielddefs
     if msgtype not in fielddefs:
         raise MessageDecodeError(f"unknown message type {msgtype!r}")
     _, fields = fielddefs[msgtype]
@@ -114,16 +115,21 @@ def _individual(msgtype: str) -> dict[str, Any]:
     return {"type_name": msgtype, "fields": described}
 
 
+def type_description(msgtype: str, distro: str = DEFAULT_DISTRO) -> dict[str, Any]:
+    """The type description of ``msgtype`` (``"pkg/msg/Name"``) in ``distro``, in the form
+    that is hashed."""
+    return _description(msgtype, distro, generation())
+
+
 @cache
-def type_description(msgtype: str) -> dict[str, Any]:
-    """The type description of ``msgtype`` (``"pkg/msg/Name"``) in the form that is hashed."""
-    top = _individual(msgtype)
+def _description(msgtype: str, distro: str, _generation: int) -> dict[str, Any]:
+    top = _individual(msgtype, distro)
     seen: dict[str, dict[str, Any]] = {}
     pending = [f["type"]["nested_type_name"] for f in top["fields"]]
     while pending:
         name = pending.pop()
         if name and name not in seen:
-            seen[name] = _individual(name)
+            seen[name] = _individual(name, distro)
             pending.extend(f["type"]["nested_type_name"] for f in seen[name]["fields"])
     return {
         "type_description": top,
@@ -131,13 +137,17 @@ def type_description(msgtype: str) -> dict[str, Any]:
     }
 
 
-@cache
-def type_hash(msgtype: str) -> str:
-    """The RIHS01 type hash of ``msgtype``, e.g. ``"RIHS01_df668c74..."`` for
-    ``std_msgs/msg/String``. Raises :class:`~relloc.ros.messages.MessageDecodeError` for a
+def type_hash(msgtype: str, distro: str = DEFAULT_DISTRO) -> str:
+    """The RIHS01 type hash of ``msgtype`` in ``distro``, e.g. ``"RIHS01_df668c74..."`` for
+    ``std_msgs/msg/String``. Raises :class:`~relloc.ros.stores.MessageDecodeError` for a
     type the store does not know."""
+    return _hash(msgtype, distro, generation())
+
+
+@cache
+def _hash(msgtype: str, distro: str, _generation: int) -> str:
     text = json.dumps(
-        type_description(msgtype),
+        type_description(msgtype, distro),
         ensure_ascii=True,
         allow_nan=False,
         indent=None,

@@ -12,7 +12,7 @@ kind instead of comparing kind names:
   and what each needs to be converted. A plug-in reads its own table of the config
   (``TeamConfig.sensors[kind]``) and validates it itself (:meth:`settings`).
 * **ROS messages**: ``msgtypes`` it reads, ``msg_types`` the definitions to add to the type
-  store (a plug-in's own ``.msg``), :meth:`fast` (a fixed-layout fast path, :mod:`relloc.ros.cdr`),
+  store (a plug-in's own ``.msg``), :meth:`fast` (a fixed-layout fast path per layout, :mod:`relloc.ros.cdr`),
   :meth:`convert` (decoded message -> event) and :meth:`message` (event -> message, for replay).
 * **Its measurement model** (``model``, a class of :mod:`relloc.filter.measurement`, registered
   with :mod:`relloc.filter.registry` along with the sensor; ``None``: the localizer consumes the
@@ -39,6 +39,7 @@ from relloc.config import CameraConfig, ConfigError, RobotConfig, TeamConfig
 if TYPE_CHECKING:
     from relloc.events import Event
     from relloc.filter.measurement import MeasurementModel
+    from relloc.ros.distros import Layout
 
 __all__ = ["Conversion", "Route", "Sensor", "Switch"]
 
@@ -64,7 +65,10 @@ class Route:
     node_b: str = ""
     camera: CameraConfig | None = None
     zero_stamps: bool = False
-    """Stamp every message from its receive time (``odom_zero_stamps``)."""
+    """Stamp every message from its receive time (``odom_zero_stamps``, a type without header)."""
+    stamped: bool = True
+    """Whether its messages start with a ``std_msgs/Header`` (a UWB driver's may not): else
+    ``zero_stamps`` too, and no clock is learnt from them."""
     sigma: tuple[float, float] = (0.0, 0.0)
     """A sighting's range (m) and bearing (rad) noise."""
     params: Any = None
@@ -140,16 +144,18 @@ class Sensor:
         return []
 
     # ------------------------------------------------------------------ messages
-    def fast(self, payload: bytes) -> tuple[float, ...] | None:
-        """``(stamp, fields...)`` straight from the CDR bytes, or ``None``: the full decoder
+    def fast(self, payload: bytes, layout: Layout) -> tuple[float, ...] | None:
+        """``(stamp, fields...)`` straight from the CDR bytes of a message in ``layout`` (one
+        of its type's definitions, :mod:`relloc.ros.distros`), or ``None``: the full decoder
         decodes the payload then (or says why not)."""
         return None
 
     def convert(
         self, route: Route, stream: str, msg: Any, fast: tuple[float, ...] | None, stamp: float, ingest: Conversion
-    ) -> Event | None:
+    ) -> Event | list[Event] | None:
         """The event of one message (decoded ``msg``, or the :meth:`fast` fields) stamped
-        ``stamp``; ``None`` if unusable (counted through ``ingest``)."""
+        ``stamp`` (or its events, for a message holding several); ``None`` if unusable
+        (counted through ``ingest``)."""
         raise NotImplementedError
 
     def message(self, event: Any) -> Any:

@@ -27,6 +27,7 @@ from relloc.events import (
 from relloc.filter.ranges import RangeBatch
 from relloc.filter.sightings import SightingBatch
 from relloc.ros.cdr import decode_odometry, decode_range
+from relloc.ros.distros import Layout
 from relloc.ros.messages import (
     ODOMETRY,
     POINT_STAMPED,
@@ -46,6 +47,7 @@ from relloc.ros.messages import (
     range_to_event,
 )
 from relloc.sensors.base import Conversion, Route, Sensor, Switch
+from relloc.sensors.range_fields import RangeFields, load_range_type
 
 __all__ = [
     "DETECTION",
@@ -82,7 +84,7 @@ class Odometry(Sensor):
         what = f"odometry of {robot.name}"
         return [Route(robot.odom_topic, self.kind, (ODOMETRY,), robot.name, what, zero_stamps=robot.odom_zero_stamps)]
 
-    def fast(self, payload: bytes) -> tuple[float, ...] | None:
+    def fast(self, payload: bytes, layout: Layout) -> tuple[float, ...] | None:
         return decode_odometry(payload)
 
     def convert(
@@ -217,10 +219,14 @@ class Detection(Sensor):
 
 
 class Range(Sensor):
-    """``uwb.range_topic`` with ``{a}``/``{b}`` = node ids, for every pair of the team's robots
-    and in both node orders (a UWB driver may publish either): ``sensor_msgs/Range`` ->
-    :class:`RangeEvent` carrying both robots and both nodes. A range equal to the previous one
-    of its topic passes and is counted in ``repeated_ranges``."""
+    """UWB ranges on ``uwb.range_topic``. With ``sensor_msgs/msg/Range`` (or any type holding
+    one range, ``uwb.distance_field``) the template has ``{a}``/``{b}`` = node ids, for every
+    pair of the team's robots and in both node orders (a UWB driver may publish either). With
+    a type listing peers (``uwb.peer_field``, :mod:`relloc.sensors.range_fields`) it has
+    ``{a}`` (the publishing node) or ``{robot}``, one topic per node. Either way each range is a
+    :class:`RangeEvent` carrying both robots and both nodes; a peer no robot carries is counted
+    (``range_unknown_peer``), and a range equal to the previous one of its topic and peer passes
+    and is counted in ``repeated_ranges``."""
 
     kind: ClassVar[str] = "range"
     event: ClassVar[type] = RangeEvent
@@ -234,46 +240,75 @@ class Range(Sensor):
     faulted: ClassVar[bool] = True
 
     def team_routes(self, config: TeamConfig) -> list[Route]:
-        template = config.uwb.range_topic
-        _check_range_template(template)
-        routes = []
+        uwb = config.uwb
+        load_range_type(uwb)
+        fields = RangeFields.of(uwb)
+        _check_range_template(uwb.range_topic, peers=bool(fields.peer))
         with_nodes = [r for r in config.robots if r.uwb_node]
+        nodes = {r.uwb_node: r.name for r in with_nodes}
+        base = {"kind": self.kind, "msgtypes": (uwb.range_type,), "zero_stamps": not fields.header, "stamped": fields.header, "params": (fields, nodes)}
+        if fields.peer:
+            topics = {r.name: uwb.range_topic.format(a=r.uwb_node, robot=r.name) for r in with_nodes}
+            what = "UWB ranges of {}"
+            return [
+                Route(topics[r.name], robot=r.name, what=what.format(r.uwb_node), node_a=r.uwb_node, **base)
+                for r in with_nodes
+            ]
+        routes = []
         for ra, rb in combinations(with_nodes, 2):
             if ra.uwb_node == rb.uwb_node:
                 continue
             for first, second in ((ra, rb), (rb, ra)):
                 routes.append(
                     Route(
-                        template.format(a=first.uwb_node, b=second.uwb_node),
-                        self.kind,
-                        (RANGE,),
-                        first.name,
-                        f"UWB ranges {first.uwb_node}-{second.uwb_node}",
+                        uwb.range_topic.format(a=first.uwb_node, b=second.uwb_node),
+                        robot=first.name,
+                        what=f"UWB ranges {first.uwb_node}-{second.uwb_node}",
                         robot_b=second.name,
                         node_a=first.uwb_node,
                         node_b=second.uwb_node,
+                        **base,
                     )
                 )
         return routes
 
-    def fast(self, payload: bytes) -> tuple[float, ...] | None:
-        return decode_range(payload)
+    def fast(self, payload: bytes, layout: Layout) -> tuple[float, ...] | None:
+        if layout.msgtype != RANGE:
+            return None
+        return decode_range(payload, "variance" in layout.fields)
 
     def convert(
         self, route: Route, stream: str, msg: Any, fast: tuple[float, ...] | None, stamp: float, ingest: Conversion
-    ) -> Event | None:
-        distance = fast[1] if fast is not None else float(msg.range)
+    ) -> Event | list[Event] | None:
+        if fast is not None:
+            return self._event(route, stream, "", fast[1], stamp, ingest)
+        fields, nodes = route.params
+        events = []
+        for peer, distance in fields.ranges(msg):
+            robot_b = nodes.get(peer) if peer else route.robot_b
+            if robot_b is None or robot_b == route.robot:
+                ingest.reject("range_unknown_peer" if robot_b is None else "range_self", stream, f"node {peer!r}")
+                continue
+            event = self._event(route, stream, peer, distance, stamp, ingest, robot_b)
+            if event is not None:
+                events.append(event)
+        return events
+
+    def _event(
+        self, route: Route, stream: str, peer: str, distance: float, stamp: float, ingest: Conversion, robot_b: str = ""
+    ) -> RangeEvent | None:
         reason = range_rejection(distance)
         if reason is not None:
             ingest.reject(f"range_{reason}", stream)
             return None
         last = ingest.memory(self.kind)
-        if last.get(route.topic) == distance:
+        if last.get((route.topic, peer)) == distance:
             ingest.stats.repeated_ranges += 1
-        last[route.topic] = distance
+        last[(route.topic, peer)] = distance
         return RangeEvent(
-            t=stamp, robot_a=route.robot, robot_b=route.robot_b, distance=distance, node_a=route.node_a, node_b=route.node_b
-        )
+            t=stamp, robot_a=route.robot, robot_b=robot_b or route.robot_b, distance=distance, node_a=route.node_a,
+            node_b=peer or route.node_b,
+        )  # fmt: skip
 
     def message(self, event: RangeEvent) -> Any:
         return range_msg(event)
@@ -297,7 +332,8 @@ class Range(Sensor):
         not read, the method is infrastructure-free), and a warning if no pair has a topic."""
         template = config.uwb.range_topic
         read = {r.topic for r in resolved}
-        ignored = [t for t in match_range_topics(bag_topics, template) if t not in read]
+        listed = [] if config.uwb.peer_field else match_range_topics(bag_topics, template)
+        ignored = [t for t in listed if t not in read]
         nodes = [r.uwb_node for r in config.robots if r.uwb_node]
         warnings = []
         if len(nodes) >= 2 and not read:
@@ -305,8 +341,15 @@ class Range(Sensor):
         return ignored, warnings
 
 
-def _check_range_template(template: str) -> None:
-    if "{a}" not in template or "{b}" not in template:
+def _check_range_template(template: str, peers: bool = False) -> None:
+    """A pair's topic names both nodes; a node's topic (a type listing peers) its node or robot."""
+    if peers:
+        if ("{a}" in template) == ("{robot}" in template) or "{b}" in template:
+            raise ConfigError(
+                f"uwb.range_topic {template!r}: with uwb.peer_field each node publishes its own topic: "
+                "use {a} (its node id) or {robot} (its robot), not {b}"
+            )
+    elif "{a}" not in template or "{b}" not in template:
         raise ConfigError(f"uwb.range_topic {template!r} must contain both {{a}} and {{b}}")
 
 

@@ -51,6 +51,7 @@ from typing import Any
 
 from relloc.config import TeamConfig
 from relloc.events import Event
+from relloc.ros.distros import DEFAULT_DISTRO, Layout, layouts
 from relloc.ros.messages import MessageDecodeError, decode, stamp_to_sec
 from relloc.sensors import Route, Sensor, check_config, kind_of, registered, sensor
 from relloc.sensors.builtin import match_range_topics
@@ -125,6 +126,9 @@ class IngestStats:
     """Messages per stream stamped from their receive time (zero stamps, ``odom_zero_stamps``)."""
     repeated_ranges: int = 0
     """Ranges equal to the previous value of the same topic (passed on)."""
+    layouts: Counter[str] = field(default_factory=Counter)
+    """Messages per layout they were decoded in (``sensor_msgs/msg/Range@humble``), for types
+    whose definition differs between ROS 2 distributions."""
     out_of_order: int = 0
     """Events released after a later-stamped one and passed on (live; a bag drops them as
     ``rejected["late"]``)."""
@@ -146,6 +150,7 @@ class IngestStats:
             "rejected": dict(self.rejected),
             "restamped": dict(self.restamped),
             "repeated_ranges": self.repeated_ranges,
+            "layouts": dict(self.layouts),
             "out_of_order": self.out_of_order,
             "clock_offset": self.clock_offset,
         }
@@ -169,13 +174,20 @@ class Converter:
     """
 
     def __init__(
-        self, stats: IngestStats, clock: HeaderClock, log: logging.Logger | None = None
+        self,
+        stats: IngestStats,
+        clock: HeaderClock,
+        log: logging.Logger | None = None,
+        distro: str = DEFAULT_DISTRO,
     ) -> None:
         self.stats = stats
         self.clock = clock
         self.log = log
+        self.distro = distro
+        """The distribution whose layout is tried first where a type has several."""
         self._memory: dict[str, dict[Any, Any]] = {}
         self._last_restamp: dict[str, float] = {}
+        self._layouts: dict[str, tuple[Layout, ...]] = {}
 
     def convert(
         self,
@@ -183,9 +195,27 @@ class Converter:
         stream: str,
         payload: bytes | bytearray | memoryview,
         received: float,
+        layout: Layout | None = None,
     ) -> Event | None:
-        """The event of one ``payload`` on ``stream`` (a topic or key routed by ``route``),
-        received at ``received``; ``None`` (counted) if the message is unusable."""
+        """The one event of a message of a sensor that makes one per message (:meth:`events`),
+        or ``None``; a message that made several is a ``ValueError``."""
+        events = self.events(route, stream, payload, received, layout)
+        if len(events) > 1:
+            raise ValueError(f"a message on {stream!r} made {len(events)} events: use Converter.events")
+        return events[0] if events else None
+
+    def events(
+        self,
+        route: Route,
+        stream: str,
+        payload: bytes | bytearray | memoryview,
+        received: float,
+        layout: Layout | None = None,
+    ) -> list[Event]:
+        """The events of one ``payload`` on ``stream`` (a topic or key routed by ``route``),
+        received at ``received``, decoded in ``layout`` (else in each known layout of the
+        route's types in turn): one for most sensors, one per peer of a range type listing
+        peers, none (counted) if the message is unusable."""
         stats = self.stats
         stats.messages[stream] += 1
         stats.last_received[route.robot] = received
@@ -194,20 +224,29 @@ class Converter:
         if not isinstance(payload, bytes):
             payload = bytes(payload)  # the decoders hash and slice it
         own = sensor(route.kind)
-        fast = own.fast(payload)
+        tried = (layout,) if layout is not None else self._candidates(route, stream)
+        fast = None
+        for lay in tried:
+            fast = own.fast(payload, lay)
+            if fast is not None:
+                stats.layouts[str(lay)] += 1
+                break
         msg = None
         if fast is None:
-            msg = self._decode(route, stream, payload)
+            msg = self._decode(tried, stream, payload)
             if msg is None:
-                return None
-            stamp = stamp_to_sec(msg.header.stamp)
+                return []
+            stamp = 0.0 if route.zero_stamps else stamp_to_sec(msg.header.stamp)  # a type may have no header
         else:
             stamp = fast[0]
         if route.zero_stamps or stamp == 0.0:
             stamp = self._restamp(route, stream, received)
         else:
             self.clock.observe(stream, route.kind, stamp, received)
-        return own.convert(route, stream, msg, fast, stamp, self)
+        out = own.convert(route, stream, msg, fast, stamp, self)
+        if out is None:
+            return []
+        return out if isinstance(out, list) else [out]
 
     def memory(self, kind: str) -> dict[Any, Any]:
         """State the sensor ``kind`` keeps for this pass (a range's previous value per topic)."""
@@ -226,14 +265,26 @@ class Converter:
                     "rejected a message on %r (%s, %d so far) %s", stream, reason, n, detail
                 )
 
-    def _decode(self, route: Route, stream: str, payload: bytes) -> Any:
+    def _candidates(self, route: Route, stream: str) -> tuple[Layout, ...]:
+        """The layouts a message of ``route`` may be in, this converter's distribution first."""
+        found = self._layouts.get(stream)
+        if found is None:
+            found = self._layouts[stream] = tuple(
+                lay for msgtype in route.msgtypes for lay in layouts(msgtype, self.distro)
+            )
+        return found
+
+    def _decode(self, tried: tuple[Layout, ...], stream: str, payload: bytes) -> Any:
         error: MessageDecodeError | None = None
-        for msgtype in route.msgtypes:
+        for lay in tried:
             try:
-                return decode(payload, msgtype)
+                msg = decode(payload, lay.msgtype, lay)
             except MessageDecodeError as exc:
                 error = exc
-        self.reject("decode_error", stream, str(error))
+                continue
+            self.stats.layouts[str(lay)] += 1
+            return msg
+        self.reject("decode_error", stream, str(error) if error else "no known layout")
         return None
 
     def _restamp(self, route: Route, stream: str, received: float) -> float:

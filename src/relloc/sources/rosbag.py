@@ -20,10 +20,13 @@ from pathlib import Path
 from typing import Any
 
 from rosbags.rosbag2 import Reader
+from rosbags.typesys import get_types_from_msg
 
 from relloc.config import ConfigError, TeamConfig
 from relloc.events import Event
+from relloc.ros.distros import Layout, layout_of_definition, layouts
 from relloc.ros.messages import MessageDecodeError, decode, header_stamp_from_cdr, typestore
+from relloc.ros.stores import register_types
 from relloc.sensors import Route, Sensor, sensor
 from relloc.sources.clock import HeaderClock
 from relloc.sources.ingest import (
@@ -165,6 +168,23 @@ def _messages(
         yield item
 
 
+def _bag_layouts(reader: Reader) -> dict[str, Layout]:
+    """Per topic, the layout its stored definition names. A type relloc does not know is
+    registered from the bag's definition (a driver's own message, recorded with it)."""
+    found: dict[str, Layout] = {}
+    for conn in reader.connections:
+        text = conn.msgdef.data if conn.msgdef is not None else ""
+        if not text or conn.msgdef.format.name != "MSG":
+            continue
+        if not layouts(conn.msgtype):
+            with suppress(Exception):  # an unparsable definition: the type stays unknown
+                register_types(get_types_from_msg(text, conn.msgtype))
+        layout = layout_of_definition(conn.msgtype, text)
+        if layout is not None:
+            found[conn.topic] = layout
+    return found
+
+
 def read_messages(path: str | Path, topics: Collection[str]) -> Iterator[tuple[str, float, Any]]:
     """Decoded messages of some topics of a bag: ``(topic, receive time in s, message)``, in
     receive order, for analyses that need more than a team's events (e.g. every UWB node).
@@ -226,6 +246,9 @@ class RosbagSource:
                 name: (info.msgtype or "?", info.msgcount) for name, info in reader.topics.items()
             }
             """Every topic of the bag: name -> (message type, message count)."""
+            self.layouts = _bag_layouts(reader)
+            """Per topic, the layout of its type the bag's own definition names (bags that store
+            definitions: MCAP, rosbag2 since Iron); other topics' messages are tried in each."""
             try:
                 routes = team_routes(
                     config,
@@ -289,7 +312,11 @@ class RosbagSource:
         no range at all between the team's robots is a :class:`BagError`, since every method
         fuses ranges."""
         template = self.config.uwb.range_topic
-        found = match_range_topics(self.topics, template)
+        if self.config.uwb.peer_field:  # one topic per node, listing any of its peers
+            every = tuple(r.uwb_node for r in self.config.robots if r.uwb_node)
+            found = {t: every for t, r in self._routes.items() if r.kind == "range"}
+        else:
+            found = match_range_topics(self.topics, template)
         ranged = {node for pair in found.values() for node in pair}
         robots = [r for r in self.config.robots if r.uwb_node]
         if len(robots) >= 2 and not found:
@@ -362,7 +389,7 @@ class RosbagSource:
                 if recv_ns >= stop and found:
                     break
                 topic = conn.topic
-                if clock.seen(topic) >= _CLOCK_SAMPLES:
+                if clock.seen(topic) >= _CLOCK_SAMPLES or not self._routes[topic].stamped:
                     continue
                 try:
                     stamp = header_stamp_from_cdr(raw)
@@ -387,7 +414,8 @@ class RosbagSource:
     def __iter__(self) -> Iterator[Event]:
         """Stream the bag's events in header-stamp order (resets :attr:`stats`)."""
         self.stats = stats = IngestStats(clock_offset=self.clock_offset)
-        converter = Converter(stats, self.clock)
+        converter = Converter(stats, self.clock, distro=self.config.ros_distro)
+        layouts = self.layouts
         buffer: ReorderBuffer[Event] = ReorderBuffer(self.max_lag, drop_late=True)
 
         def released(events: list[Event]) -> list[Event]:
@@ -397,7 +425,7 @@ class RosbagSource:
                 stats.rejected["late"] = buffer.late
             return events
 
-        typestore()  # build the type store before the first message
+        typestore(self.config.ros_distro)  # build the type store before the first message
         def damaged(line: str) -> None:
             self._damaged(line)
             stats.rejected["bag_damaged"] += 1
@@ -405,8 +433,7 @@ class RosbagSource:
         with _open_reader(self.path, damaged) as reader:
             for conn, recv_ns, raw in _messages(reader, self.path, self._routes, damaged):
                 recv = recv_ns * 1e-9
-                event = converter.convert(self._routes[conn.topic], conn.topic, raw, recv)
-                if event is not None:
+                for event in converter.events(self._routes[conn.topic], conn.topic, raw, recv, layouts.get(conn.topic)):
                     buffer.push(event.t, event)
                 buffer.advance(recv + self.clock_offset)
                 yield from released(buffer.pop_ready())

@@ -12,8 +12,8 @@ both). With ``zenoh-bridge-ros2dds`` (the default) each message, serialised as R
 as a rosbag2 file stores it, is on the key named after the topic: ``/tb1/odom`` -> ``tb1/odom``,
 below the bridge's namespace if it has one. With ``rmw_zenoh`` it is on
 ``<domain>/tb1/odom/<type name>/<type hash>``, subscribed as ``<domain>/tb1/odom/*/*`` (any
-type, any hash: each sample's type name is checked against the route, its hash against the one
-relloc computes, and its attachment gives the source timestamp and, per publisher, the
+type, any hash: each sample's type name is checked against the route, its hash picks the
+layout it is decoded in, and its attachment gives the source timestamp and, per publisher, the
 sequence numbers that count lost samples: :mod:`relloc.sources.rmw_envelope`).
 :func:`~relloc.sources.zenoh_keys.build_routes` puts the team's routes
 (:func:`~relloc.sources.ingest.team_routes`: odometry, UWB ranges of every pair in both node
@@ -73,13 +73,12 @@ from typing import Any
 
 from relloc.config import ConfigError, TeamConfig
 from relloc.events import Event, WakeRule
+from relloc.ros.distros import HASH_NOT_SUPPORTED, layouts
 from relloc.ros.interfaces import (
     RosInterface,
     dds_type_name,
     decode_sent_time,
 )
-from relloc.ros.messages import typestore
-from relloc.ros.type_hash import type_hash
 from relloc.ros.zenoh_node import ZenohNode
 from relloc.sensors import sensor
 from relloc.sources.clock import HeaderClock
@@ -170,15 +169,13 @@ class ZenohSource:
             ranges=opts.ranges,
             detections=opts.detections,
         )
-        store = typestore()
         for key, route in self.routes.items():
-            missing = [t for t in route.msgtypes if t not in store.fielddefs]
+            missing = [t for t in route.msgtypes if not layouts(t)]
             if missing:  # cannot happen with the shipped type store; guards a broken install
                 raise ConfigError(f"message type(s) {missing} of {key!r} are unknown")
         self.stats = IngestStats()
         self._dds_types = {
-            key: {dds_type_name(t): type_hash(t) for t in route.msgtypes}
-            for key, route in self.routes.items()
+            key: {dds_type_name(t): t for t in route.msgtypes} for key, route in self.routes.items()
         }
         self._envelope = RmwEnvelope(self._dds_types)
         self.transport: TransportStats = self._envelope.stats
@@ -186,7 +183,7 @@ class ZenohSource:
         self.buffer: ReorderBuffer[Arrival] = ReorderBuffer(
             opts.reorder_window, hold=opts.reorder_window / opts.clock_rate
         )
-        self._converter = Converter(self.stats, self.clock, log)
+        self._converter = Converter(self.stats, self.clock, log, opts.interface.distro)
         # Zenoh's threads append to the inbox (a deque: appends and pops are atomic, its order
         # is the arrival order) and put a token on the wake queue when the engine thread has to
         # run (SimpleQueue: C-implemented, the cheapest hand-over between threads CPython has).
@@ -204,8 +201,9 @@ class ZenohSource:
                 continue
             judged = (wake == "odometry", route.kind, route.zero_stamps)
             if opts.interface.rmw:
-                for name, hash_ in self._dds_types[key].items():
-                    self._judged[f"{key}/{name}/{hash_}"] = judged
+                for name, msgtype in self._dds_types[key].items():
+                    for hash_ in (HASH_NOT_SUPPORTED, *(lay.hash for lay in layouts(msgtype))):
+                        self._judged[f"{key}/{name}/{hash_}"] = judged
             else:
                 self._judged[key] = judged
         self._restamped_kinds = tuple(sorted({r.kind for r in self.routes.values() if r.zero_stamps}))
@@ -397,14 +395,15 @@ class ZenohSource:
                 return
             self._converter.reject("unknown_key", key)
             return
+        layout = None
         if self.interface.rmw:
-            sent = self._envelope.open(topic_key, dds_type, type_hash_, attachment, self._converter.reject)
-            if sent is False:
+            opened = self._envelope.open(topic_key, dds_type, type_hash_, attachment, self._converter.reject)
+            if opened is None:
                 return
+            sent, layout = opened
         else:
             sent = decode_sent_time(attachment)
-        event = self._converter.convert(route, topic_key, payload, received)
-        if event is not None:
+        for event in self._converter.events(route, topic_key, payload, received, layout):
             self.buffer.push(event.t, Arrival(event, topic_key, received, sent), received)
             # The buffer's time advances with the stamps, but never past the header clock's now
             # (plus a slack): one message stamped in the future must not release everything
