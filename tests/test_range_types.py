@@ -10,6 +10,7 @@ peer); the same filter on both recordings must give the same estimates.
 from __future__ import annotations
 
 import dataclasses
+import json
 import threading
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,7 @@ import numpy as np
 import pytest
 from waiting import wait_until
 
+from relloc.cli import main
 from relloc.config import ConfigError, TeamConfig
 from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
@@ -137,6 +139,18 @@ def test_node_frames_give_the_estimates_of_the_same_ranges_as_range(tmp_path: Pa
     assert source.stats.rejected == {} and plain_source.stats.rejected == {}
     assert source.stats.events["range"] == plain_source.stats.events["range"] > 100
     assert len(found) == len(plain)
+    # `relloc run`, scored against the bags' motion capture: the same APE
+    apes = []
+    for bag, cfg in ((ranges_bag, config), (frames_bag, frames)):
+        robots = tuple(dataclasses.replace(r, mocap_body=r.name) for r in cfg.robots)  # as encoded
+        dataclasses.replace(cfg, robots=robots).with_filter(particles=1000).save(tmp_path / "team.toml")
+        out = tmp_path / f"{bag.name}.json"
+        args = ["run", str(bag), "--config", str(tmp_path / "team.toml"), "--methods", "pf", "--warmup", "5"]
+        assert main([*args, "--json", str(out), "--no-progress"]) == 0
+        (scenario,) = json.loads(out.read_text())["scenarios"].values()
+        apes.append(scenario["methods"]["pf"]["mean_ape_median"])
+    print(f"relloc run, mean APE median: as Range {apes[0]:.4f} m, as {layout} node frames {apes[1]:.4f} m")
+    assert apes[1] == pytest.approx(apes[0], abs=0.0 if layout == "linktrack_ros2" else 0.01)
     if layout == "linktrack_ros2":  # stamped: the very same events, the very same estimates
         assert np.array_equal(_positions(found), _positions(plain))
         assert source.stats.restamped == {}
@@ -170,7 +184,11 @@ def test_node_frames_replayed_over_zenoh(tmp_path: Path, sessions: tuple[Any, An
     server.close()
     assert summary["rejected"] == {}
     assert summary["stats"]["events"]["range"] == offline_source.stats.events["range"]
-    assert len(server.pipelines[0].estimates) == pytest.approx(len(offline), abs=2)
+    served = server.pipelines[0].estimates
+    assert len(served) == pytest.approx(len(offline), abs=2)
+    served_ape, offline_ape = ape_median(served, frames.reference), ape_median(offline, frames.reference)
+    print(f"APE median: served {served_ape:.4f} m, offline {offline_ape:.4f} m")
+    assert served_ape == pytest.approx(offline_ape, abs=0.01)
 
 
 def test_a_type_relloc_cannot_load_is_a_clear_error_before_the_run(tmp_path: Path) -> None:
