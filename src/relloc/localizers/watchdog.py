@@ -182,12 +182,22 @@ class ConsistencyWatchdog:
         c = ca + cb
         out = []
         if r is not None and r_var is not None:
-            out.append((a, b, (r - dist) ** 2 / (r_var + float(u @ c @ u))))
+            out.append((a, b, (r - dist) ** 2 / (r_var + self._along(a, b, fe, u @ c @ u))))
         if bearing is not None:
             n = np.array([-u[1], u[0]])
             residual = math.remainder(bearing[0] - math.atan2(d[1], d[0]), math.tau)
             out.append((a, b, residual**2 / (bearing[1] + float(n @ c @ n) / dist**2)))
         return out
+
+    def _along(self, a: str, b: str, fe: FilterEstimate, summed: float) -> float:
+        """The variance of the distance between ``a`` and ``b``: the spread of that distance
+        over the filter's dominant mode where it says (the pair's own, which the common
+        rotation and translation of the formation do not widen), else ``summed``, both
+        positions' covariances along the line of sight."""
+        if fe.summary is None:
+            return float(summed)
+        i, j = self._rows.get(a, -1) + 1, self._rows.get(b, -1) + 1
+        return float(fe.summary.distances[i, j, 1]) ** 2
 
     def _position(self, robot: str, fe: FilterEstimate) -> tuple[np.ndarray, np.ndarray]:
         k = self._rows.get(robot)
