@@ -5,8 +5,9 @@ A filter can be wrong and confident at once (a start on the wrong solution, a ca
 ran away, a robot displaced or slipping unseen by its odometry) while the divergence monitor's
 gross-outlier rule (:mod:`.divergence`) stays quiet. After each update, every fused range and
 sighting's range is compared with the distance between its robots' published positions:
-``NIS = (z - b - d)^2 / S``, ``S`` the measurement's variance plus both positions' published
-covariances along the line of sight; a sighting's bearing likewise against the direction
+``NIS = (z - b - d)^2 / S``, ``S`` the measurement's variance plus the spread of the pair's
+distance over the filter's dominant mode (else both positions' covariances along the line of
+sight, which the formation's common rotation inflates); a sighting's bearing likewise against the direction
 between them less the observer's yaw in the published frame (turned by its published heading,
 whose variance counts too; not judged where the filter has neither a shared frame nor
 headings). A consistent filter's NIS is at most chi-square (one degree of freedom a row).
