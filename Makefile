@@ -54,9 +54,12 @@ $(DOCS_VENV)/.installed: pyproject.toml
 docs: $(DOCS_VENV)/.installed
 	NO_MKDOCS_2_WARNING=1 $(DOCS_VENV)/bin/mkdocs build --strict --quiet
 
-# Reruns the evaluation commands and writes docs/results_generated.md from their JSON.
+# Reruns the evaluation commands and writes docs/results_generated.md from their JSON, then
+# MRCLAM Dataset 6 with every robot as the reference, seeds 0-2 (15 runs, two at a time;
+# skipped without ../shared/data): docs/mrclam_references_generated.md.
 results: setup
 	$(BIN)/python scripts/results_pages.py --out docs/results_generated.md
+	$(BIN)/python scripts/mrclam_references.py --skip-missing --page docs/mrclam_references_generated.md
 
 # The benchmark has an environment of its own: relloc plus the pfilter reference (not a dependency).
 BENCH_VENV := .venv-bench

@@ -56,6 +56,8 @@ class Row:
     inconsistency_restarts: int | None
     calibration_restarts: int | None
     wall_s: float | None
+    compute_s: float | None = None
+    """The filter's own compute time (``compute_s``): the wall time less start-up and output."""
 
     @property
     def worst_ape(self) -> tuple[str, float] | None:
@@ -103,6 +105,7 @@ def read_row(path: Path, method: str = METHOD) -> Row:
         return {name: float(r[key]) for name, r in robots.items() if _finite(r.get(key))}
 
     faults = scenario.get("faults", {}).get(method, {})
+    compute = scenario["methods"][method].get("compute_s")
     return Row(
         reference=run.get("reference", scenario.get("reference", "?")),
         seed=int(run.get("seed", payload.get("seed", 0))),
@@ -112,6 +115,7 @@ def read_row(path: Path, method: str = METHOD) -> Row:
         inconsistency_restarts=faults.get("inconsistency_restarts"),
         calibration_restarts=faults.get("calibration_restarts"),
         wall_s=run.get("wall_s"),
+        compute_s=float(compute) if _finite(compute) else None,
     )
 
 
@@ -137,8 +141,8 @@ def table(rows: list[Row], rule: str | None = None) -> list[str]:
     lo, hi = COVERAGE_RANGE
     out = [
         "| reference | seed | worst body APE median (m) | worst NEES median | median NEES median "
-        "| 95 % coverage (lowest–highest) | restarts (inconsistency / calibration) | wall (s) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| 95 % coverage (lowest–highest) | restarts (inconsistency / calibration) | wall (s) | compute (s) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in rows:
         worst = r.worst_ape
@@ -148,7 +152,26 @@ def table(rows: list[Row], rule: str | None = None) -> list[str]:
         name = f"{r.reference} (rule)" if r.reference == rule else r.reference
         out.append(
             f"| {name} | {r.seed} | {ape} | {_f(r.worst_nees, 1)} | {_f(r.median_nees, 1)} | {cov} "
-            f"| {_count(r.inconsistency_restarts)} / {_count(r.calibration_restarts)} | {_f(r.wall_s, 0)} |"
+            f"| {_count(r.inconsistency_restarts)} / {_count(r.calibration_restarts)} | {_f(r.wall_s, 0)} | {_f(r.compute_s, 0)} |"
+        )
+    out += ["", "Per reference, over its seeds: the worst run's figure (the highest APE and NEES, the "
+            "lowest coverage) and the median wall time.", "",
+            "| reference | seeds | worst body APE median (m) | worst NEES median | lowest 95 % coverage "
+            "| restarts (inconsistency / calibration) | median wall (s) |",
+            "| --- | --- | --- | --- | --- | --- | --- |"]
+    for ref in sorted({r.reference for r in rows}):
+        mine = [r for r in rows if r.reference == ref]
+        apes = [w[1] for r in mine if (w := r.worst_ape) is not None]
+        nees = [n for r in mine if (n := r.worst_nees) is not None]
+        covs = [c[0] for r in mine if (c := r.coverage_span) is not None]
+        walls = [r.wall_s for r in mine if r.wall_s is not None]
+        inc = sum(r.inconsistency_restarts or 0 for r in mine)
+        cal = sum(r.calibration_restarts or 0 for r in mine)
+        name = f"{ref} (rule)" if ref == rule else ref
+        out.append(
+            f"| {name} | {len(mine)} | {_f(max(apes) if apes else None, 3)} | {_f(max(nees) if nees else None, 1)} "
+            f"| {_pct(min(covs)) if covs else '–'} | {inc} / {cal} "
+            f"| {_f(statistics.median(walls) if walls else None, 0)} |"
         )
     checks = [
         ("ape", f"body-frame APE median <= {BODY_APE_MAX:.2f} m for every robot"),
@@ -169,7 +192,7 @@ def table(rows: list[Row], rule: str | None = None) -> list[str]:
     return out
 
 
-def page(rows: list[Row], command: str, data: str, config: str, rule: str | None) -> str:
+def page(rows: list[Row], command: str, data: str, config: str, rule: str | None, rebuilt: bool = False) -> str:
     seeds = sorted({r.seed for r in rows})
     lines = [
         "# MRCLAM: every robot as the reference",
@@ -180,13 +203,16 @@ def page(rows: list[Row], command: str, data: str, config: str, rule: str | None
         command,
         "```",
         "",
-        f"from the runs' JSON files (do not edit by hand). Session `{data}`, config `{config}`, "
+        ("(the table rebuilt from that command's JSON files with `--from-json`; do not edit by hand). "
+         if rebuilt else "from the runs' JSON files (do not edit by hand). ")
+        + f"Session `{data}`, config `{config}`, "
         f"method `{METHOD}`, warm-up {WARMUP:.0f} s, seeds {', '.join(map(str, seeds))}; each run is "
         "`relloc run DATA --config CONFIG --methods pf --warmup 30 --reference R --seed S`. "
         "Figures per run over the non-reference robots: the worst body-frame APE median "
         "(in the reference's body frame; the robot in brackets), the worst and the median NEES "
         "median, the lowest and highest 95 % coverage, the filter's restarts and the wall time "
-        "of the whole `relloc run` process.",
+        "of the whole `relloc run` process (`--jobs` of them at once, default 2) beside the filter's "
+        "own compute time (`compute_s`).",
         "",
     ]
     if rule is not None:
@@ -257,7 +283,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--from-json", action="store_true", help="rebuild from --out's JSON, run nothing")
     parser.add_argument("--skip-missing", action="store_true", help="exit 0 with a note when --data is absent")
     args = parser.parse_args(argv)
-    command = shlex.join(["python", "scripts/mrclam_references.py", *(sys.argv[1:] if argv is None else argv)])
+    given = [a for a in (sys.argv[1:] if argv is None else argv) if a != "--from-json"]
+    command = shlex.join(["python", "scripts/mrclam_references.py", *given])
 
     if not args.from_json:
         if not args.data.is_dir():
@@ -284,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{args.out}: no run JSON", file=sys.stderr)
             return 2
     rule = _rule(args.data) if args.data.is_dir() else None
-    text = page(rows, command, _shown(args.data), _shown(args.config), rule)
+    text = page(rows, command, _shown(args.data), _shown(args.config), rule, args.from_json)
     print(text)
     if args.page is not None:
         args.page.parent.mkdir(parents=True, exist_ok=True)

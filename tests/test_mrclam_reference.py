@@ -138,7 +138,7 @@ def _fake_run(folder: Path, reference: str, seed: int, robots: dict[str, tuple[f
         "seed": seed,
         "scenarios": {"MRCLAM_Fake": {
             "reference": reference,
-            "methods": {"pf": {"robots": figures}},
+            "methods": {"pf": {"robots": figures, "compute_s": 30.4}},
             "faults": {"pf": {"inconsistency_restarts": restarts[0], "calibration_restarts": restarts[1]}},
         }},
     }
@@ -159,13 +159,16 @@ def test_the_page_is_built_from_the_runs_json(tmp_path: Path, capsys: pytest.Cap
     assert script.main(["--from-json", "--out", str(runs), "--data", str(tmp_path / "none"), "--page", str(page)]) == 0
     text = page.read_text()
     assert text in capsys.readouterr().out
-    assert f"python scripts/mrclam_references.py --from-json --out {runs}" in text
+    assert f"python scripts/mrclam_references.py --out {runs} --data" in text
+    assert "rebuilt from that command's JSON files with `--from-json`" in text
     rows = [line for line in text.splitlines() if line.startswith("| robot")]
-    assert rows == [
-        "| robot1 | 0 | 0.210 (robot2) | 4.0 | 3.0 | 86 %–95 % | 0 / 0 | – |",
-        "| robot1 | 1 | 0.310 (robot2) | 57.6 | 29.8 | 2 %–97 % | 3 / 0 | 95 |",
-        "| robot2 | 0 | 0.200 (robot3) | 3.0 | 2.5 | 88 %–93 % | 0 / 1 | 41 |",
+    assert rows[:3] == [
+        "| robot1 | 0 | 0.210 (robot2) | 4.0 | 3.0 | 86 %–95 % | 0 / 0 | – | 30 |",
+        "| robot1 | 1 | 0.310 (robot2) | 57.6 | 29.8 | 2 %–97 % | 3 / 0 | 95 | 30 |",
+        "| robot2 | 0 | 0.200 (robot3) | 3.0 | 2.5 | 88 %–93 % | 0 / 1 | 41 | 30 |",
     ]
+    assert "| robot1 | 2 | 0.310 | 57.6 | 2 % | 3 / 0 | 95 |" in text  # the per-reference table
+    assert "| robot2 | 1 | 0.200 | 3.0 | 88 % | 0 / 1 | 41 |" in text
     checks = [line for line in text.splitlines() if line.startswith("- ")]
     assert checks == [
         "- FAIL: body-frame APE median <= 0.22 m for every robot: 2 of 3 runs "
@@ -180,7 +183,8 @@ def test_the_page_is_built_from_the_runs_json(tmp_path: Path, capsys: pytest.Cap
                         "--references", "robot2", "--page", str(page)]) == 0
     text = page.read_text()
     assert [line for line in text.splitlines() if line.startswith("| robot")] == [
-        "| robot2 | 0 | 0.200 (robot3) | 3.0 | 2.5 | 88 %–93 % | 0 / 1 | 41 |"]
+        "| robot2 | 0 | 0.200 (robot3) | 3.0 | 2.5 | 88 %–93 % | 0 / 1 | 41 | 30 |",
+        "| robot2 | 1 | 0.200 | 3.0 | 88 % | 0 / 1 | 41 |"]
     assert sum(line.startswith("- PASS") for line in text.splitlines()) == 4
     assert script.main(["--from-json", "--out", str(tmp_path / "empty")]) == 2
 
