@@ -21,10 +21,16 @@ DOMINANT_MODE_WEIGHT = 0.9
 """A published mode lighter than this competes with others: not converged (navigation holds)."""
 
 
+HEADING_FRAME = "heading"
+"""Axes of the team's shared heading frame (the compass's), origin at the reference robot."""
+BODY_FRAME = "body"
+"""The reference robot's body frame (x forward, y left) at the estimate's time."""
+
+
 @dataclass(frozen=True)
 class Estimate:
-    """Positions of every non-reference robot relative to the reference, in the shared heading
-    frame (heading-estimate mode: the reference robot's odometry frame)."""
+    """Positions of every non-reference robot relative to the reference, with covariances, in
+    the frame :attr:`frame` names: one the measurements observe."""
 
     t: float
     method: str
@@ -80,6 +86,17 @@ class Estimate:
     they were last seen; their covariances (all of them, when the reference is unseen) have
     grown at ``[filter.odometry] unseen_speed``, so that they still cover a robot that drove
     on meanwhile."""
+    frame: str = HEADING_FRAME
+    """Where ``positions`` and ``covariances`` are: :data:`HEADING_FRAME` (with a compass, or
+    methods aligned to the truth) or :data:`BODY_FRAME` (headings estimated: the reference's
+    odometry frame turns against the world as its heading drifts, unobserved, so relloc
+    publishes in the reference's body frame, which sightings and ranges do observe)."""
+
+    @property
+    def frame_id(self) -> str:
+        """The frame's ROS name: the reference's name for the heading frame (a frame with the
+        compass's axes at the reference), ``<reference>/base_link`` for its body frame."""
+        return f"{self.reference}/base_link" if self.frame == BODY_FRAME else self.reference
 
     @property
     def status(self) -> str:

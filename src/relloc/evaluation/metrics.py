@@ -4,7 +4,7 @@ Definitions follow evo (MichaelGrupp/evo), applied to *relative* positions:
 
 * **APE** of robot ``i`` at an estimate time ``t``: ``|| p_hat_i(t) - (g_i(t) - g_ref(t)) ||``
   where ``g`` is the motion-capture position interpolated at ``t`` (linear, only across gaps
-  shorter than ``max_gap``), in the shared heading frame. Reported as median, mean, RMSE, std
+  shorter than ``max_gap``), in the frame the estimate names (the shared heading frame, or the reference's body frame). Reported as median, mean, RMSE, std
   and max over the estimates after a warm-up window. The particle filter is never aligned.
 * **ATE** of a trajectory: the APE RMSE after aligning the whole estimated relative trajectory
   of one robot to ground truth with one rigid 2-D transform (rotation + translation, Umeyama /
@@ -27,7 +27,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from relloc.estimate import Estimate
+from relloc.estimate import BODY_FRAME, HEADING_FRAME, Estimate
 from relloc.events import GroundTruthEvent
 from relloc.odometry import wrap_angle
 
@@ -136,30 +136,39 @@ def associate(
     robots: Iterable[str],
     rotation: float = 0.0,
 ) -> dict[str, Paired]:
-    """Pair every estimate of every robot with interpolated relative ground truth.
-
-    ``rotation`` (rad): the estimates' frame is the world frame turned by this angle (the
-    reference robot's odometry frame in heading-estimate mode); the ground truth is turned by
-    ``-rotation`` into it.
-    """
+    """Pair every estimate of every robot with interpolated relative ground truth, in the
+    estimate's frame (:func:`truth_in_frame`; ``rotation``: that of its heading frame)."""
     out: dict[str, Paired] = {}
     for robot in robots:
         t, e, g, s = [], [], [], []
         for est in estimates:
             if robot not in est.positions:
                 continue
-            truth = gt.relative_at(robot, est.t)
+            truth = truth_in_frame(est, gt, robot, rotation)
             if truth is None:
                 continue
-            if rotation != 0.0:
-                c, s_ = math.cos(rotation), math.sin(rotation)
-                truth = (c * truth[0] + s_ * truth[1], -s_ * truth[0] + c * truth[1])
             t.append(est.t)
             e.append(est.positions[robot])
             g.append(truth)
             s.append(est.std(robot))
         out[robot] = Paired(np.array(t), np.array(e).reshape(-1, 2), np.array(g).reshape(-1, 2), np.array(s))
     return out
+
+
+def truth_in_frame(est: Estimate, gt: GroundTruth, robot: str, rotation: float = 0.0) -> tuple[float, float] | None:
+    """``robot``'s true position relative to the reference at ``est.t`` in the frame the
+    estimate is in (:attr:`Estimate.frame`): the reference's body frame (turned by its
+    motion-capture yaw then), or the heading frame, the world turned by ``rotation`` (rad; the
+    compass frame: 0). ``None`` where the truth is unknown."""
+    truth = gt.relative_at(robot, est.t)
+    if truth is None:
+        return None
+    if est.frame == BODY_FRAME:
+        pose = gt.pose_at(gt.reference, est.t)
+        if pose is None:
+            return None
+        rotation = pose[2]
+    return _to_body(truth, rotation) if rotation != 0.0 else truth
 
 
 def orthogonal_procrustes(src: FloatArray, dst: FloatArray) -> FloatArray:
@@ -394,19 +403,17 @@ def consistency(
     rotation: float = 0.0,
 ) -> dict[str, Consistency]:
     """NEES of every estimate from ``t_start`` on that carries a covariance, per robot, against
-    interpolated relative ground truth (turned by ``-rotation`` as in :func:`associate`).
+    interpolated relative ground truth in the estimate's frame (as in :func:`associate`).
     Methods without covariances (multilateration) get none."""
     out: dict[str, Consistency] = {}
-    c, s_ = math.cos(rotation), math.sin(rotation)
     for robot in robots:
         t, nees = [], []
         for est in estimates:
             if est.t < t_start or robot not in est.positions or robot not in est.covariances:
                 continue
-            truth = gt.relative_at(robot, est.t)
+            truth = truth_in_frame(est, gt, robot, rotation)
             if truth is None:
                 continue
-            truth = (c * truth[0] + s_ * truth[1], -s_ * truth[0] + c * truth[1])
             e = np.subtract(est.positions[robot], truth)
             cov = np.array(est.covariances[robot], float)
             if not np.all(np.isfinite(cov)) or np.linalg.det(cov) <= 0.0:
@@ -427,7 +434,7 @@ def associate_shapes(
     """Like :func:`associate`, for the published shapes (the formation in its declared gauge,
     :attr:`Estimate.shape`) instead of the positions: align these once for the run
     (:func:`align` ``"run"``), as multilateration's formation is, for the shape APE."""
-    shaped = [replace(est, positions=dict(est.shape)) for est in estimates if est.shape]
+    shaped = [replace(est, positions=dict(est.shape), frame=HEADING_FRAME) for est in estimates if est.shape]
     return associate(shaped, gt, robots, rotation)
 
 
@@ -453,13 +460,14 @@ def body_frame_paired(
     for robot in robots:
         t, e, g, s = [], [], [], []
         for est in estimates:
-            if robot not in est.positions or est.t not in yaw_at:
+            body = est.frame == BODY_FRAME  # already in the body frame
+            if robot not in est.positions or (est.t not in yaw_at and not body):
                 continue
             truth = gt.relative_at(robot, est.t)
             pose = gt.pose_at(ref, est.t)
             if truth is None or pose is None:
                 continue
-            heading = yaw_at[est.t] + (est.headings[ref][0] if ref in est.headings else 0.0)
+            heading = 0.0 if body else yaw_at[est.t] + (est.headings[ref][0] if ref in est.headings else 0.0)
             t.append(est.t)
             e.append(_to_body(est.positions[robot], heading))
             g.append(_to_body(truth, pose[2]))

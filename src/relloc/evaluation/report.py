@@ -24,6 +24,7 @@ from rich.console import Console
 from rich.table import Table
 
 from relloc.engine import Engine
+from relloc.estimate import BODY_FRAME, HEADING_FRAME
 from relloc.evaluation import scores, selfcal_scores
 from relloc.evaluation.metric import METRICS, Column, MethodRun, MetricResult
 from relloc.evaluation.metrics import (
@@ -53,6 +54,9 @@ class MethodReport:
     stats: dict[str, int] = field(default_factory=dict)
     compute_s: float = 0.0
     n_estimates: int = 0
+    frame: str = HEADING_FRAME
+    """The frame of the method's last estimate (:attr:`relloc.estimate.Estimate.frame`), in
+    which it is scored."""
 
     def result(self, kind: type[R]) -> R | None:
         """The result of type ``kind``, if a metric produced one."""
@@ -137,6 +141,7 @@ class MethodReport:
             "robots": robots,
             **method,
             "n_estimates": self.n_estimates,
+            "frame": self.frame,
             "compute_s": round(self.compute_s, 4),
             "stats": dict(self.stats),
         }
@@ -177,10 +182,11 @@ def evaluate(
 
     ``truth`` is the :class:`GroundTruth` that was the engine's truth sink during the run.
 
-    In heading-estimate mode the estimates are in the reference robot's odometry frame: the
-    ground truth is turned into it by the reference's motion-capture yaw at its first odometry
-    message (evaluation only), and the published relative headings are scored. Published
-    online biases are scored against ``bias_truth`` (per node pair) where given.
+    Each estimate is scored in its own frame (:func:`~relloc.evaluation.metrics.truth_in_frame`):
+    in heading-estimate mode the reference's body frame (its motion-capture yaw then), while the
+    published relative headings, which are in the reference's odometry frame, are scored against
+    the truth turned by the reference's motion-capture yaw at its first odometry message.
+    Published online biases are scored against ``bias_truth`` (per node pair) where given.
     """
     t0 = engine.t_first or 0.0
     duration = (engine.t_last or t0) - t0
@@ -212,6 +218,7 @@ def evaluate(
                 stats=p.stats(),
                 compute_s=p.compute_s,
                 n_estimates=len(p.estimates),
+                frame=p.estimates[-1].frame if p.estimates else HEADING_FRAME,
             )
     return ScenarioReport(name, warmup, duration, methods, t0, truth.reference, truth_name)
 
@@ -227,7 +234,8 @@ def print_table(report: ScenarioReport, console: Console | None = None) -> None:
     console = console or make_console()
     title = f"{report.name}: APE after {report.warmup:g} s warm-up ({report.duration:.1f} s run)"
     if report.reference:
-        title += f", positions relative to {report.reference}"
+        body = any(m.frame == BODY_FRAME for m in report.methods.values())
+        title += f", positions relative to {report.reference}" + (" in its body frame" if body else "")
     columns = sorted((c for metric in METRICS for c in metric.columns), key=lambda c: c.rank)
     captions = [metric.caption for metric in METRICS if metric.caption]
     table = Table(title=title, caption=captions[0] if captions else None, caption_justify="left")

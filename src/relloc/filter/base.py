@@ -102,6 +102,12 @@ class WeightedFilter:
     def estimate(self) -> FilterEstimate:
         raise NotImplementedError
 
+    def body_estimate(self, reference_yaw: float) -> FilterEstimate | None:
+        """The estimate in the reference robot's body frame, where the filter's own frame is
+        one the measurements do not observe (the reference's drifting odometry frame); ``None``
+        where it is the compass's shared heading frame, which they do."""
+        return None
+
     @property
     def shared_heading(self) -> bool:
         """Whether the state is in the team's shared heading frame (measurements expressed in

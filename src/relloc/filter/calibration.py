@@ -221,3 +221,35 @@ def calibration_prior(
             c = lay.colored_start + k - off
             cov[c, c] = nz.colored_sigma**2  # zero mean, stationary
     return mean, cov
+
+
+def to_body_frame(
+    mean: FloatArray, cov: FloatArray, n_others: int, u_cols: tuple[int, int], reference_yaw: float
+) -> tuple[FloatArray, FloatArray]:
+    """Each Gaussian's relative positions in the reference robot's *body* frame, with their
+    covariances: ``b_j = R(-(yaw + angle(u_ref))) p_j``, ``yaw`` the reference's odometry yaw
+    and ``u_ref`` (columns ``u_cols``) the drift of its odometry frame, linearised per Gaussian
+    over its joint covariance of positions and ``u_ref`` (their correlation kept: the body frame
+    is what sightings and ranges observe, the odometry frame's rotation is not).
+    ``mean`` ``(M, D)``, ``cov`` ``(M, D, D)`` -> ``(M, n_others, 2)``, ``(M, n_others, 2, 2)``."""
+    k = n_others
+    cols = np.r_[0 : 2 * k, u_cols[0], u_cols[1]]
+    m = mean[:, cols]
+    sub = cov[:, cols[:, None], cols[None, :]]
+    u = m[:, 2 * k :]
+    n2 = np.maximum(np.einsum("ma,ma->m", u, u), 1e-12)
+    angle = reference_yaw + np.arctan2(u[:, 1], u[:, 0])
+    c, s = np.cos(angle), np.sin(angle)
+    rot = np.stack([np.stack([c, s], -1), np.stack([-s, c], -1)], -2)  # R(-angle), (M, 2, 2)
+    p = m[:, : 2 * k].reshape(-1, k, 2)
+    body = np.einsum("mab,mjb->mja", rot, p)
+    d_angle = np.stack([-u[:, 1], u[:, 0]], -1) / n2[:, None]  # d angle / d u, (M, 2)
+    jac = np.zeros((m.shape[0], k, 2, 2 * k + 2))
+    for j in range(k):
+        jac[:, j, :, 2 * j : 2 * j + 2] = rot
+    # d b / d angle = -J b (J the quarter turn): (b_y, -b_x)
+    turn = np.stack([body[..., 1], -body[..., 0]], -1)
+    jac[:, :, :, 2 * k :] = turn[..., :, None] * d_angle[:, None, None, :]
+    body_cov = np.einsum("mjad,mde,mjbe->mjab", jac, sub, jac)
+    return body, body_cov
+

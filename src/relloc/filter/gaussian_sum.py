@@ -33,6 +33,7 @@ from relloc.filter.calibration import (
     calibration_prior,
     circular_heading,
     rotation_jacobian,
+    to_body_frame,
 )
 from relloc.filter.heading_split import split_headings
 from relloc.filter.measurement import MeasurementModel, robust_gaussian
@@ -376,6 +377,27 @@ class GaussianSumFilter(WeightedFilter):
         covs = self.cov[:, idx[:, None, None] + np.arange(2)[None, :, None], idx[:, None, None] + np.arange(2)[None, None, :]]
         summary = summarize(rel, self.weights(), covs, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor)
         headings = {robot: self.heading(robot) for robot in lay.robots} if lay.heading else {}
+        biases = {pair: self.bias(pair) for pair in lay.bias_pairs}
+        scales = {robot: self.scale(robot) for robot in lay.robots} if lay.scale else {}
+        return FilterEstimate(summary.mean, summary.cov, self.ess(), headings, biases, scales, summary)
+
+    def body_estimate(self, reference_yaw: float) -> FilterEstimate | None:
+        """:meth:`estimate` with the positions in the reference robot's body frame
+        (:func:`relloc.filter.calibration.to_body_frame`; ``reference_yaw`` its odometry yaw),
+        and each heading as the turn from a robot's odometry frame to that body frame (what its
+        odometry yaw adds to give its yaw there). ``None`` without estimated headings: the
+        frame is then the compass's, which the measurements observe."""
+        lay = self.layout
+        if not lay.heading:
+            return None
+        rel, covs = to_body_frame(self.mean, self.cov, lay.n_others, lay.u_columns(lay.reference), reference_yaw)
+        summary = summarize(rel, self.weights(), covs, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor)
+        ref_mean, ref_std = self.heading(lay.reference)
+        headings = {}
+        for robot in lay.robots:
+            mean, std = self.heading(robot)
+            turn = math.remainder(mean - ref_mean - reference_yaw, math.tau)
+            headings[robot] = (turn, 0.0 if robot == lay.reference else math.hypot(std, ref_std))
         biases = {pair: self.bias(pair) for pair in lay.bias_pairs}
         scales = {robot: self.scale(robot) for robot in lay.robots} if lay.scale else {}
         return FilterEstimate(summary.mean, summary.cov, self.ess(), headings, biases, scales, summary)

@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any
 
 from relloc.config import TeamConfig
-from relloc.estimate import Estimate
+from relloc.estimate import BODY_FRAME, HEADING_FRAME, Estimate
 from relloc.ros.interfaces import RosInterface
 from relloc.ros.messages import POSE_WITH_COVARIANCE_STAMPED
 from relloc.ros.zenoh_node import ZenohNode
@@ -49,7 +49,7 @@ class EstimateCollector:
         self.interface = iface = interface or RosInterface()
         self._lock = threading.Lock()
         self._poses: list[
-            tuple[int, int, str, float, float, tuple[float, float, float, float]]
+            tuple[int, int, str, float, float, tuple[float, float, float, float], str]
         ] = []
         self._traces: list[dict[str, Any]] = []
         self.node = ZenohNode(session, iface, "relloc_collector")
@@ -72,6 +72,7 @@ class EstimateCollector:
             float(p.x),
             float(p.y),
             (float(c[0]), float(c[1]), float(c[6]), float(c[7])),
+            str(msg.header.frame_id),
         )
         with self._lock:
             self._poses.append(item)
@@ -87,8 +88,8 @@ class EstimateCollector:
         with self._lock:
             poses = list(self._poses)
         grouped: dict[tuple[int, int], dict[str, Any]] = {}
-        for sec, nsec, robot, x, y, cov in poses:
-            grouped.setdefault((sec, nsec), {})[robot] = (x, y, cov)
+        for sec, nsec, robot, x, y, cov, frame_id in poses:
+            grouped.setdefault((sec, nsec), {})[robot] = (x, y, cov, frame_id)
         out = []
         for (sec, nsec), robots in sorted(grouped.items()):
             out.append(
@@ -100,6 +101,7 @@ class EstimateCollector:
                     covariances={
                         r: ((v[2][0], v[2][1]), (v[2][2], v[2][3])) for r, v in robots.items()
                     },
+                    frame=BODY_FRAME if any(v[3].endswith("/base_link") for v in robots.values()) else HEADING_FRAME,
                 )
             )
         return out

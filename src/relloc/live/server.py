@@ -241,6 +241,7 @@ class LiveServer:
                 "rate_hz": rate(f"estimate.{p.name}"),
                 "last_estimate_t": None if last_est is None else last_est.t,
                 "ess": None if last_est is None or last_est.ess is None else round(last_est.ess, 1),
+                "frame": None if last_est is None else last_est.frame,
                 "orientation_observable": None if last_est is None else last_est.orientation_observable,
                 "mode_weight": None if last_est is None else round(last_est.mode_weight, 3),
                 "n_modes": None if last_est is None else last_est.n_modes,

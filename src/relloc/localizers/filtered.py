@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
-from relloc.estimate import Estimate
+from relloc.estimate import BODY_FRAME, HEADING_FRAME, Estimate
 from relloc.filter.base import FilterEstimate, WeightedFilter
 from relloc.filter.measurement import MeasurementModel, ModelContext
 from relloc.filter.motion import OdometryMotion
@@ -40,6 +40,7 @@ from relloc.filter.state import StateLayout
 from relloc.filter.summary import estimate_fields
 from relloc.localizers.base import Localizer, Measurement
 from relloc.localizers.bounds import CalibrationBounds
+from relloc.localizers.floor import SightingFloor
 from relloc.localizers.heard import Heard
 from relloc.localizers.recovery import Recovery
 from relloc.localizers.watchdog import ConsistencyWatchdog
@@ -66,6 +67,7 @@ class FilterLocalizer(Localizer):
         self.recovery = Recovery(config, self.layout, self.rng, self.stats)
         self.heard = Heard(config, self.layout)
         self.watchdog = ConsistencyWatchdog(config, self.layout)
+        self.floor = SightingFloor(config)
         self.bounds: CalibrationBounds | None = None
         """The bounds of the online calibration (a filter that estimates it sets them)."""
         self.calibration_restart_reason = ""
@@ -113,6 +115,9 @@ class FilterLocalizer(Localizer):
         if self.filter.shared_heading:
             self.recovery.moved(disp)
         models = self.models(batch, self.filter)
+        floor = getattr(self.filter, "covariance_floor", None)
+        if floor is not None:
+            self.filter.covariance_floor = self.floor.observe(batch, floor)  # type: ignore[attr-defined]
         if not self.filter.update(models):
             self.stats["update_no_support"] += 1
         fe = self.filter.estimate()
@@ -121,13 +126,15 @@ class FilterLocalizer(Localizer):
         self.heard.note(batch)
         framed = self.filter.shared_heading or bool(fe.headings)
         yaws = {r: self.odometry.pose(r, t)[2] for r in self.layout.robots} if framed else None
-        if self.watchdog.observe(t, batch, fe, yaws):
+        body = self._body(t, fe)
+        if self.watchdog.observe(t, batch, body or fe, yaws):
             self.stats["inconsistency_restarts"] += 1
             lost = lost or set(self.layout.others)
         if lost:
             self.recovery.recover(t, fe, lost, self.filter, self._restart)
             self.watchdog.restart(t)
             fe = self.filter.estimate()
+            body = self._body(t, fe)
         reason = None if self.bounds is None else self.bounds.violation(fe)
         if reason is not None and self._restart_calibration():
             log.warning("calibration restarted at t=%.2f: %s", t, reason)
@@ -135,7 +142,8 @@ class FilterLocalizer(Localizer):
             self.calibration_restart_reason = reason
             self.watchdog.restart(t)
             fe = self.filter.estimate()
-        est = self._emit(t, fe)
+            body = self._body(t, fe)
+        est = self._emit(t, fe, body)
         self.filter.pause_kernel(self.heard.split(t))
         if self.filter.maybe_resample():
             self.stats["resampled"] += 1
@@ -214,19 +222,31 @@ class FilterLocalizer(Localizer):
         self.t = t
         return disp, sigma, dt
 
-    def _emit(self, t: float, fe: FilterEstimate) -> Estimate:
+    def _body(self, t: float, fe: FilterEstimate) -> FilterEstimate | None:
+        """The filter's estimate in the reference's body frame where its own frame is not
+        observed (:meth:`WeightedFilter.body_estimate`), else ``None`` (and before the
+        reference's first odometry, whose yaw the body frame needs)."""
+        yaw = self.odometry.pose(self.layout.reference, t)[2]
+        if self.filter.shared_heading or not fe.headings or not math.isfinite(yaw):
+            return None
+        return self.filter.body_estimate(yaw)
+
+    def _emit(self, t: float, fe: FilterEstimate, body: FilterEstimate | None = None) -> Estimate:
         """The :class:`Estimate` of a filter's moments at ``t`` (and, where it estimates
         headings, each robot's odometry yaw then, for evaluating them), the covariances of
         unseen robots widened (:mod:`relloc.localizers.heard`), all of them while the
-        watchdog finds the estimate inconsistent (by its :attr:`~ConsistencyWatchdog.widening`)."""
+        watchdog finds the estimate inconsistent (by its :attr:`~ConsistencyWatchdog.widening`).
+        With ``body`` (:meth:`_body`) the positions, covariances and shape are published in the
+        reference's body frame; the headings, biases and scales stay the filter's."""
+        shown = body or fe
         positions, covs = {}, {}
         for k, robot in enumerate(self.layout.others):
-            positions[robot] = (float(fe.mean[k, 0]), float(fe.mean[k, 1]))
-            c = fe.cov[k]
+            positions[robot] = (float(shown.mean[k, 0]), float(shown.mean[k, 1]))
+            c = shown.cov[k]
             covs[robot] = ((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1])))
         for robot in {*fe.headings, self.layout.reference}:  # the reference's: body-frame evaluation
             self.odometry.log_yaw(robot, t)
-        honest = {} if fe.summary is None else estimate_fields(fe.summary, self.layout.reference, self.layout.others)
+        honest = {} if shown.summary is None else estimate_fields(shown.summary, self.layout.reference, self.layout.others)
         widening = self.watchdog.widening
         if widening > 1.0:
             covs = {r: tuple(tuple(widening * v for v in row) for row in c) for r, c in covs.items()}  # type: ignore[misc]
@@ -237,6 +257,7 @@ class FilterLocalizer(Localizer):
             t, self.method, self.layout.reference, positions, covs, fe.ess, fe.headings, fe.biases, fe.scales,
             **honest,
             recovering=self.recovering, inconsistent=self.inconsistent, particles=fe.particles, unseen=unseen,
+            frame=HEADING_FRAME if body is None else BODY_FRAME,
         )
         self.last_estimate = est
         return est

@@ -122,4 +122,5 @@ class SelfCalibratingLocalizer(FilterLocalizer):
             particles = particles[idx]
         gsf.initialize(particles[:, : self.layout.dim])
         self.start_filter = None
-        return self._emit(t, gsf.estimate())
+        fe = gsf.estimate()
+        return self._emit(t, fe, self._body(t, fe))

@@ -66,7 +66,6 @@ class ZenohSink:
         self.prefix = prefix.strip("/")
         self.primary_method = primary_method
         self.trace = trace
-        self.frame_id = config.reference
         self.published: Counter[str] = Counter()
         """Estimates published per method."""
         self.last: dict[str, Estimate] = {}
@@ -111,7 +110,7 @@ class ZenohSink:
                 (cov[0], cov[1]), (cov[6], cov[7]) = np.asarray(c, dtype=float).tolist()
             cov[35] = UNKNOWN_VARIANCE
             payload = encode_pose_with_covariance_stamped(
-                estimate.t, float(x), float(y), 0.0, cov, self.frame_id
+                estimate.t, float(x), float(y), 0.0, cov, estimate.frame_id
             )
             self.node.put(self.channel(robot, estimate.method), payload)
         if estimate.shape:
@@ -151,6 +150,7 @@ def shape_message(estimate: Estimate) -> dict[str, Any]:
         "t": estimate.t,
         "method": estimate.method,
         "reference": estimate.reference,
+        "frame": estimate.frame,
         "orientation_observable": estimate.orientation_observable,
         "mode_weight": estimate.mode_weight,
         "n_modes": estimate.n_modes,
