@@ -135,7 +135,7 @@ class FilterLocalizer(Localizer):
             self.watchdog.restart(t)
             fe = self.filter.estimate()
             body = self._body(t, fe)
-        reason = None if self.bounds is None else self.bounds.violation(fe)
+        reason = None if self.bounds is None else self.bounds.violation(fe, t)
         if reason is not None and self._restart_calibration():
             log.warning("calibration restarted at t=%.2f: %s", t, reason)
             self.stats["calibration_restarts"] += 1

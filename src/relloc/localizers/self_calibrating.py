@@ -106,6 +106,8 @@ class SelfCalibratingLocalizer(FilterLocalizer):
         logw = gsf.logw.copy()
         gsf.initialize(gsf.mean[:, : gsf.layout.dim].copy())
         gsf.logw = logw
+        if self.bounds is not None:
+            self.bounds.restart()
         return True
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
