@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from types import SimpleNamespace
+from typing import cast
 
 import numpy as np
 import pytest
@@ -15,6 +17,7 @@ from relloc.events import GroundTruthEvent, RangeEvent, SightingEvent
 from relloc.filter.base import FilterEstimate
 from relloc.filter.calibration import CalibrationNoise
 from relloc.filter.state import StateLayout
+from relloc.filter.summary import ModeSummary
 from relloc.localizers.bounds import CalibrationBounds
 from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
 from relloc.localizers.watchdog import WINDOW, ConsistencyWatchdog
@@ -92,6 +95,47 @@ def test_a_sightings_range_and_bearing_count_where_the_frame_is_known() -> None:
     far = [SightingEvent(20.0 + 0.1 * k, "r1", "r2", 7.0, None, 0.1) for k in range(12)]
     assert dog.observe(21.2, far, headed, {"r1": 0.7})
     assert dog.widening > 1.0
+
+
+def _raw_ranges(t: float, offset: float, rng: np.random.Generator) -> list[RangeEvent]:
+    """The three pairs' raw ranges (uncalibrated: the default bias assumed) of ``TRUTH``, each
+    ``offset`` longer than that bias says, with line-of-sight noise."""
+    uwb = TEAM.uwb
+    return [
+        RangeEvent(t, a, b, math.dist(TRUTH[a], TRUTH[b]) + uwb.default_bias + offset + float(rng.normal(0.0, uwb.los_sigma)))
+        for a, b in (("r0", "r1"), ("r0", "r2"), ("r1", "r2"))
+    ]
+
+
+@pytest.mark.parametrize(("offset", "flagged"), [(0.25, False), (-0.2, False), (1.0, True)])
+def test_a_range_is_judged_by_the_error_the_filter_assumes(offset: float, flagged: bool) -> None:
+    """An uncalibrated pair's bias off by 0.25 m is within what the filter's likelihood assumes
+    (``default_bias_sigma`` 0.15 m over ``los_sigma`` 0.1 m, the NLOS part): not flagged
+    against a confident estimate; 1 m off is."""
+    dog = ConsistencyWatchdog(TEAM, StateLayout(TEAM.robot_names, "r0"))
+    fe = _estimate(TRUTH, 0.02)
+    rng = np.random.default_rng(0)
+    restarts = [t for t in np.arange(0.0, 60.0, 0.1) if dog.observe(float(t), _raw_ranges(float(t), offset, rng), fe)]
+    assert bool(restarts) is flagged and dog.episodes == int(flagged)
+
+
+def test_a_range_is_judged_against_the_pairs_distance_over_the_dominant_mode() -> None:
+    """A cloud spread over every direction (its mean positions at the origin, their covariances
+    wide) whose mode knows the distances: judged on them (0.05 m spread), not on the mean
+    positions' distance; ranges 1 m longer than the mode's distances are flagged."""
+    mean = np.array([[0.0, 0.01], [0.01, 0.0]])
+    distances = np.zeros((3, 3, 2))
+    for i, a in enumerate(("r0", "r1", "r2")):
+        for j, b in enumerate(("r0", "r1", "r2")):
+            distances[i, j] = (math.dist(TRUTH[a], TRUTH[b]), 0.05 if i != j else 0.0)
+    summary = cast(ModeSummary, SimpleNamespace(distances=distances))
+    fe = FilterEstimate(mean, np.tile(np.eye(2) * 9.0, (2, 1, 1)), 100.0, summary=summary)
+    dog = ConsistencyWatchdog(TEAM, StateLayout(TEAM.robot_names, "r0"))
+    assert _feed(dog, (0.0, 30.0), TRUTH, fe) == []
+    shorter = distances.copy()
+    shorter[..., 0] -= 1.0
+    far = FilterEstimate(mean, fe.cov, 100.0, summary=cast(ModeSummary, SimpleNamespace(distances=shorter)))
+    assert _feed(dog, (30.0, 40.0), TRUTH, far)
 
 
 def test_the_estimate_says_it_and_the_navigation_gate_holds() -> None:

@@ -2,25 +2,36 @@
 innovations?
 
 A filter can be wrong and confident at once (a start on the wrong solution, a calibration that
-ran away) while the divergence monitor's gross-outlier rule (:mod:`.divergence`) stays quiet.
-The watchdog uses only what the filter sees: after each update, every fused range and every
-sighting's range is compared with the distance between its robots' published positions, and
-its normalised innovation squared ``NIS = (z - b - d)^2 / S`` is taken, ``S`` the
-measurement's variance plus both positions' published covariances along the line of sight.
-A sighting's bearing is compared with the direction between them less the observer's yaw in
-the published frame (its odometry yaw, turned by its published heading where the filter
-estimates headings, whose variance then counts too), ``S`` the bearing's variance plus the
-positions' covariances across the line of sight over the distance squared; where the filter
-has neither a shared frame nor headings, the bearing is not fused and not judged.
-For a consistent filter each measurement's NIS (a sighting's range and bearing summed) is
-chi-square with as many degrees of freedom as it has rows. Each measurement counts for both its
-robots. Over the last ``WINDOW`` seconds, the estimate is *inconsistent* when more than
-``FLAG_SHARE`` of some robot's (at least ``MIN_COUNT``) measurements exceed their chi-square
-99 % bound (:data:`CHI2_BOUND`): a consistent filter puts 1 % there, so the rule holds for any session and tolerates up to half
-of a robot's measurements being outliers (NLOS, gross errors). It clears once every robot's
-share is under ``CLEAR_SHARE``. While inconsistent, the
-published covariance is widened by :attr:`ConsistencyWatchdog.widening`, the worst robot's
-median NIS over the chi-square median (what the innovations say the spread is).
+ran away, a robot displaced or slipping unseen by its odometry) while the divergence monitor's
+gross-outlier rule (:mod:`.divergence`) stays quiet. After each update, every fused range and
+sighting's range is compared with the pair's distance in the published estimate:
+``NIS = (z - b - m - d)^2 / S``. ``b`` and ``m`` and the first part of ``S`` are what the
+filter's own range likelihood (:mod:`relloc.filter.ranges`) assumes of the range's error: the
+pair's bias (the published online one, whose variance counts too), the mean of the one-sided
+NLOS part where the NLOS-aware model applies, and the noise (an uncalibrated pair's widened by
+``default_bias_sigma``, the NLOS part's spread included); a sighting's range its own noise.
+``d`` and the second part of ``S`` are the mean and spread of the pair's distance over the
+filter's dominant mode (``FilterEstimate.summary``: the pair's own, which the formation's common
+rotation does not widen and a spread of directions does not shorten), else the distance between
+the published positions and both covariances along the line of sight. A sighting's bearing is
+judged likewise against the direction between them less the observer's yaw in the published
+frame (turned by its published heading, whose variance counts too; not judged where the filter
+has neither a shared frame nor headings). A consistent filter's NIS is at most chi-square (one
+degree of freedom a row).
+
+Each robot keeps a CUSUM, a sequential probability ratio test of "the innovations' variance is
+``LAMBDA`` times what is published" against "as published", over its measurements (each counts
+for both its robots): ``s = max(0, s + dof/2 ln(1/LAMBDA) + min(NIS, CHI2_BOUND)/2 (1 - 1/LAMBDA))``.
+Clipping at the 99 % bound bounds what one outlier (NLOS, a gross error) adds (at most 1.8), so
+at least ``THRESHOLD / 1.8`` (9) bad measurements are needed, and a share of outliers under about
+a quarter never accumulates. The estimate is *inconsistent* once a robot's ``s`` passes
+``THRESHOLD``: for chi-square NIS the CUSUM's mean run to a false alarm exceeds
+``exp(THRESHOLD)`` (9e6) measurements, a day at 100 a second, in any session; a filter that
+absorbs a step in a few updates is still caught, since the evidence of those updates adds up
+instead of being diluted in a window. It clears once every robot's ``s`` is back to zero and
+under ``CLEAR_SHARE`` of its last ``WINDOW`` seconds' measurements exceed their 99 % bound.
+While inconsistent, the published covariance is widened by
+:attr:`ConsistencyWatchdog.widening`, the worst robot's median NIS over the chi-square median.
 """
 
 from __future__ import annotations
@@ -34,20 +45,32 @@ import numpy as np
 from relloc.config import TeamConfig
 from relloc.events import RangeEvent, SightingEvent, pair_key
 from relloc.filter.base import FilterEstimate
+from relloc.filter.ranges import GROSS_FRACTION, NLOS_FRACTION, NLOS_SIGMA, pair_sigma
 from relloc.filter.state import TeamLayout
 
 WINDOW = 5.0
-"""Seconds of innovations judged together: flagged well within 10 s of the onset."""
+"""Seconds of innovations behind the clearing and the widening; a flag that outlives a fresh
+window after a restart asks for another."""
 MIN_COUNT = 10
-"""Fewest measurements of a robot in the window for a judgement."""
+"""Fewest measurements of a robot in the window for the clearing share."""
 CHI2_BOUND = {1: 6.635, 2: 9.210}
 """The chi-square 99 % quantile by degrees of freedom."""
 CHI2_MEDIAN = {1: 0.4549, 2: 1.3863}
 """The chi-square median by degrees of freedom."""
-FLAG_SHARE = 0.5
-"""Share of the window's NIS over ``CHI2_1_BOUND`` that flags (1 % when consistent)."""
+LAMBDA = 4.0
+"""The alternative of the CUSUM: the innovations' variance this many times the published one
+(their spread twice what the covariance says)."""
+THRESHOLD = 16.0
+"""The CUSUM's alarm level (log-likelihood ratio): a consistent filter's mean run to a false
+alarm is over ``exp(THRESHOLD)`` measurements."""
 CLEAR_SHARE = 0.25
-"""Share under which a flag clears."""
+"""Share of the window's NIS over the bound under which a flag clears."""
+
+
+def evidence(nis: float, dof: int) -> float:
+    """What one measurement's ``nis`` (``dof`` rows) adds to the CUSUM: the log-likelihood ratio
+    of ``LAMBDA`` times the published variance against it, the NIS clipped at its 99 % bound."""
+    return 0.5 * dof * -math.log(LAMBDA) + 0.5 * min(nis, CHI2_BOUND[dof]) * (1.0 - 1.0 / LAMBDA)
 
 
 class ConsistencyWatchdog:
@@ -56,10 +79,14 @@ class ConsistencyWatchdog:
     def __init__(self, config: TeamConfig, layout: TeamLayout) -> None:
         self.config = config
         self._rows = {r: k for k, r in enumerate(layout.others)}
+        self.range_model = config.filter.likelihood.range_model
+        """The range likelihood of the filter judged: the config's, which the particle filter and
+        the range graph use; a localizer with another (the self-calibrating filter's symmetric
+        one) sets its own here."""
         self._nis: dict[str, deque[tuple[float, float, bool]]] = {}
         """Each robot's recent ``(stamp, NIS over its chi-square median, over its bound)``."""
-        self._worst = ""
-        """The robot whose share over the bound is largest."""
+        self._cusum: dict[str, float] = {}
+        """Each robot's CUSUM of :func:`evidence`."""
         self.inconsistent = False
         self.episodes = 0
         """Times the estimate was found inconsistent."""
@@ -69,50 +96,59 @@ class ConsistencyWatchdog:
     @property
     def widening(self) -> float:
         """The factor the published covariance is widened by while inconsistent (else 1)."""
-        values = [v for _, v, _ in self._nis.get(self._worst, ())]
-        if not self.inconsistent or not values:
+        if not self.inconsistent:
             return 1.0
-        return max(1.0, float(np.median(values)))
+        medians = [float(np.median([v for _, v, _ in q])) for q in self._nis.values() if q]
+        return max([1.0, *medians])
 
     def restart(self, t: float) -> None:
         """The filter was started again at ``t``: judge it on fresh innovations only; the flag
         stays until they clear it."""
         self._nis.clear()
+        self._cusum.clear()
         self._since = t
 
     def shift_time(self, dt: float) -> None:
+        """Every stamp moved by ``dt`` (a clock step of the stream)."""
         self._nis = {r: deque((t + dt, v, o) for t, v, o in q) for r, q in self._nis.items()}
         self._since += dt
 
-    def observe(self, t: float, batch: list[Any], fe: FilterEstimate, yaws: dict[str, float] | None = None) -> bool:
-        """Record ``batch``'s innovations against the published ``fe`` (``yaws``: each robot's
+    def observe(
+        self, t: float, batch: list[Any], fe: FilterEstimate, yaws: dict[str, float] | None = None,
+        prior: FilterEstimate | None = None,
+    ) -> bool:
+        """Record ``batch``'s innovations against the published ``fe``, or against ``prior``
+        where given (the filter's estimate after the prediction to ``t``, before ``batch``'s
+        update: the innovations before the filter absorbed them); ``yaws``: each robot's
         odometry yaw at ``t`` where the filter has a shared frame or estimates headings, for
-        the bearings); whether the localizer should restart: the estimate is newly found
+        the bearings. Whether the localizer should restart: the estimate is newly found
         inconsistent, or a flag has outlived a whole fresh window (the restart did not help)."""
+        judge = fe if prior is None else prior
         for m in batch:
-            judged = self._nis_of(m, fe, yaws)
+            judged = self._nis_of(m, judge, yaws)
             if judged:
                 value, dof = sum(v for _, _, v in judged), len(judged)
                 entry = (m.t, value / CHI2_MEDIAN[dof], value > CHI2_BOUND[dof])
+                step = evidence(value, dof)
                 for robot in judged[0][:2]:
                     self._nis.setdefault(robot, deque()).append(entry)
+                    self._cusum[robot] = max(0.0, self._cusum.get(robot, 0.0) + step)
         shares = {}
         for robot, q in self._nis.items():
             while q and q[0][0] < t - WINDOW:
                 q.popleft()
             if len(q) >= MIN_COUNT:
                 shares[robot] = sum(o for _, _, o in q) / len(q)
-        if not shares:
-            return False
-        self._worst = max(shares, key=lambda r: shares[r])
-        share = shares[self._worst]
-        if share > FLAG_SHARE:
+        if any(s > THRESHOLD for s in self._cusum.values()):
             if not self.inconsistent:
                 self.inconsistent = True
                 self.episodes += 1
                 return True
             return t - self._since >= WINDOW
-        if share < CLEAR_SHARE:
+        if (
+            self.inconsistent and shares and not any(self._cusum.values())
+            and max(shares.values()) < CLEAR_SHARE
+        ):
             self.inconsistent = False
         return False
 
@@ -120,17 +156,8 @@ class ConsistencyWatchdog:
         """The robots and NIS of a range, or of a sighting's range and bearing, one per row
         (none for anything else)."""
         if isinstance(m, RangeEvent):
-            if m.corrected:
-                bias, scale, sigma = 0.0, 1.0, None
-            else:
-                nodes = self.config.range_nodes(m)
-                bias, scale, sigma = self.config.uwb.calibration(*nodes)
-                online = fe.biases.get(pair_key(*nodes))
-                if online is not None:
-                    bias = online[0]
-            var = (sigma if sigma is not None else self.config.uwb.sigma) ** 2
-            a, b = m.robot_a, m.robot_b
-            return self._judged(a, b, fe, (m.distance - bias) / scale, var, None)
+            r, var = self._range_model(m, fe)
+            return self._judged(m.robot_a, m.robot_b, fe, r, var, None)
         if isinstance(m, SightingEvent):
             bearing = None
             if m.bearing is not None and yaws is not None and math.isfinite(yaws.get(m.observer, math.nan)):
@@ -142,6 +169,32 @@ class ConsistencyWatchdog:
             r_var = None if m.range is None else m.sigma_range**2
             return self._judged(m.target, m.observer, fe, m.range, r_var, bearing)
         return []
+
+    def _range_model(self, m: RangeEvent, fe: FilterEstimate) -> tuple[float, float]:
+        """A range's distance less what the filter's own likelihood expects of its error (the
+        pair's bias, and the mean of the one-sided NLOS part), and that error's variance as the
+        filter assumes it (:mod:`relloc.filter.ranges`): the pair's noise (an uncalibrated pair's
+        widened by ``default_bias_sigma``, :func:`~relloc.filter.ranges.pair_sigma`), the NLOS
+        part's spread where the NLOS-aware model applies, and the published variance of a bias
+        estimated online. The uniform floor (gross errors) is left to the clip of :func:`evidence`."""
+        uwb = self.config.uwb
+        if m.corrected:
+            sigma = max(uwb.sigma, m.sigma if m.sigma is not None and math.isfinite(m.sigma) else 0.0)
+            return m.distance, sigma**2
+        nodes = self.config.range_nodes(m)
+        key = pair_key(*nodes)
+        online = fe.biases.get(key)
+        if online is not None:  # the symmetric model, the bias in the state
+            return m.distance - online[0], uwb.sigma**2 + online[1] ** 2
+        bias, scale, _ = uwb.calibration(*nodes)
+        r = (m.distance - bias) / scale
+        if self.range_model != "nlos":
+            return r, pair_sigma(self.config, key, uwb.sigma) ** 2
+        sigma = pair_sigma(self.config, key, uwb.los_sigma)
+        share = NLOS_FRACTION / (1.0 - GROSS_FRACTION)  # of the mixture less its uniform floor
+        # the skew-normal NLOS part: mean NLOS_SIGMA sqrt(2/pi), second moment sigma^2 + NLOS_SIGMA^2
+        mean = share * NLOS_SIGMA * math.sqrt(2.0 / math.pi)
+        return r - mean, sigma**2 + share * NLOS_SIGMA**2 - mean**2
 
     def _judged(
         self, a: str, b: str, fe: FilterEstimate, r: float | None, r_var: float | None,
@@ -160,12 +213,25 @@ class ConsistencyWatchdog:
         c = ca + cb
         out = []
         if r is not None and r_var is not None:
-            out.append((a, b, (r - dist) ** 2 / (r_var + float(u @ c @ u))))
+            mean, var = self._distance(a, b, fe, dist, float(u @ c @ u))
+            out.append((a, b, (r - mean) ** 2 / (r_var + var)))
         if bearing is not None:
             n = np.array([-u[1], u[0]])
             residual = math.remainder(bearing[0] - math.atan2(d[1], d[0]), math.tau)
             out.append((a, b, residual**2 / (bearing[1] + float(n @ c @ n) / dist**2)))
         return out
+
+    def _distance(self, a: str, b: str, fe: FilterEstimate, dist: float, along: float) -> tuple[float, float]:
+        """The mean and variance of the distance between ``a`` and ``b``: over the filter's
+        dominant mode where it says (the pair's own, which the common rotation and translation
+        of the formation do not widen, and whose mean is not pulled in by a spread of
+        directions, as the distance between mean positions is), else ``dist`` between the
+        published positions and ``along``, both covariances along the line of sight."""
+        if fe.summary is None:
+            return dist, along
+        i, j = self._rows.get(a, -1) + 1, self._rows.get(b, -1) + 1
+        mean, std = fe.summary.distances[i, j]
+        return float(mean), float(std) ** 2
 
     def _position(self, robot: str, fe: FilterEstimate) -> tuple[np.ndarray, np.ndarray]:
         k = self._rows.get(robot)
