@@ -244,7 +244,10 @@ def test_served_over_rmw_zenoh_seen_by_a_subscriber_written_from_the_design_docu
         server.stop()
         thread.join(timeout=10)
     n_own = len(server.pipelines[0].estimates)  # the last one was published as the server ended
-    assert wait_until(lambda: len(collector.estimates()) >= n_own and len(poses) >= 4 * n_own)
+    assert wait_until(
+        lambda: len(collector.estimates()) >= n_own and len(poses) >= 4 * n_own
+        and set(collector.estimates()[-1].positions) == set(config.others)
+    )
     estimates = collector.estimates()
     traces = collector.traces()
     server.close()

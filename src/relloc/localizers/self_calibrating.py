@@ -55,6 +55,7 @@ class SelfCalibratingLocalizer(FilterLocalizer):
         self.calibration = calibration_layout(config)
         super().__init__(config, layout, seed=seed)
         self.method = method
+        self.watchdog.range_model = self.range_model  # judged with the noise this filter assumes
         fc = config.filter
         self.filter = self._gaussian_sum(np.array(prior))
         self.filter.covariance_floor = covariance_floor(config, self.range_model)
