@@ -9,8 +9,8 @@ engine and the simulator that publishes over Zenoh all share it. It has three pa
   (:mod:`relloc.ros.stores`) plus the custom detection types of the TIERS robots
   (``depthai_ros_msgs/msg/SpatialDetectionArray`` and the ``vision_msgs`` types it uses),
   parsed from the ``.msg`` files shipped in ``relloc/ros/msg``.
-* **CDR.** :func:`decode` / :func:`encode` wrap ``deserialize_cdr`` / ``serialize_cdr``;
-  :func:`decode` tries each known layout of the type unless told which. A malformed payload
+* **CDR.** :func:`decode` / :func:`encode` (:mod:`relloc.ros.codec`, re-exported here) wrap
+  ``deserialize_cdr`` / ``serialize_cdr`` in every layout of a type. A malformed payload
   raises :class:`MessageDecodeError` (a ``ValueError``) with the type name and the reason,
   never an ``IndexError`` from deep inside the deserialiser: a live engine must be able to drop
   one bad packet and go on.
@@ -35,7 +35,6 @@ from collections.abc import Iterable, Sequence
 from typing import Any
 
 import numpy as np
-from rosbags.typesys.store import Typestore
 
 from relloc.config import CameraConfig
 from relloc.events import (
@@ -47,15 +46,13 @@ from relloc.events import (
     SightingEvent,
 )
 from relloc.ros.cdr import split_stamp, yaw_from_xyzw
-from relloc.ros.distros import Layout, layouts
+from relloc.ros.codec import decode, encode, in_distro, in_layout, typestore, zero_message
 from relloc.ros.stores import (
     DEFAULT_DISTRO,
-    DISTROS,
     MSG_DIR,
     MessageDecodeError,
     custom_types,
     register_types,
-    store,
 )
 
 __all__ = [
@@ -106,133 +103,6 @@ POSE_ARRAY = "geometry_msgs/msg/PoseArray"
 POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TWIST = "geometry_msgs/msg/Twist"
 SPATIAL_DETECTION_ARRAY = "depthai_ros_msgs/msg/SpatialDetectionArray"
-
-# ---------------------------------------------------------------------------- type store
-def typestore(distro: str = DEFAULT_DISTRO) -> Typestore:
-    """The type store of ``distro`` (:func:`relloc.ros.distros.store`), built once per process
-    (``rosbags`` generates Python classes for every registered type)."""
-    return store(distro)
-
-
-def decode(raw: bytes | memoryview, msgtype: str, layout: Layout | None = None) -> Any:
-    """Deserialise a CDR payload (with its 4-byte encapsulation header) into a message object,
-    in ``layout``, else in the first known layout of the type it fits (the CDR size tells them
-    apart).
-
-    Raises :class:`MessageDecodeError` for an unknown type or any malformed payload (truncated,
-    garbage, trailing bytes, invalid strings).
-    """
-    tried = (layout,) if layout is not None else layouts(msgtype)
-    if not tried:
-        raise MessageDecodeError(f"unknown message type {msgtype!r}")
-    error: Exception | None = None
-    for lay in tried:
-        try:
-            return lay.store.deserialize_cdr(raw, msgtype)
-        except Exception as exc:  # the deserialiser raises many types on garbage; normalise them
-            error = exc
-    assert error is not None
-    which = f" in layout {tried[0].name}" if len(tried) == 1 else f" in any of its {len(tried)} layouts"
-    raise MessageDecodeError(
-        f"malformed {msgtype} payload ({len(raw)} bytes){which}: {type(error).__name__}: {error}"
-    ) from error
-
-
-def encode(msg: Any, msgtype: str | None = None, distro: str | None = None) -> bytes:
-    """Serialise a message object to CDR (little endian, with encapsulation header).
-
-    ``msgtype`` defaults to the message's own ``__msgtype__``. With ``distro`` the message is
-    written in that distribution's layout (fields it lacks are dropped, fields it adds are
-    zero); otherwise in the layout of the store that made it.
-    """
-    typename = msgtype or msg.__msgtype__
-    if distro is not None:
-        target = store(distro)
-        return bytes(target.serialize_cdr(in_layout(msg, target), typename, little_endian=True))
-    return bytes(_store_of(msg).serialize_cdr(msg, typename, little_endian=True))
-
-
-def in_distro(raw: bytes, msgtype: str, distro: str) -> bytes:
-    """A CDR payload of ``msgtype`` in ``distro``'s layout: ``raw`` itself when the type has
-    one layout (or ``raw`` fits ``distro``'s), else decoded and written again. A payload no
-    layout fits is returned as it is (the receiver counts it)."""
-    known = layouts(msgtype, distro)
-    if len(known) < 2:
-        return raw
-    try:
-        decode(raw, msgtype, known[0])
-        return raw
-    except MessageDecodeError:
-        pass
-    try:
-        return encode(decode(raw, msgtype), msgtype, distro)
-    except MessageDecodeError:
-        return raw
-
-
-def _store_of(msg: Any) -> Typestore:
-    """The store whose class ``msg`` is an instance of (the default one for a foreign object)."""
-    name = getattr(msg, "__msgtype__", "")
-    for distro in (DEFAULT_DISTRO, *DISTROS):
-        st = store(distro)
-        if st.types.get(name) is type(msg):
-            return st
-    return store()
-
-
-def in_layout(msg: Any, target: Typestore) -> Any:
-    """``msg`` as an object of ``target``'s class of its type: fields copied by name (nested
-    messages converted), fields ``target`` adds set to zero, fields it lacks dropped."""
-    name = msg.__msgtype__
-    cls = target.types[name]
-    if type(msg) is cls:
-        return msg
-    values = {}
-    for field_name, (nodetype, detail) in target.fielddefs[name][1]:
-        if hasattr(msg, field_name):
-            value = getattr(msg, field_name)
-            if hasattr(value, "__msgtype__"):
-                value = in_layout(value, target)
-            elif isinstance(value, list):
-                value = [in_layout(v, target) if hasattr(v, "__msgtype__") else v for v in value]
-            values[field_name] = value
-        else:
-            values[field_name] = _zero(target, int(nodetype), detail)
-    return cls(**values)
-
-
-def zero_message(msgtype: str, distro: str = DEFAULT_DISTRO) -> Any:
-    """A message of ``msgtype`` (in ``distro``'s layout) with every field zero, empty or
-    false: a base to set the fields a publisher knows (a UWB driver's frame in a test)."""
-    target = store(distro)
-    return _zero(target, 2, msgtype)
-
-
-def _zero(target: Typestore, nodetype: int, detail: Any) -> Any:
-    """The zero value of a field (1 base, 2 message, 3 array, 4 sequence: rosbags' node types)."""
-    if nodetype == 2:
-        return target.types[str(detail)](**{
-            n: _zero(target, int(nt), d) for n, (nt, d) in target.fielddefs[str(detail)][1]
-        })  # fmt: skip
-    if nodetype == 3:  # a fixed-size array: that many zeros
-        (inner, inner_detail), size = detail
-        if int(inner) == 1 and inner_detail[0] not in ("string", "wstring", "bool"):
-            return np.zeros(size, dtype=_NUMPY.get(inner_detail[0], np.float64))
-        return [_zero(target, int(inner), inner_detail) for _ in range(size)]
-    if nodetype == 4:
-        return []
-    base = detail[0]
-    if base in ("string", "wstring"):
-        return ""
-    return False if base == "bool" else (0.0 if base.startswith("float") else 0)
-
-
-_NUMPY = {
-    "float32": np.float32, "float64": np.float64, "int8": np.int8, "uint8": np.uint8, "char": np.uint8,
-    "byte": np.uint8, "int16": np.int16, "uint16": np.uint16, "int32": np.int32, "uint32": np.uint32,
-    "int64": np.int64, "uint64": np.uint64,
-}  # fmt: skip
-
 
 def header_stamp_from_cdr(raw: bytes | memoryview) -> float:
     """Header stamp (s) of a CDR message whose first field is a ``std_msgs/Header``.
