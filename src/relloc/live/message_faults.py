@@ -47,7 +47,7 @@ class MessageFaults:
         """The team's topics whose sensor is ``faulted``."""
         for r in team_routes(config, ground_truth=True):
             own = sensor(r.kind)
-            if own.faulted and r.msgtypes[0] in own.msgtypes:  # not a driver's own range type
+            if own.faulted and own.writes(r):
                 self.routes[r.topic] = r
         self._offsets: deque[float] = deque(maxlen=_OFFSETS)
 
@@ -65,7 +65,7 @@ class MessageFaults:
             return raw
         msg = decode(raw, msgtype)
         stamp = stamp_to_sec(msg.header.stamp)
-        zero = stamp == 0.0 or route.zero_stamps
+        zero = stamp == 0.0 or route.restamped
         if zero:
             t = received + (statistics.median(self._offsets) if self._offsets else 0.0)
         else:

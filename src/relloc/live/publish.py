@@ -352,7 +352,7 @@ class EventEncoder:
         """Per sensor kind, its channels by :meth:`~relloc.sensors.Sensor.channel_key`."""
         for route, scope in route_scopes(config, detections=False):
             own = sensor(route.kind)
-            if route.msgtypes[0] not in own.msgtypes:  # a driver's own type: not made from events
+            if not own.writes(route):
                 continue
             self._channels.setdefault(route.kind, {}).setdefault(
                 own.channel_key(route), iface.channel(route.topic, route.msgtypes[0], prefix=prefix, scope=scope)

@@ -73,15 +73,13 @@ def in_distro(raw: bytes, msgtype: str, distro: str) -> bytes:
     known = layouts(msgtype, distro)
     if len(known) < 2:
         return raw
-    try:
-        decode(raw, msgtype, known[0])
-        return raw
-    except MessageDecodeError:
-        pass
-    try:
-        return encode(decode(raw, msgtype), msgtype, distro)
-    except MessageDecodeError:
-        return raw
+    for lay in known:  # the distribution's own layout first
+        try:
+            msg = decode(raw, msgtype, lay)
+        except MessageDecodeError:
+            continue
+        return raw if lay is known[0] else encode(msg, msgtype, distro)
+    return raw
 
 
 def _store_of(msg: Any) -> Typestore:

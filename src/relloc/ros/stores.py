@@ -11,6 +11,7 @@ computed from them (layouts, hashes) can be cached per generation.
 from __future__ import annotations
 
 from collections.abc import Mapping
+from functools import cache
 from pathlib import Path
 from typing import Any, Final, get_args
 
@@ -97,7 +98,7 @@ def _missing_dependencies(built: Typestore, types: Mapping[str, Any]) -> dict[st
     """The types ``types`` use, directly or not, that ``built`` lacks (a type a newer
     distribution dropped, e.g. ``geometry_msgs/msg/Pose2D``), from the oldest store that has
     them: a driver's message keeps the layout it was written with."""
-    fallback = get_typestore(_STORES[DISTROS[0]])
+    fallback = _oldest()
     found: dict[str, Any] = {}
     pending = list(types.values())
     while pending:
@@ -109,6 +110,13 @@ def _missing_dependencies(built: Typestore, types: Mapping[str, Any]) -> dict[st
                 found[name] = fallback.fielddefs[name]
                 pending.append(found[name])
     return found
+
+
+@cache
+def _oldest() -> Typestore:
+    """The oldest distribution's store as ``rosbags`` ships it (built once: where a type a newer
+    one dropped is found)."""
+    return get_typestore(_STORES[DISTROS[0]])
 
 
 def _nested_name(nodetype: int, detail: Any) -> str:

@@ -65,14 +65,19 @@ class Route:
     node_b: str = ""
     camera: CameraConfig | None = None
     zero_stamps: bool = False
-    """Stamp every message from its receive time (``odom_zero_stamps``, a type without header)."""
+    """Stamp every message from its receive time (``odom_zero_stamps``): its stamps are untrusted."""
     stamped: bool = True
-    """Whether its messages start with a ``std_msgs/Header`` (a UWB driver's may not): else
-    ``zero_stamps`` too, and no clock is learnt from them."""
+    """Whether its messages start with a ``std_msgs/Header`` (a UWB driver's may not); no clock is
+    learnt from a topic without."""
     sigma: tuple[float, float] = (0.0, 0.0)
     """A sighting's range (m) and bearing (rad) noise."""
     params: Any = None
     """A plug-in's own settings for this topic (parsed from its table of the team config)."""
+
+    @property
+    def restamped(self) -> bool:
+        """Whether its messages are stamped from their receive time: stamps untrusted, or none."""
+        return self.zero_stamps or not self.stamped
 
 
 class _Counts(Protocol):
@@ -157,6 +162,11 @@ class Sensor:
         ``stamp`` (or its events, for a message holding several); ``None`` if unusable
         (counted through ``ingest``)."""
         raise NotImplementedError
+
+    def writes(self, route: Route) -> bool:
+        """Whether this sensor makes the messages of ``route`` (replay of events, message
+        faults): a topic of one of its own types, not of a driver's own type it only reads."""
+        return route.msgtypes[0] in self.msgtypes
 
     def message(self, event: Any) -> Any:
         """``event`` as the ROS message its topic carries (replay of events), or ``None`` if

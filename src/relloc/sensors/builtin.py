@@ -246,7 +246,7 @@ class Range(Sensor):
         _check_range_template(uwb.range_topic, peers=bool(fields.peer))
         with_nodes = [r for r in config.robots if r.uwb_node]
         nodes = {r.uwb_node: r.name for r in with_nodes}
-        base = {"kind": self.kind, "msgtypes": (uwb.range_type,), "zero_stamps": not fields.header, "stamped": fields.header, "params": (fields, nodes)}
+        base = {"kind": self.kind, "msgtypes": (uwb.range_type,), "stamped": fields.header, "params": (fields, nodes)}
         if fields.peer:
             topics = {r.name: uwb.range_topic.format(a=r.uwb_node, robot=r.name) for r in with_nodes}
             what = "UWB ranges of {}"

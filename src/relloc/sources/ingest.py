@@ -236,10 +236,10 @@ class Converter:
             msg = self._decode(tried, stream, payload)
             if msg is None:
                 return []
-            stamp = 0.0 if route.zero_stamps else stamp_to_sec(msg.header.stamp)  # a type may have no header
+            stamp = 0.0 if route.restamped else stamp_to_sec(msg.header.stamp)  # a type may have no header
         else:
             stamp = fast[0]
-        if route.zero_stamps or stamp == 0.0:
+        if route.restamped or stamp == 0.0:
             stamp = self._restamp(route, stream, received)
         else:
             self.clock.observe(stream, route.kind, stamp, received)

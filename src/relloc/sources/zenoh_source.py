@@ -199,14 +199,14 @@ class ZenohSource:
             wake = sensor(route.kind).wake
             if wake is None:
                 continue
-            judged = (wake == "odometry", route.kind, route.zero_stamps)
+            judged = (wake == "odometry", route.kind, route.restamped)
             if opts.interface.rmw:
                 for name, msgtype in self._dds_types[key].items():
                     for hash_ in (HASH_NOT_SUPPORTED, *(lay.hash for lay in layouts(msgtype))):
                         self._judged[f"{key}/{name}/{hash_}"] = judged
             else:
                 self._judged[key] = judged
-        self._restamped_kinds = tuple(sorted({r.kind for r in self.routes.values() if r.zero_stamps}))
+        self._restamped_kinds = tuple(sorted({r.kind for r in self.routes.values() if r.restamped}))
         self._restamp_offset: dict[str, float] = {}
         """Per kind, the header clock's offset when the rule was set, plus ``_RESTAMP_MARGIN``:
         a restamped message's stamp, from its receive time, by an estimate a little late."""
