@@ -269,6 +269,18 @@ def test_gate_waits_for_a_converged_estimate_before_starting() -> None:
     assert [r.reason for r in gate.records] == ["uncertain", "released"]
 
 
+def test_gate_starts_below_start_std_and_stops_above_max_std() -> None:
+    """Hysteresis: an estimate that just passes the stop bound does not start the robot."""
+    gate = SafetyGate(SafetyConfig(settle_time=0.0, max_std=0.2, start_std=0.1), "r1")
+    assert gate.evaluate(0.0, estimate(0.0, "r1", (0, 0), std=0.15), 0.0) == "uncertain"
+    assert "0.150 m > 0.1 m" in gate.records[-1].detail
+    assert gate.evaluate(0.1, estimate(0.1, "r1", (0, 0), std=0.09), 0.1) is None
+    assert gate.evaluate(0.2, estimate(0.2, "r1", (0, 0), std=0.15), 0.2) is None  # moving: 0.2 holds
+    assert gate.evaluate(0.3, estimate(0.3, "r1", (0, 0), std=0.25), 0.3) == "uncertain"
+    assert gate.evaluate(0.4, estimate(0.4, "r1", (0, 0), std=0.15), 0.4) == "uncertain"
+    assert [r.reason for r in gate.records] == ["uncertain", "released", "uncertain"]
+
+
 def test_gate_holds_on_an_unobservable_orientation_or_a_minor_mode() -> None:
     gate = SafetyGate(SafetyConfig(settle_time=0.0, max_std=5.0), "r1")
     ring = replace(estimate(0.0, "r1", (0, 0)), orientation_observable=False)

@@ -80,6 +80,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="largest position std (default 0.2)",
     )
     s.add_argument(
+        "--start-std",
+        type=float,
+        default=None,
+        metavar="M",
+        help="largest position std at which a held robot starts (default 0.15)",
+    )
+    s.add_argument(
         "--settle-time",
         type=float,
         default=None,
@@ -233,7 +240,12 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
     safety = SafetyConfig().updated(path.safety, "path.safety")
     safety = safety.updated(
         _overrides(
-            args, {"max_age": "max_age", "max_std": "max_std", "settle_time": "settle_time"}
+            args, {
+                "max_age": "max_age",
+                "max_std": "max_std",
+                "start_std": "start_std",
+                "settle_time": "settle_time",
+            }
         ),
         "options",
     )

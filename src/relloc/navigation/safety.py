@@ -28,6 +28,9 @@ class SafetyConfig:
     """Estimates and odometry older than this are stale (s); estimates come at 10 Hz."""
     max_std: float = 0.2
     """Largest acceptable position standard deviation of the estimate (m)."""
+    start_std: float = 0.15
+    """Largest std at which a held robot (re)starts (m): below ``max_std``, so an estimate that
+    just passes the stop bound, and may still be off by twice that, does not start the robot."""
     settle_time: float = 2.0
     """Every check must pass this long in a row before the robot (re)starts (s)."""
     min_mode_weight: float = DOMINANT_MODE_WEIGHT
@@ -38,8 +41,8 @@ class SafetyConfig:
             value = getattr(self, f.name)
             if isinstance(value, bool) or not isinstance(value, int | float) or not value >= 0:
                 raise ConfigError(f"safety.{f.name}: expected a number >= 0, got {value!r}")
-        if self.max_age == 0 or self.max_std == 0:
-            raise ConfigError("safety: max_age and max_std must be positive")
+        if self.max_age == 0 or self.max_std == 0 or self.start_std == 0:
+            raise ConfigError("safety: max_age, max_std and start_std must be positive")
 
     def updated(self, overrides: dict[str, Any], where: str = "safety") -> SafetyConfig:
         """A copy with the keys of ``overrides`` changed (unknown keys are errors)."""
@@ -97,8 +100,9 @@ class SafetyGate:
         if estimate.mode_weight < cfg.min_mode_weight:
             return "modes", f"{estimate.status} (min {cfg.min_mode_weight:g})"
         std = estimate.std(robot)
-        if not math.isfinite(std) or std > cfg.max_std:
-            return "uncertain", f"estimate std {std:.3f} m > {cfg.max_std:g} m"
+        bound = cfg.max_std if self.reason is None else min(cfg.start_std, cfg.max_std)
+        if not math.isfinite(std) or std > bound:
+            return "uncertain", f"estimate std {std:.3f} m > {bound:g} m"
         if odometry_time is None:
             return "no_odometry", f"no odometry of {robot} yet"
         odom_age = now - odometry_time
