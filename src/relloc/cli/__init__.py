@@ -107,7 +107,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     out = Path(args.config) if args.in_place else (Path(args.write) if args.write else None)
     if out is not None:
         check_writable(out.parent, "--write" if args.write else "--in-place")
-    cal = calibrate(Path(args.source), config, node_map=node_map, headings=args.headings, fit_scale=args.scale)
+    cal = calibrate(
+        Path(args.source), config, node_map=node_map, headings=args.headings, fit_scale=args.scale, span=args.span
+    )
     if out is None:
         sys.stdout.write(calibration_section(cal, text))
         print(
@@ -211,6 +213,14 @@ def build_parser() -> argparse.ArgumentParser:
     _add_mode_flags(run)
     run.add_argument("--reference", default=None, metavar="ROBOT", help="another reference robot (default: the config's reference)")
     run.add_argument(
+        "--filter-kind", default=None, choices=_filter_kinds(),
+        help="the filter the pf methods run (default: the config's [filter] kind)",
+    )
+    run.add_argument(
+        "--span", type=argtypes.span, default=None, metavar="START:END",
+        help="only the events between these seconds from the recording's start (either may be left out)",
+    )
+    run.add_argument(
         "--sightings", choices=("both", "range", "bearing"), default="both",
         help="what of each teammate sighting to fuse (MRCLAM data sets): range and bearing, or one of them",
     )
@@ -232,12 +242,25 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("--node-map", default=None, help="CSV robot numbers to nodes, e.g. 1=n_7,3=n_3 (default: the TIERS map)")
     cal.add_argument("--headings", action="store_true", help="also heading offsets from the first mocap pose")
     cal.add_argument("--scale", action="store_true", help="also fit a range scale per pair")
+    cal.add_argument(
+        "--span", type=argtypes.span, default=None, metavar="START:END",
+        help="only the events between these seconds from the recording's start (either may be left out)",
+    )
     cal.set_defaults(handler=_cmd_calibrate)
 
     _register_optional(sub)
     for p in _every_parser(parser):
         p.formatter_class = _HelpFormatter
     return parser
+
+
+def _filter_kinds() -> tuple[str, ...]:
+    """The values of ``[filter] kind`` (:data:`relloc.config.filter.FilterKind`)."""
+    from typing import get_args
+
+    from relloc.config.filter import FilterKind
+
+    return get_args(FilterKind)
 
 
 def _add_mode_flags(parser: argparse.ArgumentParser) -> None:

@@ -39,6 +39,16 @@ def non_negative(text: str) -> float:
     return value
 
 
+def span(text: str) -> tuple[float, float]:
+    """``START:END`` seconds from a recording's start (:func:`relloc.sources.span.parse_span`)."""
+    from relloc.sources.span import parse_span
+
+    try:
+        return parse_span(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
 def _parse(kind: type[int] | type[float], text: str) -> int | float:
     try:
         return kind(text)

@@ -55,15 +55,19 @@ def calibrate(
     node_map: dict[int, str] | None = None,
     headings: bool = False,
     fit_scale: bool = False,
+    span: tuple[float, float] | None = None,
 ) -> Calibration:
     """Pair calibration (and optionally heading offsets) from ``source``: a recording with UWB
     ranges and motion capture (:attr:`~relloc.sources.table.SourceKind.calibrates`: a rosbag2
-    bag), or a CSV of UWB errors (``node_map``: CSV robot number -> node)."""
+    bag, only the events of ``span``: seconds from its start), or a CSV of UWB errors
+    (``node_map``: CSV robot number -> node)."""
     from relloc.evaluation import calibration
 
     if source.suffix.lower() == ".csv":
         if headings:
             raise ConfigError("heading offsets need a bag with odometry and motion capture, not a CSV")
+        if span is not None:
+            raise ConfigError("--span needs a recording, not a CSV")
         pairs = calibration.pair_biases_from_csv(
             source, node_map or {1: "n_7", 3: "n_3", 4: "n_4", 5: "n_5"}, fit_scale=fit_scale
         )
@@ -74,7 +78,7 @@ def calibrate(
                 f"{source} is {kind.what}: calibration needs UWB ranges with motion capture "
                 "(a rosbag2 recording) or a CSV of UWB errors"
             )
-        pairs = calibration.pair_biases_from_bag(source, config, fit_scale=fit_scale)
+        pairs = calibration.pair_biases_from_bag(source, config, fit_scale=fit_scale, span=span)
     offsets: dict[str, float] = {}
     if headings:
         offsets = {r: round(deg, 2) for r, deg in calibration.heading_offsets_from_bag(source, config).items()}

@@ -34,6 +34,7 @@ from relloc.evaluation.report import ScenarioReport, evaluate, make_console, pri
 from relloc.faults import Faults, inject
 from relloc.methods import DETECTION_METHODS, build_pipeline, filter_header
 from relloc.sinks.tum import write_tum
+from relloc.sources.span import SpanSource
 from relloc.sources.table import SourceOptions, source_kind
 
 
@@ -59,6 +60,10 @@ class RunOptions:
     """What of each teammate sighting the source passes on: ``both``, ``range``, ``bearing``."""
     faults: Faults = field(default_factory=Faults)
     """Faults injected into the recording's event stream (:mod:`relloc.faults`)."""
+    filter_kind: str | None = None
+    """The filter the particle methods run (``None``: the config's ``[filter] kind``)."""
+    span: tuple[float, float] | None = None
+    """Only the events between these seconds from the recording's start (:mod:`relloc.sources.span`)."""
 
 
 def run_recording(
@@ -72,6 +77,8 @@ def run_recording(
         seed=opts.seed, sightings=opts.sightings, detections=bool(DETECTION_METHODS & set(opts.methods))
     )
     source = kind.open(path, None if config is None else _with_options(config, opts), options)
+    if opts.span is not None:
+        source = SpanSource(source, opts.span)
     config = source.config if config is not None else _with_options(source.config, opts)
     name = source.name
     oracle = source.initial_poses()
@@ -123,6 +130,8 @@ def _with_options(config: TeamConfig, opts: RunOptions) -> TeamConfig:
     )
     if opts.particles:
         config = config.with_filter(particles=opts.particles, selfcal_particles=opts.particles)
+    if opts.filter_kind:
+        config = config.with_filter(kind=opts.filter_kind)
     return config
 
 

@@ -9,17 +9,18 @@ import csv
 import itertools
 import math
 from collections import defaultdict
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from relloc.config import PairCalibration, TeamConfig
-from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent, pair_key
+from relloc.events import Event, GroundTruthEvent, OdometryEvent, RangeEvent, pair_key
 from relloc.ranging.dataset import CSV_COLUMNS
 from relloc.ros.messages import stamp_to_sec
 from relloc.sources.rosbag import RosbagSource, recording_name
+from relloc.sources.span import SpanSource
 
 __all__ = [
     "CSV_COLUMNS",
@@ -148,14 +149,17 @@ def pair_samples_from_bag(
     *,
     max_gap: float = 0.1,
     lag: float = 0.0,
+    span: tuple[float, float] | None = None,
 ) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Matched samples per node pair: ``pair_key -> (t, measured range, mocap distance)``.
 
     ``lag`` (s) compares each range with the mocap distance ``lag`` seconds before its header
     stamp (UWB ranges can trail the geometry by up to about 0.2 s). Ranges without two valid
-    interpolated mocap positions are left out.
+    interpolated mocap positions are left out. ``span``: only the events between these seconds
+    from the recording's start (:mod:`relloc.sources.span`).
     """
-    source = RosbagSource(path, config, ground_truth=True, detections=False, odometry=False)
+    bag = RosbagSource(path, config, ground_truth=True, detections=False, odometry=False)
+    source: Iterable[Event] = bag if span is None else SpanSource(bag, span)
     robots = set(config.robot_names)
     tracks: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
     ranges: dict[str, list[tuple[float, str, str, float]]] = defaultdict(list)
@@ -189,6 +193,7 @@ def pair_biases_from_bag(
     lag: float = 0.0,
     fit_scale: bool = False,
     min_samples: int = 20,
+    span: tuple[float, float] | None = None,
 ) -> dict[str, PairCalibration]:
     """Range calibration of every node pair of the team in a recording with motion capture.
 
@@ -197,7 +202,7 @@ def pair_biases_from_bag(
     :class:`~relloc.sources.rosbag.BagError` for an unreadable bag and :class:`CalibrationError`
     if no pair could be matched with motion capture.
     """
-    samples = pair_samples_from_bag(path, config, max_gap=max_gap, lag=lag)
+    samples = pair_samples_from_bag(path, config, max_gap=max_gap, lag=lag, span=span)
     name = recording_name(path)
     result = {
         key: calibrate_pair(measured, true, fit_scale=fit_scale, source=name)

@@ -110,9 +110,6 @@ class Odometry(Sensor):
             pose = dataclasses.replace(pose, orientation=quaternion_from_yaw(after.yaw))
         return dataclasses.replace(msg, pose=dataclasses.replace(msg.pose, pose=pose))
 
-    def config_warnings(self, config: TeamConfig) -> list[str]:
-        return [f"{r.name} has no odom_topic: no odometry for it" for r in config.robots if not r.odom_topic]
-
 
 class Sighting(Sensor):
     """Per observer with a ``sighting_topic`` template (``{target}``) and per teammate:
