@@ -115,3 +115,9 @@ def test_the_run_header_of_a_recording_names_the_filter(
     out = capsys.readouterr().out
     assert 'synthetic: filter: gaussian_sum (kind "gaussian_sum")' in out
     assert out.index("synthetic: filter:") < out.index("APE after 0.5 s warm-up")
+    # --filter-kind overrides the config's kind, for a recording and for the demo.
+    assert main([*args, "--out", str(tmp_path / "out"), "--filter-kind", "particle"]) == 0
+    assert 'synthetic: filter: particle (kind "particle")' in capsys.readouterr().out
+    demo = ["demo", "--scenarios", "single", "--particles", "300", "--methods", "pf", "--no-progress"]
+    assert main([*demo, "--out", str(tmp_path / "demo"), "--filter-kind", "gaussian_sum"]) == 0
+    assert 'single: filter: gaussian_sum (kind "gaussian_sum")' in capsys.readouterr().out

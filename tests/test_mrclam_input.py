@@ -79,6 +79,9 @@ def test_garbage_rows_and_a_truncated_odometry_file_in_dataset_6(shared_data: Pa
     assert len(source.odometry[1]) == cut - 5  # four header lines, the cut line itself
     sightings = [e for e in source._sightings(3) if isinstance(e, SightingEvent)]
     assert len(sightings) == source.stats.counts["sightings"] > 0
+    # The team the source runs says where each robot's odometry comes from (robots with
+    # odometry are not ranges-only robots to the filter's automatic choice).
+    assert [r.odom_topic for r in source.config.robots][:2] == ["Robot1_Odometry.dat", "Robot2_Odometry.dat"]
 
 
 def test_a_run_over_damaged_files_counts_the_rows(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

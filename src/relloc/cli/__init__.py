@@ -181,6 +181,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     add_fault_arguments(demo)
     _add_mode_flags(demo)
+    _add_filter_kind(demo)
     demo.set_defaults(handler=_cmd_demo)
 
     run = sub.add_parser(
@@ -212,10 +213,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_fault_arguments(run)
     _add_mode_flags(run)
     run.add_argument("--reference", default=None, metavar="ROBOT", help="another reference robot (default: the config's reference)")
-    run.add_argument(
-        "--filter-kind", default=None, choices=_filter_kinds(),
-        help="the filter the pf methods run (default: the config's [filter] kind)",
-    )
+    _add_filter_kind(run)
     run.add_argument(
         "--span", type=argtypes.span, default=None, metavar="START:END",
         help="only the events between these seconds from the recording's start (either may be left out)",
@@ -254,13 +252,16 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _filter_kinds() -> tuple[str, ...]:
-    """The values of ``[filter] kind`` (:data:`relloc.config.filter.FilterKind`)."""
+def _add_filter_kind(parser: argparse.ArgumentParser) -> None:
+    """``--filter-kind``: one of ``[filter] kind`` (:data:`relloc.config.filter.FilterKind`)."""
     from typing import get_args
 
     from relloc.config.filter import FilterKind
 
-    return get_args(FilterKind)
+    parser.add_argument(
+        "--filter-kind", default=None, choices=get_args(FilterKind),
+        help="the filter the pf methods run (default: the config's [filter] kind)",
+    )
 
 
 def _add_mode_flags(parser: argparse.ArgumentParser) -> None:

@@ -55,6 +55,8 @@ class DemoOptions:
     """Faults injected into every scenario's event stream (:mod:`relloc.faults`)."""
     robots: int = 5
     """Team size of the ``grid`` scenario."""
+    filter_kind: str | None = None
+    """The filter the particle methods run (``None``: the scenario config's ``auto``)."""
 
 
 def build_simulation(name: str, opts: DemoOptions, **kwargs: Any) -> Simulation:
@@ -98,6 +100,8 @@ def scenario_setup(name: str, opts: DemoOptions) -> tuple[Simulation, TeamConfig
     )
     if opts.particles:
         config = config.with_filter(particles=opts.particles, selfcal_particles=opts.particles)
+    if opts.filter_kind:
+        config = config.with_filter(kind=opts.filter_kind)
     truth = dict(sim.true_biases) if config.filter.self_calibration.bias_mode == "online" else None
     return sim, config, truth
 

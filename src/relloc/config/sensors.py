@@ -44,6 +44,9 @@ class RobotConfig(Checked):
     name: str
     uwb_node: str = ""
     odom_topic: str = ""
+    """Where the robot's odometry comes from (``nav_msgs/Odometry``); empty: the robot has none
+    (a drone, a tag, a UWB-only team) and the filters give it a motion prior instead. The
+    simulator and the MRCLAM reader fill it for the robots whose odometry they supply."""
     odom_mode: Literal["pose", "twist"] = "pose"
     heading_offset_deg: float = 0.0
     """Rotation from this robot's odometry frame to the shared heading frame (the compass)."""

@@ -173,6 +173,7 @@ class Simulation:
             RobotConfig(
                 name=m.name,
                 uwb_node=m.node,
+                odom_topic=f"/{m.name}/odom",  # what sim-robots publishes it on
                 odom_mode="pose",
                 heading_offset_deg=math.degrees(self.true_heading_offsets[m.name]),
                 camera=self.camera,

@@ -206,6 +206,9 @@ class MrclamSource:
         ends = [t[-1, 0] for t in self.odometry.values() if len(t)]
         if not starts:
             raise MrclamError(f"{self.folder}: no odometry")
+        for i, name in self.robots.items():  # where each robot's odometry comes from
+            if len(self.odometry[i]) and not self.config.robot(name).odom_topic:
+                self.config = self.config.with_robot(name, odom_topic=f"Robot{i}_Odometry.dat")
         self.start_time = float(min(starts))
         self.end_time = float(max(ends))
 
