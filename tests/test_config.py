@@ -177,4 +177,4 @@ def test_at_most_thirty_filter_tunables() -> None:
     top = [f.name for f in fields(FilterConfig) if f.name not in FilterConfig.sections()]
     tunables = top + [f.name for cls in FilterConfig.sections().values() for f in fields(cls)]
     assert len(tunables) == 23 <= 30
-    assert "kind" in top and FilterConfig.choices("kind") == ("auto", "particle", "gaussian_sum", "range_graph")
+    assert "kind" in top and FilterConfig.choices("kind") == ("auto", "particle", "gaussian_sum", "range_graph", "smoother")

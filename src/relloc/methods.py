@@ -22,6 +22,7 @@ from relloc.localizers.multilateration import MultilaterationLocalizer
 from relloc.localizers.range_graph import RangeGraphLocalizer, suits_range_graph
 from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
+from relloc.localizers.smoother import SmootherLocalizer
 
 METHODS = ("pf", "pf_ul", "pf_uv", "pf_ulv", "multilateration", "ekf_oracle")
 
@@ -84,6 +85,7 @@ LOCALIZERS: dict[str, type[FilterLocalizer]] = {
     "particle": ParticleFilterLocalizer,
     "gaussian_sum": SelfCalibratingLocalizer,
     "range_graph": RangeGraphLocalizer,
+    "smoother": SmootherLocalizer,
 }
 """The localizer of each filter kind of ``[filter] kind`` (:data:`relloc.config.FilterKind`)."""
 

@@ -13,11 +13,12 @@ from typing import Any, Literal, get_args
 from relloc.config.checks import Checked, ConfigError, build, require, type_hints
 from relloc.config.moved import moved_key_error, moved_message
 
-FilterKind = Literal["auto", "particle", "gaussian_sum", "range_graph"]
+FilterKind = Literal["auto", "particle", "gaussian_sum", "range_graph", "smoother"]
 """The filter a config names: ``particle`` the sampled particle filter
 (:mod:`relloc.localizers.sampled`), ``gaussian_sum`` the self-calibrating Gaussian-sum filter
 (:mod:`relloc.localizers.self_calibrating`), ``range_graph`` the Gaussian sum started from the
-range graph (:mod:`relloc.localizers.range_graph`); ``auto`` the one the modes and the team
+range graph (:mod:`relloc.localizers.range_graph`), ``smoother`` the fixed-lag factor-graph
+smoother (:mod:`relloc.localizers.smoother`); ``auto`` the one the modes and the team
 size call for (:func:`relloc.methods.filter_localizer`)."""
 
 CANNOT: dict[str, dict[str, tuple[str, str]]] = {
@@ -26,6 +27,11 @@ CANNOT: dict[str, dict[str, tuple[str, str]]] = {
         "odom_scale_mode": ("online", "estimate the odometry scales"),
     },
     "range_graph": {
+        "heading_mode": ("estimate", "estimate the headings"),
+        "odom_scale_mode": ("online", "estimate the odometry scales"),
+        "bias_mode": ("online", "estimate the range biases online"),
+    },
+    "smoother": {
         "heading_mode": ("estimate", "estimate the headings"),
         "odom_scale_mode": ("online", "estimate the odometry scales"),
         "bias_mode": ("online", "estimate the range biases online"),

@@ -1,0 +1,323 @@
+"""The fixed-lag smoother (``[filter] kind = "smoother"``): a factor graph of relative positions.
+
+For teams where UWB ranges dominate (robots without odometry, large teams). Every
+``STEP_PERIOD`` the smoother (:class:`relloc.filter.smoother_graph.GraphSmoother`, GTSAM's
+iSAM2 over a ``LAG`` window) gets one key per non-reference robot (its position relative to
+the reference in the shared heading frame) and:
+
+* per robot pair ranged in the step, ONE Huber-robust range factor: the median of the
+  bias-corrected ranges, with the pair's noise undivided (the ranges of a step share their
+  bias error; averaging them must not make the factor confident);
+* per robot, a between factor from its previous key: the relative odometry displacement where
+  it and the reference both have odometry (noise :meth:`OdometryMotion.step_sigma` of both,
+  a random walk and ``ODOMETRY_FLOOR``), else a random walk of ``UNKNOWN_SPEED`` (with the
+  one known displacement, if any);
+* a wide prior (``WIDE_SIGMA``) for a robot no range has reached yet.
+
+**Start** (``init_window`` of measurements): the shape from the range graph
+(:func:`relloc.filter.range_graph.shape_from_ranges`). With odometry (in the shared heading
+frame motion tells the rotation and reflection) ``ROTATIONS`` rotations times two reflections
+each start one smoother; a hypothesis whose cost exceeds the best's by ``PRUNE_COST`` is
+dropped, and after ``HYPOTHESIS_TIME`` only the best is kept. Without odometry one smoother
+runs: the rotation/reflection is a gauge the random walks hold, published with
+``orientation_observable = False`` and the gauge-free ``shape``/``distances``.
+
+**Estimate** at every step: each robot's latest key and its marginal covariance (relative to
+the pinned reference key, so already relative). An indeterminate system (GTSAM's
+``RuntimeError``) or the consistency watchdog's alarm restarts from the last
+``RESTART_WINDOW`` of ranges, counted in :attr:`stats`. Online biases, estimated headings and
+online odometry scales are not modelled (:data:`relloc.config.filter.CANNOT`).
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+
+import numpy as np
+from numpy.typing import NDArray
+
+from relloc.config import TeamConfig
+from relloc.estimate import Estimate
+from relloc.events import RangeEvent
+from relloc.filter.base import FilterEstimate
+from relloc.filter.measurement import ModelContext
+from relloc.filter.motion import PROCESS_NOISE
+from relloc.filter.range_graph import orientation_hypotheses, shape_from_ranges, start_covariance
+from relloc.filter.ranges import RangeBatch
+from relloc.filter.smoother_graph import GraphSmoother
+from relloc.filter.state import StateLayout
+from relloc.filter.summary import ModeSummary, gauge
+from relloc.localizers.base import Measurement
+from relloc.localizers.filtered import FilterLocalizer
+
+FloatArray = NDArray[np.float64]
+
+STEP_PERIOD = 0.5
+"""Seconds between smoother steps (keys): ranges of a step are merged per pair."""
+LAG = 10.0
+"""Seconds of keys the smoother keeps; older ones are marginalised by GTSAM."""
+UNKNOWN_SPEED = 0.5
+"""Std (m/s per axis) of the relative motion of a robot whose (or whose reference's)
+odometry is missing: the speed a ground robot of the team stays under."""
+ODOMETRY_FLOOR = 0.01
+"""Smallest std (m per axis) of a step's relative odometry displacement."""
+SHAPE_SIGMA = 0.3
+"""Smallest std (m per coordinate) of the start's shape."""
+WIDE_SIGMA = 10.0
+"""Std (m) of the prior of a robot no range places."""
+ROTATIONS = 8
+"""Orientation hypotheses per handedness at the start (with odometry)."""
+PRUNE_COST = 10.0
+"""A hypothesis whose graph error exceeds the best's by this much is dropped (error is half
+the chi-square: a likelihood ratio of e^-10)."""
+HYPOTHESIS_TIME = 15.0
+"""Seconds after the start after which only the best hypothesis is kept."""
+MOTION_TO_RESOLVE = 0.3
+"""Relative odometry displacement (m) of some robot after which the orientation counts as
+observed (:mod:`relloc.filter.summary`)."""
+RESTART_WINDOW = 2.0
+"""Seconds of ranges a restart builds its start from."""
+
+
+class SmootherLocalizer(FilterLocalizer):
+    """Odometry + UWB ranges in a fixed-lag factor-graph smoother (module docstring)."""
+
+    method = "pf"
+    range_model = "symmetric"
+
+    def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
+        layout = StateLayout(config.robot_names, config.reference)
+        super().__init__(config, layout, seed=seed)
+        self.method = method
+        self._context = ModelContext(config, self.layout, range_model="symmetric")
+        lay = self.layout
+        self._ref = lay.index(lay.reference)
+        self._others = np.array([lay.index(r) for r in lay.others], dtype=np.intp)
+        self._state = np.full(len(lay.robots), -1, dtype=np.intp)  # team index -> state index
+        self._state[self._others] = np.arange(self._others.size)
+        self.hypotheses: list[GraphSmoother] = []
+        self._placed = np.zeros(self._others.size, dtype=bool)
+        self._pending: dict[tuple[int, int], list[tuple[float, float]]] = {}
+        self._step_batch: list[Measurement] = []
+        self._recent: deque[RangeEvent] = deque()
+        self._moved = np.zeros(self._others.size)
+        self._t_start = math.nan
+        self._observable = False
+        self._started_with = 0
+
+    @property
+    def smoother(self) -> GraphSmoother | None:
+        """The best hypothesis's smoother (``None`` before the start)."""
+        return self.hypotheses[0] if self.hypotheses else None
+
+    def _shift_time(self, dt: float) -> None:
+        super()._shift_time(dt)
+        self._t_start += dt
+
+    # ---------------------------------------------------------------- ranges
+    def _ranges(self, events: list[RangeEvent]) -> tuple[NDArray[np.intp], NDArray[np.intp], FloatArray, FloatArray]:
+        """Team indices, bias-corrected distances and noise of ``events`` (per 0.1 s batch: the
+        median per pair, :meth:`RangeBatch.build`)."""
+        models = [b for b in RangeBatch.build(events, self._context) if isinstance(b, RangeBatch)]
+        if not models:
+            empty = np.zeros(0)
+            return np.zeros(0, np.intp), np.zeros(0, np.intp), empty, empty
+        ia = np.concatenate([b.index_a for b in models])
+        ib = np.concatenate([b.index_b for b in models])
+        z = np.maximum(np.concatenate([b.distance - b.bias for b in models]), 0.0)
+        s = np.concatenate([b.sigma for b in models])
+        return ia, ib, z, s
+
+    def _remember(self, t: float, batch: list[Measurement]) -> list[RangeEvent]:
+        ranges = [m for m in batch if isinstance(m, RangeEvent)]
+        self._recent.extend(ranges)
+        while self._recent and self._recent[0].t < t - RESTART_WINDOW:
+            self._recent.popleft()
+        return ranges
+
+    # ---------------------------------------------------------------- the cycle
+    def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
+        if not self.initialized:
+            self._remember(t, batch)
+            return super()._step(t, batch)
+        ranges = self._remember(t, batch)
+        self._step_batch += batch
+        for a, b, z, s in zip(*(x.tolist() for x in self._ranges(ranges)), strict=True):
+            self._pending.setdefault((a, b), []).append((z, s))
+        if t - self.t < STEP_PERIOD:
+            return None
+        return self._advance(t)
+
+    def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
+        if not self._start_from(t, [m for m in batch if isinstance(m, RangeEvent)]):
+            return None
+        self._started(t)
+        return self._emit(t, self._estimate())
+
+    def _start_from(self, t: float, ranges: list[RangeEvent]) -> bool:
+        """Start the hypotheses at ``t`` from ``ranges``' graph (module docstring); False
+        where they place no robot."""
+        ia, ib, z, _ = self._ranges(ranges)
+        if not z.size:
+            return False
+        shape = shape_from_ranges(len(self.layout.robots), self._ref, ia, ib, z)
+        placed = shape.placed[self._others]
+        if shape.measured == 0 or not placed.any():
+            return False
+        rel = shape.relative[self._others]
+        odometry = any(math.isfinite(self.odometry.pose(r, t)[0]) for r in self.layout.robots)
+        rotations = ROTATIONS if odometry else 1
+        formations = orientation_hypotheses(rel, rotations, reflections=odometry)
+        step = math.pi / rotations if odometry else 0.0
+        cov = start_covariance(formations, max(SHAPE_SIGMA, 2.0 * shape.rms), step)
+        k = self._others.size
+        blocks = np.stack([cov[:, 2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(k)], axis=1)  # (M, K, 2, 2)
+        blocks[:, ~placed] = WIDE_SIGMA**2 * np.eye(2)
+        self.hypotheses = []
+        for m in range(formations.shape[0]):
+            smoother = GraphSmoother(k, LAG)
+            smoother.start(t, formations[m], blocks[m])
+            self.hypotheses.append(smoother)
+        self._placed = placed.copy()
+        self._pending = {}
+        self._step_batch = []
+        self._moved[:] = 0.0
+        self._t_start = t
+        self._observable = False
+        self._started_with = len(self.hypotheses)
+        self.stats["smoother_hypotheses"] = len(self.hypotheses)
+        self.stats["smoother_start_rms_mm"] = round(1000.0 * shape.rms)
+        return True
+
+    def _advance(self, t: float) -> Estimate | None:
+        disp, sigma, _ = self._relative_motion(t)
+        ia, ib, z, s = self._merged()
+        wide = np.where(self._placed, 0.0, WIDE_SIGMA)
+        reached = np.zeros(self._others.size, dtype=bool)
+        for idx in (ia, ib):
+            reached[idx[idx >= 0]] = True
+        newly = reached & ~self._placed
+        batch, self._step_batch = self._step_batch, []
+        survivors = []
+        for smoother in self.hypotheses:
+            guess = self._placement(smoother, newly, ia, ib, z)
+            try:
+                smoother.advance(t, disp, sigma, ia, ib, z, s, wide, guess)
+            except RuntimeError:
+                self.stats["smoother_indeterminate"] += 1
+                continue
+            survivors.append(smoother)
+        self._placed |= reached
+        self.hypotheses = survivors
+        if not survivors:
+            return self._recover(t)
+        self._prune(t)
+        fe = self._estimate()
+        yaws = {r: self.odometry.pose(r, t)[2] for r in self.layout.robots}
+        if self.watchdog.observe(t, batch, fe, yaws):
+            self.stats["inconsistency_restarts"] += 1
+            return self._recover(t)
+        self.stats["smoother_factors"] = self.hypotheses[0].size()
+        return self._emit(t, fe)
+
+    def _recover(self, t: float) -> Estimate | None:
+        """Start again from the last ``RESTART_WINDOW`` of ranges (no hypothesis survived, or
+        the watchdog found the covariance inconsistent)."""
+        self.stats["smoother_restarts"] += 1
+        self.watchdog.restart(t)
+        if not self._start_from(t, list(self._recent)):
+            self.initialized = False
+            return None
+        self._started(t)
+        return self._emit(t, self._estimate())
+
+    def _relative_motion(self, t: float) -> tuple[FloatArray, FloatArray, float]:
+        """Each non-reference robot's displacement relative to the reference since the last
+        step ``(K, 2)`` and its per-axis std ``(K,)`` (module docstring), and the time step."""
+        known = np.array([not math.isnan(self._anchor.get(r, (math.nan,))[0]) for r in self.layout.robots])
+        disp, own, dt = self._motion_to(t)
+        known &= np.array([math.isfinite(self.odometry.pose(r, t)[0]) for r in self.layout.robots])
+        ref = self._ref
+        rel = disp[self._others] - disp[ref]
+        both = known[self._others] & known[ref]
+        walk = np.where(both, PROCESS_NOISE**2 * dt + ODOMETRY_FLOOR**2, (UNKNOWN_SPEED * dt) ** 2)
+        sigma = np.sqrt(own[self._others] ** 2 + own[ref] ** 2 + walk)
+        self._moved += np.where(both, np.hypot(rel[:, 0], rel[:, 1]), 0.0)
+        return rel, sigma, dt
+
+    def _merged(self) -> tuple[NDArray[np.intp], NDArray[np.intp], FloatArray, FloatArray]:
+        """The step's ranges: one per pair (median distance, largest noise), as state indices
+        (-1: the reference)."""
+        pending, self._pending = self._pending, {}
+        if not pending:
+            empty = np.zeros(0)
+            return np.zeros(0, np.intp), np.zeros(0, np.intp), empty, empty
+        pairs = np.array(list(pending), dtype=np.intp)
+        z = np.array([float(np.median([v for v, _ in vals])) for vals in pending.values()])
+        s = np.array([max(w for _, w in vals) for vals in pending.values()])
+        return self._state[pairs[:, 0]], self._state[pairs[:, 1]], z, s
+
+    def _placement(
+        self, smoother: GraphSmoother, newly: NDArray[np.bool_], ia: NDArray[np.intp], ib: NDArray[np.intp], z: FloatArray
+    ) -> FloatArray | None:
+        """Initial guesses for robots a range reaches for the first time: at the range's
+        distance from the robot it connects to (a range factor cannot start from coinciding
+        points); ``None`` when there are none."""
+        if not newly.any():
+            return None
+        guess = smoother.estimate.copy()
+        for a, b, d in zip(ia.tolist(), ib.tolist(), z.tolist(), strict=True):
+            for new, other in ((a, b), (b, a)):
+                if new >= 0 and newly[new] and (other < 0 or not newly[other]):
+                    base = np.zeros(2) if other < 0 else smoother.estimate[other]
+                    angle = 2.399963 * (new + 1)  # the golden angle: distinct directions
+                    guess[new] = base + max(d, 0.1) * np.array([math.cos(angle), math.sin(angle)])
+        return guess
+
+    def _prune(self, t: float) -> None:
+        """Drop hypotheses the graph error has ruled out (module docstring)."""
+        if len(self.hypotheses) > 1:
+            costs = np.array([h.cost() for h in self.hypotheses])
+            order = np.argsort(costs)
+            keep = [int(i) for i in order if costs[i] <= costs[order[0]] + PRUNE_COST]
+            if t - self._t_start >= HYPOTHESIS_TIME:
+                keep = keep[:1]
+            self.hypotheses = [self.hypotheses[i] for i in keep]
+            self.stats["smoother_hypotheses"] = len(self.hypotheses)
+            if len(self.hypotheses) == 1:
+                self._observable = bool(self._moved.max(initial=0.0) >= MOTION_TO_RESOLVE)
+        elif not self._observable and self._started_with > 1:
+            self._observable = bool(self._moved.max(initial=0.0) >= MOTION_TO_RESOLVE)
+
+    # ---------------------------------------------------------------- the estimate
+    def _estimate(self) -> FilterEstimate:
+        """The best hypothesis's latest positions and marginal covariances, with the summary
+        (shape in the declared gauge, pair distances) of :mod:`relloc.filter.summary`."""
+        best = self.hypotheses[0]
+        mean = best.estimate.copy()
+        cov = best.covariances()
+        return FilterEstimate(mean, cov, float(len(self.hypotheses)), summary=self._summary(mean, cov), particles=len(self.hypotheses))
+
+    def _summary(self, mean: FloatArray, cov: FloatArray) -> ModeSummary:
+        k = mean.shape[0]
+        shape = gauge(mean[None])[0]
+        angle = math.atan2(mean[0, 1], mean[0, 0])
+        c, s = math.cos(-angle), math.sin(-angle)
+        rot = np.array([[c, -s], [s, c]])
+        if k > 1 and (rot @ mean[1])[1] < 0.0:
+            rot = np.diag([1.0, -1.0]) @ rot
+        shape_cov = np.einsum("ij,kjl,ml->kim", rot, cov, rot)
+        pos = np.vstack([np.zeros((1, 2)), mean])
+        full = np.concatenate([np.zeros((1, 2, 2)), cov])
+        diff = pos[:, None, :] - pos[None, :, :]
+        dist = np.hypot(diff[..., 0], diff[..., 1])
+        unit = diff / np.where(dist > 1e-9, dist, 1.0)[..., None]
+        both = full[:, None] + full[None, :]
+        var = np.einsum("ijk,ijkl,ijl->ij", unit, both, unit)
+        distances = np.stack([dist, np.sqrt(np.maximum(var, 0.0))], axis=-1)
+        observable = self._observable
+        return ModeSummary(
+            mean, cov, mean.copy(), 1.0, 1, 0.0 if observable else math.pi, observable, shape, shape_cov, distances,
+            np.ones(1, dtype=bool),
+        )

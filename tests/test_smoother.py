@@ -1,0 +1,113 @@
+"""The fixed-lag smoother (``[filter] kind = "smoother"``): accurate with odometry, at least as
+good a shape as multilateration without, bad input rejected, cost flat over a run."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+
+import numpy as np
+import pytest
+
+from relloc.config import ConfigError, TeamConfig
+from relloc.engine import Engine, Pipeline
+from relloc.estimate import Estimate
+from relloc.evaluation.metrics import GroundTruth
+from relloc.evaluation.report import MethodReport, evaluate
+from relloc.events import Event, OdometryEvent, RangeEvent
+from relloc.filter.smoother_graph import GraphSmoother
+from relloc.localizers.smoother import SmootherLocalizer
+from relloc.methods import build_pipeline, filter_kind
+from relloc.simulator import multi_scenario
+
+
+def _without_odometry(config: TeamConfig) -> TeamConfig:
+    for robot in config.robot_names:
+        config = config.with_robot(robot, odom_topic="")
+    return config
+
+
+def _run(duration: float, odometry: bool) -> tuple[dict[str, MethodReport], list[Pipeline]]:
+    sim = multi_scenario(seed=0, duration=duration)
+    config = sim.config.with_filter(kind="smoother")
+    events: Iterator[Event] = iter(sim.events())
+    if not odometry:
+        config = _without_odometry(config)
+        events = (e for e in events if not isinstance(e, OdometryEvent))
+    pipelines = [build_pipeline("pf", config), build_pipeline("multilateration", config)]
+    gt = GroundTruth(config.reference)
+    engine = Engine(pipelines, truth_sinks=[gt.add])
+    engine.run(events)
+    return evaluate(engine, gt, "multi", 5.0).methods, pipelines
+
+
+def test_with_odometry_the_smoother_resolves_the_orientation_and_is_accurate() -> None:
+    reports, pipelines = _run(20.0, odometry=True)
+    localizer = pipelines[0].localizer
+    assert isinstance(localizer, SmootherLocalizer)
+    ape = {r: s.median for r, s in reports["pf"].robots.items()}
+    assert set(ape) == {"r1", "r2", "r3", "r4"}
+    # measured 0.05-0.13 m; multilateration 0.29-0.52 m
+    assert max(ape.values()) < 0.25
+    assert all(ape[r] < reports["multilateration"].robots[r].median for r in ape)
+    assert len(localizer.hypotheses) == 1 and localizer.stats["smoother_restarts"] == 0
+    last = pipelines[0].estimates[-1]
+    assert last.orientation_observable and set(last.covariances) == set(ape)
+    coverage = [c.coverage for c in reports["pf"].consistency.values()]
+    assert min(coverage) >= 0.8
+
+
+def test_without_odometry_the_shape_is_at_least_as_good_as_multilateration() -> None:
+    reports, pipelines = _run(20.0, odometry=False)
+    assert isinstance(pipelines[0].localizer, SmootherLocalizer)
+    shape = {r: s.median for r, s in reports["pf"].shape_robots.items()}
+    multi = {r: s.median for r, s in reports["multilateration"].robots.items()}
+    assert set(shape) == set(multi) == {"r1", "r2", "r3", "r4"}
+    # measured: smoother shape 0.20-0.45 m, multilateration 0.29-0.52 m
+    assert sum(shape.values()) <= sum(multi.values())
+    last: Estimate = pipelines[0].estimates[-1]
+    assert not last.orientation_observable and last.shape and last.shape_gauge == "r1"
+    assert len(last.distances) == 10
+
+
+def test_bad_input_is_rejected_and_counted_not_a_crash() -> None:
+    sim = multi_scenario(seed=0, duration=4.0)
+    localizer = SmootherLocalizer(sim.config.with_filter(kind="smoother"))
+    out: list[Estimate] = []
+    for i, event in enumerate(sim.events()):
+        out += localizer.process(event)
+        if i == 500:
+            out += localizer.process(RangeEvent(event.t, "r0", "r1", math.nan))
+            out += localizer.process(RangeEvent(event.t, "r0", "nobody", 3.0))
+    out += localizer.flush()
+    assert localizer.rejected.get("unknown_robot", 0) >= 1
+    assert sum(localizer.rejected.values()) >= 2
+    assert out and all(np.isfinite(e.positions["r1"]).all() for e in out)
+
+
+def test_the_graph_stays_the_same_size_over_a_long_run() -> None:
+    """Cost per step is the window's, not the run's: the factors the smoother holds stop
+    growing once the lag is full (counted, not timed)."""
+    rng = np.random.default_rng(0)
+    truth = np.array([[2.0, 0.0], [0.0, 3.0], [-2.0, 1.0]])
+    ia, ib = np.array([-1, -1, -1, 0, 0, 1]), np.array([0, 1, 2, 1, 2, 2])
+    graph = GraphSmoother(3, lag=10.0)
+    graph.start(0.0, truth + 0.2, np.tile(0.3**2 * np.eye(2), (3, 1, 1)))
+    sizes = {}
+    points = np.vstack([np.zeros((1, 2)), truth])
+    for step in range(1, 241):
+        d = np.linalg.norm(points[ia + 1] - points[ib + 1], axis=1) + rng.normal(0.0, 0.1, ia.size)
+        graph.advance(0.5 * step, np.zeros((3, 2)), np.full(3, 0.25), ia, ib, d, np.full(ia.size, 0.15), np.zeros(3))
+        sizes[step] = graph.size()
+    assert sizes[60] == sizes[120] == sizes[240]
+    assert graph.factors_added > 4 * sizes[240]
+    shape_error = np.abs(np.linalg.norm(graph.estimate, axis=1) - np.linalg.norm(truth, axis=1))
+    assert shape_error.max() < 0.2
+
+
+@pytest.mark.parametrize("modes", [{"bias_mode": "online"}, {"heading_mode": "estimate"}, {"odom_scale_mode": "online"}])
+def test_what_the_smoother_cannot_do_is_a_config_error(modes: dict[str, str]) -> None:
+    config = multi_scenario(seed=0, duration=1.0).config
+    assert filter_kind(config.with_filter(kind="smoother")) == "smoother"
+    with pytest.raises(ConfigError, match="smoother"):
+        config.with_filter(kind="smoother", **modes)
