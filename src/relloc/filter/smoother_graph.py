@@ -1,17 +1,16 @@
-"""One fixed-lag smoother over relative positions, in native GTSAM factors.
+"""One fixed-lag smoother of a team's positions, in native GTSAM factors.
 
-The state is one ``Point2`` per non-reference robot per smoother step: its position relative
-to the reference robot in the shared heading frame. The reference is one constant key at the
-origin, held by a tight prior and kept inside the window by refreshing its timestamp at every
-step (so the ranges to it always connect to the same key). GTSAM's
-``IncrementalFixedLagSmoother`` (iSAM2) marginalises what leaves the lag; everything a step
-adds is a handful of native factors built from NumPy arrays, so the cost of a step depends on
-the window, not on how long the run has been.
+The state is one ``Point2`` per robot (the reference included) per smoother step, in a frame
+with the shared heading's axes whose origin is the reference's first position (a tight prior on
+its first key; it drifts with the reference's random walk, which nothing measures and nothing
+reads). Each robot's motion is its own between factor, so a robot without odometry walks on
+its own, not in common with every relative position. The published relative position is
+``x_k - x_ref``, its covariance from the joint marginal of the two keys. GTSAM's
+``IncrementalFixedLagSmoother`` (iSAM2) marginalises what leaves the lag; a step adds a handful
+of native factors built from NumPy arrays, so its cost depends on the window, not on the run.
 """
 
 from __future__ import annotations
-
-import math
 
 import gtsam
 import numpy as np
@@ -21,46 +20,61 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
 REFERENCE_SIGMA = 1e-4
-"""Std (m) of the prior that pins the reference key at the origin."""
+"""Std (m) of the prior that pins the reference's first key at the origin."""
 HUBER_K = 1.345
 """Huber threshold of every range factor, in its sigmas (95 % efficiency on Gaussian noise)."""
-REFERENCE_KEY = gtsam.symbol("o", 0)
 
 
-def robot_key(step: int, k: int, n_others: int) -> int:
-    """The key of non-reference robot ``k`` (state order) at smoother step ``step``."""
-    return gtsam.symbol("x", step * n_others + k)
+def robot_key(step: int, i: int, n: int) -> int:
+    """The key of robot ``i`` (team order) at smoother step ``step``."""
+    return gtsam.symbol("x", step * n + i)
 
 
 class GraphSmoother:
-    """A fixed-lag smoother of ``n_others`` relative positions (module docstring)."""
+    """A fixed-lag smoother of ``n`` robots' positions, ``reference`` the pinned one (module
+    docstring)."""
 
-    def __init__(self, n_others: int, lag: float) -> None:
-        self.n_others = n_others
+    def __init__(self, n: int, reference: int, lag: float) -> None:
+        self.n = n
+        self.reference = reference
+        self.others = np.array([i for i in range(n) if i != reference], dtype=np.intp)
         self.smoother = gtsam.IncrementalFixedLagSmoother(lag)
         self.step = -1
         self.factors_added = 0
-        self.estimate: FloatArray = np.zeros((n_others, 2))
+        self.positions: FloatArray = np.zeros((n, 2))
+
+    @property
+    def estimate(self) -> FloatArray:
+        """Each non-reference robot's position relative to the reference ``(N-1, 2)``."""
+        return self.positions[self.others] - self.positions[self.reference]
 
     def keys(self, step: int | None = None) -> list[int]:
-        """The robots' keys at ``step`` (default: the latest)."""
+        """The robots' keys at ``step`` (default: the latest), team order."""
         s = self.step if step is None else step
-        return [robot_key(s, k, self.n_others) for k in range(self.n_others)]
+        return [robot_key(s, i, self.n) for i in range(self.n)]
 
-    def start(self, t: float, mean: FloatArray, sigma: FloatArray) -> None:
-        """The first step at ``t``: the reference at the origin, each robot ``k`` with a prior
-        at ``mean[k]`` (``(K, 2)``) of per-axis covariance ``sigma[k]`` (``(K, 2, 2)``)."""
+    def start(
+        self, t: float, mean: FloatArray, cov: FloatArray, index_a: IntArray, index_b: IntArray, distance: FloatArray,
+        range_sigma: FloatArray,
+    ) -> None:
+        """The first step at ``t``: the reference at the origin, each robot ``i`` with a prior at
+        ``mean[i]`` (``(N, 2)``, relative to the reference) of covariance ``cov[i]``
+        (``(N, 2, 2)``; the reference's is ignored), and the start's ranges (team indices)."""
         self.step = 0
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         stamps = gtsam.FixedLagSmootherKeyTimestampMap()
-        graph.add(gtsam.PriorFactorPoint2(REFERENCE_KEY, np.zeros(2), gtsam.noiseModel.Isotropic.Sigma(2, REFERENCE_SIGMA)))
-        values.insert(REFERENCE_KEY, np.zeros(2))
-        stamps.insert((REFERENCE_KEY, t))
-        for k, key in enumerate(self.keys()):
-            graph.add(gtsam.PriorFactorPoint2(key, mean[k], gtsam.noiseModel.Gaussian.Covariance(sigma[k])))
-            values.insert(key, np.asarray(mean[k], float))
+        keys = self.keys()
+        for i, key in enumerate(keys):
+            if i == self.reference:
+                noise = gtsam.noiseModel.Isotropic.Sigma(2, REFERENCE_SIGMA)
+                graph.add(gtsam.PriorFactorPoint2(key, np.zeros(2), noise))
+                values.insert(key, np.zeros(2))
+            else:
+                graph.add(gtsam.PriorFactorPoint2(key, mean[i], gtsam.noiseModel.Gaussian.Covariance(cov[i])))
+                values.insert(key, np.asarray(mean[i], float))
             stamps.insert((key, t))
+        self._ranges(graph, keys, index_a, index_b, distance, range_sigma)
         self._update(graph, values, stamps)
 
     def advance(
@@ -72,14 +86,11 @@ class GraphSmoother:
         index_b: IntArray,
         distance: FloatArray,
         range_sigma: FloatArray,
-        wide: FloatArray,
         guess: FloatArray | None = None,
     ) -> None:
-        """The next step at ``t``: robot ``k`` moved by ``disp[k]`` (``(K, 2)``) relative to the
-        reference with per-axis std ``disp_sigma[k]``; one Huber-robust range factor per pair
-        (state indices ``index_a``/``index_b``, ``-1`` the reference) of ``distance`` and std
-        ``range_sigma``; robots with ``wide[k] > 0`` get a prior of that std (m) about their
-        predicted position (none of their ranges has placed them yet); ``guess`` ``(K, 2)``:
+        """The next step at ``t``: robot ``i`` moved by ``disp[i]`` (``(N, 2)``) with per-axis
+        std ``disp_sigma[i]``; one Huber-robust range factor per pair (team indices
+        ``index_a``/``index_b``) of ``distance`` and std ``range_sigma``; ``guess`` ``(N, 2)``:
         where to linearise the new keys (default: the estimate moved by ``disp``)."""
         prev = self.keys()
         self.step += 1
@@ -87,34 +98,45 @@ class GraphSmoother:
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
         stamps = gtsam.FixedLagSmootherKeyTimestampMap()
-        stamps.insert((REFERENCE_KEY, t))
-        guess = self.estimate + disp if guess is None else guess
-        for k in range(self.n_others):
-            noise = gtsam.noiseModel.Isotropic.Sigma(2, float(disp_sigma[k]))
-            graph.add(gtsam.BetweenFactorPoint2(prev[k], new[k], np.asarray(disp[k], float), noise))
-            values.insert(new[k], np.asarray(guess[k], float))
-            stamps.insert((new[k], t))
-            if wide[k] > 0.0:
-                graph.add(gtsam.PriorFactorPoint2(new[k], guess[k], gtsam.noiseModel.Isotropic.Sigma(2, float(wide[k]))))
-        for a, b, d, s in zip(index_a.tolist(), index_b.tolist(), distance.tolist(), range_sigma.tolist(), strict=True):
-            ka = REFERENCE_KEY if a < 0 else new[a]
-            kb = REFERENCE_KEY if b < 0 else new[b]
-            noise = gtsam.noiseModel.Robust.Create(
-                gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K), gtsam.noiseModel.Isotropic.Sigma(1, s)
-            )
-            graph.add(gtsam.RangeFactor2(ka, kb, d, noise))
+        guess = self.positions + disp if guess is None else guess
+        for i in range(self.n):
+            noise = gtsam.noiseModel.Isotropic.Sigma(2, float(disp_sigma[i]))
+            graph.add(gtsam.BetweenFactorPoint2(prev[i], new[i], np.asarray(disp[i], float), noise))
+            values.insert(new[i], np.asarray(guess[i], float))
+            stamps.insert((new[i], t))
+        self._ranges(graph, new, index_a, index_b, distance, range_sigma)
         self._update(graph, values, stamps)
+
+    @staticmethod
+    def _ranges(
+        graph: gtsam.NonlinearFactorGraph, keys: list[int], index_a: IntArray, index_b: IntArray, distance: FloatArray,
+        range_sigma: FloatArray,
+    ) -> None:
+        huber = gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K)
+        for a, b, d, s in zip(index_a.tolist(), index_b.tolist(), distance.tolist(), range_sigma.tolist(), strict=True):
+            noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Isotropic.Sigma(1, s))
+            graph.add(gtsam.RangeFactor2(keys[a], keys[b], d, noise))
 
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: gtsam.FixedLagSmootherKeyTimestampMap) -> None:
         self.smoother.update(graph, values, stamps)
         self.factors_added += graph.size()
         est = self.smoother.calculateEstimate()
-        self.estimate = np.array([est.atPoint2(key) for key in self.keys()], float).reshape(self.n_others, 2)
+        self.positions = np.array([est.atPoint2(key) for key in self.keys()], float).reshape(self.n, 2)
 
     def covariances(self) -> FloatArray:
-        """Marginal covariance ``(K, 2, 2)`` of each robot's latest position (relative to the
-        pinned reference, so already relative)."""
-        return np.array([self.smoother.marginalCovariance(key) for key in self.keys()], float).reshape(self.n_others, 2, 2)
+        """Covariance ``(N-1, 2, 2)`` of each robot's latest position relative to the
+        reference's: ``S_kk + S_rr - S_kr - S_rk`` of the window's joint marginal."""
+        keys = self.keys()
+        marginals = gtsam.Marginals(self.smoother.getFactors(), self.smoother.calculateEstimate())
+        order = [keys[self.reference], *(keys[i] for i in self.others)]
+        full = marginals.jointMarginalCovariance(order).fullMatrix()
+        k = self.others.size
+        blocks = full.reshape(k + 1, 2, k + 1, 2).transpose(0, 2, 1, 3)
+        rr = blocks[0, 0]
+        out = np.empty((k, 2, 2))
+        for j in range(k):
+            out[j] = blocks[j + 1, j + 1] + rr - blocks[j + 1, 0] - blocks[0, j + 1]
+        return 0.5 * (out + out.transpose(0, 2, 1))
 
     def cost(self) -> float:
         """The graph's error at the estimate (half the robust chi-square): compares hypotheses
@@ -125,8 +147,3 @@ class GraphSmoother:
         """Factors the smoother holds now (marginalised ones replaced by their summary)."""
         graph = self.smoother.getFactors()
         return sum(1 for i in range(graph.size()) if graph.exists(i))
-
-
-def relative_sigma(own: float, reference: float, floor: float) -> float:
-    """Per-axis std of a relative displacement from the two robots' own stds and a floor."""
-    return math.sqrt(own * own + reference * reference + floor * floor)

@@ -1,29 +1,28 @@
-"""The fixed-lag smoother (``[filter] kind = "smoother"``): a factor graph of relative positions.
+"""The fixed-lag smoother (``[filter] kind = "smoother"``): a factor graph of the team's positions.
 
 For teams where UWB ranges dominate (robots without odometry, large teams). Every
 ``STEP_PERIOD`` the smoother (:class:`relloc.filter.smoother_graph.GraphSmoother`, GTSAM's
-iSAM2 over a ``LAG`` window) gets one key per non-reference robot (its position relative to
-the reference in the shared heading frame) and:
+iSAM2 over a ``LAG`` window) gets one key per robot and:
 
 * per robot pair ranged in the step, ONE Huber-robust range factor: the median of the
   bias-corrected ranges, with the pair's noise undivided (the ranges of a step share their
   bias error; averaging them must not make the factor confident);
-* per robot, a between factor from its previous key: the relative odometry displacement where
-  it and the reference both have odometry (noise :meth:`OdometryMotion.step_sigma` of both,
-  a random walk and ``ODOMETRY_FLOOR``), else a random walk of ``UNKNOWN_SPEED`` (with the
-  one known displacement, if any);
-* a wide prior (``WIDE_SIGMA``) for a robot no range has reached yet.
+* per robot, a between factor from its previous key: its odometry displacement in the shared
+  heading frame (noise :meth:`OdometryMotion.step_sigma`, a random walk and
+  ``ODOMETRY_FLOOR``), or, without odometry, a random walk of ``UNKNOWN_SPEED``: each robot's
+  own, so the reference's unknown motion is common to every relative position, as it is.
 
 **Start** (``init_window`` of measurements): the shape from the range graph
-(:func:`relloc.filter.range_graph.shape_from_ranges`). With odometry (in the shared heading
+(:func:`relloc.filter.range_graph.shape_from_ranges`), its ranges as the first factors
+(robots they do not place start at the reference, ``WIDE_SIGMA``). With odometry (in the shared heading
 frame motion tells the rotation and reflection) ``ROTATIONS`` rotations times two reflections
 each start one smoother; a hypothesis whose cost exceeds the best's by ``PRUNE_COST`` is
 dropped, and after ``HYPOTHESIS_TIME`` only the best is kept. Without odometry one smoother
 runs: the rotation/reflection is a gauge the random walks hold, published with
 ``orientation_observable = False`` and the gauge-free ``shape``/``distances``.
 
-**Estimate** at every step: each robot's latest key and its marginal covariance (relative to
-the pinned reference key, so already relative). An indeterminate system (GTSAM's
+**Estimate** at every step: each robot's latest key less the reference's, its covariance from
+their joint marginal. An indeterminate system (GTSAM's
 ``RuntimeError``) or the consistency watchdog's alarm restarts from the last
 ``RESTART_WINDOW`` of ranges, counted in :attr:`stats`. Online biases, estimated headings and
 online odometry scales are not modelled (:data:`relloc.config.filter.CANNOT`).
@@ -94,10 +93,8 @@ class SmootherLocalizer(FilterLocalizer):
         lay = self.layout
         self._ref = lay.index(lay.reference)
         self._others = np.array([lay.index(r) for r in lay.others], dtype=np.intp)
-        self._state = np.full(len(lay.robots), -1, dtype=np.intp)  # team index -> state index
-        self._state[self._others] = np.arange(self._others.size)
         self.hypotheses: list[GraphSmoother] = []
-        self._placed = np.zeros(self._others.size, dtype=bool)
+        self._placed = np.zeros(len(lay.robots), dtype=bool)
         self._pending: dict[tuple[int, int], list[tuple[float, float]]] = {}
         self._step_batch: list[Measurement] = []
         self._recent: deque[RangeEvent] = deque()
@@ -158,7 +155,7 @@ class SmootherLocalizer(FilterLocalizer):
     def _start_from(self, t: float, ranges: list[RangeEvent]) -> bool:
         """Start the hypotheses at ``t`` from ``ranges``' graph (module docstring); False
         where they place no robot."""
-        ia, ib, z, _ = self._ranges(ranges)
+        ia, ib, z, s = self._ranges(ranges)
         if not z.size:
             return False
         shape = shape_from_ranges(len(self.layout.robots), self._ref, ia, ib, z)
@@ -166,20 +163,26 @@ class SmootherLocalizer(FilterLocalizer):
         if shape.measured == 0 or not placed.any():
             return False
         rel = shape.relative[self._others]
+        n = len(self.layout.robots)
         odometry = any(math.isfinite(self.odometry.pose(r, t)[0]) for r in self.layout.robots)
         rotations = ROTATIONS if odometry else 1
         formations = orientation_hypotheses(rel, rotations, reflections=odometry)
-        step = math.pi / rotations if odometry else 0.0
+        step = 2.0 * math.pi / rotations if odometry else 0.0
         cov = start_covariance(formations, max(SHAPE_SIGMA, 2.0 * shape.rms), step)
         k = self._others.size
         blocks = np.stack([cov[:, 2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(k)], axis=1)  # (M, K, 2, 2)
         blocks[:, ~placed] = WIDE_SIGMA**2 * np.eye(2)
+        means = np.zeros((formations.shape[0], n, 2))
+        means[:, self._others] = formations
+        covs = np.tile(np.eye(2), (formations.shape[0], n, 1, 1))
+        covs[:, self._others] = blocks
+        pa, pb, pz, ps = self._per_pair(ia, ib, z, s)
         self.hypotheses = []
         for m in range(formations.shape[0]):
-            smoother = GraphSmoother(k, LAG)
-            smoother.start(t, formations[m], blocks[m])
+            smoother = GraphSmoother(n, self._ref, LAG)
+            smoother.start(t, means[m], covs[m], pa, pb, pz, ps)
             self.hypotheses.append(smoother)
-        self._placed = placed.copy()
+        self._placed = shape.placed.copy()
         self._pending = {}
         self._step_batch = []
         self._moved[:] = 0.0
@@ -191,19 +194,19 @@ class SmootherLocalizer(FilterLocalizer):
         return True
 
     def _advance(self, t: float) -> Estimate | None:
-        disp, sigma, _ = self._relative_motion(t)
-        ia, ib, z, s = self._merged()
-        wide = np.where(self._placed, 0.0, WIDE_SIGMA)
-        reached = np.zeros(self._others.size, dtype=bool)
-        for idx in (ia, ib):
-            reached[idx[idx >= 0]] = True
+        disp, sigma = self._own_motion(t)
+        pending, self._pending = self._pending, {}
+        ia, ib, z, s = self._per_pair(*self._flatten(pending))
+        reached = np.zeros(len(self.layout.robots), dtype=bool)
+        reached[ia] = True
+        reached[ib] = True
         newly = reached & ~self._placed
         batch, self._step_batch = self._step_batch, []
         survivors = []
         for smoother in self.hypotheses:
             guess = self._placement(smoother, newly, ia, ib, z)
             try:
-                smoother.advance(t, disp, sigma, ia, ib, z, s, wide, guess)
+                smoother.advance(t, disp, sigma, ia, ib, z, s, guess)
             except RuntimeError:
                 self.stats["smoother_indeterminate"] += 1
                 continue
@@ -232,31 +235,44 @@ class SmootherLocalizer(FilterLocalizer):
         self._started(t)
         return self._emit(t, self._estimate())
 
-    def _relative_motion(self, t: float) -> tuple[FloatArray, FloatArray, float]:
-        """Each non-reference robot's displacement relative to the reference since the last
-        step ``(K, 2)`` and its per-axis std ``(K,)`` (module docstring), and the time step."""
+    def _own_motion(self, t: float) -> tuple[FloatArray, FloatArray]:
+        """Each robot's displacement since the last step ``(N, 2)`` and its per-axis std
+        ``(N,)``: its odometry's (module docstring), or none with ``UNKNOWN_SPEED``."""
         known = np.array([not math.isnan(self._anchor.get(r, (math.nan,))[0]) for r in self.layout.robots])
         disp, own, dt = self._motion_to(t)
         known &= np.array([math.isfinite(self.odometry.pose(r, t)[0]) for r in self.layout.robots])
+        walk = np.where(known, PROCESS_NOISE**2 * dt + ODOMETRY_FLOOR**2, (UNKNOWN_SPEED * dt) ** 2)
+        sigma = np.sqrt(own**2 + walk)
         ref = self._ref
         rel = disp[self._others] - disp[ref]
         both = known[self._others] & known[ref]
-        walk = np.where(both, PROCESS_NOISE**2 * dt + ODOMETRY_FLOOR**2, (UNKNOWN_SPEED * dt) ** 2)
-        sigma = np.sqrt(own[self._others] ** 2 + own[ref] ** 2 + walk)
         self._moved += np.where(both, np.hypot(rel[:, 0], rel[:, 1]), 0.0)
-        return rel, sigma, dt
+        return np.where(known[:, None], disp, 0.0), sigma
 
-    def _merged(self) -> tuple[NDArray[np.intp], NDArray[np.intp], FloatArray, FloatArray]:
-        """The step's ranges: one per pair (median distance, largest noise), as state indices
-        (-1: the reference)."""
-        pending, self._pending = self._pending, {}
-        if not pending:
+    @staticmethod
+    def _flatten(
+        pending: dict[tuple[int, int], list[tuple[float, float]]],
+    ) -> tuple[NDArray[np.intp], NDArray[np.intp], FloatArray, FloatArray]:
+        rows = [(a, b, z, w) for (a, b), vals in pending.items() for z, w in vals]
+        if not rows:
             empty = np.zeros(0)
             return np.zeros(0, np.intp), np.zeros(0, np.intp), empty, empty
-        pairs = np.array(list(pending), dtype=np.intp)
-        z = np.array([float(np.median([v for v, _ in vals])) for vals in pending.values()])
-        s = np.array([max(w for _, w in vals) for vals in pending.values()])
-        return self._state[pairs[:, 0]], self._state[pairs[:, 1]], z, s
+        a, b, z, w = zip(*rows, strict=True)
+        return np.array(a, np.intp), np.array(b, np.intp), np.array(z, float), np.array(w, float)
+
+    @staticmethod
+    def _per_pair(
+        ia: NDArray[np.intp], ib: NDArray[np.intp], z: FloatArray, s: FloatArray
+    ) -> tuple[NDArray[np.intp], NDArray[np.intp], FloatArray, FloatArray]:
+        """One range per pair (team indices): the median distance, the largest noise (the
+        ranges of a step share their error: no division by their count)."""
+        lo, hi = np.minimum(ia, ib), np.maximum(ia, ib)
+        pairs, inverse = np.unique(np.stack([lo, hi], axis=1), axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        med = np.array([float(np.median(z[inverse == p])) for p in range(pairs.shape[0])])
+        sig = np.zeros(pairs.shape[0])
+        np.maximum.at(sig, inverse, s)
+        return pairs[:, 0].astype(np.intp), pairs[:, 1].astype(np.intp), med, sig
 
     def _placement(
         self, smoother: GraphSmoother, newly: NDArray[np.bool_], ia: NDArray[np.intp], ib: NDArray[np.intp], z: FloatArray
@@ -266,11 +282,11 @@ class SmootherLocalizer(FilterLocalizer):
         points); ``None`` when there are none."""
         if not newly.any():
             return None
-        guess = smoother.estimate.copy()
+        guess = smoother.positions.copy()
         for a, b, d in zip(ia.tolist(), ib.tolist(), z.tolist(), strict=True):
             for new, other in ((a, b), (b, a)):
-                if new >= 0 and newly[new] and (other < 0 or not newly[other]):
-                    base = np.zeros(2) if other < 0 else smoother.estimate[other]
+                if newly[new] and not newly[other]:
+                    base = smoother.positions[other]
                     angle = 2.399963 * (new + 1)  # the golden angle: distinct directions
                     guess[new] = base + max(d, 0.1) * np.array([math.cos(angle), math.sin(angle)])
         return guess
