@@ -20,7 +20,7 @@ from relloc.evaluation.report import evaluate
 from relloc.localizers.range_graph import LARGE_TEAM_ROBOTS, RangeGraphLocalizer
 from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
-from relloc.methods import build_pipeline, filter_header, filter_kind
+from relloc.methods import build_pipeline, filter_choice, filter_header, filter_kind
 from relloc.simulator import multi_scenario
 from relloc.simulator.scenarios import grid_scenario
 
@@ -68,6 +68,19 @@ def test_auto_picks_as_before() -> None:
     assert filter_kind(grid_scenario(0, robots=LARGE_TEAM_ROBOTS - 1, duration=2.0).config) == "particle"
 
 
+def test_auto_gives_robots_without_odometry_the_smoother() -> None:
+    """A robot without ``odom_topic`` is a ranges-only robot: the smoother's motion prior (the
+    Gaussian sum where the biases are online, which the smoother does not estimate)."""
+    config = multi_scenario(seed=0, duration=1.0).config
+    assert filter_choice(config) == ("particle", "5 robots with odometry")
+    tag = config.with_robot("r3", odom_topic="")
+    assert filter_choice(tag) == ("smoother", "1 of 5 robots without odometry")
+    assert filter_choice(tag.with_modes(bias="online")) == ("gaussian_sum", "1 of 5 robots without odometry, biases online")
+    assert filter_choice(tag.with_modes(heading="estimate")) == ("gaussian_sum", "headings estimated")
+    assert filter_choice(tag.with_filter(kind="particle")) == ("particle", "the config's")
+    assert filter_header(["pf"], tag) == 'filter: smoother (kind "auto": 1 of 5 robots without odometry)'
+
+
 @pytest.mark.parametrize(
     ("kind", "modes", "message"),
     [
@@ -95,12 +108,12 @@ def test_a_kind_that_cannot_do_what_the_modes_ask_is_a_config_error(kind: str, m
 def test_the_run_header_names_the_filter(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     config = multi_scenario(seed=0, duration=1.0).config
     assert filter_header(["multilateration"], config) is None
-    assert filter_header(["multilateration", "pf_uv"], config) == 'filter: particle (kind "auto")'
-    assert filter_header(["pf"], config.with_modes(heading="estimate")) == 'filter: gaussian_sum (kind "auto")'
+    assert filter_header(["multilateration", "pf_uv"], config) == 'filter: particle (kind "auto": 5 robots with odometry)'
+    assert filter_header(["pf"], config.with_modes(heading="estimate")) == 'filter: gaussian_sum (kind "auto": headings estimated)'
     path = tmp_path / "demo.json"
     main(["demo", "--seed", "0", "--scenarios", "single", "--particles", "500", "--no-progress", "--json", str(path)])
     out = capsys.readouterr().out
-    assert 'single: filter: particle (kind "auto")' in out
+    assert 'single: filter: particle (kind "auto": 2 robots with odometry)' in out
     assert json.loads(path.read_text())["scenarios"]["single"]["methods"]["pf"]["robots"]
 
 

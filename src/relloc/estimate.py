@@ -21,6 +21,8 @@ DOMINANT_MODE_WEIGHT = 0.9
 """A published mode lighter than this competes with others: not converged (navigation holds)."""
 
 
+OWN_FRAME = "own frame"
+"""``shape_gauge`` of a shape in the localizer's own, continuous frame (no robot on +x)."""
 HEADING_FRAME = "heading"
 """Axes of the team's shared heading frame (the compass's), origin at the reference robot."""
 BODY_FRAME = "body"
@@ -66,7 +68,9 @@ class Estimate:
     ``shape_gauge`` lies on the reference's +x axis, mirrored so that the next robot (in the
     config's order) lies on the +y side. Known even when the orientation is not."""
     shape_gauge: str = ""
-    """The robot put on the reference's +x axis in ``shape``."""
+    """The robot put on the reference's +x axis in ``shape``; :data:`OWN_FRAME` where the
+    shape is in the localizer's own frame instead: an arbitrary rotation/reflection that it
+    keeps continuous over time (the smoother's), so that one alignment holds for a run."""
     distances: dict[str, tuple[float, float]] = field(default_factory=dict)
     """Every pair's distance (mean, std) in m, keyed by :func:`relloc.events.pair_key`; the
     reference's pairs included."""

@@ -90,22 +90,45 @@ LOCALIZERS: dict[str, type[FilterLocalizer]] = {
 """The localizer of each filter kind of ``[filter] kind`` (:data:`relloc.config.FilterKind`)."""
 
 
-def filter_kind(config: TeamConfig) -> str:
-    """The filter ``pf`` runs: the config's ``[filter] kind``, or for ``auto`` the one its
-    modes call for: the self-calibrating Gaussian sum where the headings or the odometry
-    scales are estimated, else the sampled particle filter (which estimates range biases
-    itself with ``bias_mode = "online"``); for a large team in the shared heading frame with
-    calibrated biases, the Gaussian sum started from the range graph
-    (:mod:`relloc.localizers.range_graph`, docs/scaling.md). A kind that cannot do what the
-    modes ask is refused by the config itself (:class:`relloc.config.FilterConfig`)."""
+def filter_choice(config: TeamConfig) -> tuple[str, str]:
+    """The filter ``pf`` runs and why: the config's ``[filter] kind``, or for ``auto`` the one
+    the team's measurements call for (docs/explanation/filter-kinds.md), in this order:
+
+    * headings or odometry scales estimated: the self-calibrating Gaussian sum, the only kind
+      that estimates them;
+    * some robot without odometry (no ``odom_topic``): the smoother, which gives it a motion
+      prior and lets later ranges correct where it was (with online biases, which it does not
+      estimate, the Gaussian sum);
+    * a large team in the shared heading frame with calibrated biases: the Gaussian sum started
+      from the range graph (:mod:`relloc.localizers.range_graph`, docs/scaling.md);
+    * else the sampled particle filter (which estimates range biases itself with
+      ``bias_mode = "online"``).
+
+    A kind that cannot do what the modes ask is refused by the config itself
+    (:class:`relloc.config.FilterConfig`)."""
     fc = config.filter
     if fc.kind != "auto":
-        return fc.kind
-    if fc.self_calibration.heading_mode == "estimate" or fc.self_calibration.odom_scale_mode == "online":
-        return "gaussian_sum"
+        return fc.kind, "the config's"
+    sc = fc.self_calibration
+    if sc.heading_mode == "estimate":
+        return "gaussian_sum", "headings estimated"
+    if sc.odom_scale_mode == "online":
+        return "gaussian_sum", "odometry scales estimated"
+    n = len(config.robots)
+    without = [r.name for r in config.robots if not r.odom_topic]
+    if without:
+        who = f"{len(without)} of {n} robots without odometry"
+        if sc.bias_mode == "online":
+            return "gaussian_sum", f"{who}, biases online"
+        return "smoother", who
     if suits_range_graph(config):
-        return "range_graph"
-    return "particle"
+        return "range_graph", f"{n} robots"
+    return "particle", f"{n} robots with odometry"
+
+
+def filter_kind(config: TeamConfig) -> str:
+    """The filter ``pf`` runs (:func:`filter_choice`)."""
+    return filter_choice(config)[0]
 
 
 def filter_localizer(config: TeamConfig, *, seed: int = 0, method: str = "pf") -> FilterLocalizer:
@@ -115,7 +138,10 @@ def filter_localizer(config: TeamConfig, *, seed: int = 0, method: str = "pf") -
 
 def filter_header(methods: list[str], config: TeamConfig) -> str | None:
     """The run header's line naming the filter the particle methods of ``methods`` run
-    (``None`` if none of them does), e.g. ``filter: particle (kind "auto")``."""
+    (``None`` if none of them does), e.g. ``filter: particle (kind "auto": 5 robots with odometry)``."""
     if not any(m in PARTICLE_METHODS for m in methods):
         return None
-    return f'filter: {filter_kind(config)} (kind "{config.filter.kind}")'
+    kind, why = filter_choice(config)
+    if config.filter.kind != "auto":
+        return f'filter: {kind} (kind "{kind}")'
+    return f'filter: {kind} (kind "auto": {why})'

@@ -30,6 +30,7 @@ online odometry scales are not modelled (:data:`relloc.config.filter.CANNOT`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections import deque
 
@@ -37,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
-from relloc.estimate import Estimate
+from relloc.estimate import OWN_FRAME, Estimate
 from relloc.events import RangeEvent
 from relloc.filter.base import FilterEstimate
 from relloc.filter.measurement import ModelContext
@@ -309,21 +310,44 @@ class SmootherLocalizer(FilterLocalizer):
     # ---------------------------------------------------------------- the estimate
     def _estimate(self) -> FilterEstimate:
         """The best hypothesis's latest positions and marginal covariances, with the summary
-        (shape in the declared gauge, pair distances) of :mod:`relloc.filter.summary`."""
+        (shape, pair distances) of :mod:`relloc.filter.summary`. While the orientation is not
+        observable the positions and covariances are the moments over every rotation of the
+        formation about the reference (:class:`~relloc.estimate.Estimate`'s contract: a robot
+        at ``r`` from it is on a ring, mean 0, covariance ``r^2/2`` per axis), and the shape is
+        the smoother's own frame, which its random walks keep continuous (:data:`OWN_FRAME`)."""
         best = self.hypotheses[0]
         mean = best.estimate.copy()
         cov = best.covariances()
-        return FilterEstimate(mean, cov, float(len(self.hypotheses)), summary=self._summary(mean, cov), particles=len(self.hypotheses))
+        summary = self._summary(mean, cov)
+        if not self._observable:
+            ring = 0.5 * (np.sum(mean**2, axis=1) + np.trace(cov, axis1=1, axis2=2))
+            mean = np.zeros_like(mean)
+            cov = ring[:, None, None] * np.eye(2)
+        return FilterEstimate(mean, cov, float(len(self.hypotheses)), summary=summary, particles=len(self.hypotheses))
+
+    def _emit(self, t: float, fe: FilterEstimate, body: FilterEstimate | None = None) -> Estimate:
+        est = super()._emit(t, fe, body)
+        if est.orientation_observable:
+            return est
+        est = dataclasses.replace(est, shape_gauge=OWN_FRAME)
+        self.last_estimate = est
+        return est
 
     def _summary(self, mean: FloatArray, cov: FloatArray) -> ModeSummary:
+        """Shape (in the declared gauge once the orientation is known, else in the smoother's
+        own frame), pair distances with their std, the orientation flag."""
         k = mean.shape[0]
-        shape = gauge(mean[None])[0]
-        angle = math.atan2(mean[0, 1], mean[0, 0])
-        c, s = math.cos(-angle), math.sin(-angle)
-        rot = np.array([[c, -s], [s, c]])
-        if k > 1 and (rot @ mean[1])[1] < 0.0:
-            rot = np.diag([1.0, -1.0]) @ rot
-        shape_cov = np.einsum("ij,kjl,ml->kim", rot, cov, rot)
+        observable = self._observable
+        if observable:
+            shape = gauge(mean[None])[0]
+            angle = math.atan2(mean[0, 1], mean[0, 0])
+            c, s = math.cos(-angle), math.sin(-angle)
+            rot = np.array([[c, -s], [s, c]])
+            if k > 1 and (rot @ mean[1])[1] < 0.0:
+                rot = np.diag([1.0, -1.0]) @ rot
+            shape_cov = np.einsum("ij,kjl,ml->kim", rot, cov, rot)
+        else:
+            shape, shape_cov = mean.copy(), cov.copy()
         pos = np.vstack([np.zeros((1, 2)), mean])
         full = np.concatenate([np.zeros((1, 2, 2)), cov])
         diff = pos[:, None, :] - pos[None, :, :]
@@ -332,7 +356,6 @@ class SmootherLocalizer(FilterLocalizer):
         both = full[:, None] + full[None, :]
         var = np.einsum("ijk,ijkl,ijl->ij", unit, both, unit)
         distances = np.stack([dist, np.sqrt(np.maximum(var, 0.0))], axis=-1)
-        observable = self._observable
         return ModeSummary(
             mean, cov, mean.copy(), 1.0, 1, 0.0 if observable else math.pi, observable, shape, shape_cov, distances,
             np.ones(1, dtype=bool),
