@@ -50,6 +50,7 @@ from relloc.filter.state import StateLayout
 from relloc.filter.summary import ModeSummary, gauge
 from relloc.localizers.base import Measurement
 from relloc.localizers.filtered import FilterLocalizer
+from relloc.localizers.range_graph import ROTATION_FLOOR
 
 FloatArray = NDArray[np.float64]
 
@@ -310,7 +311,9 @@ class SmootherLocalizer(FilterLocalizer):
     # ---------------------------------------------------------------- the estimate
     def _estimate(self) -> FilterEstimate:
         """The best hypothesis's latest positions and marginal covariances, with the summary
-        (shape, pair distances) of :mod:`relloc.filter.summary`. While the orientation is not
+        (shape, pair distances) of :mod:`relloc.filter.summary`; once the orientation is
+        resolved the covariance keeps a turn of the whole formation of ``ROTATION_FLOOR``
+        (:mod:`relloc.localizers.range_graph`: heading-dependent range errors turn it). While the orientation is not
         observable the positions and covariances are the moments over every rotation of the
         formation about the reference (:class:`~relloc.estimate.Estimate`'s contract: a robot
         at ``r`` from it is on a ring, mean 0, covariance ``r^2/2`` per axis), and the shape is
@@ -318,6 +321,10 @@ class SmootherLocalizer(FilterLocalizer):
         best = self.hypotheses[0]
         mean = best.estimate.copy()
         cov = best.covariances()
+        if self._observable:  # the formation's turn no fusion of ranges and odometry observes
+            x, y = mean[:, 0], mean[:, 1]
+            turn = np.stack([np.stack([y * y, -x * y], axis=1), np.stack([-x * y, x * x], axis=1)], axis=1)
+            cov = cov + ROTATION_FLOOR**2 * turn
         summary = self._summary(mean, cov)
         if not self._observable:
             ring = 0.5 * (np.sum(mean**2, axis=1) + np.trace(cov, axis1=1, axis2=2))
