@@ -52,7 +52,7 @@ def test_each_kind_runs_the_filter_it_names(kind: str, localizer: type) -> None:
 
 def test_auto_picks_as_before() -> None:
     """The default (``auto``) runs exactly what ``particle`` runs on a small compass team, the
-    Gaussian sum where headings or scales are estimated, the range graph on a large team."""
+    Gaussian sum where headings or scales are estimated, the smoother on a large team."""
     config = multi_scenario(seed=0, duration=15.0).config.with_filter(**SMALL)
     assert config.filter.kind == "auto" and filter_kind(config) == "particle"
     auto, ape_auto, last_auto = _run(config, 8.0)
@@ -63,7 +63,7 @@ def test_auto_picks_as_before() -> None:
     assert filter_kind(config.with_modes(odom_scale="online")) == "gaussian_sum"
     assert filter_kind(config.with_modes(bias="online")) == "particle"
     large = grid_scenario(0, robots=LARGE_TEAM_ROBOTS, duration=2.0).config
-    assert filter_kind(large) == "range_graph"
+    assert filter_kind(large) == "smoother"
     assert filter_kind(large.with_modes(bias="online")) == "particle"
     assert filter_kind(grid_scenario(0, robots=LARGE_TEAM_ROBOTS - 1, duration=2.0).config) == "particle"
 

@@ -20,6 +20,7 @@ from relloc.filter.state import StateLayout
 from relloc.localizers.range_graph import LARGE_TEAM_ROBOTS, RangeGraphLocalizer
 from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
+from relloc.localizers.smoother import SmootherLocalizer
 from relloc.methods import filter_localizer
 from relloc.simulator.scenarios import grid_scenario
 
@@ -123,7 +124,8 @@ def test_the_localizer_is_chosen_by_team_size_and_modes() -> None:
     small = grid_scenario(0, robots=LARGE_TEAM_ROBOTS - 1, duration=1.0).config
     large = grid_scenario(0, robots=LARGE_TEAM_ROBOTS, duration=1.0).config
     assert isinstance(filter_localizer(small), ParticleFilterLocalizer)
-    assert isinstance(filter_localizer(large), RangeGraphLocalizer)
+    assert isinstance(filter_localizer(large), SmootherLocalizer)
+    assert isinstance(filter_localizer(large.with_filter(kind="range_graph")), RangeGraphLocalizer)
     assert isinstance(filter_localizer(large.with_modes(bias="online")), ParticleFilterLocalizer)
     assert isinstance(filter_localizer(large.with_modes(heading="estimate")), SelfCalibratingLocalizer)
 
@@ -142,7 +144,7 @@ def test_the_twenty_robot_grid_converges_fast(heading_error: bool) -> None:
 
     uwb = None if heading_error else UwbErrorModel(orientation_amplitude=0.0)
     sim = grid_scenario(0, robots=20, duration=20.0, uwb=uwb)
-    loc = filter_localizer(sim.config)
+    loc = filter_localizer(sim.config.with_filter(kind="range_graph"))
     assert isinstance(loc, RangeGraphLocalizer)
     cpu_s = 0.0
     process = loc.process

@@ -11,7 +11,7 @@ from relloc.localizers.watchdog import ConsistencyWatchdog
 from relloc.methods import build_pipeline
 from relloc.simulator import multi_scenario
 
-KINDS = ("particle", "gaussian_sum", "range_graph")
+KINDS = ("particle", "gaussian_sum", "range_graph", "smoother")
 SMALL = {"particles": 2000, "selfcal_particles": 200, "selfcal_init_particles": 2000}
 ONSET = 15.0
 """When the fault begins (the filters have converged by then)."""

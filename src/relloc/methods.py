@@ -19,7 +19,7 @@ from relloc.config import TeamConfig
 from relloc.engine import Pipeline, Stage
 from relloc.localizers.filtered import FilterLocalizer
 from relloc.localizers.multilateration import MultilaterationLocalizer
-from relloc.localizers.range_graph import RangeGraphLocalizer, suits_range_graph
+from relloc.localizers.range_graph import RangeGraphLocalizer, large_compass_team
 from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
 from relloc.localizers.smoother import SmootherLocalizer
@@ -99,8 +99,9 @@ def filter_choice(config: TeamConfig) -> tuple[str, str]:
     * some robot without odometry (no ``odom_topic``): the smoother, which gives it a motion
       prior and lets later ranges correct where it was (with online biases, which it does not
       estimate, the Gaussian sum);
-    * a large team in the shared heading frame with calibrated biases: the Gaussian sum started
-      from the range graph (:mod:`relloc.localizers.range_graph`, docs/scaling.md);
+    * a large team in the shared heading frame with calibrated biases: the smoother too, whose
+      window of native factors costs far less than particles and beats the range graph's
+      Gaussian sum there (docs/scaling.md);
     * else the sampled particle filter (which estimates range biases itself with
       ``bias_mode = "online"``).
 
@@ -121,8 +122,8 @@ def filter_choice(config: TeamConfig) -> tuple[str, str]:
         if sc.bias_mode == "online":
             return "gaussian_sum", f"{who}, biases online"
         return "smoother", who
-    if suits_range_graph(config):
-        return "range_graph", f"{n} robots"
+    if large_compass_team(config):
+        return "smoother", f"{n} robots, a large team"
     return "particle", f"{n} robots with odometry"
 
 

@@ -186,7 +186,9 @@ def evaluate(
     in heading-estimate mode the reference's body frame (its motion-capture yaw then), while the
     published relative headings, which are in the reference's odometry frame, are scored against
     the truth turned by the reference's motion-capture yaw at its first odometry message.
-    Published online biases are scored against ``bias_truth`` (per node pair) where given.
+    Published online biases are scored against ``bias_truth`` (per node pair) where given. A
+    localizer that can smooth the whole run afterwards (``smoothed_estimates()``, the smoother)
+    gets a second row, ``<method>_smoothed``, beside the causal one.
     """
     t0 = engine.t_first or 0.0
     duration = (engine.t_last or t0) - t0
@@ -202,13 +204,16 @@ def evaluate(
             found = None if first is None else odometry_frame_rotation(truth, ref, first)
             if found is not None:
                 rotation, frame_deg = found, math.degrees(found)
-        paired = associate(p.estimates, truth, names, rotation)
-        variants = [(p.name, "none")]
+        variants = [(p.name, "none", p.estimates)]
         if p.name.startswith("multilateration"):
-            variants = [(p.name, "run"), (p.name + "_oracle", "step")]
-        for method, mode in variants:
+            variants = [(p.name, "run", p.estimates), (p.name + "_oracle", "step", p.estimates)]
+        smoothed = getattr(loc, "smoothed_estimates", None)
+        if callable(smoothed) and (trajectory := smoothed()):
+            variants.append((p.name + "_smoothed", "none", trajectory))
+        for method, mode, estimates in variants:
+            paired = associate(estimates, truth, names, rotation)
             run = MethodRun(
-                method, p.estimates, truth, names, t0, warmup, align(paired, mode), mode,
+                method, estimates, truth, names, t0, warmup, align(paired, mode), mode,
                 reference=loc.layout.reference, rotation=rotation, frame_rotation_deg=frame_deg,
                 odometry_yaws=getattr(loc, "odometry_yaws", {}), bias_truth=bias_truth or {},
             )  # fmt: skip
@@ -217,8 +222,8 @@ def evaluate(
                 run.paired,
                 stats=p.stats(),
                 compute_s=p.compute_s,
-                n_estimates=len(p.estimates),
-                frame=p.estimates[-1].frame if p.estimates else HEADING_FRAME,
+                n_estimates=len(estimates),
+                frame=estimates[-1].frame if estimates else HEADING_FRAME,
             )
     return ScenarioReport(name, warmup, duration, methods, t0, truth.reference, truth_name)
 

@@ -8,6 +8,10 @@ its own, not in common with every relative position. The published relative posi
 ``x_k - x_ref``, its covariance from the joint marginal of the two keys. GTSAM's
 ``IncrementalFixedLagSmoother`` (iSAM2) marginalises what leaves the lag; a step adds a handful
 of native factors built from NumPy arrays, so its cost depends on the window, not on the run.
+
+Every factor added is also kept (the small per-step graphs, and the latest value of every key
+ever created): :meth:`GraphSmoother.batch` optimises all of them at once afterwards, the
+smoothed trajectory of the whole run (nothing of it runs while the smoother is live).
 """
 
 from __future__ import annotations
@@ -42,6 +46,10 @@ class GraphSmoother:
         self.step = -1
         self.factors_added = 0
         self.positions: FloatArray = np.zeros((n, 2))
+        self.graphs: list[gtsam.NonlinearFactorGraph] = []
+        """Every step's factors since the start (for :meth:`batch`)."""
+        self.values: dict[int, FloatArray] = {}
+        """The latest fixed-lag estimate of every key ever created (where :meth:`batch` starts)."""
 
     @property
     def estimate(self) -> FloatArray:
@@ -120,14 +128,18 @@ class GraphSmoother:
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: gtsam.FixedLagSmootherKeyTimestampMap) -> None:
         self.smoother.update(graph, values, stamps)
         self.factors_added += graph.size()
+        self.graphs.append(graph)
         est = self.smoother.calculateEstimate()
+        self.values.update(zip(est.keys(), gtsam.utilities.extractPoint2(est), strict=True))
         self.positions = np.array([est.atPoint2(key) for key in self.keys()], float).reshape(self.n, 2)
 
     def covariances(self) -> FloatArray:
         """Covariance ``(N-1, 2, 2)`` of each robot's latest position relative to the
         reference's: ``S_kk + S_rr - S_kr - S_rk`` of the window's joint marginal."""
-        keys = self.keys()
         marginals = gtsam.Marginals(self.smoother.getFactors(), self.smoother.calculateEstimate())
+        return self._relative_covariances(marginals, self.keys())
+
+    def _relative_covariances(self, marginals: gtsam.Marginals, keys: list[int]) -> FloatArray:
         order = [keys[self.reference], *(keys[i] for i in self.others)]
         full = marginals.jointMarginalCovariance(order).fullMatrix()
         k = self.others.size
@@ -137,6 +149,31 @@ class GraphSmoother:
         for j in range(k):
             out[j] = blocks[j + 1, j + 1] + rr - blocks[j + 1, 0] - blocks[0, j + 1]
         return 0.5 * (out + out.transpose(0, 2, 1))
+
+    def batch(self, steps: list[int], covariances: bool = True) -> tuple[FloatArray, FloatArray | None]:
+        """The smoothed trajectory: every factor since the start optimised at once
+        (Levenberg-Marquardt from the fixed-lag estimates), each robot's position relative to
+        the reference at each of ``steps`` ``(S, N-1, 2)``, and with ``covariances`` their
+        covariances ``(S, N-1, 2, 2)`` from the batch graph's joint marginals (else ``None``).
+        Raises GTSAM's ``RuntimeError`` where the system is indeterminate."""
+        graph = gtsam.NonlinearFactorGraph()
+        for g in self.graphs:
+            graph.push_back(g)
+        initial = gtsam.Values()
+        for key, value in self.values.items():
+            initial.insert(key, np.asarray(value, float))
+        result = gtsam.LevenbergMarquardtOptimizer(graph, initial, gtsam.LevenbergMarquardtParams()).optimize()
+        mean = np.empty((len(steps), self.others.size, 2))
+        for j, step in enumerate(steps):
+            pos = np.array([result.atPoint2(key) for key in self.keys(step)], float).reshape(self.n, 2)
+            mean[j] = pos[self.others] - pos[self.reference]
+        if not covariances:
+            return mean, None
+        marginals = gtsam.Marginals(graph, result)
+        cov = np.empty((len(steps), self.others.size, 2, 2))
+        for j, step in enumerate(steps):
+            cov[j] = self._relative_covariances(marginals, self.keys(step))
+        return mean, cov
 
     def cost(self) -> float:
         """The graph's error at the estimate (half the robust chi-square): compares hypotheses

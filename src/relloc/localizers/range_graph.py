@@ -41,7 +41,7 @@ from relloc.localizers.filtered import FilterLocalizer
 from relloc.localizers.sampled import covariance_floor
 
 LARGE_TEAM_ROBOTS = 12
-"""Teams of at least this many robots get this localizer as ``pf`` (docs/scaling.md)."""
+"""Teams of at least this many robots are large to the automatic choice (docs/scaling.md)."""
 ROTATIONS = 36
 """Orientation hypotheses per handedness at the start (10 degrees apart)."""
 SHAPE_SIGMA = 0.3
@@ -57,9 +57,10 @@ REFERENCE_SIGMA = 1.0
 formation and still be taken as its orientation."""
 
 
-def suits_range_graph(config: TeamConfig) -> bool:
-    """Whether ``config`` calls for this localizer: a team of ``LARGE_TEAM_ROBOTS`` or more in
-    the shared heading frame with fixed odometry scales and calibrated (not online) biases."""
+def large_compass_team(config: TeamConfig) -> bool:
+    """Whether ``config`` is a large team for the automatic choice
+    (:func:`relloc.methods.filter_choice`): ``LARGE_TEAM_ROBOTS`` or more in the shared heading
+    frame with fixed odometry scales and calibrated (not online) biases."""
     sc = config.filter.self_calibration
     return (
         len(config.robot_names) >= LARGE_TEAM_ROBOTS

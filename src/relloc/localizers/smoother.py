@@ -26,6 +26,10 @@ their joint marginal. An indeterminate system (GTSAM's
 ``RuntimeError``) or the consistency watchdog's alarm restarts from the last
 ``RESTART_WINDOW`` of ranges, counted in :attr:`stats`. Online biases, estimated headings and
 online odometry scales are not modelled (:data:`relloc.config.filter.CANNOT`).
+
+**Smoothed** (:meth:`SmootherLocalizer.smoothed_estimates`, only when called, after a run):
+every factor of each segment between restarts optimised at once, one estimate per published
+step; the evaluation scores it as the row ``<method>_smoothed``.
 """
 
 from __future__ import annotations
@@ -47,7 +51,7 @@ from relloc.filter.range_graph import orientation_hypotheses, shape_from_ranges,
 from relloc.filter.ranges import RangeBatch
 from relloc.filter.smoother_graph import GraphSmoother
 from relloc.filter.state import StateLayout
-from relloc.filter.summary import ModeSummary, gauge
+from relloc.filter.summary import ModeSummary, estimate_fields, gauge
 from relloc.localizers.base import Measurement
 from relloc.localizers.filtered import FilterLocalizer
 from relloc.localizers.range_graph import ROTATION_FLOOR
@@ -81,6 +85,16 @@ RESTART_WINDOW = 2.0
 """Seconds of ranges a restart builds its start from."""
 
 
+@dataclasses.dataclass
+class _Segment:
+    """The steps published between two restarts: the hypothesis whose record holds them (the
+    best at the last one), their smoother step numbers and their causal estimates."""
+
+    smoother: GraphSmoother
+    steps: list[int] = dataclasses.field(default_factory=list)
+    estimates: list[Estimate] = dataclasses.field(default_factory=list)
+
+
 class SmootherLocalizer(FilterLocalizer):
     """Odometry + UWB ranges in a fixed-lag factor-graph smoother (module docstring)."""
 
@@ -104,6 +118,9 @@ class SmootherLocalizer(FilterLocalizer):
         self._t_start = math.nan
         self._observable = False
         self._started_with = 0
+        self._segments: list[_Segment] = []
+        self._open: _Segment | None = None
+        self._smoothed: tuple[int, list[Estimate]] | None = None
 
     @property
     def smoother(self) -> GraphSmoother | None:
@@ -231,6 +248,9 @@ class SmootherLocalizer(FilterLocalizer):
         the watchdog found the covariance inconsistent)."""
         self.stats["smoother_restarts"] += 1
         self.watchdog.restart(t)
+        if self._open is not None:
+            self._segments.append(self._open)
+            self._open = None
         if not self._start_from(t, list(self._recent)):
             self.initialized = False
             return None
@@ -334,17 +354,71 @@ class SmootherLocalizer(FilterLocalizer):
 
     def _emit(self, t: float, fe: FilterEstimate, body: FilterEstimate | None = None) -> Estimate:
         est = super()._emit(t, fe, body)
-        if est.orientation_observable:
-            return est
-        est = dataclasses.replace(est, shape_gauge=OWN_FRAME)
-        self.last_estimate = est
+        if not est.orientation_observable:
+            est = dataclasses.replace(est, shape_gauge=OWN_FRAME)
+            self.last_estimate = est
+        best = self.hypotheses[0]
+        if self._open is None:
+            self._open = _Segment(best)
+        self._open.smoother = best
+        self._open.steps.append(best.step)
+        self._open.estimates.append(est)
         return est
 
-    def _summary(self, mean: FloatArray, cov: FloatArray) -> ModeSummary:
+    # ---------------------------------------------------------------- the smoothed run
+    def smoothed_estimates(self) -> list[Estimate]:
+        """The whole run smoothed: one estimate per published step (``[]`` before the start),
+        each segment between restarts smoothed on its own (:meth:`GraphSmoother.batch` of the
+        hypothesis that was best at its end; the ranges before a restart do not reach past it).
+
+        Positions and covariances are the batch graph's; the orientation counts as observed
+        over a whole segment once it was at its end (the batch holds the motion that resolved
+        it, and the losing hypotheses are gone); else ring moments and the shape in the
+        smoother's own frame, as :meth:`_estimate`. The other fields (flags, unseen robots) are
+        the causal estimate's; the covariances are not widened. A segment whose batch is
+        indeterminate keeps its causal estimates. Cached until a step is published; never
+        computed while serving unless called."""
+        segments = [*self._segments, *([] if self._open is None else [self._open])]
+        count = sum(len(s.steps) for s in segments)
+        if self._smoothed is None or self._smoothed[0] != count:
+            out: list[Estimate] = []
+            for segment in segments:
+                out += self._smooth(segment)
+            self._smoothed = (count, out)
+        return list(self._smoothed[1])
+
+    def _smooth(self, segment: _Segment) -> list[Estimate]:
+        try:
+            means, covs = segment.smoother.batch(segment.steps)
+        except RuntimeError:
+            return list(segment.estimates)
+        assert covs is not None
+        observable = segment.estimates[-1].orientation_observable
+        others = self.layout.others
+        out = []
+        for causal, mean, cov in zip(segment.estimates, means, covs, strict=True):
+            summary = self._summary(mean, cov, observable or causal.orientation_observable)
+            if not summary.orientation_observable:
+                ring = 0.5 * (np.sum(mean**2, axis=1) + np.trace(cov, axis1=1, axis2=2))
+                mean = np.zeros_like(mean)
+                cov = ring[:, None, None] * np.eye(2)
+            fields = estimate_fields(summary, self.layout.reference, others)
+            if not summary.orientation_observable:
+                fields["shape_gauge"] = OWN_FRAME
+            positions = {r: (float(mean[k, 0]), float(mean[k, 1])) for k, r in enumerate(others)}
+            covariances = {
+                r: ((float(cov[k, 0, 0]), float(cov[k, 0, 1])), (float(cov[k, 1, 0]), float(cov[k, 1, 1])))
+                for k, r in enumerate(others)
+            }
+            out.append(dataclasses.replace(causal, positions=positions, covariances=covariances, **fields))
+        return out
+
+    def _summary(self, mean: FloatArray, cov: FloatArray, observable: bool | None = None) -> ModeSummary:
         """Shape (in the declared gauge once the orientation is known, else in the smoother's
-        own frame), pair distances with their std, the orientation flag."""
+        own frame), pair distances with their std, the orientation flag (``observable``,
+        default: whether the live smoother has observed it)."""
         k = mean.shape[0]
-        observable = self._observable
+        observable = self._observable if observable is None else observable
         if observable:
             shape = gauge(mean[None])[0]
             angle = math.atan2(mean[0, 1], mean[0, 0])
