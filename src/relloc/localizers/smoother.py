@@ -291,7 +291,11 @@ class SmootherLocalizer(FilterLocalizer):
         lo, hi = np.minimum(ia, ib), np.maximum(ia, ib)
         pairs, inverse = np.unique(np.stack([lo, hi], axis=1), axis=0, return_inverse=True)
         inverse = inverse.reshape(-1)
-        med = np.array([float(np.median(z[inverse == p])) for p in range(pairs.shape[0])])
+        order = np.lexsort((z, inverse))  # by pair, then distance: each pair's median is
+        counts = np.bincount(inverse, minlength=pairs.shape[0])  # the middle of its run
+        first = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        zs = z[order]
+        med = 0.5 * (zs[first + (counts - 1) // 2] + zs[first + counts // 2])
         sig = np.zeros(pairs.shape[0])
         np.maximum.at(sig, inverse, s)
         return pairs[:, 0].astype(np.intp), pairs[:, 1].astype(np.intp), med, sig
