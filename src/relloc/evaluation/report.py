@@ -99,6 +99,12 @@ class MethodReport:
         return r.stats if r is not None else {}
 
     @property
+    def shape_paired(self) -> dict[str, Paired]:
+        """The shape APE's pairs: the published shapes after its one rotation/reflection."""
+        r = self.result(scores.ShapeResult)
+        return r.paired if r is not None else {}
+
+    @property
     def unobservable_fraction(self) -> float:
         r = self.result(scores.ShapeResult)
         return r.unobservable_fraction if r is not None else math.nan

@@ -24,6 +24,7 @@ from relloc.evaluation.metrics import (
     CONVERGENCE_TOLERANCE,
     ApeStats,
     Consistency,
+    Paired,
     after,
     align,
     associate_shapes,
@@ -218,6 +219,8 @@ class ShapeResult(MetricResult):
     observable_from_s: float = math.nan
     """Seconds from the start of the run to the estimate from which the orientation stays
     observable to the end (nan: never)."""
+    paired: dict[str, Paired] = field(default_factory=dict, repr=False, compare=False)
+    """The shapes behind ``stats``, aligned as scored (what the trajectory plot draws)."""
 
     def robot_json(self) -> dict[str, dict[str, Any]]:
         return {
@@ -270,12 +273,13 @@ class ShapeApe(Metric):
             observable_from = 0.0
         elif bad[-1] + 1 < len(run.estimates):
             observable_from = float(run.estimates[bad[-1] + 1].t - run.t0)
-        stats: dict[str, ApeStats] = {}
+        shaped: dict[str, Paired] = {}
         if fraction > 0.0:
             hidden = [e for e in late if not e.orientation_observable]
-            shaped = align(associate_shapes(hidden, run.truth, run.robots, run.rotation), "run")
-            stats = {r: ApeStats.of(after(q, run.start).errors) for r, q in shaped.items()}
-        return ShapeResult(stats, fraction, observable_from)
+            aligned = align(associate_shapes(hidden, run.truth, run.robots, run.rotation), "run")
+            shaped = {r: after(q, run.start) for r, q in aligned.items()}
+        stats = {r: ApeStats.of(q.errors) for r, q in shaped.items()}
+        return ShapeResult(stats, fraction, observable_from, shaped)
 
 
 @dataclass(frozen=True)
