@@ -127,7 +127,10 @@ def figures(payload: dict[str, Any]) -> tuple[float, float, float | None] | str:
     (scenario,) = payload["scenarios"].values()
     methods = scenario["methods"]
     method = methods.get("pf") or methods["multilateration"]
-    per_robot = [r.get("shape_ape_median", r["ape_median"]) for r in method["robots"].values()]
+    values = [r.get("shape_ape_median", r.get("ape_median")) for r in method["robots"].values()]
+    per_robot = [v for v in values if isinstance(v, float)]
+    if not per_robot:
+        return "no estimate"
     covs = [r["coverage95"] for r in method["robots"].values() if isinstance(r.get("coverage95"), float)]
     return sum(per_robot) / len(per_robot), max(per_robot), (min(covs) if covs else None)
 

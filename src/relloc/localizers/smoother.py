@@ -4,32 +4,26 @@ For teams where UWB ranges dominate (robots without odometry, large teams). Ever
 ``STEP_PERIOD`` the smoother (:class:`relloc.filter.smoother_graph.GraphSmoother`, GTSAM's
 iSAM2 over a ``LAG`` window) gets one key per robot and:
 
-* per robot pair ranged in the step, ONE Huber-robust range factor: the median of the
-  bias-corrected ranges, with the pair's noise undivided (the ranges of a step share their
-  bias error; averaging them must not make the factor confident);
-* per robot, a between factor from its previous key: its odometry displacement in the shared
-  heading frame (noise :meth:`OdometryMotion.step_sigma`, a random walk and
-  ``ODOMETRY_FLOOR``), or, without odometry, a random walk of ``UNKNOWN_SPEED``: each robot's
-  own, so the reference's unknown motion is common to every relative position, as it is.
+* per pair ranged in the step, one Huber-robust range factor: the median of the bias-corrected
+  ranges, the pair's noise undivided (a step's ranges share their bias error);
+* per robot, a between factor: its odometry displacement in the shared heading frame, or
+  without odometry a random walk of ``UNKNOWN_SPEED``, each robot's own.
 
-**Start** (``init_window`` of measurements): the shape from the range graph
-(:func:`relloc.filter.range_graph.shape_from_ranges`), its ranges as the first factors
-(robots they do not place start at the reference, ``WIDE_SIGMA``). With odometry (in the shared heading
-frame motion tells the rotation and reflection) ``ROTATIONS`` rotations times two reflections
-each start one smoother; a hypothesis whose cost exceeds the best's by ``PRUNE_COST`` is
-dropped, and after ``HYPOTHESIS_TIME`` only the best is kept. Without odometry one smoother
-runs: the rotation/reflection is a gauge the random walks hold, published with
-``orientation_observable = False`` and the gauge-free ``shape``/``distances``.
+**Start**: the range graph's shape (:func:`relloc.filter.range_graph.shape_from_ranges`), its
+ranges as the first factors. With odometry ``ROTATIONS`` rotations times two reflections each
+start a smoother, pruned by cost (``PRUNE_COST``, then the best after ``HYPOTHESIS_TIME``);
+without, the rotation/reflection is a gauge the random walks hold, published with
+``orientation_observable = False``, ring moments and the shape in the smoother's own frame.
 
-**Estimate** at every step: each robot's latest key less the reference's, its covariance from
-their joint marginal. An indeterminate system (GTSAM's
-``RuntimeError``) or the consistency watchdog's alarm restarts from the last
-``RESTART_WINDOW`` of ranges, counted in :attr:`stats`. Online biases, estimated headings and
-online odometry scales are not modelled (:data:`relloc.config.filter.CANNOT`).
+**Stamps**: a step's keys are at the batch's time; in a team where no robot reports odometry at
+the median time of the step's ranges, since nothing carries the motion past them.
 
-**Smoothed** (:meth:`SmootherLocalizer.smoothed_estimates`, only when called, after a run):
-every factor of each segment between restarts optimised at once, one estimate per published
-step; the evaluation scores it as the row ``<method>_smoothed``.
+**Estimate**: each robot's latest key less the reference's, covariance from their joint
+marginal. GTSAM's ``RuntimeError`` or the watchdog's alarm restarts from the last
+``RESTART_WINDOW`` of ranges. Online biases, estimated headings and online odometry scales are
+not modelled (:data:`relloc.config.filter.CANNOT`). **Smoothed**
+(:meth:`SmootherLocalizer.smoothed_estimates`, after a run): each segment between restarts
+optimised at once, scored as the row ``<method>_smoothed``.
 """
 
 from __future__ import annotations
@@ -112,6 +106,10 @@ class SmootherLocalizer(FilterLocalizer):
         self.hypotheses: list[GraphSmoother] = []
         self._placed = np.zeros(len(lay.robots), dtype=bool)
         self._pending: dict[tuple[int, int], list[tuple[float, float]]] = {}
+        self._range_times: list[float] = []
+        self._ranges_only = not any(r.odom_topic for r in config.robots)
+        """No robot reports odometry: each step's key (and estimate) is stamped at the median
+        time of its ranges, which nothing could carry to the batch's time."""
         self._step_batch: list[Measurement] = []
         self._recent: deque[RangeEvent] = deque()
         self._moved = np.zeros(self._others.size)
@@ -161,8 +159,12 @@ class SmootherLocalizer(FilterLocalizer):
         self._step_batch += batch
         for a, b, z, s in zip(*(x.tolist() for x in self._ranges(ranges)), strict=True):
             self._pending.setdefault((a, b), []).append((z, s))
+        self._range_times += [m.t for m in ranges]
         if t - self.t < STEP_PERIOD:
             return None
+        times, self._range_times = self._range_times, []
+        if times and self._ranges_only:  # nothing carries the motion from the ranges to t
+            t = max(float(np.median(times)), self.t + 1e-3)
         return self._advance(t)
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
@@ -345,10 +347,8 @@ class SmootherLocalizer(FilterLocalizer):
         best = self.hypotheses[0]
         mean = best.estimate.copy()
         cov = best.covariances()
-        if self._observable:  # the formation's turn no fusion of ranges and odometry observes
-            x, y = mean[:, 0], mean[:, 1]
-            turn = np.stack([np.stack([y * y, -x * y], axis=1), np.stack([-x * y, x * x], axis=1)], axis=1)
-            cov = cov + ROTATION_FLOOR**2 * turn
+        if self._observable:
+            cov = _with_turn(mean, cov)
         summary = self._summary(mean, cov)
         if not self._observable:
             ring = 0.5 * (np.sum(mean**2, axis=1) + np.trace(cov, axis1=1, axis2=2))
@@ -401,6 +401,8 @@ class SmootherLocalizer(FilterLocalizer):
         others = self.layout.others
         out = []
         for causal, mean, cov in zip(segment.estimates, means, covs, strict=True):
+            if observable or causal.orientation_observable:
+                cov = _with_turn(mean, cov)
             summary = self._summary(mean, cov, observable or causal.orientation_observable)
             if not summary.orientation_observable:
                 ring = 0.5 * (np.sum(mean**2, axis=1) + np.trace(cov, axis1=1, axis2=2))
@@ -445,3 +447,12 @@ class SmootherLocalizer(FilterLocalizer):
             mean, cov, mean.copy(), 1.0, 1, 0.0 if observable else math.pi, observable, shape, shape_cov, distances,
             np.ones(1, dtype=bool),
         )
+
+
+def _with_turn(mean: FloatArray, cov: FloatArray) -> FloatArray:
+    """``cov`` ``(K, 2, 2)`` with a turn of the whole formation ``mean`` ``(K, 2)`` about the
+    reference of std ``ROTATION_FLOOR``: what no fusion of ranges and odometry observes
+    (:mod:`relloc.localizers.range_graph`: heading-dependent range errors turn it)."""
+    x, y = mean[:, 0], mean[:, 1]
+    turn = np.stack([np.stack([y * y, -x * y], axis=1), np.stack([-x * y, x * x], axis=1)], axis=1)
+    return cov + ROTATION_FLOOR**2 * turn
