@@ -45,6 +45,8 @@ def _check_outputs(args: argparse.Namespace) -> None:
         check_writable(args.out)
     if getattr(args, "json_path", None) is not None:
         check_writable(args.json_path.parent or Path("."), "--json")
+    if getattr(args, "mcap", None) is not None:
+        check_writable(args.mcap.parent or Path("."), "--mcap")
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
@@ -209,6 +211,10 @@ def build_parser() -> argparse.ArgumentParser:
         help="folder for plots and TUM trajectories (default: out/<recording>/)",
     )
     run.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE", help="write the figures as JSON")
+    run.add_argument(
+        "--mcap", type=Path, default=None, metavar="FILE",
+        help="write the estimates, their flags, the truth and the ranges as ROS 2 messages to an MCAP file (Foxglove, RViz)",
+    )
     run.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     add_fault_arguments(run)
     _add_mode_flags(run)

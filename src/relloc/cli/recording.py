@@ -3,8 +3,9 @@
 ``run_recording`` streams the source the path names (:mod:`relloc.sources.table`) through every
 requested method (the same engine as the demo and the live server), evaluates against its
 motion capture (or the simulator's ground truth), prints the APE table, writes plots, TUM
-trajectories (by default to ``out/<recording>/``) and a JSON with the demo's schema (the
-scenario named after the recording). No ground truth ever reaches a localizer.
+trajectories (by default to ``out/<recording>/``), an MCAP file of ROS 2 messages (``--mcap``,
+:mod:`relloc.sinks.mcap`) and a JSON with the demo's schema (the scenario named after the
+recording). No ground truth ever reaches a localizer.
 
 Everything that would make the run useless is checked before it starts, once the source is
 open: a warm-up as long as the recording, and for a bag a robot whose ``uwb_node`` matches no
@@ -16,6 +17,7 @@ fuses ranges, :meth:`~relloc.sources.rosbag.RosbagSource.check_ranges`).
 from __future__ import annotations
 
 import json
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -31,8 +33,10 @@ from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
+from relloc.events import Event, RangeEvent
 from relloc.faults import Faults, inject
 from relloc.methods import DETECTION_METHODS, build_pipeline, filter_header
+from relloc.sinks.mcap import write_mcap
 from relloc.sinks.tum import write_tum
 from relloc.sources.span import SpanSource
 from relloc.sources.table import SourceOptions, source_kind
@@ -64,6 +68,8 @@ class RunOptions:
     """The filter the particle methods run (``None``: the config's ``[filter] kind``)."""
     span: tuple[float, float] | None = None
     """Only the events between these seconds from the recording's start (:mod:`relloc.sources.span`)."""
+    mcap: Path | None = None
+    """An MCAP file of the run's estimates, flags, truth and ranges (:mod:`relloc.sinks.mcap`)."""
 
 
 def run_recording(
@@ -92,9 +98,11 @@ def run_recording(
         console.print(f"[yellow]warning:[/] {escape(warning)}", soft_wrap=True)
     gt = GroundTruth(config.reference)
     engine = Engine(pipelines, truth_sinks=[gt.add])
+    ranges: list[RangeEvent] = []
+    events = inject(source, opts.faults)
     run_with_progress(
         engine,
-        inject(source, opts.faults),
+        events if opts.mcap is None else _tap_ranges(events, ranges),
         label=name,
         duration=source.duration,
         console=console,
@@ -113,6 +121,9 @@ def run_recording(
     if opts.out is not None:
         write_outputs(report, engine, opts.out)
         console.print(f"plots and TUM trajectories written to {opts.out}/")
+    if opts.mcap is not None:
+        write_mcap(opts.mcap, engine, report, distro=config.ros_distro, ranges=ranges)
+        console.print(f"MCAP written to {opts.mcap}")
     if opts.json_path is not None:
         payload: dict[str, Any] = {"seed": opts.seed, "scenarios": {name: report.to_json()}}
         payload["scenarios"][name]["source"] = source.stats.as_dict()
@@ -121,6 +132,14 @@ def run_recording(
         opts.json_path.write_text(json.dumps(payload, indent=2))
         console.print(f"figures written to {opts.json_path}")
     return report
+
+
+def _tap_ranges(events: Iterable[Event], into: list[RangeEvent]) -> Iterator[Event]:
+    """``events``, each range also appended to ``into`` (what the MCAP file shows)."""
+    for ev in events:
+        if isinstance(ev, RangeEvent):
+            into.append(ev)
+        yield ev
 
 
 def _with_options(config: TeamConfig, opts: RunOptions) -> TeamConfig:

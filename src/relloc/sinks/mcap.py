@@ -1,0 +1,165 @@
+"""A run as one MCAP file of ROS 2 CDR messages, for Foxglove and RViz.
+
+Per method and robot the estimates (``/relloc/<method>/<robot>/pose``,
+``geometry_msgs/msg/PoseWithCovarianceStamped`` in the estimate's :attr:`Estimate.frame_id`),
+per method the flags of each estimate (``/relloc/<method>/status``,
+``diagnostic_msgs/msg/DiagnosticArray``), per robot the ground truth where the run has one
+(``/relloc/truth/<robot>/pose``, ``geometry_msgs/msg/PoseStamped``, relative to the reference in
+the first method's frame) and the ranges the run used (``/relloc/ranges/<a>/<b>``,
+``sensor_msgs/msg/Range``). ``rosbags`` writes a rosbag2 folder; its single ``.mcap`` file,
+self-contained (the message definitions are in it), is moved to the path asked for.
+"""
+
+from __future__ import annotations
+
+import shutil
+import tempfile
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from relloc.estimate import Estimate
+from relloc.events import GroundTruthEvent, RangeEvent
+from relloc.ros.messages import (
+    POSE_STAMPED,
+    POSE_WITH_COVARIANCE_STAMPED,
+    RANGE,
+    encode,
+    pose_stamped_msg,
+    pose_with_covariance_msg,
+    range_msg,
+    time_msg,
+    typestore,
+)
+
+if TYPE_CHECKING:
+    from relloc.engine import Engine
+    from relloc.evaluation.report import ScenarioReport
+
+__all__ = ["DIAGNOSTIC_ARRAY", "LARGE_VARIANCE", "estimate_records", "write_mcap"]
+
+DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
+LARGE_VARIANCE = 1e6
+"""Variance (m^2, rad^2) of what relloc does not estimate: z, roll, pitch, and the yaw without
+a heading estimate."""
+
+Record = tuple[float, str, str, Any]
+"""``(time in s, topic, message type, message)``."""
+
+
+def pose_topic(method: str, robot: str) -> str:
+    """The topic of ``method``'s estimates of ``robot``."""
+    return f"/relloc/{method}/{robot}/pose"
+
+
+def _covariance(est: Estimate, robot: str) -> list[float]:
+    """The row-major 6x6 covariance: the estimate's 2x2 position one, large z/roll/pitch, and
+    the heading's variance as the yaw's (large without one)."""
+    cov = [0.0] * 36
+    c = est.covariances.get(robot)
+    if c is not None:
+        (cov[0], cov[1]), (cov[6], cov[7]) = ((float(a), float(b)) for a, b in c)
+    heading = est.headings.get(robot)
+    for i in (2, 3, 4):
+        cov[7 * i] = LARGE_VARIANCE
+    cov[35] = float(heading[1]) ** 2 if heading is not None else LARGE_VARIANCE
+    return cov
+
+
+def _status_msg(est: Estimate) -> Any:
+    """The estimate's flags as a one-status ``DiagnosticArray`` (WARN unless its status is ok)."""
+    types = typestore().types
+    key_value = types["diagnostic_msgs/msg/KeyValue"]
+    flags = {
+        "orientation_observable": est.orientation_observable,
+        "inconsistent": est.inconsistent,
+        "recovering": est.recovering,
+    }
+    status = types["diagnostic_msgs/msg/DiagnosticStatus"](
+        level=0 if est.status == "ok" else 1,
+        name=f"relloc/{est.method}",
+        message=est.status,
+        hardware_id=est.reference,
+        values=[key_value(key=k, value=str(v).lower()) for k, v in flags.items()],
+    )
+    header = types["std_msgs/msg/Header"](stamp=time_msg(est.t), frame_id=est.frame_id)
+    return types[DIAGNOSTIC_ARRAY](header=header, status=[status])
+
+
+def estimate_records(method: str, estimates: Iterable[Estimate]) -> list[Record]:
+    """One pose per robot and one status per estimate of ``method``."""
+    out: list[Record] = []
+    for est in estimates:
+        for robot, (x, y) in est.positions.items():
+            msg = pose_with_covariance_msg(est.t, float(x), float(y), frame_id=est.frame_id)
+            msg.pose.covariance[:] = _covariance(est, robot)
+            out.append((est.t, pose_topic(method, robot), POSE_WITH_COVARIANCE_STAMPED, msg))
+        out.append((est.t, f"/relloc/{method}/status", DIAGNOSTIC_ARRAY, _status_msg(est)))
+    return out
+
+
+def _truth_records(report: ScenarioReport, engine: Engine) -> list[Record]:
+    """The truth beside the estimates, from the first method with any: the evaluation's pairs
+    (relative to the reference, in the frame of the estimate each is paired with)."""
+    for p in engine.pipelines:
+        m = report.methods.get(p.name)
+        if m is None or not any(len(q.t) for q in m.paired.values()):
+            continue
+        frames = {e.t: e.frame_id for e in p.estimates}
+        out: list[Record] = []
+        for robot, q in m.paired.items():
+            for t, (x, y) in zip(q.t.tolist(), q.gt.tolist(), strict=True):
+                truth = GroundTruthEvent(t, robot, x, y, 0.0)
+                msg = pose_stamped_msg(truth, frame_id=frames[t])
+                out.append((t, f"/relloc/truth/{robot}/pose", POSE_STAMPED, msg))
+        return out
+    return []
+
+
+def _range_records(ranges: Iterable[RangeEvent], distro: str) -> list[Record]:
+    return [
+        (
+            r.t,
+            f"/relloc/ranges/{r.robot_a}/{r.robot_b}",
+            RANGE,
+            range_msg(r, frame_id=f"{r.robot_a}/base_link", distro=distro),
+        )
+        for r in ranges
+    ]
+
+
+def write_mcap(
+    path: Path,
+    engine: Engine,
+    report: ScenarioReport | None = None,
+    *,
+    distro: str,
+    ranges: Sequence[RangeEvent] = (),
+) -> Path:
+    """Write every pipeline's estimates and status, the truth of ``report`` (if given) and
+    ``ranges`` to the MCAP file ``path``, in ``distro``'s layouts and log-time order."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    records: list[Record] = []
+    for p in engine.pipelines:
+        records += estimate_records(p.name, p.estimates)
+    if report is not None:
+        records += _truth_records(report, engine)
+    records += _range_records(ranges, distro)
+    records.sort(key=lambda r: r[0])  # stable: an estimate's poses before its status
+    path.parent.mkdir(parents=True, exist_ok=True)
+    store = typestore(distro)
+    tmp = Path(tempfile.mkdtemp(prefix=".relloc-mcap-", dir=path.parent))
+    try:
+        bag = tmp / "bag"
+        with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
+            conns: dict[str, Any] = {}
+            for t, topic, msgtype, msg in records:
+                if topic not in conns:
+                    conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
+                writer.write(conns[topic], max(0, round(t * 1e9)), encode(msg, msgtype, distro))
+        (written,) = bag.glob("*.mcap")
+        shutil.move(written, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return path
