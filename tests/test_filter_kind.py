@@ -70,12 +70,12 @@ def test_auto_picks_as_before() -> None:
 
 def test_auto_gives_robots_without_odometry_the_smoother() -> None:
     """A robot without ``odom_topic`` is a ranges-only robot: the smoother's motion prior (the
-    Gaussian sum where the biases are online, which the smoother does not estimate)."""
+    smoother estimates online biases too)."""
     config = multi_scenario(seed=0, duration=1.0).config
     assert filter_choice(config) == ("particle", "5 robots with odometry")
     tag = config.with_robot("r3", odom_topic="")
     assert filter_choice(tag) == ("smoother", "1 of 5 robots without odometry")
-    assert filter_choice(tag.with_modes(bias="online")) == ("gaussian_sum", "1 of 5 robots without odometry, biases online")
+    assert filter_choice(tag.with_modes(bias="online")) == ("smoother", "1 of 5 robots without odometry, biases online")
     assert filter_choice(tag.with_modes(heading="estimate")) == ("gaussian_sum", "headings estimated")
     assert filter_choice(tag.with_filter(kind="particle")) == ("particle", "the config's")
     assert filter_header(["pf"], tag) == 'filter: smoother (kind "auto": 1 of 5 robots without odometry)'

@@ -97,8 +97,8 @@ def filter_choice(config: TeamConfig) -> tuple[str, str]:
     * headings or odometry scales estimated: the self-calibrating Gaussian sum, the only kind
       that estimates them;
     * some robot without odometry (no ``odom_topic``): the smoother, which gives it a motion
-      prior and lets later ranges correct where it was (with online biases, which it does not
-      estimate, the Gaussian sum);
+      prior and lets later ranges correct where it was (online biases included: a key per
+      node pair);
     * a large team in the shared heading frame with calibrated biases: the smoother too, whose
       window of native factors costs far less than particles and beats the range graph's
       Gaussian sum there (docs/scaling.md);
@@ -120,7 +120,7 @@ def filter_choice(config: TeamConfig) -> tuple[str, str]:
     if without:
         who = f"{len(without)} of {n} robots without odometry"
         if sc.bias_mode == "online":
-            return "gaussian_sum", f"{who}, biases online"
+            return "smoother", f"{who}, biases online"
         return "smoother", who
     if large_compass_team(config):
         return "smoother", f"{n} robots, a large team"

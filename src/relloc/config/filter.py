@@ -34,7 +34,6 @@ CANNOT: dict[str, dict[str, tuple[str, str]]] = {
     "smoother": {
         "heading_mode": ("estimate", "estimate the headings"),
         "odom_scale_mode": ("online", "estimate the odometry scales"),
-        "bias_mode": ("online", "estimate the range biases online"),
     },
 }
 """Per filter kind, the self-calibration modes it cannot run: mode key -> (value, what)."""

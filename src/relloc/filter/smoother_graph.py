@@ -12,9 +12,20 @@ of native factors built from NumPy arrays, so its cost depends on the window, no
 Every factor added is also kept (the small per-step graphs, and the latest value of every key
 ever created): :meth:`GraphSmoother.batch` optimises all of them at once afterwards, the
 smoothed trajectory of the whole run (nothing of it runs while the smoother is live).
+
+**Online biases**: a ``Vector1`` key per node pair whose bias is estimated, a prior at its
+calibration, and a range factor ``|p_a - p_b| + b - z`` (a Python ``CustomFactor``, Huber-robust
+too; GTSAM has no native one, and a Python callback is slow, so pairs with a fixed bias keep
+the native ``RangeFactor2``). A bias is constant: its one key's timestamp is refreshed every
+step, so the lag never marginalises a key later factors reference. (A random walk, a new key
+tied to the last by a between factor, makes iSAM2's marginalisation of the old keys fail as
+indeterminate within a lag, GTSAM's known fixed-lag marginalisation bugs.)
 """
 
 from __future__ import annotations
+
+import math
+from collections.abc import Callable
 
 import gtsam
 import numpy as np
@@ -34,11 +45,38 @@ def robot_key(step: int, i: int, n: int) -> int:
     return gtsam.symbol("x", step * n + i)
 
 
+BIAS_CHR = ord("b")
+"""The symbol character of the bias keys (``gtsam.symbol("b", j)``, ``j`` counting them)."""
+
+
+def _biased_range(distance: float) -> Callable[[gtsam.CustomFactor, gtsam.Values, list[FloatArray] | None], FloatArray]:
+    """The error of a range ``distance`` between keys ``(p_a, p_b, b)``: ``|p_a - p_b| + b - z``
+    with Jacobians ``u^T``, ``-u^T``, ``1`` (``u`` the unit vector from ``p_b`` to ``p_a``, an
+    arbitrary unit vector where they coincide)."""
+
+    def error(factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None) -> FloatArray:
+        ka, kb, kbias = factor.keys()
+        diff = values.atPoint2(ka) - values.atPoint2(kb)
+        dist = math.hypot(diff[0], diff[1])
+        if jacobians is not None:
+            u = diff / dist if dist > 1e-9 else np.array([1.0, 0.0])
+            jacobians[0] = u.reshape(1, 2)
+            jacobians[1] = -u.reshape(1, 2)
+            jacobians[2] = np.ones((1, 1))
+        return np.array([dist + values.atVector(kbias)[0] - distance])
+
+    return error
+
+
 class GraphSmoother:
     """A fixed-lag smoother of ``n`` robots' positions, ``reference`` the pinned one (module
     docstring)."""
 
-    def __init__(self, n: int, reference: int, lag: float) -> None:
+    def __init__(
+        self, n: int, reference: int, lag: float, bias_mean: FloatArray | None = None,
+        bias_sigma: FloatArray | None = None,
+    ) -> None:
+        """``bias_mean``/``bias_sigma``: the prior of each online bias (none by default)."""
         self.n = n
         self.reference = reference
         self.others = np.array([i for i in range(n) if i != reference], dtype=np.intp)
@@ -50,6 +88,13 @@ class GraphSmoother:
         """Every step's factors since the start (for :meth:`batch`)."""
         self.values: dict[int, FloatArray] = {}
         """The latest fixed-lag estimate of every key ever created (where :meth:`batch` starts)."""
+        self.bias_mean = np.zeros(0) if bias_mean is None else np.asarray(bias_mean, float)
+        self.bias_sigma = np.zeros(0) if bias_sigma is None else np.asarray(bias_sigma, float)
+        self.bias_keys = [gtsam.symbol("b", j) for j in range(self.bias_mean.size)]
+        """Each online bias's key."""
+        self.biases: FloatArray = self.bias_mean.copy()
+        """Each online bias's latest estimate."""
+        self._marginals: tuple[int, gtsam.Marginals] | None = None
 
     @property
     def estimate(self) -> FloatArray:
@@ -63,11 +108,12 @@ class GraphSmoother:
 
     def start(
         self, t: float, mean: FloatArray, cov: FloatArray, index_a: IntArray, index_b: IntArray, distance: FloatArray,
-        range_sigma: FloatArray,
+        range_sigma: FloatArray, bias_index: IntArray | None = None,
     ) -> None:
         """The first step at ``t``: the reference at the origin, each robot ``i`` with a prior at
         ``mean[i]`` (``(N, 2)``, relative to the reference) of covariance ``cov[i]``
-        (``(N, 2, 2)``; the reference's is ignored), and the start's ranges (team indices)."""
+        (``(N, 2, 2)``; the reference's is ignored), each online bias at its prior, and the
+        start's ranges (team indices; ``bias_index``: per range its online bias, -1 none)."""
         self.step = 0
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
@@ -82,7 +128,11 @@ class GraphSmoother:
                 graph.add(gtsam.PriorFactorPoint2(key, mean[i], gtsam.noiseModel.Gaussian.Covariance(cov[i])))
                 values.insert(key, np.asarray(mean[i], float))
             stamps.insert((key, t))
-        self._ranges(graph, keys, index_a, index_b, distance, range_sigma)
+        for key, m, sd in zip(self.bias_keys, self.bias_mean.tolist(), self.bias_sigma.tolist(), strict=True):
+            graph.add(gtsam.PriorFactorVector(key, np.array([m]), gtsam.noiseModel.Isotropic.Sigma(1, sd)))
+            values.insert(key, np.array([m]))
+            stamps.insert((key, t))
+        self._ranges(graph, keys, index_a, index_b, distance, range_sigma, bias_index)
         self._update(graph, values, stamps)
 
     def advance(
@@ -95,11 +145,13 @@ class GraphSmoother:
         distance: FloatArray,
         range_sigma: FloatArray,
         guess: FloatArray | None = None,
+        bias_index: IntArray | None = None,
     ) -> None:
         """The next step at ``t``: robot ``i`` moved by ``disp[i]`` (``(N, 2)``) with per-axis
         std ``disp_sigma[i]``; one Huber-robust range factor per pair (team indices
         ``index_a``/``index_b``) of ``distance`` and std ``range_sigma``; ``guess`` ``(N, 2)``:
-        where to linearise the new keys (default: the estimate moved by ``disp``)."""
+        where to linearise the new keys (default: the estimate moved by ``disp``);
+        ``bias_index``: per range its online bias (-1: none; module docstring)."""
         prev = self.keys()
         self.step += 1
         new = self.keys()
@@ -112,32 +164,52 @@ class GraphSmoother:
             graph.add(gtsam.BetweenFactorPoint2(prev[i], new[i], np.asarray(disp[i], float), noise))
             values.insert(new[i], np.asarray(guess[i], float))
             stamps.insert((new[i], t))
-        self._ranges(graph, new, index_a, index_b, distance, range_sigma)
+        for key in self.bias_keys:
+            stamps.insert((key, t))  # kept in the window (module docstring)
+        self._ranges(graph, new, index_a, index_b, distance, range_sigma, bias_index)
         self._update(graph, values, stamps)
 
-    @staticmethod
     def _ranges(
-        graph: gtsam.NonlinearFactorGraph, keys: list[int], index_a: IntArray, index_b: IntArray, distance: FloatArray,
-        range_sigma: FloatArray,
+        self, graph: gtsam.NonlinearFactorGraph, keys: list[int], index_a: IntArray, index_b: IntArray,
+        distance: FloatArray, range_sigma: FloatArray, bias_index: IntArray | None,
     ) -> None:
         huber = gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K)
-        for a, b, d, s in zip(index_a.tolist(), index_b.tolist(), distance.tolist(), range_sigma.tolist(), strict=True):
+        biases = [-1] * index_a.size if bias_index is None else bias_index.tolist()
+        rows = zip(index_a.tolist(), index_b.tolist(), distance.tolist(), range_sigma.tolist(), biases, strict=True)
+        for a, b, d, s, j in rows:
             noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Isotropic.Sigma(1, s))
-            graph.add(gtsam.RangeFactor2(keys[a], keys[b], d, noise))
+            if j >= 0:
+                graph.add(gtsam.CustomFactor(noise, [keys[a], keys[b], self.bias_keys[j]], _biased_range(d)))
+            else:
+                graph.add(gtsam.RangeFactor2(keys[a], keys[b], d, noise))
 
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: gtsam.FixedLagSmootherKeyTimestampMap) -> None:
         self.smoother.update(graph, values, stamps)
         self.factors_added += graph.size()
         self.graphs.append(graph)
+        self._marginals = None
         est = self.smoother.calculateEstimate()
-        self.values.update(zip(est.keys(), gtsam.utilities.extractPoint2(est), strict=True))
+        for key in list(est.keys()):  # a gtsam.Values, not a dict
+            bias = gtsam.Symbol(key).chr() == BIAS_CHR
+            self.values[key] = est.atVector(key) if bias else est.atPoint2(key)
         self.positions = np.array([est.atPoint2(key) for key in self.keys()], float).reshape(self.n, 2)
+        self.biases = np.array([est.atVector(key)[0] for key in self.bias_keys], float)
+
+    def _window_marginals(self) -> gtsam.Marginals:
+        """The window's marginals at the estimate (computed once per step)."""
+        if self._marginals is None or self._marginals[0] != self.step:
+            self._marginals = (self.step, gtsam.Marginals(self.smoother.getFactors(), self.smoother.calculateEstimate()))
+        return self._marginals[1]
 
     def covariances(self) -> FloatArray:
         """Covariance ``(N-1, 2, 2)`` of each robot's latest position relative to the
         reference's: ``S_kk + S_rr - S_kr - S_rk`` of the window's joint marginal."""
-        marginals = gtsam.Marginals(self.smoother.getFactors(), self.smoother.calculateEstimate())
-        return self._relative_covariances(marginals, self.keys())
+        return self._relative_covariances(self._window_marginals(), self.keys())
+
+    def bias_std(self) -> FloatArray:
+        """Std of each online bias (the window's marginal), ``(B,)``."""
+        marginals = self._window_marginals()
+        return np.array([math.sqrt(max(marginals.marginalCovariance(k)[0, 0], 0.0)) for k in self.bias_keys])
 
     def _relative_covariances(self, marginals: gtsam.Marginals, keys: list[int]) -> FloatArray:
         order = [keys[self.reference], *(keys[i] for i in self.others)]
@@ -161,7 +233,7 @@ class GraphSmoother:
             graph.push_back(g)
         initial = gtsam.Values()
         for key, value in self.values.items():
-            initial.insert(key, np.asarray(value, float))
+            initial.insert(key, np.asarray(value, float))  # a bias's Vector1 stays a Vector
         result = gtsam.LevenbergMarquardtOptimizer(graph, initial, gtsam.LevenbergMarquardtParams()).optimize()
         mean = np.empty((len(steps), self.others.size, 2))
         for j, step in enumerate(steps):

@@ -19,9 +19,9 @@ without, the rotation/reflection is a gauge the random walks hold, published wit
 the median time of the step's ranges, since nothing carries the motion past them.
 
 **Estimate**: each robot's latest key less the reference's, covariance from their joint
-marginal. GTSAM's ``RuntimeError`` or the watchdog's alarm restarts from the last
-``RESTART_WINDOW`` of ranges. Online biases, estimated headings and online odometry scales are
-not modelled (:data:`relloc.config.filter.CANNOT`). **Smoothed**
+marginal; online biases (a constant key per node pair, the sampled filter's prior) from
+their marginals. GTSAM's ``RuntimeError`` or the watchdog's alarm restarts from the last
+``RESTART_WINDOW`` of ranges. Headings and odometry scales are not estimated. **Smoothed**
 (:meth:`SmootherLocalizer.smoothed_estimates`, after a run): each segment between restarts
 optimised at once, scored as the row ``<method>_smoothed``.
 """
@@ -44,11 +44,11 @@ from relloc.filter.motion import PROCESS_NOISE
 from relloc.filter.range_graph import orientation_hypotheses, shape_from_ranges, start_covariance
 from relloc.filter.ranges import RangeBatch
 from relloc.filter.smoother_graph import GraphSmoother
-from relloc.filter.state import StateLayout
 from relloc.filter.summary import ModeSummary, estimate_fields, gauge
 from relloc.localizers.base import Measurement
 from relloc.localizers.filtered import FilterLocalizer
 from relloc.localizers.range_graph import ROTATION_FLOOR
+from relloc.localizers.sampled import bias_layout
 
 FloatArray = NDArray[np.float64]
 
@@ -96,8 +96,13 @@ class SmootherLocalizer(FilterLocalizer):
     range_model = "symmetric"
 
     def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
-        layout = StateLayout(config.robot_names, config.reference)
+        layout, prior = bias_layout(config, uncalibrated_sigma=config.uwb.default_bias_sigma)
         super().__init__(config, layout, seed=seed)
+        self._bias_mean = np.array(prior[0::2], float)
+        self._bias_sigma = np.sqrt(np.array(prior[1::2], float))
+        self._bias_of_column = {layout.bias_belief_column(p): j for j, p in enumerate(layout.bias_pairs)}
+        self._pair_bias: dict[tuple[int, int], int] = {}
+        """Team index pair -> its online bias (pairs with a fixed bias are not in it)."""
         self.method = method
         self._context = ModelContext(config, self.layout, range_model="symmetric")
         lay = self.layout
@@ -132,13 +137,19 @@ class SmootherLocalizer(FilterLocalizer):
     # ---------------------------------------------------------------- ranges
     def _ranges(self, events: list[RangeEvent]) -> tuple[NDArray[np.intp], NDArray[np.intp], FloatArray, FloatArray]:
         """Team indices, bias-corrected distances and noise of ``events`` (per 0.1 s batch: the
-        median per pair, :meth:`RangeBatch.build`)."""
+        median per pair, :meth:`RangeBatch.build`; an online bias is the graph's, noted in
+        ``_pair_bias``)."""
         models = [b for b in RangeBatch.build(events, self._context) if isinstance(b, RangeBatch)]
         if not models:
             empty = np.zeros(0)
             return np.zeros(0, np.intp), np.zeros(0, np.intp), empty, empty
         ia = np.concatenate([b.index_a for b in models])
         ib = np.concatenate([b.index_b for b in models])
+        for b in models:
+            if b.bias_columns is not None:
+                for a, c, col in zip(b.index_a.tolist(), b.index_b.tolist(), b.bias_columns.tolist(), strict=True):
+                    if col >= 0:
+                        self._pair_bias[(min(a, c), max(a, c))] = self._bias_of_column[col]
         z = np.maximum(np.concatenate([b.distance - b.bias for b in models]), 0.0)
         s = np.concatenate([b.sigma for b in models])
         return ia, ib, z, s
@@ -179,7 +190,9 @@ class SmootherLocalizer(FilterLocalizer):
         ia, ib, z, s = self._ranges(ranges)
         if not z.size:
             return False
-        shape = shape_from_ranges(len(self.layout.robots), self._ref, ia, ib, z)
+        j = self._bias_index(ia, ib)
+        prior = np.where(j >= 0, np.append(self._bias_mean, 0.0)[j], 0.0)  # the start's bias guess
+        shape = shape_from_ranges(len(self.layout.robots), self._ref, ia, ib, z - prior)
         placed = shape.placed[self._others]
         if shape.measured == 0 or not placed.any():
             return False
@@ -200,8 +213,8 @@ class SmootherLocalizer(FilterLocalizer):
         pa, pb, pz, ps = self._per_pair(ia, ib, z, s)
         self.hypotheses = []
         for m in range(formations.shape[0]):
-            smoother = GraphSmoother(n, self._ref, LAG)
-            smoother.start(t, means[m], covs[m], pa, pb, pz, ps)
+            smoother = GraphSmoother(n, self._ref, LAG, self._bias_mean, self._bias_sigma)
+            smoother.start(t, means[m], covs[m], pa, pb, pz, ps, self._bias_index(pa, pb))
             self.hypotheses.append(smoother)
         self._placed = shape.placed.copy()
         self._pending = {}
@@ -227,7 +240,7 @@ class SmootherLocalizer(FilterLocalizer):
         for smoother in self.hypotheses:
             guess = self._placement(smoother, newly, ia, ib, z)
             try:
-                smoother.advance(t, disp, sigma, ia, ib, z, s, guess)
+                smoother.advance(t, disp, sigma, ia, ib, z, s, guess, self._bias_index(ia, ib))
             except RuntimeError:
                 self.stats["smoother_indeterminate"] += 1
                 continue
@@ -272,6 +285,11 @@ class SmootherLocalizer(FilterLocalizer):
         both = known[self._others] & known[ref]
         self._moved += np.where(both, np.hypot(rel[:, 0], rel[:, 1]), 0.0)
         return np.where(known[:, None], disp, 0.0), sigma
+
+    def _bias_index(self, ia: NDArray[np.intp], ib: NDArray[np.intp]) -> NDArray[np.intp]:
+        """Per range (team indices) its online bias, -1 where its bias is fixed."""
+        pairs = zip(np.minimum(ia, ib).tolist(), np.maximum(ia, ib).tolist(), strict=True)
+        return np.array([self._pair_bias.get(p, -1) for p in pairs], dtype=np.intp)
 
     @staticmethod
     def _flatten(
@@ -354,7 +372,13 @@ class SmootherLocalizer(FilterLocalizer):
             ring = 0.5 * (np.sum(mean**2, axis=1) + np.trace(cov, axis1=1, axis2=2))
             mean = np.zeros_like(mean)
             cov = ring[:, None, None] * np.eye(2)
-        return FilterEstimate(mean, cov, float(len(self.hypotheses)), summary=summary, particles=len(self.hypotheses))
+        biases = {
+            pair: (float(m), float(sd))
+            for pair, m, sd in zip(self.layout.bias_pairs, best.biases.tolist(), best.bias_std().tolist(), strict=True)
+        }
+        return FilterEstimate(
+            mean, cov, float(len(self.hypotheses)), biases=biases, summary=summary, particles=len(self.hypotheses)
+        )
 
     def _emit(self, t: float, fe: FilterEstimate, body: FilterEstimate | None = None) -> Estimate:
         est = super()._emit(t, fe, body)
