@@ -117,7 +117,8 @@ class SelfCalibrationConfig(Checked):
     (:mod:`relloc.localizers.sampled`)."""
     bias_walk: float = 0.01
     """Online mode: random walk of each bias (m per sqrt(s)): orientation-dependent errors
-    make the effective bias drift as the robots turn."""
+    make the effective bias drift as the robots turn. The smoother holds each bias constant
+    (a walk of re-keyed biases broke GTSAM's fixed-lag marginalisation)."""
     heading_walk: float = 0.01
     """Estimate mode: random walk of each relative heading (rad per sqrt(s)): gyro drift."""
     reference_heading_walk: float = 0.003
