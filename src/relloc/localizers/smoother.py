@@ -44,7 +44,8 @@ from relloc.filter.motion import PROCESS_NOISE
 from relloc.filter.range_graph import orientation_hypotheses, shape_from_ranges, start_covariance
 from relloc.filter.ranges import RangeBatch
 from relloc.filter.smoother_graph import GraphSmoother
-from relloc.filter.summary import ModeSummary, estimate_fields, gauge
+from relloc.filter.smoother_moments import flatten, moments, per_pair
+from relloc.filter.summary import estimate_fields
 from relloc.localizers.base import Measurement
 from relloc.localizers.filtered import FilterLocalizer
 from relloc.localizers.range_graph import ROTATION_FLOOR
@@ -210,7 +211,7 @@ class SmootherLocalizer(FilterLocalizer):
         means[:, self._others] = formations
         covs = np.tile(np.eye(2), (formations.shape[0], n, 1, 1))
         covs[:, self._others] = blocks
-        pa, pb, pz, ps = self._per_pair(ia, ib, z, s)
+        pa, pb, pz, ps = per_pair(ia, ib, z, s)
         self.hypotheses = []
         for m in range(formations.shape[0]):
             smoother = GraphSmoother(n, self._ref, LAG, self._bias_mean, self._bias_sigma)
@@ -230,7 +231,7 @@ class SmootherLocalizer(FilterLocalizer):
     def _advance(self, t: float) -> Estimate | None:
         disp, sigma = self._own_motion(t)
         pending, self._pending = self._pending, {}
-        ia, ib, z, s = self._per_pair(*self._flatten(pending))
+        ia, ib, z, s = per_pair(*flatten(pending))
         reached = np.zeros(len(self.layout.robots), dtype=bool)
         reached[ia] = True
         reached[ib] = True
@@ -291,35 +292,6 @@ class SmootherLocalizer(FilterLocalizer):
         pairs = zip(np.minimum(ia, ib).tolist(), np.maximum(ia, ib).tolist(), strict=True)
         return np.array([self._pair_bias.get(p, -1) for p in pairs], dtype=np.intp)
 
-    @staticmethod
-    def _flatten(
-        pending: dict[tuple[int, int], list[tuple[float, float]]],
-    ) -> tuple[NDArray[np.intp], NDArray[np.intp], FloatArray, FloatArray]:
-        rows = [(a, b, z, w) for (a, b), vals in pending.items() for z, w in vals]
-        if not rows:
-            empty = np.zeros(0)
-            return np.zeros(0, np.intp), np.zeros(0, np.intp), empty, empty
-        a, b, z, w = zip(*rows, strict=True)
-        return np.array(a, np.intp), np.array(b, np.intp), np.array(z, float), np.array(w, float)
-
-    @staticmethod
-    def _per_pair(
-        ia: NDArray[np.intp], ib: NDArray[np.intp], z: FloatArray, s: FloatArray
-    ) -> tuple[NDArray[np.intp], NDArray[np.intp], FloatArray, FloatArray]:
-        """One range per pair (team indices): the median distance, the largest noise (the
-        ranges of a step share their error: no division by their count)."""
-        lo, hi = np.minimum(ia, ib), np.maximum(ia, ib)
-        pairs, inverse = np.unique(np.stack([lo, hi], axis=1), axis=0, return_inverse=True)
-        inverse = inverse.reshape(-1)
-        order = np.lexsort((z, inverse))  # by pair, then distance: each pair's median is
-        counts = np.bincount(inverse, minlength=pairs.shape[0])  # the middle of its run
-        first = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        zs = z[order]
-        med = 0.5 * (zs[first + (counts - 1) // 2] + zs[first + counts // 2])
-        sig = np.zeros(pairs.shape[0])
-        np.maximum.at(sig, inverse, s)
-        return pairs[:, 0].astype(np.intp), pairs[:, 1].astype(np.intp), med, sig
-
     def _placement(
         self, smoother: GraphSmoother, newly: NDArray[np.bool_], ia: NDArray[np.intp], ib: NDArray[np.intp], z: FloatArray
     ) -> FloatArray | None:
@@ -354,24 +326,10 @@ class SmootherLocalizer(FilterLocalizer):
 
     # ---------------------------------------------------------------- the estimate
     def _estimate(self) -> FilterEstimate:
-        """The best hypothesis's latest positions and marginal covariances, with the summary
-        (shape, pair distances) of :mod:`relloc.filter.summary`; once the orientation is
-        resolved the covariance keeps a turn of the whole formation of ``ROTATION_FLOOR``
-        (:mod:`relloc.localizers.range_graph`: heading-dependent range errors turn it). While the orientation is not
-        observable the positions and covariances are the moments over every rotation of the
-        formation about the reference (:class:`~relloc.estimate.Estimate`'s contract: a robot
-        at ``r`` from it is on a ring, mean 0, covariance ``r^2/2`` per axis), and the shape is
-        the smoother's own frame, which its random walks keep continuous (:data:`OWN_FRAME`)."""
+        """The best hypothesis's latest positions, covariances and summary as published
+        (:func:`relloc.filter.smoother_moments.moments`), with the online biases."""
         best = self.hypotheses[0]
-        mean = best.estimate.copy()
-        cov = best.covariances()
-        if self._observable:
-            cov = _with_turn(mean, cov)
-        summary = self._summary(mean, cov)
-        if not self._observable:
-            ring = 0.5 * (np.sum(mean**2, axis=1) + np.trace(cov, axis1=1, axis2=2))
-            mean = np.zeros_like(mean)
-            cov = ring[:, None, None] * np.eye(2)
+        mean, cov, summary = moments(best.estimate.copy(), best.covariances(), self._observable, ROTATION_FLOOR)
         biases = {
             pair: (float(m), float(sd))
             for pair, m, sd in zip(self.layout.bias_pairs, best.biases.tolist(), best.bias_std().tolist(), strict=True)
@@ -425,13 +383,7 @@ class SmootherLocalizer(FilterLocalizer):
         others = self.layout.others
         out = []
         for causal, mean, cov in zip(segment.estimates, means, covs, strict=True):
-            if observable or causal.orientation_observable:
-                cov = _with_turn(mean, cov)
-            summary = self._summary(mean, cov, observable or causal.orientation_observable)
-            if not summary.orientation_observable:
-                ring = 0.5 * (np.sum(mean**2, axis=1) + np.trace(cov, axis1=1, axis2=2))
-                mean = np.zeros_like(mean)
-                cov = ring[:, None, None] * np.eye(2)
+            mean, cov, summary = moments(mean, cov, observable or causal.orientation_observable, ROTATION_FLOOR)
             fields = estimate_fields(summary, self.layout.reference, others)
             if not summary.orientation_observable:
                 fields["shape_gauge"] = OWN_FRAME
@@ -442,41 +394,3 @@ class SmootherLocalizer(FilterLocalizer):
             }
             out.append(dataclasses.replace(causal, positions=positions, covariances=covariances, **fields))
         return out
-
-    def _summary(self, mean: FloatArray, cov: FloatArray, observable: bool | None = None) -> ModeSummary:
-        """Shape (in the declared gauge once the orientation is known, else in the smoother's
-        own frame), pair distances with their std, the orientation flag (``observable``,
-        default: whether the live smoother has observed it)."""
-        k = mean.shape[0]
-        observable = self._observable if observable is None else observable
-        if observable:
-            shape = gauge(mean[None])[0]
-            angle = math.atan2(mean[0, 1], mean[0, 0])
-            c, s = math.cos(-angle), math.sin(-angle)
-            rot = np.array([[c, -s], [s, c]])
-            if k > 1 and (rot @ mean[1])[1] < 0.0:
-                rot = np.diag([1.0, -1.0]) @ rot
-            shape_cov = np.einsum("ij,kjl,ml->kim", rot, cov, rot)
-        else:
-            shape, shape_cov = mean.copy(), cov.copy()
-        pos = np.vstack([np.zeros((1, 2)), mean])
-        full = np.concatenate([np.zeros((1, 2, 2)), cov])
-        diff = pos[:, None, :] - pos[None, :, :]
-        dist = np.hypot(diff[..., 0], diff[..., 1])
-        unit = diff / np.where(dist > 1e-9, dist, 1.0)[..., None]
-        both = full[:, None] + full[None, :]
-        var = np.einsum("ijk,ijkl,ijl->ij", unit, both, unit)
-        distances = np.stack([dist, np.sqrt(np.maximum(var, 0.0))], axis=-1)
-        return ModeSummary(
-            mean, cov, mean.copy(), 1.0, 1, 0.0 if observable else math.pi, observable, shape, shape_cov, distances,
-            np.ones(1, dtype=bool),
-        )
-
-
-def _with_turn(mean: FloatArray, cov: FloatArray) -> FloatArray:
-    """``cov`` ``(K, 2, 2)`` with a turn of the whole formation ``mean`` ``(K, 2)`` about the
-    reference of std ``ROTATION_FLOOR``: what no fusion of ranges and odometry observes
-    (:mod:`relloc.localizers.range_graph`: heading-dependent range errors turn it)."""
-    x, y = mean[:, 0], mean[:, 1]
-    turn = np.stack([np.stack([y * y, -x * y], axis=1), np.stack([-x * y, x * x], axis=1)], axis=1)
-    return cov + ROTATION_FLOOR**2 * turn
