@@ -25,7 +25,9 @@ from relloc.cli.common import UserError, check_writable, is_user_error, options_
 from relloc.faults import add_arguments as add_fault_arguments
 from relloc.malloc import tune_malloc
 
-_COMMAND_MODULES = ("relloc.cli.ranging", "relloc.cli.live", "relloc.cli.navigation", "relloc.cli.secure")
+_COMMAND_MODULES = (
+    "relloc.cli.ranging", "relloc.cli.live", "relloc.cli.navigation", "relloc.cli.secure", "relloc.cli.init",
+)
 """Command families with a ``register(subparsers)`` of their own. None imports an optional
 dependency at module level (training imports torch only when it runs), so every command is
 always listed; a module that fails to import is a bug and raises."""

@@ -1,0 +1,128 @@
+"""``relloc init``: a team config drafted from a bag (robots, UWB node mapping, quirks).
+
+A synthetic bag checks the decisions without shared data; the TIERS recordings check them
+against the shipped configs' node mappings.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from relloc.cli import main
+from relloc.config import TeamConfig
+from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent
+from relloc.ros.messages import odometry_msg, pose_stamped_msg, range_msg
+from relloc.sources.inspect_bag import assign_nodes, inspect_bag
+
+NODES = {"tb1": "n_5", "tb2": "n_9", "tb3": "n_2"}
+"""The synthetic team's node mapping (deliberately not n_k on robot k)."""
+
+
+def _synthetic_bag(path: Path, bag_writer: Callable[..., Path]) -> Path:
+    """Three robots driving circles for 20 s; ranges = distance + 0.3 m (+ noise); tb2's odometry
+    has zero stamps, tb3's a frozen orientation; an extra node n_7 ranges only to n_5."""
+    rng = np.random.default_rng(1)
+    centres = {"tb1": (0.0, 0.0), "tb2": (4.0, 1.0), "tb3": (1.0, 4.0)}
+    msgs = []
+
+    def pos(name: str, t: float) -> tuple[float, float]:
+        cx, cy = centres[name]
+        k = int(name[-1])
+        return cx + math.cos(0.3 * k * t + k), cy + math.sin(0.3 * k * t + k)
+
+    for i in range(400):
+        t = 100.0 + 0.05 * i
+        for name in NODES:
+            x, y = pos(name, t)
+            msgs.append((f"/vrpn_client_node/{name}_cap/pose", "geometry_msgs/msg/PoseStamped", t,
+                         pose_stamped_msg(GroundTruthEvent(t, name, x, y))))
+            if i % 2 == 0:
+                yaw = 0.0 if name == "tb3" else 0.1 * i
+                stamp = 0.0 if name == "tb2" else t
+                msgs.append((f"/{name}/odom", "nav_msgs/msg/Odometry", t,
+                             odometry_msg(OdometryEvent(stamp, name, x, y, yaw, v=0.3, w=0.3))))
+        names = list(NODES)
+        for a in range(3):
+            for b in range(a + 1, 3):
+                na, nb = NODES[names[a]], NODES[names[b]]
+                d = math.dist(pos(names[a], t), pos(names[b], t)) + 0.3 + rng.normal(0, 0.03)
+                msgs.append((f"/uwb/tof/{na}/{nb}/distance", "sensor_msgs/msg/Range", t,
+                             range_msg(RangeEvent(t, "", "", d))))
+        msgs.append(("/uwb/tof/n_7/n_5/distance", "sensor_msgs/msg/Range", t, range_msg(RangeEvent(t, "", "", 2.0))))
+    return bag_writer(path, msgs)
+
+
+def test_synthetic_bag_inventory_and_mapping(tmp_path: Path, bag_writer: Callable[..., Path]) -> None:
+    bag = _synthetic_bag(tmp_path / "bag", bag_writer)
+    inv = inspect_bag(bag)
+    assert inv.range_pattern == "/uwb/tof/{a}/{b}/distance"
+    assert inv.range_layout != "humble"
+    assert set(inv.nodes) == {"n_2", "n_5", "n_7", "n_9"}
+    assert inv.odometry["/tb2/odom"].zero_stamps and not inv.odometry["/tb1/odom"].zero_stamps
+    assert inv.odometry["/tb3/odom"].frozen_orientation and not inv.odometry["/tb1/odom"].frozen_orientation
+    best = assign_nodes(inv, ["tb1_cap", "tb2_cap", "tb3_cap"])
+    assert best[0].nodes == {f"{k}_cap": v for k, v in NODES.items()}
+    assert best[0].rms < 0.1 < best[1].rms
+
+
+def test_init_writes_a_loadable_config(tmp_path: Path, bag_writer: Callable[..., Path]) -> None:
+    bag = _synthetic_bag(tmp_path / "bag", bag_writer)
+    out = tmp_path / "team.toml"
+    assert main(["init", str(bag), "--out", str(out)]) == 0
+    cfg = TeamConfig.load(out)
+    assert {r.name: r.uwb_node for r in cfg.robots} == NODES
+    assert cfg.robot("tb2").odom_zero_stamps and cfg.robot("tb3").odom_mode == "twist"
+    assert cfg.robot("tb1").odom_mode == "pose" and cfg.robot("tb1").mocap_body == "tb1_cap"
+    assert cfg.ros_distro == "jazzy" and cfg.uwb.range_topic == "/uwb/tof/{a}/{b}/distance"
+    text = out.read_text()
+    assert "n_7" in text and "reference:" in text  # the left-out node and the rule, as comments
+    # never overwritten without --force
+    out.write_text("# mine\n")
+    assert main(["init", str(bag), "--out", str(out)]) == 2
+    assert out.read_text() == "# mine\n"
+    assert main(["init", str(bag), "--out", str(out), "--force"]) == 0
+    assert TeamConfig.load(out).robot_names == ("tb1", "tb2", "tb3")
+
+
+def _draft(shared: Path, bag: str, tmp_path: Path, *extra: str) -> tuple[int, TeamConfig, str]:
+    out = tmp_path / "draft.toml"
+    rc = main(["init", str(shared / bag), "--out", str(out), "--force", *extra])
+    return rc, TeamConfig.load(out), out.read_text()
+
+
+def test_tiers_shortbag_mapping(shared_data: Path, tmp_path: Path) -> None:
+    rc, cfg, _ = _draft(shared_data, "tiers/multi4_shortbag_20221011", tmp_path)
+    shipped = TeamConfig.load(Path(__file__).parents[1] / "configs/tiers/multi4_shortbag_20221011.toml")
+    assert rc == 0
+    fields = ("name", "uwb_node", "mocap_body", "odom_topic", "odom_mode", "odom_zero_stamps")
+    assert [[getattr(r, f) for f in fields] for r in cfg.robots] == [
+        [getattr(r, f) for f in fields] for r in shipped.robots
+    ]
+    assert cfg.ros_distro == "humble"
+
+
+def test_tiers_case4_mapping(shared_data: Path, tmp_path: Path) -> None:
+    rc, cfg, text = _draft(shared_data, "tiers_uwb_rel/case4_test1_static", tmp_path)
+    assert rc == 0
+    assert {r.name: r.uwb_node for r in cfg.robots} == {f"turtlebot{k}": f"n_{k}" for k in range(1, 8)}
+    assert all(not r.odom_topic for r in cfg.robots)
+    assert "left out" in text and "n_8" in text
+
+
+def test_tiers_pair_is_ambiguous_without_node(shared_data: Path, tmp_path: Path) -> None:
+    rc, cfg, text = _draft(shared_data, "tiers/pair_range_20220907_1725", tmp_path)
+    assert rc == 2 and "UNDECIDED" in text
+    assert cfg.robot_names == ("turtle01", "turtle03")
+    rc, cfg, text = _draft(shared_data, "tiers/pair_range_20220907_1725", tmp_path, "--node", "turtle01=n_2")
+    assert rc == 0 and "UNDECIDED" not in text
+    assert {r.name: r.uwb_node for r in cfg.robots} == {"turtle01": "n_2", "turtle03": "n_3"}
+
+
+def test_bad_node_argument(shared_data: Path, tmp_path: Path) -> None:
+    out = tmp_path / "x.toml"
+    assert main(["init", str(shared_data / "tiers/pair_range_20220907_1725"), "--out", str(out), "--node", "turtle01=n_9"]) == 2
+    assert not out.exists()
