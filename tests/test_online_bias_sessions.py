@@ -1,4 +1,4 @@
-"""The sampled filter's online bias on a new session (issue 18, item 4).
+"""The sampled filter's online bias on a new session.
 
 A single-range pair (the ``single`` scenario: ``r0`` static, ``r1`` circling, one range) whose
 config carries no pair calibration, as on ``pair_range_20220907_1725``: ``--bias online`` must

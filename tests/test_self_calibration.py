@@ -1,4 +1,4 @@
-"""Self-calibration (issue 10): relative headings, range biases and odometry scales online.
+"""Self-calibration: relative headings, range biases and odometry scales online.
 
 Fast simulated runs of the Gaussian-sum filter (relloc.filter.gaussian_sum), its pieces, the
 evaluation of headings (wrapping at +-180 deg), and the acceptance runs on the TIERS bags (skipped

@@ -40,7 +40,7 @@ def test_shortbag_default_seed_meets_bounds(shared_data: Path) -> None:
     fair, oracle = report.methods["multilateration"], report.methods["multilateration_oracle"]
     assert fair.robots["turtle01"].n > 80
     assert fair.mean_ape_median <= oracle.mean_ape_median + 0.05
-    # Issue 8: the PF's mean over robots is no worse than multilateration's (one alignment per
+    # The PF's mean over robots is no worse than multilateration's (one alignment per
     # run). Seed 0 gives 0.099 against 0.107; over seeds 0-19 the PF's mean lies in 0.08-0.16
     # (median 0.10): the formation's orientation about the reference is what varies (docs/results.md).
     assert pf.mean_ape_median <= fair.mean_ape_median, (pf.mean_ape_median, fair.mean_ape_median)
