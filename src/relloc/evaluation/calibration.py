@@ -21,6 +21,7 @@ from relloc.ranging.dataset import CSV_COLUMNS
 from relloc.ros.messages import stamp_to_sec
 from relloc.sources.rosbag import RosbagSource, recording_name
 from relloc.sources.span import SpanSource
+from relloc.sources.tracks import interpolate_track
 
 __all__ = [
     "CSV_COLUMNS",
@@ -113,35 +114,6 @@ def calibrate_pair(
 
 
 # ---------------------------------------------------------------------------- interpolation
-def interpolate_track(
-    times: np.ndarray,
-    xs: np.ndarray,
-    ys: np.ndarray,
-    t: np.ndarray,
-    *,
-    max_gap: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Linear interpolation of a sorted 2-D track at times ``t``, refusing long gaps.
-
-    Returns ``(x, y, valid)``; ``valid`` is false outside the track and where the two samples
-    around ``t`` are more than ``max_gap`` seconds apart (the mocap lost the body).
-    """
-    times = np.asarray(times, dtype=float)
-    t = np.asarray(t, dtype=float)
-    if times.size == 0:
-        nan = np.full(t.shape, np.nan)
-        return nan, nan.copy(), np.zeros(t.shape, dtype=bool)
-    hi = np.clip(np.searchsorted(times, t, side="left"), 0, times.size - 1)
-    lo = np.clip(hi - 1, 0, times.size - 1)
-    exact = times[hi] == t
-    gap = times[hi] - times[lo]
-    inside = (t >= times[0]) & (t <= times[-1])
-    valid = inside & (exact | (gap <= max_gap))
-    x = np.interp(t, times, xs)
-    y = np.interp(t, times, ys)
-    return x, y, valid
-
-
 # ---------------------------------------------------------------------------- from a bag
 def pair_samples_from_bag(
     path: str | Path,

@@ -25,11 +25,11 @@ from typing import Any
 
 import numpy as np
 
-from relloc.evaluation.calibration import interpolate_track
 from relloc.events import pair_key
 from relloc.ros.distros import layout_of_definition, layouts
 from relloc.ros.messages import MessageDecodeError, decode, stamp_to_sec
 from relloc.sources.rosbag import _open_reader
+from relloc.sources.tracks import interpolate_track
 
 __all__ = ["Assignment", "BagInventory", "assign_nodes", "inspect_bag", "robot_number"]
 
