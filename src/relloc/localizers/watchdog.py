@@ -1,37 +1,21 @@
 """The consistency watchdog: does the published covariance still cover the filter's own
 innovations?
 
-A filter can be wrong and confident at once (a start on the wrong solution, a calibration that
-ran away, a robot displaced or slipping unseen by its odometry) while the divergence monitor's
-gross-outlier rule (:mod:`.divergence`) stays quiet. After each update, every fused range and
-sighting's range is compared with the pair's distance in the published estimate:
-``NIS = (z - b - m - d)^2 / S``. ``b`` and ``m`` and the first part of ``S`` are what the
-filter's own range likelihood (:mod:`relloc.filter.ranges`) assumes of the range's error: the
-pair's bias (the published online one, whose variance counts too), the mean of the one-sided
-NLOS part where the NLOS-aware model applies, and the noise (an uncalibrated pair's widened by
-``default_bias_sigma``, the NLOS part's spread included); a sighting's range its own noise.
-``d`` and the second part of ``S`` are the mean and spread of the pair's distance over the
-filter's dominant mode (``FilterEstimate.summary``: the pair's own, which the formation's common
-rotation does not widen and a spread of directions does not shorten), else the distance between
-the published positions and both covariances along the line of sight. A sighting's bearing is
-judged likewise against the direction between them less the observer's yaw in the published
-frame (turned by its published heading, whose variance counts too; not judged where the filter
-has neither a shared frame nor headings). A consistent filter's NIS is at most chi-square (one
-degree of freedom a row).
+A filter can be wrong and confident at once (a wrong start, a runaway calibration, a robot
+displaced unseen by its odometry) while the divergence monitor's gross-outlier rule
+(:mod:`.divergence`) stays quiet. After each update every fused range, and each sighting's
+range and bearing, is compared with the published estimate as a normalised innovation
+(NIS), using what the filter's own likelihood assumes of the error.
 
-Each robot keeps a CUSUM, a sequential probability ratio test of "the innovations' variance is
-``LAMBDA`` times what is published" against "as published", over its measurements (each counts
-for both its robots): ``s = max(0, s + dof/2 ln(1/LAMBDA) + min(NIS, CHI2_BOUND)/2 (1 - 1/LAMBDA))``.
-Clipping at the 99 % bound bounds what one outlier (NLOS, a gross error) adds (at most 1.8), so
-at least ``THRESHOLD / 1.8`` (9) bad measurements are needed, and a share of outliers under about
-a quarter never accumulates. The estimate is *inconsistent* once a robot's ``s`` passes
-``THRESHOLD``: for chi-square NIS the CUSUM's mean run to a false alarm exceeds
-``exp(THRESHOLD)`` (9e6) measurements, a day at 100 a second, in any session; a filter that
-absorbs a step in a few updates is still caught, since the evidence of those updates adds up
-instead of being diluted in a window. It clears once every robot's ``s`` is back to zero and
-under ``CLEAR_SHARE`` of its last ``WINDOW`` seconds' measurements exceed their 99 % bound.
-While inconsistent, the published covariance is widened by
-:attr:`ConsistencyWatchdog.widening`, the worst robot's median NIS over the chi-square median.
+Each robot keeps a CUSUM of "the innovations' variance is ``LAMBDA`` times what is published"
+against "as published", with each NIS clipped at its 99 % bound so that isolated outliers
+never accumulate. The estimate is *inconsistent* once a robot's sum passes ``THRESHOLD``
+(false alarms rarer than one a day at 100 measurements a second) and clears once every sum is
+back to zero and under ``CLEAR_SHARE`` of the last ``WINDOW`` seconds' measurements exceed
+their bound. While inconsistent, the published covariance is widened by
+:attr:`ConsistencyWatchdog.widening`.
+
+The NIS terms and the CUSUM's bounds derived: ``docs/explanation/internals.md``.
 """
 
 from __future__ import annotations

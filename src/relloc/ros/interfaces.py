@@ -1,42 +1,22 @@
 """How ROS 2 topics appear on Zenoh: the two interfaces relloc speaks, and their key formats.
 
-This module is the one place that knows the keys. The source, the sink, the publishers of
-``relloc replay`` and ``relloc sim-robots`` and ``relloc navigate`` all ask a
-:class:`RosInterface` for them.
+This module is the one place that knows the keys: the source, the sink and the publishers of
+``relloc replay``, ``relloc sim-robots`` and ``relloc navigate`` all ask a
+:class:`RosInterface` for them, so the two conventions cannot drift apart.
 
 ``bridge`` (zenoh-bridge-ros2dds, the default)
-    The robots run DDS and a bridge forwards each topic on the key named after it, the leading
-    slash dropped: ``/tb1/odom`` -> ``tb1/odom``, below the bridge's namespace if it has one
-    (:func:`key_for_topic`). Payloads are the CDR bytes. relloc's own publishers attach their
-    send wall time (:func:`encode_sent_time`), which the server turns into latency.
+    Each topic on the key named after it, the leading slash dropped (:func:`key_for_topic`);
+    payloads are CDR bytes; relloc's publishers attach their send time
+    (:func:`encode_sent_time`).
 
-``rmw_zenoh`` (rmw_zenoh_cpp, the ROS 2 middleware itself)
-    Every ROS 2 node speaks Zenoh; there is no bridge. Per the rmw_zenoh design document
-    (ros2/rmw_zenoh, ``docs/design.md``):
+``rmw_zenoh`` (rmw_zenoh_cpp)
+    Data keys ``<domain_id>/<topic>/<type name>/<type hash>`` (:func:`dds_type_name`), a
+    33-byte attachment per sample (:class:`RmwAttachment`) and liveliness tokens; relloc
+    subscribes to ``<domain>/<topic>/*/*`` and picks each sample's layout from its hash.
 
-    * a topic's data key is ``<domain_id>/<fully qualified name>/<type name>/<type hash>``,
-      e.g. ``0/tb1/odom/nav_msgs::msg::dds_::Odometry_/RIHS01_3cc97dc7...``: the DDS type name
-      (:func:`dds_type_name`) and the RIHS01 hash of the type in the robots' distribution
-      (``TypeHashNotSupported`` on Humble: :func:`relloc.ros.distros.key_hash`);
-    * every sample carries a 33-byte attachment (:class:`RmwAttachment`): the publisher's
-      sequence number (int64), the source timestamp (int64 ns since the epoch), both little
-      endian, the GID length (one byte, 16) and the 16-byte publisher GID;
-    * nodes, publishers and subscriptions announce themselves with liveliness tokens:
-      ``@ros2_lv/<domain>/<session id>/<node id>/<node id>/NN/<enclave>/<namespace>/<node>``
-      for a node and ``@ros2_lv/<domain>/<session id>/<node id>/<entity id>/MP|MS/<enclave>/
-      <namespace>/<node>/<topic>/<type name>/<type hash>/<qos>`` for a publisher (``MP``) or a
-      subscription (``MS``), every name *mangled* (``/`` -> ``%``; an empty one is ``%``).
-
-    relloc subscribes to ``<domain>/<topic>/*/*``: the topic's samples whatever their type name
-    and hash (a robot on another distribution may lay a type out differently), and picks each
-    sample's layout from its hash (:mod:`relloc.sources.rmw_envelope`). It declares and
-    publishes under the hashes of its own ``distro``.
-
-In both interfaces a robot's ``zenoh_scope`` is a namespace in front of its topics, and
-``--prefix`` a prefix in front of every key of the robots: the bridge's namespace, or, with
-rmw_zenoh, a Zenoh namespace the robots' sessions are configured with (rarely used). A topic
-is identified by its *topic key* (:meth:`RosInterface.topic_key`): the data key without the
-type name and hash. Sources count messages per topic key.
+A topic is identified by its *topic key* (:meth:`RosInterface.topic_key`): the data key
+without type name and hash; sources count messages per topic key. The key formats in full:
+``docs/explanation/internals.md``.
 """
 
 from __future__ import annotations

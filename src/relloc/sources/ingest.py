@@ -1,43 +1,19 @@
 """One ingestion layer: a team's ROS 2 messages become relloc events, whatever carried them.
 
-A rosbag2 file and a Zenoh subscription deliver the same thing: ROS 2 messages serialised as
-CDR, each with the time it arrived. Everything between those bytes and an ordered stream of
-:mod:`relloc.events` is the same for both, and lives in this layer; a source keeps only its
-transport (:mod:`relloc.sources.rosbag` reads a bag with ``rosbags``,
-:mod:`relloc.sources.zenoh_source` subscribes and hands payloads from Zenoh's threads to the
-engine's). Its parts: the routes (here), the header clock (:mod:`relloc.sources.clock`), the
-conversion and its counters (here) and the reorder buffer (:mod:`relloc.sources.reorder`).
+A rosbag2 file and a Zenoh subscription deliver the same thing, CDR-serialised ROS 2 messages
+with their arrival times, so everything from those bytes to an ordered stream of
+:mod:`relloc.events` lives here once; a source keeps only its transport
+(:mod:`relloc.sources.rosbag`, :mod:`relloc.sources.zenoh_source`).
 
-Routes from the team config
----------------------------
-:func:`team_routes` reads the :class:`~relloc.config.TeamConfig` once and says, per topic,
-what its messages become: a :class:`~relloc.sensors.Route` names the topic's sensor (its
-``kind``) and what one topic needs to be converted. The sensors themselves say which topics
-they have (:mod:`relloc.sensors.builtin`: each robot's odometry, motion capture and detections,
-the teammates each observer sights, extra motion-capture objects, the UWB pairs in both node
-orders; a plug-in's own). A source maps its own names onto routes (a bag keeps the routes whose
-topic it holds; Zenoh puts each route on the key expressions of the bridge convention).
-:func:`match_range_topics` (the UWB sensor's) lists the range topics of a bag, any nodes.
+* :func:`team_routes` reads the :class:`~relloc.config.TeamConfig` once and says, per topic,
+  what its messages become (a :class:`~relloc.sensors.Route`); :func:`match_range_topics`
+  lists a bag's range topics.
+* :class:`Converter` decodes, stamps (all-zero header stamps are restamped on the header
+  clock, :mod:`relloc.sources.clock`) and has the route's sensor build the event.
+* What cannot be used is dropped and counted per reason in :class:`IngestStats`, so that
+  downstream stages only ever see valid numbers.
 
-Zero stamps
------------
-Some drivers publish all-zero header stamps (an odometry topic of a shared recording), and
-a robot can be flagged ``odom_zero_stamps`` when its odometry stamps are not to be trusted.
-:class:`Converter` gives such a message ``HeaderClock.stamp(kind, receive time)`` and counts it
-in ``restamped``; successive restamped times of one topic always increase (arrival order is the
-topic's order, even while a live estimate of the offset moves).
-
-Conversion and rejections
--------------------------
-:meth:`Converter.convert` decodes one payload (through the sensor's fast fixed-layout path,
-:mod:`relloc.ros.cdr`, where it has one; everything else or anything odd through ``rosbags``),
-stamps it and has the route's sensor build its event. What cannot be used is dropped and
-counted per reason in the :class:`IngestStats` record, so that downstream stages only ever see
-valid numbers: ``decode_error``, ``range_nonfinite``/``range_nonpositive`` and, per object,
-``detection_zero_position``/``detection_nonfinite``/``detection_behind_camera``. A detection
-frame with no valid object is still an event ("the camera saw nothing then"). A range equal to
-the previous one of its topic (a UWB driver republishing its last value) passes and is counted
-in ``repeated_ranges``; the localizer decides about it.
+Routes, zero stamps and the rejection reasons in full: ``docs/explanation/internals.md``.
 """
 
 from __future__ import annotations

@@ -1,62 +1,23 @@
 """Live robots over Eclipse Zenoh as a stream of relloc events.
 
-This module is the Zenoh transport: which key expressions to subscribe to, and how a payload
-gets from Zenoh's threads to the engine's. What the payloads become (routes, conversion, header
-clock, zero-stamp restamping, reorder buffer, counters) is the shared ingestion layer,
+This module is the Zenoh transport only: which key expressions to subscribe to (the
+interface's, :class:`~relloc.ros.interfaces.RosInterface`; the routes from
+:func:`~relloc.sources.zenoh_keys.build_routes`), and how a payload gets from Zenoh's threads
+to the engine's. What payloads become is the shared ingestion layer,
 :mod:`relloc.sources.ingest`, which the rosbag source uses too.
 
-Keys
-----
-The key format is the interface's (:class:`~relloc.ros.interfaces.RosInterface`, which owns
-both). With ``zenoh-bridge-ros2dds`` (the default) each message, serialised as ROS 2 CDR exactly
-as a rosbag2 file stores it, is on the key named after the topic: ``/tb1/odom`` -> ``tb1/odom``,
-below the bridge's namespace if it has one. With ``rmw_zenoh`` it is on
-``<domain>/tb1/odom/<type name>/<type hash>``, subscribed as ``<domain>/tb1/odom/*/*`` (any
-type, any hash: each sample's type name is checked against the route, its hash picks the
-layout it is decoded in, and its attachment gives the source timestamp and, per publisher, the
-sequence numbers that count lost samples: :mod:`relloc.sources.rmw_envelope`).
-:func:`~relloc.sources.zenoh_keys.build_routes` puts the team's routes
-(:func:`~relloc.sources.ingest.team_routes`: odometry, UWB ranges of every pair in both node
-orders, each sensor plug-in's topics, and detections only when the methods use them, since
-decoding them costs CPU for nothing otherwise) on their topic keys; a range topic is subscribed
-below the scope of each of its two robots.
+* Zenoh calls :meth:`ZenohSource.on_sample` on its own threads; it only copies the payload,
+  notes the receive time and appends to a bounded queue. Decoding, reordering and everything
+  after happen on the engine thread in :meth:`ZenohSource.poll`, so the filter state never
+  sees two threads and a slow engine never blocks Zenoh's network threads.
+* The engine thread is woken only for a message that could make an estimate (the consumer's
+  :class:`~relloc.events.WakeRule`, :meth:`ZenohSource.rearm`): waking per message was most
+  of the live engine's CPU.
+* Nothing that arrives can crash the engine: unusable samples are dropped and counted per
+  reason in :attr:`ZenohSource.stats`.
 
-Threads
--------
-Zenoh calls :meth:`ZenohSource.on_sample` on its own threads. That callback only copies the
-payload and its attachment, notes the receive wall time and appends them to a bounded queue;
-decoding, reordering and everything after happen on the one engine thread that calls
-:meth:`ZenohSource.poll`. The filter state therefore never sees two threads, and a slow engine
-cannot block Zenoh's network threads (a full queue drops the sample and counts it as
-``queue_full``).
-
-The callback wakes the engine thread only for a message that could make an estimate: the
-consumer's :class:`~relloc.events.WakeRule` (:meth:`ZenohSource.rearm`, after each wake) judges
-the message's kind (its sensor's ``wake``) and header stamp, read from the CDR bytes without
-decoding (a restamped message: its receive time on the header clock). Any other message waits in the queue and is
-handled with the next urgent one, in arrival order, or at the next poll timeout: the same
-events in the same order. A thread woken for each message runs cold, and that cost, not the
-decoding itself, was most of the live engine's CPU (``docs/adaptive-particles.md``).
-
-Time and order
---------------
-Receive times are wall times; the header clock learns its offset from every stamped message as
-it comes (``clock_rate`` > 1 when a recording is replayed faster than real time). The reorder
-buffer holds events for at most ``reorder_window`` seconds of header time (or that window in
-wall time, divided by the clock rate, when nothing newer comes) and releases them in stamp
-order; what still comes later than an event already released is passed on and counted as
-``out_of_order``, and the localizer decides (it accepts a range up to one update period late
-and rejects, counting, older ones and odometry going backwards). ``0`` passes events through as
-they come, which the localizer tolerates by design (see ``docs/live.md``).
-
-Rejections
-----------
-Nothing that arrives can crash the engine. Besides the ingestion layer's rejections
-(``decode_error``, unusable values), a key this source has no route for (``unknown_key``: only
-possible with the ``subscribe_all`` wildcard subscription), a type the route does not take
-(``unknown_type``, rmw_zenoh) and a full queue (``queue_full``) are
-dropped, counted per reason in :attr:`ZenohSource.stats` and logged (the first time and every
-1000th).
+Keys, threads, time and order, rejections in full: ``docs/explanation/internals.md`` and
+``docs/live.md``.
 """
 
 from __future__ import annotations
