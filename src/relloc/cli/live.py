@@ -11,6 +11,7 @@ from relloc.cli import argtypes
 from relloc.cli.common import (
     UserError,
     add_zenoh_args,
+    check_writable,
     counting_refusals,
     format_stamp,
     interface_from_args,
@@ -35,6 +36,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     from relloc.methods import parse_methods
 
     config = TeamConfig.load(args.config)
+    if args.record is not None:
+        check_writable(args.record.parent, "--record")
     opts = options_from_args(
         ServeOptions,
         args,
@@ -102,6 +105,8 @@ def _print_summary(s: dict[str, Any]) -> None:
             print(f"    {line}")
     if s["engine_errors"]:
         print(f"  engine errors: {s['engine_errors']} (see the log)")
+    if "record" in s:
+        print(f"  recorded {s['record']['messages']} messages to {s['record']['path']}")
 
 
 def _cmd_replay(args: argparse.Namespace) -> int:
@@ -176,6 +181,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.add_argument(
         "--json", default=None, metavar="FILE", help="write the final figures as JSON"
     )
+    serve.add_argument(
+        "--record", type=Path, default=None, metavar="FILE",
+        help="write every estimate published, its flags and the ranges used to the MCAP file "
+        "FILE (as relloc run --mcap, without truth), finished when serve stops",
+    )  # fmt: skip
     add_zenoh_args(serve, "serve")
     serve.set_defaults(handler=_cmd_serve)
 

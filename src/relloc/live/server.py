@@ -18,10 +18,11 @@ from typing import Any
 
 from relloc.config import TeamConfig
 from relloc.engine import Engine, Pipeline
-from relloc.events import WakeRule
+from relloc.events import RangeEvent, WakeRule
 from relloc.faults import FaultInjector, Faults
 from relloc.methods import DETECTION_METHODS
 from relloc.ros.interfaces import RosInterface
+from relloc.sinks.mcap import McapWriter
 from relloc.sinks.zenoh_sink import ZenohSink
 from relloc.sources.zenoh_source import Arrival, ZenohSource, ZenohSourceOptions
 
@@ -57,6 +58,9 @@ class ServeOptions:
     """A robot silent this long (s) is reported as quiet in the status."""
     keep_estimates: int = 2000
     """Estimates kept per pipeline in memory (the engine keeps all; a server runs for hours)."""
+    record: Path | None = None
+    """An MCAP file of every estimate published, its flags and the ranges fed to the methods
+    (:class:`~relloc.sinks.mcap.McapWriter`), finished by :meth:`LiveServer.close`."""
 
 
 class LiveServer:
@@ -120,6 +124,11 @@ class LiveServer:
         self._stopping = False
         self._quiet: set[str] = set()
         self._last_counts: tuple[float, dict[str, int]] = (self.started, {})
+        self.recorder: McapWriter | None = None
+        """The ``record`` file being written (opened last: nothing after it can fail)."""
+        if opts.record is not None:
+            self.recorder = McapWriter(opts.record, distro=opts.interface.distro)
+            self.engine.sinks.append(self.recorder.estimate)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -134,9 +143,13 @@ class LiveServer:
         self.source.wake()  # SimpleQueue.put is reentrant: fine in a signal handler
 
     def close(self) -> None:
-        """Undeclare subscribers and publishers (the session stays open)."""
-        self.source.detach()
-        self.sink.close()
+        """Undeclare subscribers and publishers (the session stays open); finish the record."""
+        try:
+            self.source.detach()
+            self.sink.close()
+        finally:
+            if self.recorder is not None:
+                self.recorder.close()
 
     def run(self, duration: float | None = None) -> dict[str, Any]:
         """Process messages until :meth:`stop` or ``duration`` seconds; returns :meth:`summary`.
@@ -186,6 +199,8 @@ class LiveServer:
                 continue
             self.sink.set_trigger(arrival)
             try:
+                if self.recorder is not None and isinstance(event, RangeEvent):
+                    self.recorder.range(event)
                 self.engine.feed(event)
             except Exception:
                 self.engine_errors += 1
@@ -290,6 +305,8 @@ class LiveServer:
         status["source"]["stats"] = self.source.stats.as_dict()
         status["events"] = self.engine.events
         status["engine_thread_cpu_s"] = round(self.engine_thread_cpu_s, 3)
+        if self.recorder is not None:
+            status["record"] = {"path": str(self.recorder.path), "messages": self.recorder.messages}
         status["header_time_span_s"] = (
             None
             if self.engine.t_first is None or self.engine.t_last is None

@@ -8,6 +8,8 @@ per method the flags of each estimate (``/relloc/<method>/status``,
 the first method's frame) and the ranges the run used (``/relloc/ranges/<a>/<b>``,
 ``sensor_msgs/msg/Range``). ``rosbags`` writes a rosbag2 folder; its single ``.mcap`` file,
 self-contained (the message definitions are in it), is moved to the path asked for.
+:class:`McapWriter` writes as the messages come: ``relloc serve --record`` feeds it live (no
+truth there), :func:`write_mcap` a finished run's messages in log-time order.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ if TYPE_CHECKING:
     from relloc.engine import Engine
     from relloc.evaluation.report import ScenarioReport
 
-__all__ = ["DIAGNOSTIC_ARRAY", "LARGE_VARIANCE", "estimate_records", "write_mcap"]
+__all__ = ["DIAGNOSTIC_ARRAY", "LARGE_VARIANCE", "McapWriter", "estimate_records", "write_mcap"]
 
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
 LARGE_VARIANCE = 1e6
@@ -116,16 +118,79 @@ def _truth_records(report: ScenarioReport, engine: Engine) -> list[Record]:
     return []
 
 
-def _range_records(ranges: Iterable[RangeEvent], distro: str) -> list[Record]:
-    return [
-        (
-            r.t,
-            f"/relloc/ranges/{r.robot_a}/{r.robot_b}",
-            RANGE,
-            range_msg(r, frame_id=f"{r.robot_a}/base_link", distro=distro),
-        )
-        for r in ranges
-    ]
+def _range_record(r: RangeEvent, distro: str) -> Record:
+    return (
+        r.t,
+        f"/relloc/ranges/{r.robot_a}/{r.robot_b}",
+        RANGE,
+        range_msg(r, frame_id=f"{r.robot_a}/base_link", distro=distro),
+    )
+
+
+class McapWriter:
+    """An MCAP file written as the messages come (``relloc serve --record``, and ``run --mcap``).
+
+    :meth:`estimate` and :meth:`range` write one estimate's or range's messages at once; a
+    channel is added on its topic's first message. ``rosbags`` writes into a temporary rosbag2
+    folder beside ``path``; :meth:`close` (call it in a ``finally``: a context manager) finishes
+    the file and moves it to ``path``, so ``path`` only ever holds a complete, readable file.
+    """
+
+    def __init__(self, path: Path, *, distro: str) -> None:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        self.path = Path(path)
+        self.distro = distro
+        self.messages = 0
+        """Messages written so far."""
+        self._store = typestore(distro)
+        self._conns: dict[str, Any] = {}
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._tmp = Path(tempfile.mkdtemp(prefix=".relloc-mcap-", dir=self.path.parent))
+        self._bag = self._tmp / "bag"
+        self._writer: Any = Writer(self._bag, version=9, storage_plugin=StoragePlugin.MCAP)
+        try:
+            self._writer.open()
+        except Exception:
+            shutil.rmtree(self._tmp, ignore_errors=True)
+            raise
+
+    def write(self, t: float, topic: str, msgtype: str, msg: Any) -> None:
+        """Write one message, logged (and stamped by the caller) at ``t`` s."""
+        if self._writer is None:
+            raise ValueError(f"{self.path} is closed")
+        conn = self._conns.get(topic)
+        if conn is None:
+            conn = self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self._store)
+        self._writer.write(conn, max(0, round(t * 1e9)), encode(msg, msgtype, self.distro))
+        self.messages += 1
+
+    def estimate(self, est: Estimate) -> None:
+        """One pose per robot and the status of ``est`` (an engine sink)."""
+        for record in estimate_records(est.method, (est,)):
+            self.write(*record)
+
+    def range(self, r: RangeEvent) -> None:
+        """One range the methods were fed."""
+        self.write(*_range_record(r, self.distro))
+
+    def close(self) -> Path:
+        """Finish the file and move it to :attr:`path` (idempotent)."""
+        if self._writer is not None:
+            writer, self._writer = self._writer, None
+            try:
+                writer.close()
+                (written,) = self._bag.glob("*.mcap")
+                shutil.move(written, self.path)
+            finally:
+                shutil.rmtree(self._tmp, ignore_errors=True)
+        return self.path
+
+    def __enter__(self) -> McapWriter:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
 
 
 def write_mcap(
@@ -138,28 +203,14 @@ def write_mcap(
 ) -> Path:
     """Write every pipeline's estimates and status, the truth of ``report`` (if given) and
     ``ranges`` to the MCAP file ``path``, in ``distro``'s layouts and log-time order."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
     records: list[Record] = []
     for p in engine.pipelines:
         records += estimate_records(p.name, p.estimates)
     if report is not None:
         records += _truth_records(report, engine)
-    records += _range_records(ranges, distro)
+    records += [_range_record(r, distro) for r in ranges]
     records.sort(key=lambda r: r[0])  # stable: an estimate's poses before its status
-    path.parent.mkdir(parents=True, exist_ok=True)
-    store = typestore(distro)
-    tmp = Path(tempfile.mkdtemp(prefix=".relloc-mcap-", dir=path.parent))
-    try:
-        bag = tmp / "bag"
-        with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
-            conns: dict[str, Any] = {}
-            for t, topic, msgtype, msg in records:
-                if topic not in conns:
-                    conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
-                writer.write(conns[topic], max(0, round(t * 1e9)), encode(msg, msgtype, distro))
-        (written,) = bag.glob("*.mcap")
-        shutil.move(written, path)
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+    with McapWriter(path, distro=distro) as writer:
+        for record in records:
+            writer.write(*record)
     return path
