@@ -120,6 +120,12 @@ def run_cell(row: Row, kind: str, out: Path) -> dict[str, Any]:
     return payload
 
 
+def robot_figure(robot: dict[str, Any]) -> Any:
+    """The figure of one robot: its shape APE where the orientation was unobservable, else its
+    APE under one rotation/reflection for the run (multilateration's own alignment)."""
+    return robot.get("shape_ape_median", robot.get("run_aligned_ape_median", robot.get("ape_median")))
+
+
 def figures(payload: dict[str, Any]) -> tuple[float, float, float | None] | str:
     """(mean over robots, worst robot, lowest coverage) of one run, or its error."""
     if "error" in payload:
@@ -127,7 +133,7 @@ def figures(payload: dict[str, Any]) -> tuple[float, float, float | None] | str:
     (scenario,) = payload["scenarios"].values()
     methods = scenario["methods"]
     method = methods.get("pf") or methods["multilateration"]
-    values = [r.get("shape_ape_median", r.get("ape_median")) for r in method["robots"].values()]
+    values = [robot_figure(r) for r in method["robots"].values()]
     per_robot = [v for v in values if isinstance(v, float)]
     if not per_robot:
         return "no estimate"

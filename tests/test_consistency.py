@@ -52,3 +52,26 @@ def test_shape_ape_fits_one_rotation_and_reflection_for_the_run() -> None:
     shaped = align(associate_shapes(ests, _truth(), ["r1", "r2"]), "run")
     for p in shaped.values():
         np.testing.assert_allclose(p.errors, 0.0, atol=1e-9)
+
+
+def test_run_aligned_ape_removes_one_rotation_for_every_method() -> None:
+    from relloc.evaluation.metric import MethodRun
+    from relloc.evaluation.metrics import associate
+    from relloc.evaluation.scores import Ape, RunAlignedApe
+
+    # A filter whose formation is right but turned by 0.1 rad, with 0.05 m of noise on r1.
+    c, s = math.cos(0.1), math.sin(0.1)
+    ests = [
+        Estimate(float(t), "pf", "r0", {"r1": (2.0 * c + 0.05 * (-1) ** t, 2.0 * s), "r2": (-s, c)})
+        for t in range(10)
+    ]
+    truth = _truth()
+    paired = associate(ests, truth, ["r1", "r2"])
+    run = MethodRun("pf", ests, truth, ["r1", "r2"], 0.0, 2.0, paired)
+    aligned = RunAlignedApe().compute(run).stats
+    raw = Ape().compute(run).stats
+    assert raw["r1"].median == pytest.approx(math.hypot(2 * c - 2, 2 * s), abs=0.05)
+    assert aligned["r1"].median == pytest.approx(0.05, abs=0.01)
+    assert aligned["r2"].median < 0.02 < raw["r2"].median
+    # Multilateration's own run alignment is kept; the per-step oracle gets no figure.
+    assert RunAlignedApe().compute(MethodRun("m", ests, truth, ["r1"], 0.0, 2.0, paired, "step")).stats == {}

