@@ -41,8 +41,8 @@ test: setup-test
 	$(BIN)/ruff check src tests benchmarks examples scripts
 	$(BIN)/python -m pytest -q
 
-# The documentation site: its own environment (relloc and the `docs` extra); the command and
-# config reference pages are generated at build time by the hook docs/gen_reference.py.
+# The documentation site: its own environment (relloc and the `docs` extra); the command, config
+# and Python API reference pages are generated at build time by the hook docs/gen_reference.py.
 DOCS_VENV := .venv-docs
 
 $(DOCS_VENV)/.installed: pyproject.toml
@@ -54,11 +54,12 @@ $(DOCS_VENV)/.installed: pyproject.toml
 docs: $(DOCS_VENV)/.installed
 	NO_MKDOCS_2_WARNING=1 $(DOCS_VENV)/bin/mkdocs build --strict --quiet
 
-# Reruns the evaluation commands and writes docs/results_generated.md from their JSON, then
-# MRCLAM Dataset 6 with every robot as the reference, seeds 0-2 (15 runs, two at a time;
-# skipped without ../shared/data): docs/mrclam_references_generated.md.
+# Reruns the evaluation commands and the benchmarks that take seconds and writes docs/results.md
+# from their JSON, and the first-run tutorial's output and plot (docs/generated/); then MRCLAM
+# Dataset 6 with every robot as the reference, seeds 0-2 (15 runs, two at a time; skipped
+# without ../shared/data): docs/mrclam_references_generated.md.
 results: setup
-	$(BIN)/python scripts/results_pages.py --out docs/results_generated.md
+	$(BIN)/python scripts/results_pages.py --out docs/results.md --generated docs/generated
 	$(BIN)/python scripts/mrclam_references.py --skip-missing --page docs/mrclam_references_generated.md
 
 # The benchmark has an environment of its own: relloc plus the pfilter reference (not a dependency).
