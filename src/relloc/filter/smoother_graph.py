@@ -5,7 +5,8 @@ with the shared heading's axes whose origin is the reference's first position (a
 its first key; it drifts with the reference's random walk, which nothing measures and nothing
 reads). Each robot's motion is its own between factor, so a robot without odometry walks on
 its own, not in common with every relative position. The published relative position is
-``x_k - x_ref``, its covariance from the joint marginal of the two keys. GTSAM's
+``x_k - x_ref``, its covariance from the joint marginal of the two keys. A measured relative
+position (:class:`Relative`) is a native between factor of the two robots' keys. GTSAM's
 ``IncrementalFixedLagSmoother`` (iSAM2) marginalises what leaves the lag; a step adds a handful
 of native factors built from NumPy arrays, so its cost depends on the window, not on the run.
 
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import gtsam
 import numpy as np
@@ -38,6 +40,23 @@ REFERENCE_SIGMA = 1e-4
 """Std (m) of the prior that pins the reference's first key at the origin."""
 HUBER_K = 1.345
 """Huber threshold of every range factor, in its sigmas (95 % efficiency on Gaussian noise)."""
+
+
+@dataclass(frozen=True)
+class Relative:
+    """Measured relative positions ``p_target - p_observer`` in the shared heading frame (a
+    sighting's range and bearing, two robots' detections of one object), team indices."""
+
+    observer: IntArray
+    target: IntArray
+    vector: FloatArray
+    """``(K, 2)``."""
+    cov: FloatArray
+    """``(K, 2, 2)``: each vector's covariance."""
+
+    @property
+    def size(self) -> int:
+        return int(self.observer.size)
 
 
 def robot_key(step: int, i: int, n: int) -> int:
@@ -108,12 +127,13 @@ class GraphSmoother:
 
     def start(
         self, t: float, mean: FloatArray, cov: FloatArray, index_a: IntArray, index_b: IntArray, distance: FloatArray,
-        range_sigma: FloatArray, bias_index: IntArray | None = None,
+        range_sigma: FloatArray, bias_index: IntArray | None = None, relative: Relative | None = None,
     ) -> None:
         """The first step at ``t``: the reference at the origin, each robot ``i`` with a prior at
         ``mean[i]`` (``(N, 2)``, relative to the reference) of covariance ``cov[i]``
         (``(N, 2, 2)``; the reference's is ignored), each online bias at its prior, and the
-        start's ranges (team indices; ``bias_index``: per range its online bias, -1 none)."""
+        start's ranges (team indices; ``bias_index``: per range its online bias, -1 none) and
+        ``relative`` observations."""
         self.step = 0
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
@@ -133,6 +153,7 @@ class GraphSmoother:
             values.insert(key, np.array([m]))
             stamps.insert((key, t))
         self._ranges(graph, keys, index_a, index_b, distance, range_sigma, bias_index)
+        self._relative(graph, keys, relative)
         self._update(graph, values, stamps)
 
     def advance(
@@ -146,12 +167,14 @@ class GraphSmoother:
         range_sigma: FloatArray,
         guess: FloatArray | None = None,
         bias_index: IntArray | None = None,
+        relative: Relative | None = None,
     ) -> None:
         """The next step at ``t``: robot ``i`` moved by ``disp[i]`` (``(N, 2)``) with per-axis
         std ``disp_sigma[i]``; one Huber-robust range factor per pair (team indices
         ``index_a``/``index_b``) of ``distance`` and std ``range_sigma``; ``guess`` ``(N, 2)``:
         where to linearise the new keys (default: the estimate moved by ``disp``);
-        ``bias_index``: per range its online bias (-1: none; module docstring)."""
+        ``bias_index``: per range its online bias (-1: none; module docstring); ``relative``:
+        measured relative positions (sightings, detections)."""
         prev = self.keys()
         self.step += 1
         new = self.keys()
@@ -167,6 +190,7 @@ class GraphSmoother:
         for key in self.bias_keys:
             stamps.insert((key, t))  # kept in the window (module docstring)
         self._ranges(graph, new, index_a, index_b, distance, range_sigma, bias_index)
+        self._relative(graph, new, relative)
         self._update(graph, values, stamps)
 
     def _ranges(
@@ -182,6 +206,15 @@ class GraphSmoother:
                 graph.add(gtsam.CustomFactor(noise, [keys[a], keys[b], self.bias_keys[j]], _biased_range(d)))
             else:
                 graph.add(gtsam.RangeFactor2(keys[a], keys[b], d, noise))
+
+    def _relative(self, graph: gtsam.NonlinearFactorGraph, keys: list[int], relative: Relative | None) -> None:
+        """One Huber-robust between factor per measured ``p_target - p_observer``."""
+        if relative is None:
+            return
+        huber = gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K)
+        for a, b, v, c in zip(relative.observer.tolist(), relative.target.tolist(), relative.vector, relative.cov, strict=True):
+            noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(c))
+            graph.add(gtsam.BetweenFactorPoint2(keys[a], keys[b], np.asarray(v, float), noise))
 
     def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: gtsam.FixedLagSmootherKeyTimestampMap) -> None:
         self.smoother.update(graph, values, stamps)

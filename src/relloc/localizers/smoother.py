@@ -7,13 +7,16 @@ iSAM2 over a ``LAG`` window) gets one key per robot and:
 * per pair ranged in the step, one Huber-robust range factor: the median of the bias-corrected
   ranges, the pair's noise undivided (a step's ranges share their bias error);
 * per robot, a between factor: its odometry displacement in the shared heading frame, or
-  without odometry a random walk of ``UNKNOWN_SPEED``, each robot's own.
+  without odometry a random walk of ``UNKNOWN_SPEED``, each robot's own;
+* per observer and target, a Huber-robust between factor of their measured relative position
+  (sightings with a range and a bearing, in the shared frame by the observer's yaw; detections'
+  relative observations): the step's median vector, its noise undivided.
 
-**Start**: the range graph's shape (:func:`relloc.filter.range_graph.shape_from_ranges`), its
-ranges as the first factors. With odometry ``ROTATIONS`` rotations times two reflections each
-start a smoother, pruned by cost (``PRUNE_COST``, then the best after ``HYPOTHESIS_TIME``);
-without, the rotation/reflection is a gauge the random walks hold, published with
-``orientation_observable = False``, ring moments and the shape in the smoother's own frame.
+**Start**: the range graph's shape (:func:`relloc.filter.range_graph.shape_from_ranges`); with
+odometry ``ROTATIONS`` rotations times two reflections each start a smoother, pruned by cost
+(``PRUNE_COST``, then the best after ``HYPOTHESIS_TIME``); without, the rotation/reflection is
+a gauge the random walks hold (``orientation_observable = False``, ring moments, the shape in
+the smoother's own frame). Without ranges: the relative positions chained from the reference.
 
 **Stamps**: a step's keys are at the batch's time; in a team where no robot reports odometry at
 the median time of the step's ranges, since nothing carries the motion past them.
@@ -37,13 +40,13 @@ from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
 from relloc.estimate import OWN_FRAME, Estimate
-from relloc.events import RangeEvent
+from relloc.events import RangeEvent, RelativeObservation, SightingEvent
 from relloc.filter.base import FilterEstimate
 from relloc.filter.measurement import ModelContext
 from relloc.filter.motion import PROCESS_NOISE
 from relloc.filter.range_graph import orientation_hypotheses, shape_from_ranges, start_covariance
 from relloc.filter.ranges import RangeBatch
-from relloc.filter.smoother_graph import GraphSmoother
+from relloc.filter.smoother_graph import GraphSmoother, Relative
 from relloc.filter.smoother_moments import flatten, moments, per_pair
 from relloc.filter.summary import estimate_fields
 from relloc.localizers.base import Measurement
@@ -91,7 +94,8 @@ class _Segment:
 
 
 class SmootherLocalizer(FilterLocalizer):
-    """Odometry + UWB ranges in a fixed-lag factor-graph smoother (module docstring)."""
+    """Odometry, UWB ranges and relative positions in a fixed-lag factor-graph smoother
+    (module docstring)."""
 
     method = "pf"
     range_model = "symmetric"
@@ -118,6 +122,9 @@ class SmootherLocalizer(FilterLocalizer):
         time of its ranges, which nothing could carry to the batch's time."""
         self._step_batch: list[Measurement] = []
         self._recent: deque[RangeEvent] = deque()
+        self._pending_rel: list[tuple[int, int, FloatArray, FloatArray]] = []
+        """The step's measured relative positions (:meth:`_observations`)."""
+        self._recent_rel: deque[tuple[float, tuple[int, int, FloatArray, FloatArray]]] = deque()
         self._moved = np.zeros(self._others.size)
         self._t_start = math.nan
         self._observable = False
@@ -155,11 +162,43 @@ class SmootherLocalizer(FilterLocalizer):
         s = np.concatenate([b.sigma for b in models])
         return ia, ib, z, s
 
+    def _observations(self, batch: list[Measurement]) -> list[tuple[int, int, FloatArray, FloatArray]]:
+        """``(observer, target, p_target - p_observer, its covariance)`` of ``batch``'s
+        detections' relative observations and its sightings with a range and a bearing whose
+        observer's yaw in the shared frame is known (``r (cos a, sin a)``, ``a`` the yaw plus
+        the bearing; radial std the range's, tangential ``r`` times the bearing's). Sightings
+        without one of them are counted in ``smoother_sightings_unused``: one range or one
+        bearing alone does not fix a relative position."""
+        out = []
+        index = self.layout.index
+        for m in batch:
+            if isinstance(m, RelativeObservation):
+                cov = m.sigma**2 * np.eye(2)
+                out.append((index(m.observer), index(m.target), np.array([m.dx, m.dy]), cov))
+            elif isinstance(m, SightingEvent):
+                yaw = self.odometry.pose(m.observer, m.t)[2] if m.bearing is not None else math.nan
+                if m.range is None or not math.isfinite(yaw):
+                    self.stats["smoother_sightings_unused"] += 1
+                    continue
+                a = yaw + m.bearing  # type: ignore[operator]
+                u = np.array([math.cos(a), math.sin(a)])
+                w = np.array([-u[1], u[0]])
+                cov = m.sigma_range**2 * np.outer(u, u) + (m.range * m.sigma_bearing) ** 2 * np.outer(w, w)
+                out.append((index(m.observer), index(m.target), m.range * u, cov + 1e-8 * np.eye(2)))
+        return out
+
     def _remember(self, t: float, batch: list[Measurement]) -> list[RangeEvent]:
+        """Keep the last ``RESTART_WINDOW`` of ranges and relative positions (a restart's
+        start); the new ranges, the step's relative positions into ``_pending_rel``."""
         ranges = [m for m in batch if isinstance(m, RangeEvent)]
         self._recent.extend(ranges)
         while self._recent and self._recent[0].t < t - RESTART_WINDOW:
             self._recent.popleft()
+        observed = self._observations(batch)
+        self._pending_rel += observed
+        self._recent_rel.extend((t, o) for o in observed)
+        while self._recent_rel and self._recent_rel[0][0] < t - RESTART_WINDOW:
+            self._recent_rel.popleft()
         return ranges
 
     # ---------------------------------------------------------------- the cycle
@@ -180,26 +219,65 @@ class SmootherLocalizer(FilterLocalizer):
         return self._advance(t)
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
-        if not self._start_from(t, [m for m in batch if isinstance(m, RangeEvent)]):
+        ranges = [m for m in batch if isinstance(m, RangeEvent)]
+        if not self._start_from(t, ranges, [o for _, o in self._recent_rel]):
             return None
         self._started(t)
         return self._emit(t, self._estimate())
 
-    def _start_from(self, t: float, ranges: list[RangeEvent]) -> bool:
-        """Start the hypotheses at ``t`` from ``ranges``' graph (module docstring); False
-        where they place no robot."""
+    def _start_from(
+        self, t: float, ranges: list[RangeEvent], observed: list[tuple[int, int, FloatArray, FloatArray]]
+    ) -> bool:
+        """Start the hypotheses at ``t`` from ``ranges``' graph, or where they place no robot
+        from the ``observed`` relative positions alone (module docstring); False where
+        neither places a robot."""
         ia, ib, z, s = self._ranges(ranges)
-        if not z.size:
-            return False
+        n = len(self.layout.robots)
+        relative = _relative(observed)
+        start = self._range_start(t, ia, ib, z) if z.size else None
+        if start is None:
+            start = _chained_start(n, self._ref, observed)
+            if start is None:
+                return False
+        means, covs, placed, rms = start
+        pa, pb, pz, ps = per_pair(ia, ib, z, s)
+        self.hypotheses = []
+        for m in range(means.shape[0]):
+            smoother = GraphSmoother(n, self._ref, LAG, self._bias_mean, self._bias_sigma)
+            smoother.start(t, means[m], covs[m], pa, pb, pz, ps, self._bias_index(pa, pb), relative)
+            self.hypotheses.append(smoother)
+        self._placed = placed
+        self._pending = {}
+        self._pending_rel = []
+        self._step_batch = []
+        self._moved[:] = 0.0
+        self._t_start = t
+        # a relative position in the shared frame fixes the orientation the ranges leave open
+        self._observable = relative is not None and means.shape[0] == 1 and self._framed(t)
+        self._started_with = len(self.hypotheses)
+        self.stats["smoother_hypotheses"] = len(self.hypotheses)
+        self.stats["smoother_start_rms_mm"] = round(1000.0 * rms)
+        return True
+
+    def _framed(self, t: float) -> bool:
+        """Whether some robot has odometry at ``t`` (the shared heading frame exists)."""
+        return any(math.isfinite(self.odometry.pose(r, t)[0]) for r in self.layout.robots)
+
+    def _range_start(
+        self, t: float, ia: NDArray[np.intp], ib: NDArray[np.intp], z: FloatArray
+    ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_], float] | None:
+        """The range graph's shape in every orientation hypothesis: means ``(M, N, 2)``,
+        covariances ``(M, N, 2, 2)``, which robots it placed, its RMS residual; ``None`` where
+        it places no robot."""
         j = self._bias_index(ia, ib)
         prior = np.where(j >= 0, np.append(self._bias_mean, 0.0)[j], 0.0)  # the start's bias guess
         shape = shape_from_ranges(len(self.layout.robots), self._ref, ia, ib, z - prior)
         placed = shape.placed[self._others]
         if shape.measured == 0 or not placed.any():
-            return False
+            return None
         rel = shape.relative[self._others]
         n = len(self.layout.robots)
-        odometry = any(math.isfinite(self.odometry.pose(r, t)[0]) for r in self.layout.robots)
+        odometry = self._framed(t)
         rotations = ROTATIONS if odometry else 1
         formations = orientation_hypotheses(rel, rotations, reflections=odometry)
         step = 2.0 * math.pi / rotations if odometry else 0.0
@@ -211,26 +289,13 @@ class SmootherLocalizer(FilterLocalizer):
         means[:, self._others] = formations
         covs = np.tile(np.eye(2), (formations.shape[0], n, 1, 1))
         covs[:, self._others] = blocks
-        pa, pb, pz, ps = per_pair(ia, ib, z, s)
-        self.hypotheses = []
-        for m in range(formations.shape[0]):
-            smoother = GraphSmoother(n, self._ref, LAG, self._bias_mean, self._bias_sigma)
-            smoother.start(t, means[m], covs[m], pa, pb, pz, ps, self._bias_index(pa, pb))
-            self.hypotheses.append(smoother)
-        self._placed = shape.placed.copy()
-        self._pending = {}
-        self._step_batch = []
-        self._moved[:] = 0.0
-        self._t_start = t
-        self._observable = False
-        self._started_with = len(self.hypotheses)
-        self.stats["smoother_hypotheses"] = len(self.hypotheses)
-        self.stats["smoother_start_rms_mm"] = round(1000.0 * shape.rms)
-        return True
+        return means, covs, shape.placed.copy(), float(shape.rms)
 
     def _advance(self, t: float) -> Estimate | None:
         disp, sigma = self._own_motion(t)
         pending, self._pending = self._pending, {}
+        observed, self._pending_rel = self._pending_rel, []
+        relative = _relative(observed)
         ia, ib, z, s = per_pair(*flatten(pending))
         reached = np.zeros(len(self.layout.robots), dtype=bool)
         reached[ia] = True
@@ -241,7 +306,7 @@ class SmootherLocalizer(FilterLocalizer):
         for smoother in self.hypotheses:
             guess = self._placement(smoother, newly, ia, ib, z)
             try:
-                smoother.advance(t, disp, sigma, ia, ib, z, s, guess, self._bias_index(ia, ib))
+                smoother.advance(t, disp, sigma, ia, ib, z, s, guess, self._bias_index(ia, ib), relative)
             except RuntimeError:
                 self.stats["smoother_indeterminate"] += 1
                 continue
@@ -267,7 +332,7 @@ class SmootherLocalizer(FilterLocalizer):
         if self._open is not None:
             self._segments.append(self._open)
             self._open = None
-        if not self._start_from(t, list(self._recent)):
+        if not self._start_from(t, list(self._recent), [o for _, o in self._recent_rel]):
             self.initialized = False
             return None
         self._started(t)
@@ -394,3 +459,45 @@ class SmootherLocalizer(FilterLocalizer):
             }
             out.append(dataclasses.replace(causal, positions=positions, covariances=covariances, **fields))
         return out
+
+
+def _relative(observed: list[tuple[int, int, FloatArray, FloatArray]]) -> Relative | None:
+    """``observed`` (:meth:`SmootherLocalizer._observations`) merged into one factor per
+    observer and target: their median vector, their mean covariance undivided (a step's sightings
+    share their heading error, as its ranges their bias); ``None`` if empty."""
+    if not observed:
+        return None
+    groups: dict[tuple[int, int], list[tuple[FloatArray, FloatArray]]] = {}
+    for a, b, v, c in observed:
+        groups.setdefault((a, b), []).append((v, c))
+    pairs = list(groups)
+    vec = np.array([np.median([v for v, _ in groups[p]], axis=0) for p in pairs], float)
+    cov = np.array([np.mean([c for _, c in groups[p]], axis=0) for p in pairs], float)
+    a, b = (np.array(x, np.intp) for x in zip(*pairs, strict=True))
+    return Relative(a, b, vec, cov)
+
+
+def _chained_start(
+    n: int, ref: int, observed: list[tuple[int, int, FloatArray, FloatArray]]
+) -> tuple[FloatArray, FloatArray, NDArray[np.bool_], float] | None:
+    """One hypothesis from relative positions alone: each robot placed from a placed one along
+    a measured vector (the reference at the origin), its prior the chain's covariance widened to
+    ``SHAPE_SIGMA``; robots no chain reaches get ``WIDE_SIGMA``. ``None`` if none is reached."""
+    pos = np.zeros((n, 2))
+    cov = np.tile(WIDE_SIGMA**2 * np.eye(2), (n, 1, 1))
+    placed = np.zeros(n, dtype=bool)
+    placed[ref] = True
+    cov[ref] = np.eye(2)
+    grew = True
+    while grew:
+        grew = False
+        for a, b, v, c in observed:
+            for src, dst, sign in ((a, b, 1.0), (b, a, -1.0)):
+                if placed[src] and not placed[dst]:
+                    pos[dst] = pos[src] + sign * v
+                    base = cov[src] if src != ref else np.zeros((2, 2))
+                    cov[dst] = base + c + SHAPE_SIGMA**2 * np.eye(2)
+                    placed[dst] = grew = True
+    if placed.sum() < 2:
+        return None
+    return pos[None], cov[None], placed, 0.0
