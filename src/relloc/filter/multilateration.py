@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
+from scipy.sparse import csr_matrix
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -40,11 +41,13 @@ def classical_mds(distances: FloatArray) -> FloatArray:
 def rigidity_rank(positions: FloatArray, pairs: IntArray) -> int:
     """Rank of the 2-D rigidity matrix of the graph ``pairs`` at ``positions``."""
     n = positions.shape[0]
-    r = np.zeros((len(pairs), 2 * n))
-    for k, (a, b) in enumerate(pairs):
-        d = positions[a] - positions[b]
-        r[k, 2 * a : 2 * a + 2] = d
-        r[k, 2 * b : 2 * b + 2] = -d
+    pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
+    d = positions[pairs[:, 0]] - positions[pairs[:, 1]]
+    r = np.zeros((len(pairs), n, 2))
+    rows = np.arange(len(pairs))
+    r[rows, pairs[:, 0]] = d
+    r[rows, pairs[:, 1]] = -d
+    r = r.reshape(len(pairs), 2 * n)
     return int(np.linalg.matrix_rank(r, tol=1e-6 * max(1.0, float(np.abs(r).max(initial=0.0)))))
 
 
@@ -80,6 +83,25 @@ def solve(
         p = unpack(v)
         return np.linalg.norm(p[pairs[:, 0]] - p[pairs[:, 1]], axis=1) - distances
 
+    column = np.full(n_robots, -1, dtype=np.intp)
+    column[free] = np.arange(free.size)
+    rows = np.arange(len(pairs))
+
+    ends = [(pairs[:, k], sign, column[pairs[:, k]] >= 0) for k, sign in ((0, 1.0), (1, -1.0))]
+    jac_rows = np.concatenate([np.repeat(rows[ok], 2) for _, _, ok in ends])
+    jac_cols = np.concatenate([(2 * column[end[ok]][:, None] + np.arange(2)).ravel() for end, _, ok in ends])
+
+    def jacobian(v: FloatArray) -> csr_matrix:
+        """``d|p_a - p_b| / dp_a = u``, ``/ dp_b = -u`` (``u`` the unit vector from b to a;
+        any unit vector where they coincide), on the free robots' columns, sparse: two
+        columns pairs per row, whatever the team's size."""
+        p = unpack(v)
+        d = p[pairs[:, 0]] - p[pairs[:, 1]]
+        norm = np.linalg.norm(d, axis=1)
+        u = np.where(norm[:, None] > 1e-12, d / np.maximum(norm, 1e-12)[:, None], np.array([1.0, 0.0]))
+        vals = np.concatenate([(sign * u[ok]).ravel() for _, sign, ok in ends])
+        return csr_matrix((vals, (jac_rows, jac_cols)), shape=(len(pairs), 2 * free.size))
+
     starts: list[FloatArray] = []
     if initial is not None:
         starts.append(initial - initial[reference])
@@ -98,7 +120,7 @@ def solve(
     best_cost = np.inf
     for start in starts:
         s = start - start[reference]
-        result = least_squares(residuals, s[free].ravel(), method="trf")
+        result = least_squares(residuals, s[free].ravel(), jac=jacobian, method="trf", tr_solver="lsmr")
         if result.cost < best_cost:
             best, best_cost = unpack(result.x), result.cost
     if best is None or rigidity_rank(best, pairs) < 2 * n_robots - 3:
