@@ -1,6 +1,6 @@
 """The NLOS-aware range likelihood and the orientation kernel of the particle filter.
 
-Both answer the shortbag's loss to multilateration (``docs/results.md``): UWB ranges are skewed (a blocked path can only make a
+Both answer the shortbag's loss to multilateration (``docs/explanation/measurements.md``): UWB ranges are skewed (a blocked path can only make a
 range longer), and resampling loses the diversity of the formation's orientation about the
 reference, the one direction ranges cannot see.
 """

@@ -42,7 +42,7 @@ def test_shortbag_default_seed_meets_bounds(shared_data: Path) -> None:
     assert fair.mean_ape_median <= oracle.mean_ape_median + 0.05
     # The PF's mean over robots is no worse than multilateration's (one alignment per
     # run). Seed 0 gives 0.099 against 0.107; over seeds 0-19 the PF's mean lies in 0.08-0.16
-    # (median 0.10): the formation's orientation about the reference is what varies (docs/results.md).
+    # (median 0.10): the formation's orientation about the reference is what varies (docs/explanation/measurements.md).
     assert pf.mean_ape_median <= fair.mean_ape_median, (pf.mean_ape_median, fair.mean_ape_median)
 
 

@@ -129,7 +129,7 @@ class UwbConfig(Checked):
     los_sigma: float = 0.1
     """Line-of-sight range noise (m) of the NLOS-aware likelihood (``range_model = "nlos"``,
     the default for raw ranges), wider than the training residuals' for the pair biases moving
-    between sessions (docs/results.md, "Design measurements behind the filter's defaults")."""
+    between sessions (docs/explanation/measurements.md, "Design measurements behind the filter's defaults")."""
     pairs: dict[str, PairCalibration] = field(default_factory=dict)
 
     def __post_init__(self) -> None:

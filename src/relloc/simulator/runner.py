@@ -193,7 +193,7 @@ class Simulation:
             ),
             # Every robot but the reference moves in the simulated scenarios, so the rotation
             # ambiguity of the uniform start resolves quickly and fewer particles than the
-            # mostly static recordings need will do (docs/results.md, "Measurements moved
+            # mostly static recordings need will do (docs/explanation/measurements.md, "Measurements moved
             # from the code").
             filter=FilterConfig(particles=SIM_PARTICLES),
         )

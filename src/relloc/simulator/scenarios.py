@@ -74,7 +74,7 @@ MULTI_OBJECTS: tuple[SimObject, ...] = (
 
 Placed (by a small search over layouts, at least 0.45 m from every path) so that pairs of
 robots see a common object at the same time for much of the run (:func:`covisibility`
-measures how much; the figures are in docs/results.md).
+measures how much; the figures are in docs/explanation/measurements.md).
 """
 
 
