@@ -55,18 +55,32 @@ class OdometryMotion:
         sigma: FloatArray,
         dt: float,
         rng: np.random.Generator,
+        work: FloatArray | None = None,
     ) -> None:
         """Move the position columns of ``particles`` (``(M, D)``, ``D >= 2(N-1)``: online-bias
-        columns may follow; in place); ``others`` indexes disp/sigma rows."""
+        columns may follow; in place); ``others`` indexes disp/sigma rows. ``work``: an
+        ``(M, N-1, 2)`` buffer the noise is drawn into (reused from step to step, it saves
+        faulting in a fresh array per call); the numbers are the same either way.
+
+        Every operation runs over the flat ``(M, 2(N-1))`` rows, or over complex pairs for the
+        reference's shared draw: the same element-wise arithmetic as broadcasting over
+        ``(M, N-1, 2)``, without NumPy's slow loops over an innermost axis of 1 or 2."""
         m = particles.shape[0]
         n_others = len(others)
-        rel = particles[:, : 2 * n_others].reshape(m, n_others, 2)
+        rel = particles[:, : 2 * n_others]
         own = np.sqrt(self.own_variance(sigma, others, dt))
-        noise = rng.standard_normal((m, n_others, 2))
-        noise *= own[None, :, None]
-        noise += disp[others] - disp[reference]
+        shape = (m, n_others, 2)
+        if work is None or work.shape != shape:
+            work = np.empty(shape)
+        noise = rng.standard_normal(shape, out=work).reshape(m, 2 * n_others)
+        noise *= np.repeat(own, 2)
+        noise += (disp[others] - disp[reference]).reshape(-1)
         if sigma[reference] > 0.0:
-            noise -= rng.standard_normal((m, 1, 2)) * sigma[reference]
+            common = rng.standard_normal((m, 1, 2))
+            common *= sigma[reference]
+            # complex128 views: one complex subtraction is the two real ones, exactly
+            pairs = noise.view(np.complex128)
+            pairs -= common.reshape(m, 2).view(np.complex128)
         rel += noise
 
 

@@ -89,6 +89,8 @@ class ParticleFilter(WeightedFilter):
         """Random walk of each online bias (m/sqrt(s)), added to its beliefs' variances."""
         self._others = np.array([layout.index(r) for r in layout.others], dtype=np.intp)
         self._reference = layout.index(layout.reference)
+        self._noise = np.empty((0, layout.n_others, 2))
+        """The buffer ``predict`` draws the odometry noise into, reused while the count stays."""
         self.particles = self.sample_prior(n_particles)
         self._mcmc_scale = 0.5
         self.evidence = Evidence(len(layout.robots))
@@ -123,7 +125,10 @@ class ParticleFilter(WeightedFilter):
     def predict(self, disp: FloatArray, sigma: FloatArray, dt: float) -> None:
         """Move particles by every robot's displacement ``disp`` (N, 2) with std ``sigma`` (N,),
         turn each formation by ``rotation_noise`` and walk the online bias beliefs."""
-        self.motion.propagate(self.particles, self._others, self._reference, disp, sigma, dt, self.rng)
+        m, k = self.particles.shape[0], self.layout.n_others
+        if self._noise.shape != (m, k, 2):
+            self._noise = np.empty((m, k, 2))
+        self.motion.propagate(self.particles, self._others, self._reference, disp, sigma, dt, self.rng, self._noise)
         self.evidence.moved(disp)
         if self.rotation_noise > 0.0 and dt > 0.0:
             self.rotate(self.rng.normal(0.0, self.rotation_noise * np.sqrt(dt), self.n))
@@ -272,11 +277,13 @@ class ParticleFilter(WeightedFilter):
         """The posterior's honest summary (:func:`relloc.filter.summary.summarize`): the
         dominant mode's mean and covariance of each robot's relative position (the ring's
         moments while the orientation cannot have been resolved), with the mode's weight, the
-        shape and the pairwise distances; and the mixture moments of each online bias."""
+        shape and the pairwise distances; and the mixture moments of each online bias. The
+        shape and the distances are computed when first read
+        (:class:`~relloc.filter.summary.DeferredSummary`): a step nobody publishes skips them."""
         w = np.exp(self.logw)
         m = self.particles.shape[0]
         rel = self.particles[:, : self.layout.dim].reshape(m, -1, 2)
-        summary = summarize(rel, w, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor)
+        summary = summarize(rel, w, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor, deferred=True)
         self.last_summary = summary
         biases = {}
         for pair in self.layout.bias_pairs:

@@ -255,13 +255,16 @@ def summarize(
     *,
     can_resolve: bool = True,
     floor: float = 0.0,
+    deferred: bool = False,
 ) -> ModeSummary:
     """The honest summary of hypotheses ``rel`` ``(M, K, 2)`` (relative positions of the
     non-reference robots) with normalised weights ``w`` ``(M,)`` and, for Gaussians, their
     per-robot position covariances ``covs`` ``(M, K, 2, 2)``. ``can_resolve``: whether what was
     fused could have broken the rotation/reflection symmetry (:class:`Evidence`). ``floor``
     (m^2) is added to every published and shape variance: the share of the error that the
-    hypotheses' spread cannot show (:attr:`relloc.filter.pf.ParticleFilter.covariance_floor`)."""
+    hypotheses' spread cannot show (:attr:`relloc.filter.pf.ParticleFilter.covariance_floor`).
+    ``deferred``: return a :class:`DeferredSummary`, its shape and distances computed on first
+    read."""
     rel = np.asarray(rel, float)
     w = np.asarray(w, float)
     w = _normalised(w)
@@ -299,45 +302,115 @@ def summarize(
         cov = 0.5 * r2[:, None, None] * np.eye(2)[None]
     cov = cov + floor * np.eye(2)[None]
 
-    # Shape and distances from the even stride through the cloud (a deterministic sample: its
-    # Monte Carlo error is a few percent of the posterior's spread), which keeps them cheap.
-    # x[:, sub] is laid out hypothesis-major (a gather along the last axis): the sums over it
-    # below depend on that layout to the last bit, so it stays a gather even for step 1.
-    xs, ys = x[:, sub], y[:, sub]
-    ax, ay = _onto(xs, ys, *((c, s, hand) if step == 1 else (c[sub], s[sub], hand[sub])))
-    shape_mean, shape_cov = _moments(ax, ay, ws, None)
-    if covs is not None:  # a member's own covariance turns with it; its trace is what survives
-        shape_cov += 0.5 * np.einsum("m,mk->k", ws, np.trace(covs[sub], axis1=2, axis2=3))[:, None, None] * np.eye(2)
-    g = gauge(shape_mean[None])[0]
-    a0 = math.atan2(shape_mean[0, 1], shape_mean[0, 0])  # the same map for the covariance
-    rot = np.array([[math.cos(a0), math.sin(a0)], [-math.sin(a0), math.cos(a0)]])
-    if k > 1 and (rot @ shape_mean[1])[1] < 0.0:
-        rot = np.diag([1.0, -1.0]) @ rot
-    shape_cov = np.einsum("ab,kbc,dc->kad", rot, shape_cov, rot) + floor * np.eye(2)[None]
-
-    # Pairwise distances, the reference (index 0) included.
-    i, j = _pairs(k + 1)
-    px = np.zeros((k + 1, xs.shape[1]))
-    py = np.zeros((k + 1, xs.shape[1]))
-    px[1:], py[1:] = xs, ys
-    dx, dy = px[i] - px[j], py[i] - py[j]
-    dd = dx * dx + dy * dy
-    dm = _wsum(np.sqrt(dd), ws)
-    ds = np.sqrt(np.maximum(_wsum(dd, ws) - dm * dm, 0.0))
-    distances = np.zeros((k + 1, k + 1, 2))
-    distances[i, j, 0] = distances[j, i, 0] = dm
-    distances[i, j, 1] = distances[j, i, 1] = ds
-
-    return ModeSummary(
-        mean=mean,
-        cov=cov,
-        weighted_mean=weighted_mean,
-        mode_weight=mode_weight,
-        n_modes=n_modes,
-        orientation_std=orientation_std,
-        orientation_observable=bool(can_resolve and orientation_std < ORIENTATION_MAX_STD),
-        shape=g,
-        shape_cov=shape_cov,
-        distances=distances,
-        members=members,
+    fields = (
+        mean, cov, weighted_mean, mode_weight, n_modes, orientation_std,
+        bool(can_resolve and orientation_std < ORIENTATION_MAX_STD),
     )
+    tail = _Tail(x, y, (c, s, hand) if step == 1 else (c[sub], s[sub], hand[sub]), sub, ws, covs, floor)
+    if deferred:
+        return DeferredSummary.of(fields, members, tail)
+    shape, shape_cov = tail.shape()
+    return ModeSummary(*fields, shape, shape_cov, tail.distances(), members)
+
+
+class _Tail:
+    """What the shape and the pairwise distances are computed from: the even stride through
+    the cloud and its fit to the template (:func:`summarize`)."""
+
+    def __init__(
+        self,
+        x: FloatArray,
+        y: FloatArray,
+        fit: tuple[FloatArray, FloatArray, FloatArray],
+        sub: IntArray,
+        ws: FloatArray,
+        covs: FloatArray | None,
+        floor: float,
+    ) -> None:
+        # x[:, sub] is laid out hypothesis-major (a gather along the last axis): the sums over
+        # it below depend on that layout to the last bit, so it stays a gather even for step 1.
+        self.xs, self.ys = x[:, sub], y[:, sub]
+        self.fit, self.sub, self.ws, self.covs, self.floor = fit, sub, ws, covs, floor
+
+    def shape(self) -> tuple[FloatArray, FloatArray]:
+        """The mean formation in the declared gauge ``(K, 2)`` and its covariance ``(K, 2, 2)``."""
+        ws, covs, floor = self.ws, self.covs, self.floor
+        k = self.xs.shape[0]
+        ax, ay = _onto(self.xs, self.ys, *self.fit)
+        shape_mean, shape_cov = _moments(ax, ay, ws, None)
+        if covs is not None:  # a member's own covariance turns with it; its trace is what survives
+            shape_cov += 0.5 * np.einsum("m,mk->k", ws, np.trace(covs[self.sub], axis1=2, axis2=3))[:, None, None] * np.eye(2)
+        g = gauge(shape_mean[None])[0]
+        a0 = math.atan2(shape_mean[0, 1], shape_mean[0, 0])  # the same map for the covariance
+        rot = np.array([[math.cos(a0), math.sin(a0)], [-math.sin(a0), math.cos(a0)]])
+        if k > 1 and (rot @ shape_mean[1])[1] < 0.0:
+            rot = np.diag([1.0, -1.0]) @ rot
+        return g, np.einsum("ab,kbc,dc->kad", rot, shape_cov, rot) + floor * np.eye(2)[None]
+
+    def distances(self) -> FloatArray:
+        """Mean and std of every pair's distance ``(K+1, K+1, 2)``, the reference (index 0)
+        included."""
+        xs, ys, ws = self.xs, self.ys, self.ws
+        k = xs.shape[0]
+        i, j = _pairs(k + 1)
+        px = np.zeros((k + 1, xs.shape[1]))
+        py = np.zeros((k + 1, xs.shape[1]))
+        px[1:], py[1:] = xs, ys
+        dx, dy = px[i] - px[j], py[i] - py[j]
+        dd = dx * dx + dy * dy
+        dm = _wsum(np.sqrt(dd), ws)
+        ds = np.sqrt(np.maximum(_wsum(dd, ws) - dm * dm, 0.0))
+        distances = np.zeros((k + 1, k + 1, 2))
+        distances[i, j, 0] = distances[j, i, 0] = dm
+        distances[i, j, 1] = distances[j, i, 1] = ds
+        return distances
+
+
+class _OnRead:
+    """A field of :class:`DeferredSummary`: the value given, else computed on first read."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.name = name
+        self.slot = "_" + name
+
+    def __get__(self, obj: Any, owner: type | None = None) -> Any:
+        if obj is None:
+            return self
+        value = obj.__dict__.get(self.slot)
+        if value is None:
+            obj._materialize(self.name)
+            value = obj.__dict__[self.slot]
+        return value
+
+    def __set__(self, obj: Any, value: Any) -> None:
+        obj.__dict__[self.slot] = value
+
+
+class DeferredSummary(ModeSummary):
+    """A :class:`ModeSummary` whose shape (with its covariance) and pairwise distances are
+    computed on first read, to the same bits as :func:`summarize` computes them at once: the
+    moments, modes and observability a filter needs every step are there from the start, the
+    rest only where some consumer reads it (a published estimate, the watchdog's distances)."""
+
+    shape = _OnRead()
+    shape_cov = _OnRead()
+    distances = _OnRead()
+
+    @classmethod
+    def of(cls, fields: tuple[Any, ...], members: NDArray[np.bool_], tail: _Tail) -> DeferredSummary:
+        out = cls(*fields, None, None, None, members)
+        out.__dict__["_tail"] = tail
+        return out
+
+    def _materialize(self, name: str) -> None:
+        tail: _Tail = self.__dict__["_tail"]
+        if name == "distances":
+            self.__dict__["_distances"] = tail.distances()
+        else:
+            self.__dict__["_shape"], self.__dict__["_shape_cov"] = tail.shape()
+
+    @property
+    def computed(self) -> frozenset[str]:
+        """Which deferred parts have been computed so far (``shape``, ``distances``)."""
+        d = self.__dict__
+        return frozenset(n for n, slot in (("shape", "_shape"), ("distances", "_distances")) if d.get(slot) is not None)

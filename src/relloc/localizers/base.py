@@ -69,6 +69,7 @@ class Localizer:
         self.odometry = OdometryTracks(config, self._track_frame)
         self._memory: dict[type, dict[Any, Any]] = {}
         self._last_emit = -math.inf
+        self._batching = False
 
     @property
     def layout(self) -> TeamLayout:
@@ -188,15 +189,29 @@ class Localizer:
 
     def _run_batch(self) -> list[Estimate]:
         t, batch = self.grid.take()
-        est = self._step(t, batch)
+        self._batching = True
+        try:
+            est = self._step(t, batch)
+        finally:
+            self._batching = False
         if est is None:
             return []
-        # A batch is stamped with its newest measurement, so batch times jitter within a window:
-        # half a window of tolerance keeps one estimate per estimate_period.
-        if est.t - self._last_emit >= self.estimate_period - 0.5 * self.update_period:
+        if self._due(est.t):
             self._last_emit = est.t
             return [est]
         return []
+
+    def _due(self, t: float) -> bool:
+        """Whether an estimate stamped ``t`` would be emitted. A batch is stamped with its
+        newest measurement, so batch times jitter within a window: half a window of tolerance
+        keeps one estimate per estimate_period."""
+        return t - self._last_emit >= self.estimate_period - 0.5 * self.update_period
+
+    def publishes(self, t: float) -> bool:
+        """Whether an estimate stamped ``t`` built now is emitted: False only within a batch's
+        step for an estimate that comes too soon after the last one (what only a published
+        estimate carries may then be skipped); True anywhere else."""
+        return not self._batching or self._due(t)
 
     def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
         raise NotImplementedError

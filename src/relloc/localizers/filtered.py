@@ -246,7 +246,11 @@ class FilterLocalizer(Localizer):
             covs[robot] = ((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1])))
         for robot in {*fe.headings, self.layout.reference}:  # the reference's: body-frame evaluation
             self.odometry.log_yaw(robot, t)
-        honest = {} if shown.summary is None else estimate_fields(shown.summary, self.layout.reference, self.layout.others)
+        # The shape and distances a published estimate carries (a step whose estimate is not
+        # emitted leaves them uncomputed, :class:`~relloc.filter.summary.DeferredSummary`).
+        honest = {} if shown.summary is None or not self.publishes(t) else estimate_fields(
+            shown.summary, self.layout.reference, self.layout.others
+        )
         widening = self.watchdog.widening
         if widening > 1.0:
             covs = {r: tuple(tuple(widening * v for v in row) for row in c) for r, c in covs.items()}  # type: ignore[misc]

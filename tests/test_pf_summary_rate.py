@@ -1,0 +1,117 @@
+"""The particle filter's summary at the rate it is used, and its predict's noise: the moments
+and modes every step, the shape and distances only where read, every figure as before."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pytest
+
+import relloc.filter.pf as pf_module
+from relloc.filter.motion import OdometryMotion
+from relloc.filter.summary import DeferredSummary, summarize
+from relloc.localizers.sampled import ParticleFilterLocalizer
+from relloc.simulator import multi_scenario
+
+
+def _broadcast_propagate(particles: np.ndarray, others: np.ndarray, reference: int, disp: np.ndarray,
+                         sigma: np.ndarray, dt: float, rng: np.random.Generator, motion: OdometryMotion) -> None:
+    """The noise model written plainly over ``(M, N-1, 2)`` with broadcasting."""
+    m, k = particles.shape[0], len(others)
+    rel = particles[:, : 2 * k].reshape(m, k, 2)
+    own = np.sqrt(motion.own_variance(sigma, others, dt))
+    noise = rng.standard_normal((m, k, 2)) * own[None, :, None] + (disp[others] - disp[reference])
+    if sigma[reference] > 0.0:
+        noise -= rng.standard_normal((m, 1, 2)) * sigma[reference]
+    rel += noise
+
+
+@pytest.mark.parametrize(("width", "k", "sigma_ref"), [(8, 4, 0.02), (10, 4, 0.02), (8, 4, 0.0), (2, 1, 0.1)])
+def test_predict_draws_the_same_numbers_as_the_plain_broadcast(width: int, k: int, sigma_ref: float) -> None:
+    data = np.random.default_rng(5)
+    particles = data.normal(size=(700, width))
+    disp = data.normal(size=(k + 1, 2))
+    sigma = np.abs(data.normal(size=k + 1)) * 0.1
+    sigma[0] = sigma_ref
+    others = np.arange(1, k + 1)
+    motion = OdometryMotion()
+    expected = particles.copy()
+    _broadcast_propagate(expected, others, 0, disp, sigma, 0.1, np.random.default_rng(3), motion)
+    for work in (None, np.full((700, k, 2), np.nan)):
+        got = particles.copy()
+        motion.propagate(got, others, 0, disp, sigma, 0.1, np.random.default_rng(3), work)
+        assert np.array_equal(got, expected)
+
+
+def _two_modes(m: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    formation = np.array([[2.0, 0.5], [-1.0, 2.0], [0.5, -1.5]])
+    theta = np.where(rng.random(m) < 0.7, 0.3, 2.0) + 0.05 * rng.standard_normal(m)
+    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
+    x, y = formation[None, :, 0], formation[None, :, 1]
+    rel = np.stack([c * x - s * y, s * x + c * y], axis=-1) + 0.05 * rng.standard_normal((m, 3, 2))
+    return rel, rng.random(m)
+
+
+@pytest.mark.parametrize("m", [300, 5000])
+@pytest.mark.parametrize("can_resolve", [True, False])
+def test_a_deferred_summary_computes_only_what_is_read_and_equals_the_eager_one(m: int, can_resolve: bool) -> None:
+    rel, w = _two_modes(m, seed=m)
+    eager = summarize(rel, w, can_resolve=can_resolve, floor=0.01)
+    lazy = summarize(rel, w, can_resolve=can_resolve, floor=0.01, deferred=True)
+    assert isinstance(lazy, DeferredSummary) and type(eager) is not DeferredSummary
+    assert lazy.computed == frozenset()
+    for name in ("mean", "cov", "weighted_mean", "members"):
+        assert np.array_equal(getattr(lazy, name), getattr(eager, name))
+    assert (lazy.mode_weight, lazy.n_modes, lazy.orientation_std, lazy.orientation_observable) == (
+        eager.mode_weight, eager.n_modes, eager.orientation_std, eager.orientation_observable)
+    assert lazy.computed == frozenset()
+    assert np.array_equal(lazy.distances, eager.distances)
+    assert lazy.computed == {"distances"}
+    assert np.array_equal(lazy.shape, eager.shape) and np.array_equal(lazy.shape_cov, eager.shape_cov)
+    assert lazy.computed == {"shape", "distances"}
+
+
+def _run(monkeypatch: pytest.MonkeyPatch, deferred: bool) -> tuple[list[str], list[tuple[bool, frozenset[str]]]]:
+    """Published estimates (reprs) of a short run with one estimate per 0.2 s (half the steps
+    unpublished) and, per step, whether it published and what of its summary was computed."""
+    if not deferred:
+        eager = summarize
+
+        def forced(*args: Any, **kwargs: Any) -> Any:
+            kwargs["deferred"] = False
+            return eager(*args, **kwargs)
+
+        monkeypatch.setattr(pf_module, "summarize", forced)
+    sim = multi_scenario(seed=1, duration=8.0)
+    loc = ParticleFilterLocalizer(sim.config.with_filter(particles=600), seed=1)
+    loc.estimate_period = 0.2
+    steps: list[tuple[bool, frozenset[str]]] = []
+    run_batch = loc._run_batch
+
+    def watched() -> list[Any]:
+        out = run_batch()
+        s = loc.filter.last_summary
+        if loc.initialized and isinstance(s, DeferredSummary):
+            steps.append((bool(out), s.computed))
+        return out
+
+    monkeypatch.setattr(loc, "_run_batch", watched)
+    published = [repr(e) for ev in sim.events() for e in loc.process(ev)]
+    return published, steps
+
+
+def test_only_published_steps_compute_the_shape_and_publish_what_the_eager_summary_did(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    lazy, steps = _run(monkeypatch, deferred=True)
+    assert len(lazy) > 20
+    unpublished = [computed for shown, computed in steps if not shown]
+    published = [computed for shown, computed in steps if shown]
+    assert len(unpublished) > 10 and len(published) > 10
+    assert all("shape" not in computed for computed in unpublished)
+    assert all("shape" in computed for computed in published)
+    with monkeypatch.context() as patch:
+        eager, _ = _run(patch, deferred=False)
+    assert lazy == eager
