@@ -170,11 +170,11 @@ def _modes(angle: FloatArray, hand: FloatArray, w: FloatArray) -> IntArray:
     hist = np.bincount(cell, weights=w, minlength=2 * MODE_BINS)
     label_of_cell = np.full(2 * MODE_BINS, -1, dtype=np.intp)
     runs: list[list[int]] = []
-    heavy = (hist > MODE_MIN_BIN_WEIGHT).tolist()
+    heavy = (hist > MODE_MIN_BIN_WEIGHT).reshape(2, MODE_BINS)
+    # a mode's tails: its neighbour bins (on the circle)
+    occupied = (heavy | np.roll(heavy, 1, axis=1) | np.roll(heavy, -1, axis=1)).tolist()
     for h in range(2):
-        held = heavy[h * MODE_BINS : (h + 1) * MODE_BINS]
-        # a mode's tails: its neighbour bins (on the circle)
-        occ = [held[i - 1] or held[i] or held[(i + 1) % MODE_BINS] for i in range(MODE_BINS)]
+        occ = occupied[h]
         if not any(occ):
             continue
         if all(occ):
@@ -224,20 +224,28 @@ def _wsum(a: FloatArray, w: FloatArray) -> FloatArray:
 
 
 def _moments(
-    x: FloatArray, y: FloatArray, w: FloatArray, covs: FloatArray | None
+    x: FloatArray,
+    y: FloatArray,
+    w: FloatArray,
+    covs: FloatArray | None,
+    products: tuple[FloatArray, FloatArray, FloatArray] | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """Weighted mean ``(K, 2)`` and per-robot covariance ``(K, 2, 2)`` of the coordinate planes
     ``x``, ``y`` ``(K, M)`` under normalised weights ``w`` (plus the weighted member covariances
     ``covs`` ``(M, K, 2, 2)``, if any). Second moments minus the squared mean: no centred copy;
-    positions are metres, far above float64 cancellation."""
-    mx, my = _wsum(x, w), _wsum(y, w)
+    positions are metres, far above float64 cancellation. ``products``: ``x * x``, ``y * y``,
+    ``x * y`` where the caller has them (the same planes under other weights)."""
+    xx, yy, xy = (x * x, y * y, x * y) if products is None else products
+    mean = np.empty((x.shape[0], 2))
+    mean[:, 0] = mx = _wsum(x, w)
+    mean[:, 1] = my = _wsum(y, w)
     cov = np.empty((x.shape[0], 2, 2))
-    cov[:, 0, 0] = np.maximum(_wsum(x * x, w) - mx * mx, 0.0)
-    cov[:, 1, 1] = np.maximum(_wsum(y * y, w) - my * my, 0.0)
-    cov[:, 0, 1] = cov[:, 1, 0] = _wsum(x * y, w) - mx * my
+    cov[:, 0, 0] = np.maximum(_wsum(xx, w) - mx * mx, 0.0)
+    cov[:, 1, 1] = np.maximum(_wsum(yy, w) - my * my, 0.0)
+    cov[:, 0, 1] = cov[:, 1, 0] = _wsum(xy, w) - mx * my
     if covs is not None:
         cov += np.einsum("m,mkab->kab", w, covs)
-    return np.stack([mx, my], axis=1), cov
+    return mean, cov
 
 
 def _onto(
@@ -270,7 +278,8 @@ def summarize(
     w = _normalised(w)
     m, k, _ = rel.shape
     x, y = np.ascontiguousarray(rel[:, :, 0].T), np.ascontiguousarray(rel[:, :, 1].T)  # (K, M)
-    weighted_mean, all_cov = _moments(x, y, w, covs)
+    products = (x * x, y * y, x * y)
+    weighted_mean, all_cov = _moments(x, y, w, covs, products)
 
     # A first template: the weighted mean gauge form of an even stride through the cloud (the
     # whole cloud below 2 SUMMARY_SAMPLE hypotheses: no copy of it then).
@@ -294,7 +303,7 @@ def summarize(
     orientation_std = math.pi if rbar <= math.exp(-0.5 * math.pi**2) else min(math.sqrt(-2.0 * math.log(rbar)), math.pi)
 
     if can_resolve:
-        mean, cov = (weighted_mean, all_cov) if everything else _moments(x, y, wm, covs)
+        mean, cov = (weighted_mean, all_cov) if everything else _moments(x, y, wm, covs, products)
     else:
         # The exact posterior is invariant under rotations about the reference: its moments.
         r2 = np.diagonal(all_cov, axis1=1, axis2=2).sum(axis=1) + np.sum(weighted_mean**2, axis=1)
