@@ -15,7 +15,7 @@ import pytest
 torch = pytest.importorskip("torch")
 
 from relloc.events import OdometryEvent, RangeEvent  # noqa: E402
-from relloc.ranging.dataset import block_split, drop_repeats, load_csv  # noqa: E402
+from relloc.ranging.dataset import block_split, drop_repeats, load_csv, make_windows  # noqa: E402
 from relloc.ranging.export import (  # noqa: E402
     export_model,
     load_checkpoint,
@@ -24,6 +24,7 @@ from relloc.ranging.export import (  # noqa: E402
 )
 from relloc.ranging.inference import ModelSet  # noqa: E402
 from relloc.ranging.models import Architecture, EnsembleModel, RangeErrorModel  # noqa: E402
+from relloc.ranging.support import InputSupport  # noqa: E402
 from relloc.ranging.synthetic import write_synthetic_csv  # noqa: E402
 from relloc.ranging.train import TrainConfig, split_pair, train_model  # noqa: E402
 
@@ -176,6 +177,10 @@ def test_cli_train_eval_export_and_correct(tmp_path: Path) -> None:
     assert entry["residual_min"] < 0 < entry["residual_max"]
     assert entry["fallback"] == (entry["val_mse"] > 0.9 * entry["val_mse_bias"])
     assert manifest["offset"] == "manifest"
+    # the guard's support holds every training window, and loads with the models
+    train_windows = make_windows(clean, 4, split.train)[0]
+    assert InputSupport.from_json(entry["support"]).contains(train_windows).all()
+    assert ModelSet.load(out / "stacked")["n_3-n_7"].support is not None
     conv = json.loads((out / "convlstm" / "manifest.json").read_text())["pairs"]["n_3-n_7"]
     assert len(conv["member_val_mse"]) == 2 and len(conv["best_epoch"]) == 2
 

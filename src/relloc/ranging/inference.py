@@ -28,6 +28,7 @@ import numpy as np
 import onnxruntime as ort
 
 from relloc.ranging.manifest import ModelDirError, read_manifest
+from relloc.ranging.support import InputSupport
 
 INPUT_NAME = "window"
 OUTPUT_NAMES = ("residual", "sigma")
@@ -62,6 +63,7 @@ class PairModel:
         fallback: bool = False,
         fallback_sigma: float | None = None,
         threads: int = 1,
+        support: InputSupport | None = None,
     ) -> None:
         if n_steps < 1:
             raise ValueError(f"{pair}: n_steps must be >= 1, got {n_steps}")
@@ -81,6 +83,8 @@ class PairModel:
         self.residual_max = residual_max
         self.fallback = fallback
         self.fallback_sigma = fallback_sigma
+        self.support = support
+        """Where the model was trained (:mod:`relloc.ranging.support`); ``None``: no guard."""
         source = onnx_model if isinstance(onnx_model, bytes) else str(onnx_model)
         self.session = ort.InferenceSession(
             source, session_options(threads), providers=["CPUExecutionProvider"]
@@ -175,6 +179,7 @@ class ModelSet(Mapping[str, PairModel]):
                 fallback = bool(entry.get("fallback", False))
                 fb_sigma = entry.get("fallback_sigma")
                 fallback_sigma = None if fb_sigma is None else float(fb_sigma)
+                support = InputSupport.from_json(entry["support"]) if "support" in entry else None
             except (KeyError, TypeError, ValueError, AttributeError) as exc:
                 raise ModelDirError(f"{path}: pair {pair!r}: malformed entry ({type(exc).__name__}: {exc})") from None
             if len(nodes) != 2:
@@ -191,6 +196,7 @@ class ModelSet(Mapping[str, PairModel]):
                     fallback=fallback,
                     fallback_sigma=fallback_sigma,
                     threads=threads,
+                    support=support,
                 )
             except ValueError as exc:
                 raise ModelDirError(f"{path}: {exc}") from None

@@ -48,6 +48,7 @@ from relloc.ranging.models import (
     RangeErrorModel,
     build_model,
 )
+from relloc.ranging.support import InputSupport
 
 
 @dataclass(frozen=True)
@@ -303,6 +304,11 @@ def split_pair(series: PairSeries, config: TrainConfig) -> PairData:
     return PairData(clean, dropped, split, train_bias, windows)
 
 
+def _support(windows: np.ndarray) -> dict[str, Any]:
+    """The manifest's ``support`` of a pair's development windows (none without windows)."""
+    return {"support": InputSupport.of(windows).to_json()} if len(windows) else {}
+
+
 def train_directory(
     csv_path: str | Path,
     out: str | Path,
@@ -387,6 +393,7 @@ def train_directory(
             "residual_min": float(np.min(train_resid)),
             "residual_max": float(np.max(train_resid)),
             "fallback_sigma": float(np.sqrt(val_mse_bias)),
+            **_support(np.concatenate([win["train"][0], win["val"][0]])),
             "sigma_scale": info["sigma_scale"],
             "member_val_mse": info["member_val_mse"],
             "test_rows": [data.split.end_dev, len(data.clean)],

@@ -14,9 +14,11 @@ from pathlib import Path
 import numpy as np
 
 from relloc.config import TeamConfig
+from relloc.estimate import Estimate
 from relloc.events import Event, OdometryEvent, RangeEvent
 from relloc.odometry import OdometryTrack
 from relloc.ranging.inference import OFFSET_MODES, ModelSet, PairModel
+from relloc.stages.correction_check import CorrectionCheck
 
 YawProvider = Callable[[str, float], float | None]
 """``(robot, t) -> heading in the shared frame (rad)``, or ``None`` if unknown."""
@@ -32,6 +34,8 @@ OUTCOMES: tuple[str, ...] = (
     "invalid_range",
     "out_of_order",
     "already_corrected",
+    "out_of_support",
+    "checked_off",
 )
 """Keys of :attr:`RangeCorrector.stats` that count ranges (each range counts once)."""
 
@@ -72,7 +76,14 @@ class RangeCorrector:
     offset: str | None = None
     """``manifest`` or ``filter`` (see the module docstring); None: the model directory's
     choice (``ModelSet.offset_mode``), else ``manifest``."""
+    self_check: bool = True
+    """Judge each pair's correction against the constant on the published estimates and switch
+    it off where it hurts (:mod:`relloc.stages.correction_check`)."""
+    bias_of: Callable[[str, str], float] | None = None
+    """The team's calibrated bias of a node pair (what the filter removes from a range the
+    stage passes through), for the self-check; ``None``: zero."""
     stats: Counter[str] = field(default_factory=Counter)
+    check: CorrectionCheck = field(default_factory=CorrectionCheck, repr=False)
     _pairs: dict[str, _PairState] = field(default_factory=dict, repr=False)
     _told: dict[str, _ToldYaw] = field(default_factory=dict, repr=False)
 
@@ -97,6 +108,7 @@ class RangeCorrector:
             r.name: OdometryTrack(r.heading_offset, r.odom_scale, r.odom_mode) for r in team.robots
         }
         loaded = ModelSet.load(models) if isinstance(models, str | Path) else models
+        kwargs.setdefault("bias_of", lambda a, b: team.uwb.calibration(a, b)[0])
         return cls(loaded, tracks=tracks, **kwargs)  # type: ignore[arg-type]
 
     # ------------------------------------------------------------------ engine stage
@@ -107,8 +119,11 @@ class RangeCorrector:
         self.observe(event)
         return [event]
 
-    def feedback(self, estimate: object) -> None:
-        """The corrector needs no estimate (the engine calls this on every stage)."""
+    def feedback(self, estimate: Estimate) -> None:
+        """The self-check scores the next ranges with ``estimate``'s positions; a pair it has
+        switched is published in the stats (``correction_off.<pair>``: 1 off, 0 back on)."""
+        if self.self_check:
+            self.check.judge(estimate)
 
     # ------------------------------------------------------------------ headings
     def observe(self, event: Event) -> None:
@@ -168,7 +183,7 @@ class RangeCorrector:
             state.last_t = event.t
             if state.last_error is None:
                 return self._pass(event, "window_not_full")
-            return self._corrected(event, model, *state.last_error, "corrected_repeat")
+            return self._checked(event, model, *state.last_error, "corrected_repeat")
         node_a = event.node_a or event.robot_a
         node_b = event.node_b or event.robot_b
         # Canonical order (as pair_key sorts): yaw_a is the heading of the first node's robot.
@@ -196,12 +211,43 @@ class RangeCorrector:
         residual = min(max(raw, model.residual_min), model.residual_max)
         if residual != raw:
             self.stats["clipped"] += 1
+        if model.support is not None and not model.support.contains(window)[0]:
+            state.last_error = (0.0, self._constant_sigma(model, sigma))
+            return self._corrected(event, model, *state.last_error, "out_of_support")
         state.last_error = (residual, sigma)
-        return self._corrected(event, model, residual, sigma, "corrected")
+        return self._checked(event, model, residual, sigma, "corrected")
+
+    @staticmethod
+    def _constant_sigma(model: PairModel, sigma: float) -> float:
+        """The noise of a range corrected by the pair's constant alone: its validation RMSE."""
+        return float(model.fallback_sigma) if model.fallback_sigma else sigma
+
+    def _checked(self, event: RangeEvent, model: PairModel, residual: float, sigma: float, reason: str) -> RangeEvent:
+        """The self-check's view: both candidates noted (less the pair's constant in either
+        offset mode), the constant alone where the pair's correction is switched off."""
+        if not self.self_check:
+            return self._corrected(event, model, residual, sigma, reason)
+        key = event.node_pair
+        constant = event.distance - model.offset
+        switches = self.check.switched_off + self.check.switched_on
+        self.check.note(key, event.t, event.robot_a, event.robot_b, constant - residual, constant)
+        if self.check.switched_off + self.check.switched_on != switches:
+            self.stats[f"correction_off.{key}"] = int(not self.check.enabled(key))
+            self.stats["self_check_switched_off"] = self.check.switched_off
+            self.stats["self_check_switched_on"] = self.check.switched_on
+        if not self.check.enabled(key):
+            return self._corrected(event, model, 0.0, self._constant_sigma(model, sigma), "checked_off")
+        return self._corrected(event, model, residual, sigma, reason)
 
     def _pass(self, event: RangeEvent, reason: str) -> RangeEvent:
         self.stats[reason] += 1
+        self._used(event, event.distance - (self.bias_of(*event.node_pair.split("-")) if self.bias_of else 0.0))
         return event
+
+    def _used(self, event: RangeEvent, distance: float) -> None:
+        """Tell the self-check what distance the filter gets for this range."""
+        if self.self_check and math.isfinite(distance):
+            self.check.used(event.t, event.robot_a, event.robot_b, distance)
 
     def _corrected(
         self, event: RangeEvent, model: PairModel, residual: float, sigma: float, reason: str
@@ -212,12 +258,14 @@ class RangeCorrector:
             distance, corrected = event.distance - model.offset - residual, True
         else:
             distance, corrected = event.distance - residual, False
+        self._used(event, event.distance - model.offset - residual)
         return replace(event, distance=distance, corrected=corrected, sigma=sigma)
 
     def reset(self) -> None:
         """Forget every window, heading and count (e.g. when a recording restarts)."""
         self._pairs.clear()
         self._told.clear()
+        self.check = CorrectionCheck()
         self.tracks = {
             robot: OdometryTrack(
                 t.heading_offset,
