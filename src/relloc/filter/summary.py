@@ -166,7 +166,8 @@ def procrustes_fit(x: FloatArray, y: FloatArray, template: FloatArray) -> tuple[
 def _modes(angle: FloatArray, hand: FloatArray, w: FloatArray) -> IntArray:
     """Mode label of every hypothesis (-1: in no mode), labels ordered by decreasing weight."""
     b = np.floor((angle + np.pi) / (2.0 * np.pi) * MODE_BINS).astype(np.intp) % MODE_BINS
-    cell = b + np.where(hand < 0, MODE_BINS, 0)
+    cell = b
+    cell[hand < 0] += MODE_BINS
     hist = np.bincount(cell, weights=w, minlength=2 * MODE_BINS)
     label_of_cell = np.full(2 * MODE_BINS, -1, dtype=np.intp)
     runs: list[list[int]] = []
@@ -291,7 +292,7 @@ def summarize(
     labels = _modes(np.arctan2(s, c), hand, w)
     valid = labels >= 0
     members = labels == 0 if valid.any() else np.ones(m, dtype=bool)
-    mode_w = np.bincount(labels[valid], weights=w[valid])
+    mode_w = np.bincount(labels + 1, weights=w)[1:]  # bin 0: in no mode
     n_modes = max(1, int(np.sum(mode_w >= MODE_MIN_WEIGHT)))
     mode_weight = float(np.sum(w, where=members))
     everything = bool(members.all())
