@@ -1,11 +1,13 @@
 """``relloc init``: a team config drafted from a bag (robots, UWB node mapping, quirks).
 
 A synthetic bag checks the decisions without shared data; the TIERS recordings check them
-against the shipped configs' node mappings.
+against the shipped configs' node mappings, and the drafted shortbag config against the shipped
+one's APE.
 """
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -111,6 +113,41 @@ def test_tiers_case4_mapping(shared_data: Path, tmp_path: Path) -> None:
     assert {r.name: r.uwb_node for r in cfg.robots} == {f"turtlebot{k}": f"n_{k}" for k in range(1, 8)}
     assert all(not r.odom_topic for r in cfg.robots)
     assert "left out" in text and "n_8" in text
+    assert len(cfg.uwb.pairs) == 21 and all(p.source == "case4_test1_static" for p in cfg.uwb.pairs.values())
+    rc, cfg, _ = _draft(shared_data, "tiers_uwb_rel/case4_test1_static", tmp_path, "--no-calibrate")
+    assert rc == 0 and not cfg.uwb.pairs
+
+
+SEEDS = (0, 1, 2)
+"""One seed's APE moves by up to 0.05 m on the shortbag; the mean of three is compared."""
+
+
+def _mean_ape(bag: Path, config: Path, tmp_path: Path) -> dict[str, float]:
+    """Per-robot ``pf`` APE median of ``relloc run``, averaged over :data:`SEEDS`."""
+    sums: dict[str, float] = {}
+    for seed in SEEDS:
+        out = tmp_path / f"{config.stem}-{seed}.json"
+        args = ["run", str(bag), "--config", str(config), "--methods", "pf", "--seed", str(seed)]
+        assert main([*args, "--out", str(tmp_path / "out"), "--json", str(out), "--no-progress"]) == 0
+        (scenario,) = json.loads(out.read_text())["scenarios"].values()
+        for robot, fig in scenario["methods"]["pf"]["robots"].items():
+            sums[robot] = sums.get(robot, 0.0) + fig["ape_median"] / len(SEEDS)
+    return sums
+
+
+def test_tiers_shortbag_draft_runs_as_well_as_shipped(shared_data: Path, tmp_path: Path) -> None:
+    """The draft (biases and heading offsets calibrated from the bag's mocap) at the shipped
+    reference gives each robot's APE within 0.02 m of the shipped config's."""
+    shipped_path = Path(__file__).parents[1] / "configs/tiers/multi4_shortbag_20221011.toml"
+    shipped = TeamConfig.load(shipped_path)
+    rc, cfg, _ = _draft(shared_data, "tiers/multi4_shortbag_20221011", tmp_path, "--reference", shipped.reference)
+    assert rc == 0 and cfg.reference == shipped.reference and len(cfg.uwb.pairs) == 6
+    assert cfg.robot("turtle01").heading_offset_deg == shipped.robot("turtle01").heading_offset_deg
+    bag = shared_data / "tiers/multi4_shortbag_20221011"
+    drafted, expected = _mean_ape(bag, tmp_path / "draft.toml", tmp_path), _mean_ape(bag, shipped_path, tmp_path)
+    assert drafted.keys() == expected.keys()
+    for robot, ape in expected.items():
+        assert abs(drafted[robot] - ape) < 0.02, (robot, drafted, expected)
 
 
 def test_tiers_pair_is_ambiguous_without_node(shared_data: Path, tmp_path: Path) -> None:

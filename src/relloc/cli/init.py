@@ -5,8 +5,16 @@ name (``turtlebot1_cap`` and ``/cali/turtle01/odom``: robot ``turtle01``), or, i
 odometry, every body (robot named after the body). Which UWB node is on which robot comes from
 :func:`relloc.sources.inspect_bag.assign_nodes` (ranges against mocap distances); ``--node
 ROBOT=NODE`` pins a robot's node. The reference is the robot whose node takes part in the most
-range messages (ties by name); the area is the mocap extent plus :data:`MARGIN_M`, outward to
-half metres. The file is never overwritten without ``--force``.
+range messages (ties by name; ``--reference`` picks another). The area is the project's default
+prior box (:class:`~relloc.config.TeamConfig` ``area``) centred on the robots' mocap extent, or
+that extent plus :data:`MARGIN_M` where it is larger: a short recording's extent understates
+where the team may be, and the filter uses only the box's size.
+
+With the mapping decided, what ``relloc calibrate BAG --headings`` estimates is estimated from
+the same bag's motion capture (:func:`relloc.cli.calibrate.calibrate`, written in by
+:func:`~relloc.cli.calibrate.edit_config_text`): the node-pair biases and each robot's
+``heading_offset_deg``; ``--no-calibrate`` leaves them out, so that the draft owes nothing to
+the ground truth it will be scored on. The file is never overwritten without ``--force``.
 
 Exit status: 0 when the mapping is decided; 2 when it is not (the file is still written, the
 mapping marked undecided in a comment: rerun with ``--node``), and for user errors (bag not
@@ -20,13 +28,16 @@ import math
 import re
 import sys
 import time
+import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import tomlkit
 
+from relloc.cli.calibrate import Calibration, calibrate, edit_config_text
 from relloc.cli.common import UserError
+from relloc.config import TeamConfig
 from relloc.sources.inspect_bag import (
     Assignment,
     BagInventory,
@@ -36,7 +47,11 @@ from relloc.sources.inspect_bag import (
 )
 
 MARGIN_M = 1.0
-"""Margin added around the mocap extent for ``area`` (m)."""
+"""Margin added around the mocap extent for ``area`` where the default box is too small (m)."""
+DEFAULT_AREA: tuple[float, float, float, float] = TeamConfig.__dataclass_fields__["area"].default
+"""The project's default prior box; its size is the least a drafted ``area`` gets."""
+REFERENCE_TIE = 0.05
+"""Range counts within this fraction of the most are called a near tie in the reference note."""
 TIE_M = 0.02
 """Two assignments whose scores differ by less than this (m, RMS) are a tie."""
 
@@ -60,6 +75,8 @@ class Draft:
     area: tuple[float, float, float, float]
     ranked: list[Assignment]
     decided: bool
+    reference_note: str
+    """How the reference was chosen and how clearly (the runner-up's range count)."""
     notes: list[str]
     """Lines for the summary and the file's comments (what was decided, how sure)."""
     seconds: float
@@ -119,7 +136,32 @@ def _parse_nodes(items: list[str], robots: list[Robot], nodes: list[str]) -> dic
     return fixed
 
 
-def draft(bag: Path, node_args: list[str]) -> tuple[BagInventory, Draft]:
+def _axis(lo: float, hi: float, default: float) -> tuple[float, float]:
+    """One axis of ``area``: the default width centred on ``lo..hi`` (centre to half metres), or
+    ``lo..hi`` plus :data:`MARGIN_M` outward to half metres where that is wider."""
+    if hi - lo + 2 * MARGIN_M > default:
+        return math.floor((lo - MARGIN_M) * 2) / 2, math.ceil((hi + MARGIN_M) * 2) / 2
+    centre = round((lo + hi) / 2 * 2) / 2
+    return centre - default / 2, centre + default / 2
+
+
+def _reference(robots: list[Robot], counts: dict[str, int], pinned: str | None) -> tuple[str, str]:
+    """The reference robot and a note saying how it was chosen."""
+    if pinned is not None:
+        if pinned not in counts:
+            raise UserError(f"--reference {pinned!r}: expected one of {[r.name for r in robots]}")
+        return pinned, f"reference: {pinned}, given by --reference"
+    ranked = sorted(counts, key=lambda n: (-counts[n], n))
+    best, second = ranked[0], ranked[1]
+    share = (counts[best] - counts[second]) / max(counts[best], 1)
+    how = "a near tie, so the choice is arbitrary; --reference picks another" if share < REFERENCE_TIE else "clearly"
+    return best, (
+        f"reference: {best}, its node in the most range messages ({counts[best]}; "
+        f"{second} {counts[second]}): {how}"
+    )
+
+
+def draft(bag: Path, node_args: list[str], reference: str | None = None) -> tuple[BagInventory, Draft]:
     """Inspect the bag and decide robots, node mapping, reference and area."""
     inv = inspect_bag(bag)
     if len(inv.tracks) < 2:
@@ -168,32 +210,68 @@ def draft(bag: Path, node_args: list[str]) -> tuple[BagInventory, Draft]:
     else:
         notes.append("no UWB node mapping: no assignment has ranges between every pair of robots")
     counts = {r.name: inv.range_counts.get(r.node, 0) for r in robots}
-    reference = min(counts, key=lambda n: (-counts[n], n))
+    chosen, reference_note = _reference(robots, counts, reference)
     xs = [v for r in robots for v in inv.tracks[r.body][:, 1]]
     ys = [v for r in robots for v in inv.tracks[r.body][:, 2]]
-    area = (
-        math.floor((min(xs) - MARGIN_M) * 2) / 2,
-        math.ceil((max(xs) + MARGIN_M) * 2) / 2,
-        math.floor((min(ys) - MARGIN_M) * 2) / 2,
-        math.ceil((max(ys) + MARGIN_M) * 2) / 2,
-    )
-    return inv, Draft(robots, reference, area, ranked, decided, notes, seconds)
+    dx0, dx1, dy0, dy1 = DEFAULT_AREA
+    area = (*_axis(min(xs), max(xs), dx1 - dx0), *_axis(min(ys), max(ys), dy1 - dy0))
+    return inv, Draft(robots, chosen, area, ranked, decided, reference_note, notes, seconds)
+
+
+def calibrate_draft(bag: Path, text: str, d: Draft) -> tuple[Calibration | None, list[str]]:
+    """What ``relloc calibrate --headings`` estimates, from this bag's motion capture, for the
+    drafted config ``text``; ``None`` (and why) when the mapping is undecided or nothing matched.
+    The notes say what was calibrated and how sure."""
+    from relloc.evaluation.calibration import CalibrationError
+
+    if not d.decided:
+        return None, ["not calibrated: the node mapping is undecided (rerun with --node)"]
+    config = TeamConfig.from_dict(tomllib.loads(text))
+    try:
+        cal = calibrate(bag, config, headings=any(r.odom for r in d.robots))
+    except CalibrationError as exc:
+        return None, [f"not calibrated: {exc}"]
+    headings = {r: deg + 0.0 for r, deg in cal.heading_offset_deg.items()}  # no -0.0
+    cal = Calibration(cal.source, cal.pairs, headings, cal.fit_scale)
+    notes = ["calibrated from this bag's motion capture (in-sample: a run of this bag with it scores "
+             "against the truth it was fitted to; --no-calibrate leaves it out):"]
+    if cal.pairs:
+        biases = [p.bias for p in cal.pairs.values()]
+        sigmas = {k: p.sigma for k, p in cal.pairs.items() if p.sigma is not None}
+        line = f"  {len(cal.pairs)} pair biases {min(biases):.3f}..{max(biases):.3f} m"
+        if sigmas:
+            widest = max(sigmas, key=lambda k: sigmas[k])
+            line += (f", robust sigma of what is left {min(sigmas.values()):.3f}..{max(sigmas.values()):.3f} m "
+                     f"(widest {widest})")
+        notes.append(line)
+    if headings:
+        shown = ", ".join(f"{r} {deg:+.2f}" for r, deg in headings.items())
+        notes.append(f"  heading offsets (deg, mocap yaw - odometry yaw at the first odometry message, "
+                     f"one pose each: as sure as that mocap yaw): {shown}")
+    missing = [r.name for r in d.robots if r.odom and r.name not in headings]
+    if missing:
+        notes.append(f"  no heading offset (no mocap pose near the first odometry): {', '.join(missing)}")
+    return cal, notes
 
 
 def _distro(layout: str) -> str:
     return "humble" if layout == "humble" else "jazzy"
 
 
-def to_toml(inv: BagInventory, d: Draft, name: str) -> str:
-    """The drafted config as TOML text with comments."""
+def to_toml(inv: BagInventory, d: Draft, name: str, calibrated: list[str] | None = None) -> str:
+    """The drafted config as TOML text with comments; ``calibrated`` (the robots that get a
+    heading offset) marks the draft as one that :func:`calibrate_draft` will fill in."""
     doc = tomlkit.document()
     doc.add(tomlkit.comment(f"Drafted by relloc init from {inv.path}; check every value before trusting it."))
     for line in d.notes:
         doc.add(tomlkit.comment(line))
     doc.add("name", name)
-    doc.add(tomlkit.comment("reference: the robot whose UWB node takes part in the most range messages (ties by name)"))
+    doc.add(tomlkit.comment(d.reference_note))
     doc.add("reference", d.reference)
-    doc.add(tomlkit.comment(f"area: the robots' mocap extent plus {MARGIN_M:g} m, outward to half metres"))
+    doc.add(tomlkit.comment(
+        "area: the default prior box's size centred on the robots' mocap extent, or that extent "
+        f"plus {MARGIN_M:g} m where larger (the filter uses only its size)"
+    ))
     doc.add("area", [float(v) for v in d.area])
     layout = inv.range_layout or "unknown"
     doc.add(tomlkit.comment(f"ros_distro: the range messages have the {layout} layout of {inv.range_type or 'Range'}"))
@@ -223,6 +301,9 @@ def to_toml(inv: BagInventory, d: Draft, name: str) -> str:
                 flag.comment("all header stamps are zero")
                 t.add("odom_zero_stamps", flag)
         t.add("mocap_body", r.body)
+        if calibrated is not None and r.name in calibrated:
+            t.add("heading_offset_deg", 0.0)
+            t["heading_offset_deg"].comment("from this bag's mocap: mocap yaw - odometry yaw at the first odometry")
         robots.append(t)
     doc.add("robots", robots)
     uwb = tomlkit.table()
@@ -230,7 +311,13 @@ def to_toml(inv: BagInventory, d: Draft, name: str) -> str:
     if inv.range_type and inv.range_type != "sensor_msgs/msg/Range":
         uwb.add("range_type", inv.range_type)
     doc.add(tomlkit.nl())
-    doc.add(tomlkit.comment("Pair biases are not calibrated here: relloc calibrate BAG --config THIS.toml"))
+    if calibrated is None:
+        doc.add(tomlkit.comment("Pair biases are not calibrated here: relloc calibrate BAG --config THIS.toml"))
+    else:
+        doc.add(tomlkit.comment(
+            "Pair biases: median of range - mocap distance on this bag (relloc calibrate); the robust "
+            "sigma of what is left is in each comment, left unset so the filter's noise model applies"
+        ))
     doc.add("uwb", uwb)
     return tomlkit.dumps(doc)
 
@@ -249,7 +336,6 @@ def _quirks(inv: BagInventory) -> list[str]:
 
 
 def _cmd_init(args: argparse.Namespace) -> int:
-    from relloc.config import TeamConfig
     from relloc.sources.rosbag import BagError, recording_name
 
     bag = Path(args.bag)
@@ -257,10 +343,15 @@ def _cmd_init(args: argparse.Namespace) -> int:
     if out.exists() and not args.force:
         raise UserError(f"{out} exists; --force overwrites it")
     try:
-        inv, d = draft(bag, args.node or [])
+        inv, d = draft(bag, args.node or [], args.reference)
+        text = to_toml(inv, d, recording_name(bag))
+        cal_notes: list[str] = []
+        if not args.no_calibrate and inv.ranges:
+            cal, cal_notes = calibrate_draft(bag, text, d)
+            if cal is not None:
+                text = edit_config_text(to_toml(inv, d, recording_name(bag), list(cal.heading_offset_deg)), cal)
     except BagError as exc:
         raise UserError(str(exc)) from None
-    text = to_toml(inv, d, recording_name(bag))
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(text)
     TeamConfig.load(out)  # the draft must load; a failure here is a bug
@@ -268,8 +359,8 @@ def _cmd_init(args: argparse.Namespace) -> int:
     for r in d.robots:
         extra = f", odometry {r.odom}" if r.odom else ""
         print(f"  {r.name}: mocap {r.body}, UWB {r.node or '-'}{extra}")
-    print(f"  reference {d.reference}, area {list(d.area)}, ros_distro {_distro(inv.range_layout)}")
-    for line in [*d.notes, *_quirks(inv)]:
+    print(f"  area {list(d.area)}, ros_distro {_distro(inv.range_layout)}")
+    for line in [d.reference_note, *d.notes, *cal_notes, *_quirks(inv)]:
         print(f"  {line}")
     print(f"  assignment search: {d.seconds:.2f} s")
     if not d.decided:
@@ -293,6 +384,10 @@ def register(sub: Any) -> None:
         "--node", action="append", metavar="ROBOT=NODE",
         help="pin a robot's UWB node (repeatable), e.g. turtle01=n_2",
     )
+    p.add_argument("--reference", metavar="ROBOT", default=None,
+                   help="the reference robot (default: the one whose node is in the most range messages)")
+    p.add_argument("--no-calibrate", action="store_true",
+                   help="leave out pair biases and heading offsets (else estimated from the bag's motion capture)")
     p.set_defaults(handler=_cmd_init)
 
 
