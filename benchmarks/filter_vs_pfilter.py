@@ -21,7 +21,8 @@ relloc, one update::
 
     pf.predict(disp, sigma, dt)                          # odometry displacement + noise
     pf.update([RangeBatch(...)])                         # the 10 ranges, log-weights
-    pf.estimate()                                        # weighted mean and covariance
+    est = pf.estimate()                                  # the dominant mode's mean and covariance
+    est.summary.shape, est.summary.distances             # what a published estimate carries
     pf.resample()                                        # systematic, every step, 1 % re-drawn
 
 with ``ParticleFilter(..., resample="every_step", reinject_fraction=0.01)``.
@@ -56,7 +57,11 @@ What differs (all of it, to our knowledge)
 - Re-injection from the prior: relloc replaces exactly ``round(0.01 M)`` particles chosen
   without replacement; pfilter replaces a Bernoulli(0.01) subset, and draws a full
   ``M``-particle prior sample to do it (that is how ``init_filter(mask)`` works).
-- Estimate: both compute the weighted mean and covariance; pfilter also computes, inside
+- Estimate: relloc's timed step includes everything a published estimate carries (the
+  summary of :mod:`relloc.filter.summary`: modes, the dominant mode's mean and covariance,
+  the shape in its gauge and the pairwise distances; ``--estimate moments`` stops at the mode's
+  mean and covariance, what a step nobody publishes computes); pfilter computes the weighted
+  mean and covariance of all particles, and also, inside
   ``update``, its MAP particle, mean hypothesis, weight entropy and effective sample size,
   which it always does. relloc's ``estimate`` also returns the effective sample size.
 - Weights: relloc keeps log-weights; pfilter linear weights.
@@ -89,6 +94,7 @@ from __future__ import annotations
 import argparse
 import gc
 import json
+import os
 import platform
 import statistics
 import sys
@@ -189,8 +195,9 @@ class RellocRunner:
 
     name = "relloc"
 
-    def __init__(self, scenario: Scenario, cloud: FloatArray, seed: int) -> None:
+    def __init__(self, scenario: Scenario, cloud: FloatArray, seed: int, published: bool = True) -> None:
         self.scenario = scenario
+        self.published = published
         self.pf = ParticleFilter(
             scenario.layout,
             cloud.shape[0],
@@ -212,6 +219,8 @@ class RellocRunner:
         )
         self.pf.update([ranges])
         est = self.pf.estimate()
+        if self.published and est.summary is not None:  # what a published estimate carries
+            _ = (est.summary.shape, est.summary.distances)  # computed on first read
         self.pf.resample()
         return est.mean
 
@@ -341,6 +350,19 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="wall: time.perf_counter (default); cpu: time.process_time, this process's CPU "
         "time over all its threads, steadier on a shared machine",
     )
+    parser.add_argument(
+        "--estimate",
+        choices=("published", "moments"),
+        default="published",
+        help="relloc's estimate per step: all a published estimate carries (default), or only "
+        "the dominant mode's moments (a step nobody publishes)",
+    )
+    parser.add_argument(
+        "--readme",
+        type=Path,
+        help="write the figures into this Markdown file, between its "
+        f"{README_BEGIN} and {README_END} markers",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, help="write the medians and speed-ups to this file")
     args = parser.parse_args(argv)
@@ -361,6 +383,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     n_steps = WARMUP + args.reps
     results: dict[str, dict[str, float]] = {}
+    reps_used: dict[str, tuple[int, int]] = {}
     header = f"{'M':>7}  {'relloc / update':>16}  {'pfilter / update':>17}  {'speed-up':>9}  reps (relloc, pfilter)  median RMS error (relloc, pfilter)"
     print(header)
     for m in args.particles:
@@ -368,7 +391,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         scenario = make_scenario(n_steps, rng)
         cloud = starting_cloud(scenario, m, rng)
         runners: list[Runner] = [
-            RellocRunner(scenario, cloud, args.seed),
+            RellocRunner(scenario, cloud, args.seed, published=args.estimate == "published"),
             PfilterRunner(pfilter, scenario, cloud, args.seed, args.pfilter_resample),
         ]
         pf_reps = args.reps
@@ -380,6 +403,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         pfilter_s = statistics.median(times[1])
         speedup = pfilter_s / relloc_s
         results[str(m)] = {"relloc_s": relloc_s, "pfilter_s": pfilter_s, "speedup": speedup}
+        reps_used[str(m)] = (len(times[0]), len(times[1]))
         print(
             f"{m:>7}  {relloc_s * 1e3:>13.3f} ms  {pfilter_s * 1e3:>14.3f} ms  {speedup:>8.1f}x  "
             f"({len(times[0])}, {len(times[1])})  "
@@ -389,7 +413,45 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=2) + "\n")
         print(f"wrote {args.json}")
+    if args.readme is not None:
+        context = (
+            f"pfilter {version} (resample_fn: {args.pfilter_resample}), relloc's estimate: {args.estimate}, "
+            f"clock: {args.clock}; numpy {np.__version__}, Python {platform.python_version()}, "
+            f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the end"
+        )
+        write_readme(args.readme, results, reps_used, context)
+        print(f"wrote the figures into {args.readme}")
     return 0
+
+
+README_BEGIN = "<!-- filter_vs_pfilter figures: begin -->"
+README_END = "<!-- filter_vs_pfilter figures: end -->"
+
+
+def figures_table(results: dict[str, dict[str, float]], reps: dict[str, tuple[int, int]], context: str) -> str:
+    """The Markdown figures of one run (what ``--readme`` writes)."""
+    lines = [
+        f"Written by `benchmarks/filter_vs_pfilter.py --readme` ({context}):",
+        "",
+        "| M | relloc / update | pfilter / update | speed-up | reps (relloc, pfilter) |",
+        "|---:|---:|---:|---:|---:|",
+    ]
+    for m, r in results.items():
+        lines.append(
+            f"| {int(m):,} | {r['relloc_s'] * 1e3:.3f} ms | {r['pfilter_s'] * 1e3:.2f} ms | ".replace(",", " ")
+            + f"{r['speedup']:.1f}x | {reps[m][0]}, {reps[m][1]} |"
+        )
+    return "\n".join(lines)
+
+
+def write_readme(path: Path, results: dict[str, dict[str, float]], reps: dict[str, tuple[int, int]], context: str) -> None:
+    """Replace the text between the markers of ``path`` with this run's figures."""
+    text = path.read_text()
+    start, end = text.find(README_BEGIN), text.find(README_END)
+    if start < 0 or end < start:
+        raise SystemExit(f"{path} has no {README_BEGIN} ... {README_END} section")
+    body = figures_table(results, reps, context)
+    path.write_text(text[: start + len(README_BEGIN)] + "\n" + body + "\n" + text[end:])
 
 
 if __name__ == "__main__":
