@@ -6,10 +6,11 @@ docs/filter_kinds_generated.md.
 
 Each cell is one ``relloc run`` (a recording) or ``relloc demo`` (a simulated scenario) with
 ``--methods pf --filter-kind K --json`` in a subprocess; multilateration is run once per row.
-The figure of a robot is its shape APE median (one rotation/reflection for the run) where the
-run found the orientation unobservable, else its APE median; multilateration's is aligned once
-per run, as relloc reports it. A cell gives the mean over the robots / the worst robot, and the
-lowest 95 % coverage of the published covariance. ``auto`` names the kind it chose. Recordings
+The figure of a robot is its APE median after one rotation/reflection for the run, the
+alignment relloc gives multilateration (where the orientation was unobservable, its published
+shapes' APE aligned the same way). A cell gives the mean over the robots / the worst robot, the
+lowest 95 % coverage of the published covariance and how many robots are at most
+multilateration's. ``auto`` names the kind it chose. Recordings
 come from ``../shared/data``; a row whose data is absent is left out. ``--from-json`` rebuilds
 the page from ``--out`` without running anything.
 """
@@ -49,7 +50,9 @@ class Row:
     """``relloc calibrate`` arguments run first (writes ``{out}/<name>.toml``)."""
     kinds: tuple[str, ...] = KINDS
     multilateration: bool = True
-    """Whether to run multilateration (9 minutes alone at 50 robots)."""
+    """Whether to run multilateration (no figure to compare on some recordings)."""
+    kind_args: tuple[tuple[str, tuple[str, ...]], ...] = ()
+    """Extra arguments of some kinds' runs (modes a kind needs), as ``(kind, args)``."""
 
 
 def _no_odometry(config: Path, out: Path) -> Path:
@@ -71,6 +74,9 @@ def rows(out: Path) -> list[Row]:
     out.mkdir(parents=True, exist_ok=True)
     no_odom = _no_odometry(sb_config, out) if sb_config.exists() else sb_config
     static_cal = out / "case4_calibrated.toml"
+    mrclam = DATA / "mrclam" / "MRCLAM_Dataset6"
+    grid20 = ("demo", "--scenarios", "grid", "--robots", "20")
+    grid50 = ("demo", "--scenarios", "grid", "--robots", "50")
     return [
         Row("shortbag_no_odometry", "shortbag, odometry topics left out (4 robots, two drive)",
             ("run", str(shortbag), "--config", str(no_odom)), shortbag),
@@ -83,11 +89,16 @@ def rows(out: Path) -> list[Row]:
             calibrate=("calibrate", str(static), "--config", str(ROOT / "configs" / "tiers_uwb_rel" / "case4.toml"),
                        "--span", ":17", "--write", str(static_cal))),
         Row("multi", "simulator: the demo's five robots", ("demo", "--scenarios", "multi")),
-        Row("grid20", "simulator: grid of 20 robots, all driving", ("demo", "--scenarios", "grid", "--robots", "20"),
-            kinds=("range_graph", "smoother", "auto")),
-        Row("grid50", "simulator: grid of 50 robots, all driving (multilateration not run: 9 min)",
-            ("demo", "--scenarios", "grid", "--robots", "50"), kinds=("range_graph", "smoother", "auto"),
-            multilateration=False),
+        Row("mrclam", "MRCLAM Dataset 6 as shipped (odometry, camera sightings, headings estimated; "
+            "the smoother with compass headings and fixed scales, as it needs)",
+            ("run", str(mrclam), "--config", str(ROOT / "configs" / "mrclam" / "dataset6.toml"), "--warmup", "30"), mrclam,
+            multilateration=False, kind_args=(("smoother", ("--heading", "compass", "--odom-scale", "fixed")),)),
+        Row("grid20", "simulator: grid of 20 robots, all driving", grid20, kinds=("range_graph", "smoother", "auto")),
+        Row("grid20_seed1", "the same, seed 1", (*grid20, "--seed", "1"), kinds=("smoother", "auto")),
+        Row("grid20_seed2", "the same, seed 2", (*grid20, "--seed", "2"), kinds=("smoother", "auto")),
+        Row("grid50", "simulator: grid of 50 robots, all driving", grid50, kinds=("range_graph", "smoother", "auto")),
+        Row("grid50_seed1", "the same, seed 1", (*grid50, "--seed", "1"), kinds=("smoother",)),
+        Row("grid50_seed2", "the same, seed 2", (*grid50, "--seed", "2"), kinds=("smoother",)),
     ]
 
 
@@ -102,7 +113,7 @@ def run_cell(row: Row, kind: str, out: Path) -> dict[str, Any]:
     cmd = [sys.executable, "-m", "relloc.cli", *row.args, "--methods", method, "--no-progress",
            "--json", str(path), "--out", str(out / "plots" / f"{row.name}__{kind}")]
     if kind != "multilateration":
-        cmd += ["--filter-kind", kind]
+        cmd += ["--filter-kind", kind, *dict(row.kind_args).get(kind, ())]
     start = time.perf_counter()
     try:
         done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=TIMEOUT)
@@ -126,31 +137,34 @@ def robot_figure(robot: dict[str, Any]) -> Any:
     return robot.get("shape_ape_median", robot.get("run_aligned_ape_median", robot.get("ape_median")))
 
 
-def figures(payload: dict[str, Any]) -> tuple[float, float, float | None] | str:
-    """(mean over robots, worst robot, lowest coverage) of one run, or its error."""
+def robots(payload: dict[str, Any]) -> dict[str, dict[str, Any]] | str:
+    """Each robot's JSON figures of one run (its filter's, else multilateration's), or its error."""
     if "error" in payload:
         return str(payload["error"])
     (scenario,) = payload["scenarios"].values()
     methods = scenario["methods"]
-    method = methods.get("pf") or methods["multilateration"]
-    values = [robot_figure(r) for r in method["robots"].values()]
-    per_robot = [v for v in values if isinstance(v, float)]
-    if not per_robot:
-        return "no estimate"
-    covs = [r["coverage95"] for r in method["robots"].values() if isinstance(r.get("coverage95"), float)]
-    return sum(per_robot) / len(per_robot), max(per_robot), (min(covs) if covs else None)
+    return dict((methods.get("pf") or methods["multilateration"])["robots"])
 
 
-def cell(payload: dict[str, Any] | None) -> str:
+def cell(payload: dict[str, Any] | None, baseline: dict[str, Any] | None = None) -> str:
+    """Mean / worst robot, the lowest coverage, and how many robots are at most ``baseline``'s."""
     if payload is None:
         return "–"
-    f = figures(payload)
-    if isinstance(f, str):
-        return f"({f[:40]})"
-    mean, worst, cov = f
-    text = f"{mean:.2f} / {worst:.2f}"
-    if cov is not None and math.isfinite(cov):
-        text += f", {100 * cov:.0f} %"
+    found = robots(payload)
+    if isinstance(found, str):
+        return f"({found.split('error: ')[-1].split(' (')[0][:70]})"
+    values = {r: robot_figure(v) for r, v in found.items() if isinstance(robot_figure(v), float)}
+    if not values:
+        return "(no estimate)"
+    text = f"{sum(values.values()) / len(values):.2f} / {max(values.values()):.2f}"
+    covs = [v["coverage95"] for v in found.values() if isinstance(v.get("coverage95"), float)]
+    if covs and math.isfinite(min(covs)):
+        text += f", {100 * min(covs):.0f} %"
+    ref = robots(baseline) if baseline is not None else None
+    base = {r: robot_figure(v) for r, v in ref.items()} if isinstance(ref, dict) else {}
+    if any(isinstance(v, float) for v in base.values()):
+        held = [r for r, v in values.items() if isinstance(base.get(r), float) and v <= base[r]]
+        text += f", {len(held)}/{len(values)} ≤ m."
     return text
 
 
@@ -160,10 +174,12 @@ def page(table_rows: list[tuple[Row, dict[str, dict[str, Any]]]], command: str) 
         "",
         f"Generated by `{command}` (scripts/filter_kinds.py); every figure is read from the runs' JSON.",
         "",
-        "Per cell: the mean over the robots / the worst robot of the APE median (m; the shape APE",
-        "after one rotation/reflection for the run where the orientation is unobservable), then the",
-        "lowest 95 % coverage of the published covariance over the robots. Multilateration has no",
-        "covariance. `auto` names the kind it chose. Seed 0 everywhere.",
+        "Per cell: the mean over the robots / the worst robot of the APE median (m) after one",
+        "rotation/reflection for the run, as multilateration is aligned (for estimates whose",
+        "orientation was unobservable, their published shapes'), then the lowest 95 % coverage of",
+        "the published covariance over the robots, then how many robots are at most",
+        "multilateration's (`≤ m.`). Multilateration has no covariance. `auto` names the kind it",
+        "chose. Seed 0 unless the row says otherwise.",
         "",
         "| recording | " + " | ".join(KINDS) + " | multilateration |",
         "| --- |" + " --- |" * (len(KINDS) + 1),
@@ -172,7 +188,7 @@ def page(table_rows: list[tuple[Row, dict[str, dict[str, Any]]]], command: str) 
         parts = []
         for kind in KINDS:
             payload = cells.get(kind)
-            text = cell(payload)
+            text = cell(payload, cells.get("multilateration"))
             if kind == "auto" and payload is not None and "run" in payload:
                 text = f"{payload['run']['kind']}: {text}"
             parts.append(text)

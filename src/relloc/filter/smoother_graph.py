@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import gtsam
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import solve_triangular
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -240,7 +241,7 @@ class GraphSmoother:
             order = [keys[self.reference], *(keys[i] for i in self.others), *self.bias_keys]
             linear = self.smoother.getFactors().linearize(self.smoother.calculateEstimate())
             r, _ = linear.marginalMultifrontalBayesNet(gtsam.Ordering(order)).matrix()
-            r_inv = np.linalg.inv(r)
+            r_inv = solve_triangular(r, np.eye(r.shape[0]))
             self._joint = (self.step, r_inv @ r_inv.T)
         return self._joint[1]
 
