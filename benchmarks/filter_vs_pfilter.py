@@ -77,6 +77,11 @@ What differs (all of it, to our knowledge)
   pfilter at M >= 40 000 with its default resampler, which runs ``--reps-large`` (default 20)
   because one of its updates takes about half a second there; relloc still runs ``--reps``,
   and the two are interleaved for as long as both have repetitions left.
+- Allocator: with ``--malloc tuned`` (the default) glibc keeps freed memory mapped, as the
+  ``relloc`` command sets it (:mod:`relloc.malloc`); process-wide, so for both. With glibc's
+  own adaptive thresholds whether a step's temporaries fault in fresh pages depends on the
+  order of its allocations, and relloc's time at 40 000 particles swings by a third between
+  otherwise equal versions of the code.
 - Threads: neither side sets a thread count; only pfilter's ``np.cov`` reaches BLAS (which
   may use several threads), relloc's arithmetic is single-threaded NumPy.
 
@@ -113,6 +118,7 @@ from relloc.filter.motion import OdometryMotion
 from relloc.filter.pf import ParticleFilter
 from relloc.filter.ranges import RangeBatch
 from relloc.filter.state import StateLayout
+from relloc.malloc import tune_malloc
 
 FloatArray = NDArray[np.float64]
 
@@ -358,6 +364,13 @@ def main(argv: Sequence[str] | None = None) -> int:
         "the dominant mode's moments (a step nobody publishes)",
     )
     parser.add_argument(
+        "--malloc",
+        choices=("tuned", "default"),
+        default="tuned",
+        help="tuned: glibc keeps freed memory mapped, as the relloc command does (relloc.malloc; "
+        "process-wide, so for both implementations); default: glibc's own settings",
+    )
+    parser.add_argument(
         "--readme",
         type=Path,
         help="write the figures into this Markdown file, between its "
@@ -367,6 +380,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--json", type=Path, help="write the medians and speed-ups to this file")
     args = parser.parse_args(argv)
 
+    if args.malloc == "tuned":
+        tune_malloc()
     try:
         import pfilter  # optional: lives in the benchmark environment only
     except ImportError:
@@ -416,7 +431,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.readme is not None:
         context = (
             f"pfilter {version} (resample_fn: {args.pfilter_resample}), relloc's estimate: {args.estimate}, "
-            f"clock: {args.clock}; numpy {np.__version__}, Python {platform.python_version()}, "
+            f"clock: {args.clock}, malloc: {args.malloc}; numpy {np.__version__}, Python {platform.python_version()}, "
             f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the end"
         )
         write_readme(args.readme, results, reps_used, context)
