@@ -21,7 +21,7 @@ from relloc.ranging.dataset import (
     load_csv,
     make_windows,
 )
-from relloc.ranging.inference import ModelSet
+from relloc.ranging.inference import ModelSet, PairModel
 from relloc.ranging.manifest import find_model_dirs
 
 PARTS = ("auto", "test", "all")
@@ -42,6 +42,23 @@ def online_offset(values: np.ndarray, prior: float, weight: float = ONLINE_PRIOR
     seen = np.concatenate([[0.0], np.cumsum(values)[:-1]])
     k = np.arange(len(values), dtype=np.float64)
     return (weight * prior + seen) / (weight + k)
+
+
+def support_guarded(
+    model: PairModel, windows: np.ndarray, residual: np.ndarray, sigma: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(residual, sigma, n_out)`` as the run-time stage's support guard leaves them: a window
+    outside the pair's training support (:mod:`relloc.ranging.support`) gets the pair's constant
+    alone (residual 0, the constant's validation RMSE as sigma); no support recorded: unchanged."""
+    if model.support is None:
+        return residual, sigma, 0
+    outside = ~model.support.contains(windows)
+    constant_sigma = float(model.fallback_sigma) if model.fallback_sigma else sigma
+    return (
+        np.where(outside, 0.0, residual),
+        np.where(outside, constant_sigma, sigma),
+        int(np.count_nonzero(outside)),
+    )
 
 
 def _target_start(model_sets: Sequence[ModelSet], pair: str, clean: PairSeries, part: str) -> int:
@@ -69,8 +86,13 @@ def evaluate(
     part: str = "auto",
     node_map: Mapping[str, str] | None = None,
     timing_samples: int = 300,
+    support_guard: bool = False,
 ) -> dict[str, Any]:
     """Evaluate the models under ``model_dirs`` (each a model directory or a parent of some).
+
+    ``support_guard``: score the models as the run-time stage uses them, with windows outside a
+    pair's training support falling back to its constant (:func:`support_guarded`; counted in
+    each model's ``out_of_support``); off by default.
 
     Returns a JSON-ready dict: ``{"csv", "part", "pairs", "skipped_pairs", "n_targets",
     "methods": {name: {"kind", "per_pair_mse", "mean_mse", "pooled_mse",
@@ -107,6 +129,7 @@ def evaluate(
     sq_errors: dict[str, list[np.ndarray]] = {n: [] for n in per_pair}
     n_targets: dict[str, int] = {}
     timing_windows: list[tuple[str, np.ndarray]] = []
+    out_of_support: dict[str, int] = {n: 0 for n in names}
     for pair in covered:
         clean, _ = drop_repeats(series[pair])
         start = max(_target_start(model_sets, pair, clean, part), n_max - 1)
@@ -128,6 +151,9 @@ def evaluate(
             assert np.array_equal(y_m, y)
             model = ms[pair]
             residual, sigma = model.predict_residual(w)
+            if support_guard:
+                residual, sigma, n_out = support_guarded(model, w, residual, sigma)
+                out_of_support[name] += n_out
             results[name] = model.offset + residual - y
             results[f"{name}+online"] = online_offset(y - residual, model.offset) + residual - y
             sigma_z2[name].append((results[name] / sigma) ** 2)
@@ -167,6 +193,8 @@ def evaluate(
                 features=ms.manifest.get("architecture", {}).get("features"),
                 time_per_prediction_s=timings[name],
             )
+            if support_guard:
+                entry["out_of_support"] = out_of_support[name]
         methods[name] = entry
     return {
         "csv": str(csv_path),
