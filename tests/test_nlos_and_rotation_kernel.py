@@ -7,6 +7,8 @@ reference, the one direction ranges cannot see.
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -131,3 +133,24 @@ def test_defaults_use_the_nlos_model_and_the_kernel() -> None:
     with pytest.raises(ValueError):
         ParticleFilter(StateLayout(("r", "a"), "r"), 10, (-1.0, 1.0, -1.0, 1.0), rng=np.random.default_rng(0),
                        rotation_kernel=1.0)
+
+
+def test_an_online_bias_keeps_the_nlos_model_only_where_its_prior_is_a_calibration() -> None:
+    """A calibrated pair's online bias is pinned near its line-of-sight peak: the NLOS-aware
+    model; an uncalibrated one is confounded with the one-sided excess: the symmetric model."""
+    from relloc.events import RangeEvent
+    from relloc.filter.measurement import ModelContext
+    from relloc.localizers.sampled import bias_layout
+    from relloc.simulator import multi_scenario
+
+    config = multi_scenario(seed=0, duration=1.0).config
+    config = config.with_filter(self_calibration=dataclasses.replace(config.filter.self_calibration, bias_mode="online"))
+    calibrated = next(iter(config.uwb.pairs))
+    uncalibrated = dataclasses.replace(config.uwb, pairs={k: v for k, v in config.uwb.pairs.items() if k != calibrated})
+    for uwb, nlos in ((config.uwb, True), (uncalibrated, False)):
+        team = dataclasses.replace(config, uwb=uwb)
+        layout, _ = bias_layout(team)
+        a, b = calibrated.split("-")
+        ra, rb = (next(r.name for r in team.robots if r.uwb_node == n) for n in (a, b))
+        (model,) = RangeBatch.build([RangeEvent(0.0, ra, rb, 3.0, a, b)], ModelContext(team, layout, range_model="nlos"))
+        assert (model.nlos_fraction > 0.0) == nlos

@@ -50,8 +50,9 @@ class LikelihoodConfig(Checked):
     line-of-sight noise ``[uwb] los_sigma``, a one-sided non-line-of-sight part (ranges too long
     by a half-normal excess) and a uniform floor; ``symmetric``: Gaussian ``[uwb] sigma`` plus a
     uniform part. The symmetric model is always used for ranges corrected by a learned model
-    (the correction has predicted the skewed part), with online biases (an unknown bias and the
-    one-sided excess are confounded) and by the self-calibrating filter."""
+    (the correction has predicted the skewed part), with online biases of uncalibrated pairs
+    (an unknown bias and the one-sided excess are confounded; a calibrated prior pins the
+    line-of-sight peak) and by the self-calibrating filter."""
 
 
 @dataclass(frozen=True)

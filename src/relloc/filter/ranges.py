@@ -22,7 +22,7 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from relloc.config import TeamConfig
+from relloc.config import TeamConfig, UwbConfig
 from relloc.events import RangeEvent, pair_key
 from relloc.filter.measurement import (
     LinearRow,
@@ -95,6 +95,15 @@ def range_mixture(
     return los, total
 
 
+def _separable(uwb: UwbConfig, pair: str, state: tuple[int, ...]) -> bool:
+    """Whether an online bias can take the NLOS-aware model: its prior is a calibration (the
+    line-of-sight peak it stands for is then pinned, and the one-sided excess cannot drag it:
+    without, a bias and an excess are confounded, measured on one range: 0.108 m symmetric,
+    0.165 NLOS-aware), and the particles carry it (a Gaussian state column needs the
+    linear, symmetric row)."""
+    return pair in uwb.pairs and not state
+
+
 def _model_sigma(group: Sequence[RangeEvent]) -> float:
     """The learned correction's own standard deviation for a pair's ranges of one batch (the
     median of their ``RangeEvent.sigma``), or 0 where no model gave one.
@@ -163,9 +172,9 @@ class RangeBatch:
     @classmethod
     def build(cls, events: Sequence[RangeEvent], context: ModelContext) -> list[MeasurementModel]:
         """The range models of one batch: per robot pair its median range; raw ranges get the
-        NLOS-aware model when ``context.range_model`` says so and their bias is not online (an
-        unknown bias and a one-sided excess are confounded), ranges corrected upstream by a
-        learned model the symmetric one (the correction predicted the skewed part)."""
+        NLOS-aware model when ``context.range_model`` says so, an online bias included where
+        :func:`_separable`; ranges corrected upstream by a learned model get the symmetric one
+        (the correction predicted the skewed part)."""
         config, layout = context.config, context.layout
         uwb = config.uwb
         groups: dict[tuple[int, int], list[RangeEvent]] = {}
@@ -198,15 +207,15 @@ class RangeBatch:
         belief = np.array([layout.bias_belief_column(k) if on else -1 for k, on in zip(keys, online, strict=True)], dtype=np.intp)
         state = tuple(layout.bias_state_columns(k) if on else () for k, on in zip(keys, online, strict=True))
         if context.range_model == "nlos":
-            raw = np.array([bool(k) and not on for k, on in zip(keys, online, strict=True)])
+            raw = np.array([bool(k) and (not on or _separable(uwb, k, st)) for k, on, st in zip(keys, online, state, strict=True)])
         else:
             raw = np.zeros(len(keys), bool)
         out: list[MeasurementModel] = []
         for sel, nlos in ((raw, True), (~raw, False)):
             if not np.any(sel):
                 continue
-            if nlos:
-                s = np.array([pair_sigma(config, k, uwb.los_sigma) for k in keys])[sel]
+            if nlos:  # an online bias's uncertainty is in the state, not widened here
+                s = np.array([uwb.los_sigma if on else pair_sigma(config, k, uwb.los_sigma) for k, on in zip(keys, online, strict=True)])[sel]
                 eps = GROSS_FRACTION if context.robust else 0.0
             else:
                 s = sigma_a[sel]

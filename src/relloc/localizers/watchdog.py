@@ -67,6 +67,9 @@ class ConsistencyWatchdog:
         """The range likelihood of the filter judged: the config's, which the particle filter and
         the range graph use; a localizer with another (the self-calibrating filter's symmetric
         one) sets its own here."""
+        self.online_range_model = "symmetric"
+        """The range likelihood of calibrated pairs whose bias the filter estimates: the sampled
+        filter sets its own (its particles carry such a bias under the NLOS-aware model too)."""
         self._nis: dict[str, deque[tuple[float, float, bool]]] = {}
         """Each robot's recent ``(stamp, NIS over its chi-square median, over its bound)``."""
         self._cusum: dict[str, float] = {}
@@ -168,17 +171,21 @@ class ConsistencyWatchdog:
         nodes = self.config.range_nodes(m)
         key = pair_key(*nodes)
         online = fe.biases.get(key)
-        if online is not None:  # the symmetric model, the bias in the state
-            return m.distance - online[0], uwb.sigma**2 + online[1] ** 2
-        bias, scale, _ = uwb.calibration(*nodes)
-        r = (m.distance - bias) / scale
-        if self.range_model != "nlos":
-            return r, pair_sigma(self.config, key, uwb.sigma) ** 2
-        sigma = pair_sigma(self.config, key, uwb.los_sigma)
+        model = self.range_model
+        if online is not None:  # the bias in the state: its published variance, no widening
+            model = self.online_range_model if key in uwb.pairs else "symmetric"  # RangeBatch.build
+            r, extra = m.distance - online[0], online[1] ** 2
+            sigma = uwb.los_sigma if model == "nlos" else uwb.sigma
+        else:
+            bias, scale, _ = uwb.calibration(*nodes)
+            r, extra = (m.distance - bias) / scale, 0.0
+            sigma = pair_sigma(self.config, key, uwb.los_sigma if model == "nlos" else uwb.sigma)
+        if model != "nlos":
+            return r, sigma**2 + extra
         share = NLOS_FRACTION / (1.0 - GROSS_FRACTION)  # of the mixture less its uniform floor
         # the skew-normal NLOS part: mean NLOS_SIGMA sqrt(2/pi), second moment sigma^2 + NLOS_SIGMA^2
         mean = share * NLOS_SIGMA * math.sqrt(2.0 / math.pi)
-        return r - mean, sigma**2 + share * NLOS_SIGMA**2 - mean**2
+        return r - mean, sigma**2 + share * NLOS_SIGMA**2 - mean**2 + extra
 
     def _judged(
         self, a: str, b: str, fe: FilterEstimate, r: float | None, r_var: float | None,
