@@ -504,3 +504,40 @@ def test_a_model_directory_that_cannot_serve_is_one_clear_error(
     (d / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(ModelDirError, match=message):
         ModelSet.load(d)
+
+
+def test_bias_drift_variance_is_the_spread_of_block_means() -> None:
+    from relloc.ranging.manifest import bias_drift_variance
+
+    errors = np.repeat([0.1, 0.3], 40)  # the constant steps by 0.2 m halfway
+    assert bias_drift_variance(errors, n_steps=10, blocks=2) == pytest.approx(0.02)
+    assert bias_drift_variance(np.full(80, 0.4), n_steps=10) == pytest.approx(0.0)
+    assert bias_drift_variance(np.ones(15), n_steps=10) == math.inf  # fewer than two blocks
+
+
+def test_pair_constants_shrink_towards_the_team_constant_by_the_evidence() -> None:
+    from relloc.ranging.manifest import shrunk_offsets
+
+    biases = {"a": 0.2, "b": 0.4, "c": 0.6}
+    # Pairs' spread 0.04 m², mean drift 0.01: tau2 = 0.03; weights 0.03 / (0.03 + drift).
+    offsets, weights, tau2 = shrunk_offsets(biases, {"a": 0.0, "b": 0.0, "c": 0.03}, 0.4)
+    assert tau2 == pytest.approx(0.03)
+    assert weights == pytest.approx({"a": 1.0, "b": 1.0, "c": 0.5})
+    assert offsets == pytest.approx({"a": 0.2, "b": 0.4, "c": 0.5})
+    # Drift as large as the spread, a single pair, or a pair with no evidence: the constant.
+    offsets, _, tau2 = shrunk_offsets(biases, dict.fromkeys(biases, 0.05), 0.4)
+    assert tau2 == 0.0 and offsets == pytest.approx(dict.fromkeys(biases, 0.4))
+    assert shrunk_offsets({"a": 0.2}, {"a": 0.0}, 0.3)[0] == pytest.approx({"a": 0.3})
+    offsets, weights, _ = shrunk_offsets(biases, {"a": 0.0, "b": 0.0, "c": math.inf}, 0.4)
+    assert weights["c"] == 0.0 and offsets["c"] == pytest.approx(0.4)
+
+
+def test_the_stage_applies_the_manifest_offset_else_train_bias(tmp_path: Path) -> None:
+    from relloc.ranging.inference import ModelSet
+
+    assert ModelSet.load(known_model_dir(tmp_path / "old"))["n_3-n_7"].offset == pytest.approx(0.3)
+    shrunk = known_model_dir(tmp_path / "new")
+    manifest = read_manifest(shrunk)
+    manifest["pairs"]["n_3-n_7"]["offset"] = 0.25
+    write_manifest(shrunk, {k: v for k, v in manifest.items() if k != "format"})
+    assert ModelSet.load(shrunk)["n_3-n_7"].offset == pytest.approx(0.25)
