@@ -5,8 +5,7 @@
 (canonical node order, metres and radians) and returns the predicted ranging error in metres
 with its standard deviation:
 
-* error = the pair's constant (the manifest's ``offset``: ``train_bias`` shrunk towards the
-  team-wide constant, ``train_bias`` itself in a manifest without it) + the model's
+* error = the pair's constant (``offset``, the manifest's ``train_bias``) + the model's
   residual, clipped to the residuals seen in training: a model asked about an input unlike
   anything it was trained on must not move a range further than the training data ever did;
 * sigma = the model's learned standard deviation of what remains;
@@ -174,7 +173,7 @@ class ModelSet(Mapping[str, PairModel]):
             try:
                 nodes = tuple(entry["nodes"])
                 onnx_file = path / entry["onnx"]
-                offset = float(entry.get("offset", entry["train_bias"]))
+                offset = float(entry["train_bias"])
                 residual_min = float(entry["residual_min"])
                 residual_max = float(entry["residual_max"])
                 fallback = bool(entry.get("fallback", False))

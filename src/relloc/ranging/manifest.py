@@ -6,12 +6,8 @@ The derivation: docs/explanation/internals.md, section ``relloc.ranging.manifest
 from __future__ import annotations
 
 import json
-import math
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 MANIFEST_NAME = "manifest.json"
 FORMAT = "relloc-ranging/2"
@@ -83,46 +79,3 @@ def find_model_dirs(paths: list[str | Path]) -> list[Path]:
             raise ModelDirError(f"{p}: neither a model directory nor a parent of any")
         found.extend(subs)
     return found
-
-
-SHRINK_BLOCKS = 8
-"""Contiguous time blocks of a pair's development rows whose means measure how far its
-constant moves (:func:`bias_drift_variance`)."""
-
-
-def bias_drift_variance(errors: np.ndarray, n_steps: int, blocks: int = SHRINK_BLOCKS) -> float:
-    """How far a pair's constant moves over time: the variance of the means of up to ``blocks``
-    contiguous blocks of its errors (each at least ``n_steps`` rows); ``inf`` with fewer than
-    two such blocks (no evidence on the constant, which then shrinks fully)."""
-    errors = np.asarray(errors, dtype=float)
-    k = min(blocks, len(errors) // max(1, n_steps))
-    if k < 2:
-        return math.inf
-    means = [float(np.mean(b)) for b in np.array_split(errors, k)]
-    return float(np.var(means, ddof=1))
-
-
-def shrunk_offsets(
-    biases: Mapping[str, float], drift: Mapping[str, float], constant: float
-) -> tuple[dict[str, float], dict[str, float], float]:
-    """Each pair's constant shrunk towards the team-wide ``constant`` by the evidence.
-
-    Empirical Bayes (Morris): the pairs' true constants spread around ``constant`` with a
-    variance ``tau2`` (the pairs' spread less their mean drift variance, at least 0); a pair
-    whose constant moves by ``drift[p]`` (a variance) keeps the weight ``tau2 / (tau2 + drift)``
-    of its own deviation. No spread between pairs, or a single pair: every pair gets
-    ``constant``. Returns ``(offset per pair, weight per pair, tau2)``.
-    """
-    pairs = list(biases)
-    finite = [drift[p] for p in pairs if math.isfinite(drift[p])]
-    if len(pairs) < 2 or not finite:
-        tau2 = 0.0
-    else:
-        spread = sum((biases[p] - constant) ** 2 for p in pairs) / (len(pairs) - 1)
-        tau2 = max(0.0, spread - float(np.mean(finite)))
-    weights = {
-        p: (tau2 / (tau2 + drift[p]) if tau2 > 0.0 and math.isfinite(drift[p]) else 0.0)
-        for p in pairs
-    }
-    offsets = {p: constant + weights[p] * (biases[p] - constant) for p in pairs}
-    return offsets, weights, tau2

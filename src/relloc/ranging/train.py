@@ -7,10 +7,7 @@ docs/ranging.md); the orientation- and motion-dependent part should not. So each
 only the **residual around the pair's constant** (``error - train_bias``, with ``train_bias``
 the mean error of the rows before the test part), and the constant is stored beside it in the
 manifest: the run time adds it back, or leaves the offset to the filter
-(``TrainConfig.offset``), and evaluation can estimate it online. The constant the run time adds
-(the pair's ``offset``) is ``train_bias`` shrunk towards the team-wide constant by the evidence
-(:func:`relloc.ranging.manifest.shrunk_offsets`): a pair whose constant moves over time, or a
-team whose pairs barely differ, gets nearer the one constant that transfers best.
+(``TrainConfig.offset``), and evaluation can estimate it online.
 
 The derivation: docs/explanation/internals.md, section ``relloc.ranging.train``.
 """
@@ -43,7 +40,7 @@ from relloc.ranging.dataset import (
 )
 from relloc.ranging.export import export_model, save_checkpoint
 from relloc.ranging.inference import OFFSET_MODES
-from relloc.ranging.manifest import bias_drift_variance, shrunk_offsets, write_manifest
+from relloc.ranging.manifest import write_manifest
 from relloc.ranging.models import (
     Architecture,
     EnsembleModel,
@@ -404,23 +401,11 @@ def train_directory(
             "onnx_max_diff": diff,
             **{k: v for k, v in asdict(report).items() if k != "pair"},
         }
-    constant = float(np.mean(np.concatenate(dev_errors)))
-    drift = {
-        k: bias_drift_variance(e, config.n_steps) for k, e in zip(entries, dev_errors, strict=True)
-    }
-    offsets, weights, tau2 = shrunk_offsets(
-        {k: float(e["train_bias"]) for k, e in entries.items()}, drift, constant
-    )
-    for key, entry in entries.items():
-        entry["offset"] = offsets[key]
-        entry["offset_weight"] = weights[key]
-        entry["bias_drift_var"] = drift[key] if np.isfinite(drift[key]) else None
     manifest: dict[str, Any] = {
         "variant": arch.variant,
         "n_steps": config.n_steps,
         "offset": config.offset,
-        "constant": constant,
-        "offset_tau2": tau2,
+        "constant": float(np.mean(np.concatenate(dev_errors))),
         "architecture": arch.to_dict(),
         "node_map": node_map,
         "training": {
