@@ -71,6 +71,11 @@ class ConsistencyWatchdog:
         """The range likelihood of calibrated pairs whose bias the filter estimates: the sampled
         filter sets its own (its particles carry such a bias under the NLOS-aware model too)."""
         self._nis: dict[str, deque[tuple[float, float, bool]]] = {}
+        self._over: dict[str, int] = {}
+        """Per robot, how many of ``_nis``'s entries are over their bound (kept with it)."""
+        self._pairs: dict[tuple[str, str, str, str, str], tuple[str, float, float, float]] = {}
+        """Per range's robots, nodes and range model: its node pair, calibrated bias, scale and
+        noise (:meth:`_range_model`; the config does not change under a watchdog)."""
         """Each robot's recent ``(stamp, NIS over its chi-square median, over its bound)``."""
         self._cusum: dict[str, float] = {}
         """Each robot's CUSUM of :func:`evidence`."""
@@ -92,6 +97,7 @@ class ConsistencyWatchdog:
         """The filter was started again at ``t``: judge it on fresh innovations only; the flag
         stays until they clear it."""
         self._nis.clear()
+        self._over.clear()
         self._cusum.clear()
         self._since = t
 
@@ -119,13 +125,14 @@ class ConsistencyWatchdog:
                 step = evidence(value, dof)
                 for robot in judged[0][:2]:
                     self._nis.setdefault(robot, deque()).append(entry)
+                    self._over[robot] = self._over.get(robot, 0) + entry[2]
                     self._cusum[robot] = max(0.0, self._cusum.get(robot, 0.0) + step)
         shares = {}
         for robot, q in self._nis.items():
             while q and q[0][0] < t - WINDOW:
-                q.popleft()
+                self._over[robot] -= q.popleft()[2]
             if len(q) >= MIN_COUNT:
-                shares[robot] = sum(o for _, _, o in q) / len(q)
+                shares[robot] = self._over[robot] / len(q)
         if any(s > THRESHOLD for s in self._cusum.values()):
             if not self.inconsistent:
                 self.inconsistent = True
@@ -168,18 +175,22 @@ class ConsistencyWatchdog:
         if m.corrected:
             sigma = max(uwb.sigma, m.sigma if m.sigma is not None and math.isfinite(m.sigma) else 0.0)
             return m.distance, sigma**2
-        nodes = self.config.range_nodes(m)
-        key = pair_key(*nodes)
-        online = fe.biases.get(key)
         model = self.range_model
+        known = self._pairs.get((m.robot_a, m.robot_b, m.node_a, m.node_b, model))
+        if known is None:
+            nodes = self.config.range_nodes(m)
+            key = pair_key(*nodes)
+            bias, scale, _ = uwb.calibration(*nodes)
+            known = (key, bias, scale, pair_sigma(self.config, key, uwb.los_sigma if model == "nlos" else uwb.sigma))
+            self._pairs[(m.robot_a, m.robot_b, m.node_a, m.node_b, model)] = known
+        key, bias, scale, sigma = known
+        online = fe.biases.get(key)
         if online is not None:  # the bias in the state: its published variance, no widening
             model = self.online_range_model if key in uwb.pairs else "symmetric"  # RangeBatch.build
             r, extra = m.distance - online[0], online[1] ** 2
             sigma = uwb.los_sigma if model == "nlos" else uwb.sigma
         else:
-            bias, scale, _ = uwb.calibration(*nodes)
             r, extra = (m.distance - bias) / scale, 0.0
-            sigma = pair_sigma(self.config, key, uwb.los_sigma if model == "nlos" else uwb.sigma)
         if model != "nlos":
             return r, sigma**2 + extra
         share = NLOS_FRACTION / (1.0 - GROSS_FRACTION)  # of the mixture less its uniform floor
