@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 from pathlib import Path
 from typing import Any
@@ -66,6 +67,7 @@ def _serve(config: TeamConfig, opts: ServeOptions, args: argparse.Namespace, sec
     except Exception:
         session.close()
         raise
+    _freeze_startup_objects()
     try:
         with stop_on_signals(server.stop):
             server.start()
@@ -81,6 +83,14 @@ def _serve(config: TeamConfig, opts: ServeOptions, args: argparse.Namespace, sec
     finally:
         server.close()
         session.close()
+
+
+def _freeze_startup_objects() -> None:
+    """Move every object alive after start-up (modules, type store, filter) out of the cyclic
+    garbage collector's sight: a full collection otherwise walks them all (about 80 000
+    objects, some 0.1 s) now and then, in the middle of a filter step. Changes no result."""
+    gc.collect()
+    gc.freeze()
 
 
 def _faults(args: argparse.Namespace) -> Faults:
