@@ -241,12 +241,15 @@ class RangeCorrector:
 
     def _pass(self, event: RangeEvent, reason: str) -> RangeEvent:
         self.stats[reason] += 1
-        self._used(event, event.distance - (self.bias_of(*event.node_pair.split("-")) if self.bias_of else 0.0))
+        bias = 0.0
+        if self.bias_of is not None and not event.corrected:
+            bias = self.bias_of(event.node_a or event.robot_a, event.node_b or event.robot_b)
+        self._used(event, event.distance - bias)
         return event
 
     def _used(self, event: RangeEvent, distance: float) -> None:
-        """Tell the self-check what distance the filter gets for this range."""
-        if self.self_check and math.isfinite(distance):
+        """Tell the self-check what distance the filter gets for this range (a positive one)."""
+        if self.self_check and math.isfinite(distance) and distance > 0.0:
             self.check.used(event.t, event.robot_a, event.robot_b, distance)
 
     def _corrected(
