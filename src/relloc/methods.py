@@ -13,16 +13,13 @@
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
 from relloc.config import TeamConfig
 from relloc.engine import Pipeline, Stage
 from relloc.localizers.filtered import FilterLocalizer
-from relloc.localizers.multilateration import MultilaterationLocalizer
-from relloc.localizers.range_graph import RangeGraphLocalizer, large_compass_team
-from relloc.localizers.sampled import ParticleFilterLocalizer
-from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
-from relloc.localizers.smoother import SmootherLocalizer
+from relloc.localizers.range_graph import large_compass_team
 
 METHODS = ("pf", "pf_ul", "pf_uv", "pf_ulv", "multilateration", "ekf_oracle")
 
@@ -64,6 +61,8 @@ def build_pipeline(
         compass = config.with_modes(heading="compass", odom_scale="fixed")
         return Pipeline(method, EkfOracleLocalizer(compass, oracle_start))
     if method == "multilateration":
+        from relloc.localizers.multilateration import MultilaterationLocalizer  # SciPy's optimiser
+
         return Pipeline(method, MultilaterationLocalizer(config, seed=seed))
     if method not in METHODS:
         raise MethodError(f"unknown method {method!r}; choose from {', '.join(METHODS)}")
@@ -81,13 +80,15 @@ def build_pipeline(
     return Pipeline(method, filter_localizer(config, seed=seed, method=method), stages)
 
 
-LOCALIZERS: dict[str, type[FilterLocalizer]] = {
-    "particle": ParticleFilterLocalizer,
-    "gaussian_sum": SelfCalibratingLocalizer,
-    "range_graph": RangeGraphLocalizer,
-    "smoother": SmootherLocalizer,
+LOCALIZERS: dict[str, tuple[str, str]] = {
+    "particle": ("relloc.localizers.sampled", "ParticleFilterLocalizer"),
+    "gaussian_sum": ("relloc.localizers.self_calibrating", "SelfCalibratingLocalizer"),
+    "range_graph": ("relloc.localizers.range_graph", "RangeGraphLocalizer"),
+    "smoother": ("relloc.localizers.smoother", "SmootherLocalizer"),
 }
-"""The localizer of each filter kind of ``[filter] kind`` (:data:`relloc.config.FilterKind`)."""
+"""The localizer of each filter kind of ``[filter] kind`` (:data:`relloc.config.FilterKind`), as
+module and class: imported when chosen, so a process that runs the particle filter does not
+carry GTSAM (the smoother) in its memory."""
 
 
 def filter_choice(config: TeamConfig) -> tuple[str, str]:
@@ -134,7 +135,9 @@ def filter_kind(config: TeamConfig) -> str:
 
 def filter_localizer(config: TeamConfig, *, seed: int = 0, method: str = "pf") -> FilterLocalizer:
     """The localizer of the filter :func:`filter_kind` names."""
-    return LOCALIZERS[filter_kind(config)](config, seed=seed, method=method)
+    module, name = LOCALIZERS[filter_kind(config)]
+    cls: type[FilterLocalizer] = getattr(importlib.import_module(module), name)
+    return cls(config, seed=seed, method=method)
 
 
 def filter_header(methods: list[str], config: TeamConfig) -> str | None:
