@@ -4,11 +4,12 @@ A model that was right in its training session can be wrong in the next one, and
 the model says so. The team can: for a pair ``(a, b)``, the other robots' published positions
 and the ranges from ``a`` and from ``b`` to them place ``a`` and ``b`` without the pair's own
 range (a least-squares trilateration of each, started at the published position), so their
-distance ``d`` is a prediction that pair never influenced. Each range of the pair has two
+distance ``d`` is a prediction the pair's own range does not enter directly. Each range of the pair has two
 candidates, the corrected range and the range less only the pair's constant, and both
 innovations ``candidate - d`` are scored. Over the last ``WINDOW`` seconds per node pair, a
-correction whose mean squared innovation exceeds the constant's by ``OFF_RATIO`` (each with
-``FLOOR`` squared added, so two small figures do not flip it on noise) is switched off, the
+correction whose median squared innovation exceeds the constant's by ``OFF_RATIO`` (each with
+``FLOOR`` squared added, so two small figures do not flip it on noise; the median, so a blocked
+path's long range does not decide it) is switched off, the
 pair then gets the constant; it is switched back on when it beats the constant by
 ``ON_RATIO`` (still scored while off). Every switch is counted and logged.
 
@@ -37,7 +38,7 @@ WINDOW = 5.0
 MIN_COUNT = 10
 """Fewest scored ranges of a pair in the window before it is judged."""
 OFF_RATIO = 1.5
-"""Switch off where the correction's mean squared innovation exceeds the constant's this much."""
+"""Switch off where the correction's median squared innovation exceeds the constant's this much."""
 ON_RATIO = 1.0 / 1.5
 """Switch back on where it is below the constant's times this."""
 FLOOR = 0.05
