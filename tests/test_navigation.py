@@ -486,6 +486,25 @@ def test_sim_robots_obey_cmd_vel_and_stop_without_it() -> None:
     assert math.dist(p1[:2], p2[:2]) == 0.0
 
 
+def test_sim_robots_stamp_on_a_whole_second_so_every_run_batches_alike() -> None:
+    """The default time base is a whole second of wall time: the stamps' phase on the
+    localizer's batch grid (absolute stamps, 0.1 s cells) is the same from run to run."""
+    from relloc.simulator import nav_scenario
+
+    sim = nav_scenario(0, duration=10.0)
+    robots = SimRobots(
+        sim, sim_team_config(sim), session=None, options=SimRobotsOptions(rate=50.0, duration=0.2)
+    )
+    sent: list[tuple[object, bytes]] = []
+    robots._pubs = SimpleNamespace(  # type: ignore[assignment]
+        wait_matching=lambda *a: False, put=lambda *a: sent.append(a), close=lambda: None
+    )
+    summary = robots.run()
+    assert robots.time_base == math.floor(robots.time_base) and sent
+    stamps = np.array([p[0] for p in summary["truth"]["r2"]]) - robots.time_base
+    assert np.allclose(stamps, np.round(stamps / 0.05) * 0.05, atol=1e-6)
+
+
 # ============================================================================ closed loop
 def test_closed_loop_in_the_simulator_drives_a_small_rectangle() -> None:
     from relloc.navigation.closed_loop import run_nav_scenario

@@ -5,7 +5,9 @@ Every session is a peer on 127.0.0.1 with explicit listen/connect endpoints on f
 multicast scouting off: no other service, nothing leaves the machine. The simulated team runs
 twice as fast as real time (``--rate 2``) and the server and the navigator are told so
 (``--clock-rate 2``): every clock, the control period included, runs twice as fast, so the
-system is the real one, sped up.
+system is the real one, sped up. The server fuses the events in stamp order (``--reorder-window
+0.1``) and sim-robots starts its clock on a whole second, so a run's estimates do not depend on
+the order the messages happened to arrive in (docs/navigation.md, "Run-to-run spread").
 """
 
 from __future__ import annotations
@@ -153,6 +155,8 @@ def drive_small_rectangle(tmp: Path, *interface: str) -> tuple[dict[str, Any], d
             str(team),
             "--clock-rate",
             "2",
+            "--reorder-window",
+            "0.1",
             *interface,
             *zenoh_args(connect=port),
             log=tmp / "serve.log",

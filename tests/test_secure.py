@@ -339,7 +339,8 @@ def test_secure_sim_robots_serve_and_navigate_drive_the_small_rectangle_under_at
     try:
         procs.append(relloc("sim-robots", "--scenario", "nav", "--config", str(team_toml), "--rate", "2", "--duration", "120",
                             "--json", str(tmp_path / "sim.json"), *sec, "--listen", tls(p_sim), log=tmp_path / "sim.log"))  # fmt: skip
-        procs.append(relloc("serve", "--config", str(team_toml), "--clock-rate", "2", "--json", str(tmp_path / "serve.json"),
+        procs.append(relloc("serve", "--config", str(team_toml), "--clock-rate", "2", "--reorder-window", "0.1",
+                            "--json", str(tmp_path / "serve.json"),
                             *sec, "--listen", tls(p_serve), "--connect", tls(p_sim), log=tmp_path / "serve.log"))  # fmt: skip
         nav = relloc("navigate", "--config", str(team_toml), "--robot", "r2", "--path", str(SMALL), "--clock-rate", "2",
                      "--duration", "50", "--json", str(tmp_path / "nav.json"), *sec, "--connect", tls(p_sim),

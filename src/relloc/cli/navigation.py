@@ -112,6 +112,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     e.add_argument("--seed", type=argtypes.seed, default=0, help="with --in-process")
     e.add_argument(
+        "--reorder-window",
+        type=argtypes.non_negative,
+        default=0.1,
+        metavar="S",
+        help="with --in-process: fuse events in stamp order within S s (default 0.1; serve's "
+        "--reorder-window)",
+    )
+    e.add_argument(
         "--clock-rate",
         type=argtypes.positive,
         default=1.0,

@@ -93,7 +93,9 @@ class SimRobotsOptions:
     wait: float = 10.0
     """Wait up to this long (wall s) for a subscriber of the odometry and range keys."""
     time_base: float | None = None
-    """Added to every stamp (default: the wall time at the start; stamps look like ROS time)."""
+    """Added to every stamp (default: the next whole second of wall time, when the run starts;
+    stamps look like ROS time). A whole second keeps the stamps' phase on the localizer's batch
+    grid the same from run to run, and with it the estimates (see :meth:`SimRobots.run`)."""
     duration: float | None = None
     """Stop after this many simulated seconds (default: the simulation's duration)."""
 
@@ -162,6 +164,13 @@ class SimRobots:
             log.warning("no subscriber yet for some of the team's keys, publishing anyway")
         end = min(self.sim.duration, opts.duration or math.inf)
         wall0 = time.time()
+        if opts.time_base is None:
+            # Start on a whole second: the localizer batches on a grid of absolute stamps, so a
+            # time base with a run-dependent fraction would batch the same data differently
+            # each run and give other estimates (a different run, as with another seed).
+            wall0 = float(math.ceil(wall0))
+            if stop.wait(max(wall0 - time.time(), 0.0)):
+                return self.summary()
         self.time_base = wall0 if opts.time_base is None else opts.time_base
         k = 0
         while not stop.is_set():

@@ -202,6 +202,10 @@ class NavigateOptions:
     methods: tuple[str, ...] = ("pf",)
     seed: int = 0
     particles: int | None = None
+    reorder_window: float = 0.1
+    """With ``in_process``: the server's reorder window (s of header time). Events fused in
+    header order, not arrival order, give the same estimates on every run of the same data;
+    the latency it adds is removed by ``latency_compensation``."""
     latency_compensation: bool = True
     duration: float | None = None
     pose_identity: str | None = None
@@ -278,6 +282,7 @@ class LiveNavigation:
                     prefix=opts.prefix,
                     interface=opts.interface,
                     out_prefix=opts.estimate_prefix,
+                    reorder_window=opts.reorder_window,
                     clock_rate=opts.clock_rate,
                 ),
             )
