@@ -114,7 +114,10 @@ class GraphSmoother:
         """Each online bias's key."""
         self.biases: FloatArray = self.bias_mean.copy()
         """Each online bias's latest estimate."""
-        self._joint: tuple[int, FloatArray] | None = None
+        self._estimate = gtsam.Values()
+        """The window's estimate after the last update."""
+        self._joint: FloatArray | None = None
+        """:meth:`_window_joint` of the last update (computed when first asked)."""
 
     @property
     def estimate(self) -> FloatArray:
@@ -154,7 +157,7 @@ class GraphSmoother:
             values.insert(key, np.array([m]))
             stamps.insert((key, t))
         self._ranges(graph, keys, index_a, index_b, distance, range_sigma, bias_index)
-        self._relative(graph, keys, relative)
+        self._relatives(graph, keys, relative)
         self._update(graph, values, stamps)
 
     def advance(
@@ -191,7 +194,7 @@ class GraphSmoother:
         for key in self.bias_keys:
             stamps.insert((key, t))  # kept in the window (module docstring)
         self._ranges(graph, new, index_a, index_b, distance, range_sigma, bias_index)
-        self._relative(graph, new, relative)
+        self._relatives(graph, new, relative)
         self._update(graph, values, stamps)
 
     def _ranges(
@@ -208,7 +211,7 @@ class GraphSmoother:
             else:
                 graph.add(gtsam.RangeFactor2(keys[a], keys[b], d, noise))
 
-    def _relative(self, graph: gtsam.NonlinearFactorGraph, keys: list[int], relative: Relative | None) -> None:
+    def _relatives(self, graph: gtsam.NonlinearFactorGraph, keys: list[int], relative: Relative | None) -> None:
         """One Huber-robust between factor per measured ``p_target - p_observer``."""
         if relative is None:
             return
@@ -222,7 +225,7 @@ class GraphSmoother:
         self.factors_added += graph.size()
         self.graphs.append(graph)
         self._joint = None
-        est = self.smoother.calculateEstimate()
+        self._estimate = est = self.smoother.calculateEstimate()
         for key in list(est.keys()):  # a gtsam.Values, not a dict
             bias = gtsam.Symbol(key).chr() == BIAS_CHR
             self.values[key] = est.atVector(key) if bias else est.atPoint2(key)
@@ -231,25 +234,25 @@ class GraphSmoother:
 
     def _window_joint(self) -> FloatArray:
         """The joint covariance of the window's marginal on ``[x_ref, x_others..., biases...]``
-        (the latest step's keys, 2 rows each, then 1 per bias) at the estimate, once per step.
+        (the latest step's keys, 2 rows each, then 1 per bias) at the estimate, once per update.
 
         The linearised window is eliminated with those keys last, so their marginal is the
         dense ``R^T R`` of one small Bayes net: four times cheaper than ``gtsam.Marginals``'
         joint over the same keys at 50 robots, and equal to it."""
-        if self._joint is None or self._joint[0] != self.step:
+        if self._joint is None:
             keys = self.keys()
             order = [keys[self.reference], *(keys[i] for i in self.others), *self.bias_keys]
-            linear = self.smoother.getFactors().linearize(self.smoother.calculateEstimate())
+            linear = self.smoother.getFactors().linearize(self._estimate)
             r, _ = linear.marginalMultifrontalBayesNet(gtsam.Ordering(order)).matrix()
             r_inv = solve_triangular(r, np.eye(r.shape[0]))
-            self._joint = (self.step, r_inv @ r_inv.T)
-        return self._joint[1]
+            self._joint = r_inv @ r_inv.T
+        return self._joint
 
     def covariances(self) -> FloatArray:
         """Covariance ``(N-1, 2, 2)`` of each robot's latest position relative to the
         reference's: ``S_kk + S_rr - S_kr - S_rk`` of the window's joint marginal."""
         k = self.others.size
-        return _relative(self._window_joint()[: 2 * (k + 1), : 2 * (k + 1)], k)
+        return _difference_covariances(self._window_joint()[: 2 * (k + 1), : 2 * (k + 1)], k)
 
     def bias_std(self) -> FloatArray:
         """Std of each online bias (the window's marginal), ``(B,)``."""
@@ -280,13 +283,13 @@ class GraphSmoother:
         for j, step in enumerate(steps):
             keys = self.keys(step)
             order = [keys[self.reference], *(keys[i] for i in self.others)]
-            cov[j] = _relative(marginals.jointMarginalCovariance(order).fullMatrix(), self.others.size)
+            cov[j] = _difference_covariances(marginals.jointMarginalCovariance(order).fullMatrix(), self.others.size)
         return mean, cov
 
     def cost(self) -> float:
         """The graph's error at the estimate (half the robust chi-square): compares hypotheses
         over the same measurements."""
-        return float(self.smoother.getFactors().error(self.smoother.calculateEstimate()))
+        return float(self.smoother.getFactors().error(self._estimate))
 
     def size(self) -> int:
         """Factors the smoother holds now (marginalised ones replaced by their summary)."""
@@ -294,7 +297,7 @@ class GraphSmoother:
         return sum(1 for i in range(graph.size()) if graph.exists(i))
 
 
-def _relative(joint: FloatArray, k: int) -> FloatArray:
+def _difference_covariances(joint: FloatArray, k: int) -> FloatArray:
     """From the joint covariance of ``[x_ref, x_1..x_k]`` (``(2k+2, 2k+2)``), each
     ``x_j - x_ref``'s: ``S_jj + S_rr - S_jr - S_rj`` ``(k, 2, 2)``, symmetrised."""
     blocks = joint.reshape(k + 1, 2, k + 1, 2).transpose(0, 2, 1, 3)
