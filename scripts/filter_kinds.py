@@ -153,7 +153,8 @@ def cell(payload: dict[str, Any] | None, baseline: dict[str, Any] | None = None)
     found = robots(payload)
     if isinstance(found, str):
         return f"({found.split('error: ')[-1].split(' (')[0][:70]})"
-    values = {r: robot_figure(v) for r, v in found.items() if isinstance(robot_figure(v), float)}
+    figures = {r: robot_figure(v) for r, v in found.items()}
+    values = {r: v for r, v in figures.items() if isinstance(v, float)}
     if not values:
         return "(no estimate)"
     text = f"{sum(values.values()) / len(values):.2f} / {max(values.values()):.2f}"

@@ -95,13 +95,13 @@ def range_mixture(
     return los, total
 
 
-def _separable(uwb: UwbConfig, pair: str, state: tuple[int, ...]) -> bool:
+def separable(uwb: UwbConfig, pair: str, in_state: bool) -> bool:
     """Whether an online bias can take the NLOS-aware model: its prior is a calibration (the
     line-of-sight peak it stands for is then pinned, and the one-sided excess cannot drag it:
     without, a bias and an excess are confounded, measured on one range: 0.108 m symmetric,
-    0.165 NLOS-aware), and the particles carry it (a Gaussian state column needs the
-    linear, symmetric row)."""
-    return pair in uwb.pairs and not state
+    0.165 NLOS-aware), and the particles carry it, not a Gaussian state column
+    (``in_state``: that needs the linear, symmetric row)."""
+    return pair in uwb.pairs and not in_state
 
 
 def _model_sigma(group: Sequence[RangeEvent]) -> float:
@@ -173,7 +173,7 @@ class RangeBatch:
     def build(cls, events: Sequence[RangeEvent], context: ModelContext) -> list[MeasurementModel]:
         """The range models of one batch: per robot pair its median range; raw ranges get the
         NLOS-aware model when ``context.range_model`` says so, an online bias included where
-        :func:`_separable`; ranges corrected upstream by a learned model get the symmetric one
+        :func:`separable`; ranges corrected upstream by a learned model get the symmetric one
         (the correction predicted the skewed part)."""
         config, layout = context.config, context.layout
         uwb = config.uwb
@@ -207,7 +207,7 @@ class RangeBatch:
         belief = np.array([layout.bias_belief_column(k) if on else -1 for k, on in zip(keys, online, strict=True)], dtype=np.intp)
         state = tuple(layout.bias_state_columns(k) if on else () for k, on in zip(keys, online, strict=True))
         if context.range_model == "nlos":
-            raw = np.array([bool(k) and (not on or _separable(uwb, k, st)) for k, on, st in zip(keys, online, state, strict=True)])
+            raw = np.array([bool(k) and (not on or separable(uwb, k, bool(st))) for k, on, st in zip(keys, online, state, strict=True)])
         else:
             raw = np.zeros(len(keys), bool)
         out: list[MeasurementModel] = []

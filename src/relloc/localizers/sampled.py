@@ -127,7 +127,7 @@ class ParticleFilterLocalizer(FilterLocalizer):
         super().__init__(config, layout, seed=seed)
         self.method = method
         self.range_model = config.filter.likelihood.range_model  # online pairs too (RangeBatch.build)
-        self.watchdog.online_range_model = self.range_model
+        self.watchdog.particle_biases = True
         self.filter = particle_filter(config, layout, prior, config.filter.particles, self.rng, count_rule(config, layout))
         self.filter.covariance_floor = covariance_floor(config, self.range_model)
 

@@ -29,7 +29,7 @@ import numpy as np
 from relloc.config import TeamConfig
 from relloc.events import RangeEvent, SightingEvent, pair_key
 from relloc.filter.base import FilterEstimate
-from relloc.filter.ranges import GROSS_FRACTION, NLOS_FRACTION, NLOS_SIGMA, pair_sigma
+from relloc.filter.ranges import GROSS_FRACTION, NLOS_FRACTION, NLOS_SIGMA, pair_sigma, separable
 from relloc.filter.state import TeamLayout
 
 WINDOW = 5.0
@@ -67,9 +67,9 @@ class ConsistencyWatchdog:
         """The range likelihood of the filter judged: the config's, which the particle filter and
         the range graph use; a localizer with another (the self-calibrating filter's symmetric
         one) sets its own here."""
-        self.online_range_model = "symmetric"
-        """The range likelihood of calibrated pairs whose bias the filter estimates: the sampled
-        filter sets its own (its particles carry such a bias under the NLOS-aware model too)."""
+        self.particle_biases = False
+        """Whether the filter's online biases are carried by particles (the sampled filter sets
+        it), which :func:`~relloc.filter.ranges.separable` lets keep the NLOS-aware model."""
         self._nis: dict[str, deque[tuple[float, float, bool]]] = {}
         self._over: dict[str, int] = {}
         """Per robot, how many of ``_nis``'s entries are over their bound (kept with it)."""
@@ -186,7 +186,8 @@ class ConsistencyWatchdog:
         key, bias, scale, sigma = known
         online = fe.biases.get(key)
         if online is not None:  # the bias in the state: its published variance, no widening
-            model = self.online_range_model if key in uwb.pairs else "symmetric"  # RangeBatch.build
+            separate = separable(uwb, key, in_state=not self.particle_biases)
+            model = "nlos" if model == "nlos" and separate else "symmetric"  # as RangeBatch.build
             r, extra = m.distance - online[0], online[1] ** 2
             sigma = uwb.los_sigma if model == "nlos" else uwb.sigma
         else:

@@ -86,18 +86,17 @@ class CorrectionCheck:
         """The filter was given ``distance`` between the robots at ``t`` (any pair)."""
         self._ranges[frozenset((robot_a, robot_b))] = (t, distance)
 
-    def note(self, pair: str, t: float, robot_a: str, robot_b: str, corrected: float, constant: float) -> None:
+    def note(self, pair: str, t: float, robot_a: str, robot_b: str, corrected: float, constant: float) -> bool:
         """A range of ``pair`` at ``t``: its two candidate distances scored against the
-        distance the other robots imply, then the pair judged."""
+        distance the other robots imply, then the pair judged; whether it was switched."""
         d = self._predicted(t, robot_a, robot_b)
         if d is None:
-            return
+            return False
         state = self._pairs.setdefault(pair, _Pair())
         state.scored.append((t, (corrected - d) ** 2, (constant - d) ** 2))
         while state.scored and state.scored[0][0] < t - WINDOW:
             state.scored.popleft()
-        if len(state.scored) >= MIN_COUNT:
-            self._decide(pair, state)
+        return len(state.scored) >= MIN_COUNT and self._decide(pair, state)
 
     def judge(self, estimate: Estimate) -> None:
         """The filter published ``estimate``: the next ranges are scored with it."""
@@ -125,7 +124,8 @@ class CorrectionCheck:
             placed.append(_trilaterate(np.array(positions[robot], float), np.array(anchors, float), np.array(ranges, float)))
         return float(np.hypot(*(placed[0] - placed[1])))
 
-    def _decide(self, pair: str, state: _Pair) -> None:
+    def _decide(self, pair: str, state: _Pair) -> bool:
+        """Switch the pair off or on where its window says so; whether it did."""
         scored = np.array(state.scored)
         corrected = float(np.median(scored[:, 1])) + FLOOR**2
         constant = float(np.median(scored[:, 2])) + FLOOR**2
@@ -136,10 +136,13 @@ class CorrectionCheck:
                 "range correction of %s switched off: RMS innovation %.3f m corrected, %.3f m with the constant",
                 pair, math.sqrt(corrected), math.sqrt(constant),
             )
-        elif state.off and corrected < ON_RATIO * constant:
+            return True
+        if state.off and corrected < ON_RATIO * constant:
             state.off = False
             self.switched_on += 1
             log.warning("range correction of %s switched back on", pair)
+            return True
+        return False
 
 
 def _settled(estimate: Estimate, robot: str) -> bool:

@@ -229,9 +229,7 @@ class RangeCorrector:
             return self._corrected(event, model, residual, sigma, reason)
         key = event.node_pair
         constant = event.distance - model.offset
-        switches = self.check.switched_off + self.check.switched_on
-        self.check.note(key, event.t, event.robot_a, event.robot_b, constant - residual, constant)
-        if self.check.switched_off + self.check.switched_on != switches:
+        if self.check.note(key, event.t, event.robot_a, event.robot_b, constant - residual, constant):
             self.stats[f"correction_off.{key}"] = int(not self.check.enabled(key))
             self.stats["self_check_switched_off"] = self.check.switched_off
             self.stats["self_check_switched_on"] = self.check.switched_on
