@@ -145,35 +145,51 @@ def _rotate(rel: FloatArray, theta: FloatArray) -> FloatArray:
     return out
 
 
-def procrustes_fit(x: FloatArray, y: FloatArray, template: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
-    """Rotation and handedness of each formation (coordinate planes ``x``, ``y`` ``(K, M)``)
-    relative to ``template`` ``(K, 2)``: formation ``m`` is best explained as ``template``
-    mirrored (if the handedness is -1: ``y -> -y``) and then turned about the reference by the
-    angle whose cosine and sine are returned, with the handedness: ``(cos, sin, hand)``."""
-    # H = sum_k t_k p_k^T per hypothesis; entries Hab = sum_k t_k[a] p_k[b].
-    h00, h01 = np.einsum("k,km->m", template[:, 0], x), np.einsum("k,km->m", template[:, 0], y)
-    h10, h11 = np.einsum("k,km->m", template[:, 1], x), np.einsum("k,km->m", template[:, 1], y)
-    hand = np.where(h00 * h11 - h01 * h10 < 0.0, -1.0, 1.0) if x.shape[0] > 1 else np.ones(x.shape[1])
+def procrustes_fit(planes: FloatArray, template: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Rotation and handedness of each formation (coordinate planes ``planes`` ``(2K, M)``: the
+    ``x`` rows, then the ``y`` rows) relative to ``template`` ``(K, 2)``: formation ``m`` is best
+    explained as ``template`` mirrored (if the handedness is -1: ``y -> -y``) and then turned
+    about the reference by the angle whose cosine and sine are returned, with the handedness:
+    ``(cos, sin, hand)``."""
+    k, m = template.shape[0], planes.shape[1]
+    # H = sum_k t_k p_k^T per hypothesis, one einsum: h[a, b] = sum_k t_k[a] p_k[b].
+    h = np.einsum("ak,bkm->abm", template.T, planes[: 2 * k].reshape(2, k, m))
+    h00, h01, h10, h11 = h[0, 0], h[0, 1], h[1, 0], h[1, 1]
+    hand = np.where(h00 * h11 - h01 * h10 < 0.0, -1.0, 1.0) if k > 1 else np.ones(m)
     # proper: p = R(a) t -> (cos, sin) ~ (h00 + h11, h01 - h10); mirrored: p = R(a) F t with
     # F = diag(1, -1) -> (h00 - h11, h01 + h10).
-    c = h00 + hand * h11
-    s = h01 - hand * h10
-    norm = np.sqrt(c * c + s * s)
+    c = hand * h11
+    c += h00
+    s = hand * h10
+    np.subtract(h01, s, out=s)
+    norm = c * c
+    norm += s * s
+    np.sqrt(norm, out=norm)
     norm[norm == 0.0] = 1.0
-    return c / norm, s / norm, hand
+    c /= norm
+    s /= norm
+    return c, s, hand
 
 
-def _modes(angle: FloatArray, hand: FloatArray, w: FloatArray) -> IntArray:
-    """Mode label of every hypothesis (-1: in no mode), labels ordered by decreasing weight."""
-    b = np.floor((angle + np.pi) / (2.0 * np.pi) * MODE_BINS).astype(np.intp) % MODE_BINS
-    cell = b
+_BEFORE = (np.arange(MODE_BINS) - 1) % MODE_BINS
+_AFTER = (np.arange(MODE_BINS) + 1) % MODE_BINS
+
+
+def _modes(angle: FloatArray, hand: FloatArray, w: FloatArray) -> tuple[IntArray, list[float]]:
+    """Mode label of every hypothesis (-1: in no mode), labels ordered by decreasing weight,
+    and each mode's weight (the weights of its bins)."""
+    a = angle + np.pi  # in place from here: (angle + pi) / 2 pi * MODE_BINS, floored
+    a /= 2.0 * np.pi
+    a *= MODE_BINS
+    cell = np.floor(a, out=a).astype(np.intp)
+    cell %= MODE_BINS
     cell[hand < 0] += MODE_BINS
     hist = np.bincount(cell, weights=w, minlength=2 * MODE_BINS)
     label_of_cell = np.full(2 * MODE_BINS, -1, dtype=np.intp)
     runs: list[list[int]] = []
     heavy = (hist > MODE_MIN_BIN_WEIGHT).reshape(2, MODE_BINS)
     # a mode's tails: its neighbour bins (on the circle)
-    occupied = (heavy | np.roll(heavy, 1, axis=1) | np.roll(heavy, -1, axis=1)).tolist()
+    occupied = (heavy | heavy[:, _BEFORE] | heavy[:, _AFTER]).tolist()
     for h in range(2):
         occ = occupied[h]
         if not any(occ):
@@ -192,10 +208,11 @@ def _modes(angle: FloatArray, hand: FloatArray, w: FloatArray) -> IntArray:
                 current = []
         if current:
             runs.append(current)
-    runs.sort(key=lambda r: -float(hist[r].sum()))
-    for k, run in enumerate(runs):
+    mass = hist.tolist()
+    weighed = sorted(((sum(mass[i] for i in run), run) for run in runs), key=lambda wr: -wr[0])
+    for k, (_, run) in enumerate(weighed):
         label_of_cell[run] = k
-    return label_of_cell[cell]
+    return label_of_cell[cell], [wr[0] for wr in weighed]
 
 
 SUMMARY_SAMPLE = 1024
@@ -224,26 +241,35 @@ def _wsum(a: FloatArray, w: FloatArray) -> FloatArray:
     return np.einsum("km,m->k", a, w)
 
 
-def _moments(
-    x: FloatArray,
-    y: FloatArray,
-    w: FloatArray,
-    covs: FloatArray | None,
-    products: tuple[FloatArray, FloatArray, FloatArray] | None = None,
-) -> tuple[FloatArray, FloatArray]:
-    """Weighted mean ``(K, 2)`` and per-robot covariance ``(K, 2, 2)`` of the coordinate planes
-    ``x``, ``y`` ``(K, M)`` under normalised weights ``w`` (plus the weighted member covariances
-    ``covs`` ``(M, K, 2, 2)``, if any). Second moments minus the squared mean: no centred copy;
-    positions are metres, far above float64 cancellation. ``products``: ``x * x``, ``y * y``,
-    ``x * y`` where the caller has them (the same planes under other weights)."""
-    xx, yy, xy = (x * x, y * y, x * y) if products is None else products
-    mean = np.empty((x.shape[0], 2))
-    mean[:, 0] = mx = _wsum(x, w)
-    mean[:, 1] = my = _wsum(y, w)
-    cov = np.empty((x.shape[0], 2, 2))
-    cov[:, 0, 0] = np.maximum(_wsum(xx, w) - mx * mx, 0.0)
-    cov[:, 1, 1] = np.maximum(_wsum(yy, w) - my * my, 0.0)
-    cov[:, 0, 1] = cov[:, 1, 0] = _wsum(xy, w) - mx * my
+def _planes(m: int, k: int) -> FloatArray:
+    """An empty ``(5K, M)`` block of coordinate planes: ``x``, ``y``, then (:func:`_products`)
+    ``x * x``, ``y * y``, ``x * y``, so that the weighted sums of all are one einsum."""
+    return np.empty((5 * k, m))
+
+
+def _products(planes: FloatArray) -> FloatArray:
+    k = planes.shape[0] // 5
+    x, y = planes[:k], planes[k : 2 * k]
+    np.multiply(x, x, out=planes[2 * k : 3 * k])
+    np.multiply(y, y, out=planes[3 * k : 4 * k])
+    np.multiply(x, y, out=planes[4 * k :])
+    return planes
+
+
+def _moments(sums: FloatArray, w: FloatArray, covs: FloatArray | None) -> tuple[FloatArray, FloatArray]:
+    """Weighted mean ``(K, 2)`` and per-robot covariance ``(K, 2, 2)`` from the weighted sums
+    ``(5K,)`` of the planes ``x``, ``y``, ``x * x``, ``y * y``, ``x * y`` (:func:`_planes`)
+    under normalised weights ``w`` (plus the weighted member covariances ``covs``
+    ``(M, K, 2, 2)``, if any). Second moments minus the squared mean: no centred copy;
+    positions are metres, far above float64 cancellation."""
+    k = sums.shape[0] // 5
+    mx, my, sxx, syy, sxy = sums[:k], sums[k : 2 * k], sums[2 * k : 3 * k], sums[3 * k : 4 * k], sums[4 * k :]
+    mean = np.empty((k, 2))
+    mean[:, 0], mean[:, 1] = mx, my
+    cov = np.empty((k, 2, 2))
+    cov[:, 0, 0] = np.maximum(sxx - mx * mx, 0.0)
+    cov[:, 1, 1] = np.maximum(syy - my * my, 0.0)
+    cov[:, 0, 1] = cov[:, 1, 0] = sxy - mx * my
     if covs is not None:
         cov += np.einsum("m,mkab->kab", w, covs)
     return mean, cov
@@ -278,9 +304,9 @@ def summarize(
     w = np.asarray(w, float)
     w = _normalised(w)
     m, k, _ = rel.shape
-    x, y = np.ascontiguousarray(rel[:, :, 0].T), np.ascontiguousarray(rel[:, :, 1].T)  # (K, M)
-    products = (x * x, y * y, x * y)
-    weighted_mean, all_cov = _moments(x, y, w, covs, products)
+    planes = _planes(m, k)
+    planes[:k], planes[k : 2 * k] = rel[:, :, 0].T, rel[:, :, 1].T
+    weighted_mean, all_cov = _moments(_wsum(_products(planes), w), w, covs)
 
     # A first template: the weighted mean gauge form of an even stride through the cloud (the
     # whole cloud below 2 SUMMARY_SAMPLE hypotheses: no copy of it then).
@@ -288,12 +314,10 @@ def summarize(
     sub = np.arange(0, m, step)
     ws = _normalised(w if step == 1 else w[sub])
     template = np.einsum("m,mkd->kd", ws, gauge(rel if step == 1 else rel[sub]))
-    c, s, hand = procrustes_fit(x, y, template)
-    labels = _modes(np.arctan2(s, c), hand, w)
-    valid = labels >= 0
-    members = labels == 0 if valid.any() else np.ones(m, dtype=bool)
-    mode_w = np.bincount(labels + 1, weights=w)[1:]  # bin 0: in no mode
-    n_modes = max(1, int(np.sum(mode_w >= MODE_MIN_WEIGHT)))
+    c, s, hand = procrustes_fit(planes, template)
+    labels, mode_w = _modes(np.arctan2(s, c), hand, w)
+    members = labels == 0 if mode_w else np.ones(m, dtype=bool)
+    n_modes = max(1, sum(1 for mw in mode_w if mw >= MODE_MIN_WEIGHT))
     mode_weight = float(np.sum(w, where=members))
     everything = bool(members.all())
     wm = w if everything else w * members / max(mode_weight, 1e-300)
@@ -304,7 +328,7 @@ def summarize(
     orientation_std = math.pi if rbar <= math.exp(-0.5 * math.pi**2) else min(math.sqrt(-2.0 * math.log(rbar)), math.pi)
 
     if can_resolve:
-        mean, cov = (weighted_mean, all_cov) if everything else _moments(x, y, wm, covs, products)
+        mean, cov = (weighted_mean, all_cov) if everything else _moments(_wsum(planes, wm), wm, covs)
     else:
         # The exact posterior is invariant under rotations about the reference: its moments.
         r2 = np.diagonal(all_cov, axis1=1, axis2=2).sum(axis=1) + np.sum(weighted_mean**2, axis=1)
@@ -316,7 +340,7 @@ def summarize(
         mean, cov, weighted_mean, mode_weight, n_modes, orientation_std,
         bool(can_resolve and orientation_std < ORIENTATION_MAX_STD),
     )
-    tail = _Tail(x, y, (c, s, hand) if step == 1 else (c[sub], s[sub], hand[sub]), sub, ws, covs, floor)
+    tail = _Tail(planes[:k], planes[k : 2 * k], (c, s, hand) if step == 1 else (c[sub], s[sub], hand[sub]), sub, ws, covs, floor)
     if deferred:
         return DeferredSummary.of(fields, members, tail)
     shape, shape_cov = tail.shape()
@@ -347,7 +371,8 @@ class _Tail:
         ws, covs, floor = self.ws, self.covs, self.floor
         k = self.xs.shape[0]
         ax, ay = _onto(self.xs, self.ys, *self.fit)
-        shape_mean, shape_cov = _moments(ax, ay, ws, None)
+        sums = np.concatenate([_wsum(a, ws) for a in (ax, ay, ax * ax, ay * ay, ax * ay)])
+        shape_mean, shape_cov = _moments(sums, ws, None)
         if covs is not None:  # a member's own covariance turns with it; its trace is what survives
             shape_cov += 0.5 * np.einsum("m,mk->k", ws, np.trace(covs[self.sub], axis1=2, axis2=3))[:, None, None] * np.eye(2)
         g = gauge(shape_mean[None])[0]
