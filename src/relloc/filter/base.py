@@ -145,7 +145,7 @@ class WeightedFilter:
         """Systematic resampling (to the size :meth:`_resampled_size` asks for: the same, but
         for an adaptive particle count), then a ``reinject_fraction`` of the slots re-drawn
         from the prior box; equal weights."""
-        w = np.exp(self.logw)
+        w = self._exp_logw()
         idx = systematic_resample(w, self.rng)
         n = self._resampled_size(idx)
         if n != self.n:
@@ -174,12 +174,16 @@ class WeightedFilter:
             formations = np.resize(formations, (round(len(formations) * n / self.n), formations.shape[1]))
         self.n = n
         k = min(len(formations), self.n)
-        self._select(systematic_resample(np.exp(self.logw), self.rng, self.n))
+        self._select(systematic_resample(self._exp_logw(), self.rng, self.n))
         slots = self.rng.choice(self.n, size=k, replace=False).astype(np.intp)
         self._reinject(slots, np.asarray(formations[:k], dtype=float))
         self.logw = np.full(self.n, -math.log(self.n))
         self.resample_count += 1
         return slots
+
+    def _exp_logw(self) -> FloatArray:
+        """``exp`` of the log-weights (normalised by :meth:`update`): what resampling draws by."""
+        return np.exp(self.logw)
 
     def _resampled_size(self, idx: IntArray) -> int:
         """How many hypotheses a resampling keeps, given the systematic draw ``idx`` at the

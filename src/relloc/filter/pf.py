@@ -92,6 +92,9 @@ class ParticleFilter(WeightedFilter):
         self._noise = np.empty((0, layout.n_others, 2))
         """The buffer ``predict`` draws the odometry noise into, reused while the count stays."""
         self.particles = self.sample_prior(n_particles)
+        self._weights: FloatArray = np.empty(0)
+        self._weights_of: FloatArray | None = None
+        """``exp`` of the log-weights and the array it was computed from (:meth:`_exp_logw`)."""
         self._mcmc_scale = 0.5
         self.evidence = Evidence(len(layout.robots))
         """What was fused that can resolve the formation's orientation (for ``estimate``)."""
@@ -167,8 +170,15 @@ class ParticleFilter(WeightedFilter):
         out[~np.isfinite(out)] = -np.inf
         return out
 
+    def _exp_logw(self) -> FloatArray:
+        """``exp(logw)``, computed once per log-weight array: the estimate and the resampling
+        of one step share it (``logw`` is always replaced, never written in place)."""
+        if self._weights_of is not self.logw:
+            self._weights, self._weights_of = np.exp(self.logw), self.logw
+        return self._weights
+
     def _select(self, idx: IntArray) -> None:
-        self.particles = self.particles[idx]
+        self.particles = np.take(self.particles, idx, axis=0)  # several times faster than [idx]
 
     def _reinject(self, slots: IntArray, positions: FloatArray) -> None:
         self.particles[slots, : self.layout.dim] = positions
@@ -280,7 +290,7 @@ class ParticleFilter(WeightedFilter):
         shape and the pairwise distances; and the mixture moments of each online bias. The
         shape and the distances are computed when first read
         (:class:`~relloc.filter.summary.DeferredSummary`): a step nobody publishes skips them."""
-        w = np.exp(self.logw)
+        w = self._exp_logw()
         m = self.particles.shape[0]
         rel = self.particles[:, : self.layout.dim].reshape(m, -1, 2)
         summary = summarize(rel, w, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor, deferred=True)

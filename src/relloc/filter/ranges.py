@@ -274,9 +274,9 @@ class RangeBatch:
     # ---------------------------------------------------------------- sampled filter
     def predicted(self, positions: FloatArray) -> FloatArray:
         """True distances of each particle's pairs, shape ``(K, M)``."""
-        dx = positions[0, self.index_a] - positions[0, self.index_b]
-        dy = positions[1, self.index_a] - positions[1, self.index_b]
-        return np.sqrt(dx * dx + dy * dy)
+        d = np.take(positions, self.index_a, axis=1) - np.take(positions, self.index_b, axis=1)
+        d *= d
+        return np.sqrt(d[0] + d[1])
 
     def _residual_and_sigma(self, positions: FloatArray, particles: FloatArray | None) -> tuple[FloatArray, FloatArray]:
         d = self.predicted(positions)
