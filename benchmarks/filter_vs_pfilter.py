@@ -114,6 +114,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from figures import markers, write_between
+
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.pf import ParticleFilter
 from relloc.filter.ranges import RangeBatch
@@ -439,8 +443,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     return 0
 
 
-README_BEGIN = "<!-- filter_vs_pfilter figures: begin -->"
-README_END = "<!-- filter_vs_pfilter figures: end -->"
+README_BEGIN, README_END = markers("filter_vs_pfilter")
 
 
 def figures_table(results: dict[str, dict[str, float]], reps: dict[str, tuple[int, int]], context: str) -> str:
@@ -461,12 +464,7 @@ def figures_table(results: dict[str, dict[str, float]], reps: dict[str, tuple[in
 
 def write_readme(path: Path, results: dict[str, dict[str, float]], reps: dict[str, tuple[int, int]], context: str) -> None:
     """Replace the text between the markers of ``path`` with this run's figures."""
-    text = path.read_text()
-    start, end = text.find(README_BEGIN), text.find(README_END)
-    if start < 0 or end < start:
-        raise SystemExit(f"{path} has no {README_BEGIN} ... {README_END} section")
-    body = figures_table(results, reps, context)
-    path.write_text(text[: start + len(README_BEGIN)] + "\n" + body + "\n" + text[end:])
+    write_between(path, "filter_vs_pfilter", figures_table(results, reps, context))
 
 
 if __name__ == "__main__":

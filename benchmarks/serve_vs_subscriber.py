@@ -31,6 +31,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from figures import write_between
 from serve_resources import (
     REPO,
     SHORTBAG,
@@ -57,8 +58,6 @@ from relloc.sources.zenoh_source import ZenohSource
 LATE_REASONS = ("late_measurement", "out_of_order_odometry", "late")
 """Rejections that mean a message came too late for the filter (localizer and source)."""
 
-README_BEGIN = "<!-- serve_vs_subscriber figures: begin -->"
-README_END = "<!-- serve_vs_subscriber figures: end -->"
 
 _SUBSCRIBER = """
 import signal, sys, threading, zenoh
@@ -264,12 +263,7 @@ def figures_table(cases: list[dict[str, Any]], context: str) -> str:
 
 def write_readme(path: Path, cases: list[dict[str, Any]], context: str) -> None:
     """Replace the text between the markers of ``path`` with this run's figures."""
-    text = path.read_text()
-    start, end = text.find(README_BEGIN), text.find(README_END)
-    if start < 0 or end < start:
-        raise SystemExit(f"{path} has no {README_BEGIN} ... {README_END} section")
-    body = figures_table(cases, context)
-    path.write_text(text[: start + len(README_BEGIN)] + "\n" + body + "\n" + text[end:])
+    write_between(path, "serve_vs_subscriber", figures_table(cases, context))
 
 
 def main(argv: list[str] | None = None) -> int:

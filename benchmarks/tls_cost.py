@@ -3,7 +3,8 @@
 Usage::
 
     python benchmarks/tls_cost.py [--messages 3000] [--rate 1000] [--rounds 3]
-                                  [--rectangle-runs 0] [--json FILE]
+                                  [--rectangle-runs 0] [--reorder-window 0.1]
+                                  [--readme FILE] [--json FILE]
 
 Transport: two peer sessions on loopback, a publisher with the ``team`` role and a subscriber
 with the ``serve`` role of a ``relloc secure init`` directory (mutual TLS, the team's access
@@ -18,9 +19,11 @@ and the ratios TLS / plain.
 
 Rectangle (``--rectangle-runs N``): N times, alternating, ``relloc sim-robots``, ``serve`` and
 ``navigate`` over plain TCP and over ``--secure`` (the small rectangle at twice real time, the
-processes of ``tests/test_navigation_live.py``): the median tracking error (true position
-against the path) and the APE median of the published estimates of r2 (against the true
-relative position), per transport.
+processes of ``tests/test_navigation_live.py``, serve with ``--reorder-window``, 0.1 s as
+those tests use, so that a run repeats): the median tracking error (true position against the
+path) and the APE median of the published estimates of r2 (against the true relative
+position), per transport; ``--readme FILE`` writes their table between FILE's
+``tls_rectangle`` markers.
 """
 
 from __future__ import annotations
@@ -38,6 +41,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from figures import write_between
 
 from relloc.events import OdometryEvent
 from relloc.live import ZenohOptions, free_tcp_port, open_session, simulated_team
@@ -141,7 +148,7 @@ def transport(folder: Path, messages: int, rate: float, rounds: int) -> dict[str
 
 
 # ============================================================================ rectangle
-def _rectangle(secure: Path | None, tmp: Path, team: Path) -> dict[str, float]:
+def _rectangle(secure: Path | None, tmp: Path, team: Path, window: float) -> dict[str, float]:
     """One live rectangle; tracking error and APE median of r2 (m)."""
     from relloc.live import EstimateCollector
     from relloc.navigation.path import load_path
@@ -161,7 +168,8 @@ def _rectangle(secure: Path | None, tmp: Path, team: Path) -> dict[str, float]:
     procs = [
         start("sim-robots", "--scenario", "nav", "--config", str(team), "--rate", "2", "--duration", "120",
               "--json", str(tmp / "sim.json"), *flags, "--listen", ep(p_sim), log="sim.log"),
-        start("serve", "--config", str(team), "--clock-rate", "2", *flags, "--listen", ep(p_serve),
+        start("serve", "--config", str(team), "--clock-rate", "2", "--reorder-window", str(window),
+              *flags, "--listen", ep(p_serve),
               "--connect", ep(p_sim), log="serve.log"),
     ]  # fmt: skip
     options = ZenohOptions(
@@ -200,7 +208,7 @@ def _rectangle(secure: Path | None, tmp: Path, team: Path) -> dict[str, float]:
     return {"tracking_median_m": tracking, "ape_median_m": ape, "completed": bool(summary["completed"])}
 
 
-def rectangle(runs: int) -> dict[str, Any]:
+def rectangle(runs: int, window: float) -> dict[str, Any]:
     out: dict[str, list[dict[str, float]]] = {"plain": [], "tls": []}
     with tempfile.TemporaryDirectory() as d:
         tmp = Path(d)
@@ -214,12 +222,35 @@ def rectangle(runs: int) -> dict[str, Any]:
             for mode in ("plain", "tls") if r % 2 == 0 else ("tls", "plain"):
                 run_dir = tmp / f"{mode}{r}"
                 run_dir.mkdir()
-                out[mode].append(_rectangle(tmp / "sec" if mode == "tls" else None, run_dir, team))
+                out[mode].append(_rectangle(tmp / "sec" if mode == "tls" else None, run_dir, team, window))
     medians = {
         m: {k: statistics.median(run[k] for run in rs) for k in ("tracking_median_m", "ape_median_m")}
         for m, rs in out.items()
     }
     return {"runs": out, "median": medians}
+
+
+def rectangle_table(rect: dict[str, Any], window: float) -> str:
+    """The Markdown table of :func:`rectangle`'s runs (what ``--readme`` writes)."""
+    runs = len(rect["runs"]["plain"])
+    lines = [
+        f"Written by `benchmarks/tls_cost.py --rectangle-runs {runs} --readme` (serve "
+        f"`--reorder-window {window}`; runs alternated, {runs} per transport):",
+        "",
+        "| transport | tracking error, median (min-max) | APE of r2, median (min-max) |",
+        "|---|---:|---:|",
+    ]
+    for mode, label in (("plain", "plain TCP"), ("tls", "mutual TLS")):
+        cells = []
+        for key in ("tracking_median_m", "ape_median_m"):
+            values = [run[key] for run in rect["runs"][mode]]
+            cells.append(f"{statistics.median(values):.3f} m ({min(values):.3f}-{max(values):.3f})")
+        lines.append(f"| {label} | {cells[0]} | {cells[1]} |")
+    diff = {k: rect["median"]["tls"][k] - rect["median"]["plain"][k] for k in ("tracking_median_m", "ape_median_m")}
+    lines.append(
+        f"| TLS - plain | {diff['tracking_median_m']:+.3f} m | {diff['ape_median_m']:+.3f} m |"
+    )
+    return "\n".join(lines)
 
 
 def main() -> int:
@@ -228,6 +259,8 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=1000.0, help="paced messages per second")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--rectangle-runs", type=int, default=0, help="live rectangles per transport")
+    ap.add_argument("--reorder-window", type=float, default=0.1, help="serve's, in the rectangles (s)")
+    ap.add_argument("--readme", type=Path, default=None, help="write the rectangles' table into FILE")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     _, config = simulated_team(seed=0, duration=1.0)
@@ -240,12 +273,14 @@ def main() -> int:
     for k, ratio in tr["ratio_tls_over_plain"].items():
         print(f"{k:24}{tr['median']['plain'][k]:12.1f}{tr['median']['tls'][k]:12.1f}{ratio:11.2f}")
     if args.rectangle_runs:
-        result["rectangle"] = rect = rectangle(args.rectangle_runs)
+        result["rectangle"] = rect = rectangle(args.rectangle_runs, args.reorder_window)
         for mode, runs in rect["runs"].items():
             for run in runs:
                 print(f"rectangle {mode:6}: tracking {run['tracking_median_m']:.3f} m, APE {run['ape_median_m']:.3f} m")
         for mode, m in rect["median"].items():
             print(f"rectangle {mode:6} median: tracking {m['tracking_median_m']:.3f} m, APE {m['ape_median_m']:.3f} m")
+        if args.readme:
+            write_between(args.readme, "tls_rectangle", rectangle_table(rect, args.reorder_window))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(result, indent=2))

@@ -1,0 +1,25 @@
+"""Figures written into a Markdown page by the script that measured them, never by hand.
+
+A page holds ``<!-- NAME figures: begin -->`` and ``<!-- NAME figures: end -->``; a script's
+``--readme FILE`` replaces what lies between them with its run's table.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def markers(name: str) -> tuple[str, str]:
+    """The begin and end markers of the section ``name``."""
+    return f"<!-- {name} figures: begin -->", f"<!-- {name} figures: end -->"
+
+
+def write_between(path: Path, name: str, body: str) -> None:
+    """Replace the text between the markers of section ``name`` in ``path`` with ``body``; a
+    page without them is an error (the figures would land nowhere a reader looks)."""
+    begin, end = markers(name)
+    text = path.read_text()
+    i, j = text.find(begin), text.find(end)
+    if i < 0 or j < i:
+        raise SystemExit(f"{path} has no {begin} ... {end} section")
+    path.write_text(text[: i + len(begin)] + "\n" + body + "\n" + text[j:])
