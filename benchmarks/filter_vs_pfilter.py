@@ -234,6 +234,48 @@ class RellocRunner:
         self.pf.resample()
         return est.mean
 
+    def phases(self, s: Step, clock: Callable[[], float]) -> dict[str, float]:
+        """One :meth:`step`, each phase timed (``PHASES``), and the odometry noise of the
+        predict drawn alone from a generator of the same kind: the floor of any predict that
+        draws the same numbers."""
+        t0 = clock()
+        self.pf.predict(s.disp, s.sigma, DT)
+        t1 = clock()
+        self.pf.update([RangeBatch(self.scenario.pair_a, self.scenario.pair_b, s.ranges, self.bias, self.sigma_uwb)])
+        t2 = clock()
+        est = self.pf.estimate()
+        t3 = clock()
+        assert est.summary is not None
+        _ = (est.summary.shape, est.summary.distances)
+        t4 = clock()
+        self.pf.resample()
+        t5 = clock()
+        m, k = self.pf.particles.shape[0], self.pf.layout.n_others
+        draws = np.random.default_rng(0)
+        t6 = clock()
+        draws.standard_normal((m, k, 2), out=np.empty((m, k, 2)))
+        draws.standard_normal((m, 1, 2))
+        t7 = clock()
+        return dict(zip(PHASES, (t1 - t0, t2 - t1, t3 - t2, t4 - t3, t5 - t4, t7 - t6), strict=True))
+
+
+PHASES = ("predict", "likelihood", "moments and modes", "shape and distances", "resample", "noise draws alone")
+"""What :meth:`RellocRunner.phases` times; the last is inside ``predict`` (its floor)."""
+
+
+def phase_table(phases: dict[str, dict[str, float]], context: str) -> str:
+    """The Markdown table of ``--phases`` (median ms per step, per M)."""
+    ms = list(phases)
+    lines = [
+        f"Written by `benchmarks/filter_vs_pfilter.py --phases --readme` ({context}):",
+        "",
+        "| phase | " + " | ".join(f"M = {int(m):,}".replace(",", " ") for m in ms) + " |",
+        "|---|" + "---:|" * len(ms),
+    ]
+    for name in PHASES:
+        lines.append(f"| {name} | " + " | ".join(f"{phases[m][name] * 1e3:.3f} ms" for m in ms) + " |")
+    return "\n".join(lines)
+
 
 # ----------------------------------------------------------------------------- pfilter
 class PfilterRunner:
@@ -380,6 +422,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="write the figures into this Markdown file, between its "
         f"{README_BEGIN} and {README_END} markers",
     )
+    parser.add_argument(
+        "--phases",
+        action="store_true",
+        help="also time relloc's update phase by phase (and the predict's noise draws alone)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, help="write the medians and speed-ups to this file")
     args = parser.parse_args(argv)
@@ -428,6 +475,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"({len(times[0])}, {len(times[1])})  "
             f"{statistics.median(errors[0]):.3f} m, {statistics.median(errors[1]):.3f} m"
         )
+    phases: dict[str, dict[str, float]] = {}
+    if args.phases:
+        clock = time.process_time if args.clock == "cpu" else time.perf_counter
+        for m in args.particles:
+            rng = np.random.default_rng(args.seed)
+            scenario = make_scenario(n_steps, rng)
+            runner = RellocRunner(scenario, starting_cloud(scenario, m, rng), args.seed)
+            for s in scenario.steps[:WARMUP]:
+                runner.step(s)
+            timed = [runner.phases(s, clock) for s in scenario.steps[WARMUP:]]
+            phases[str(m)] = {name: statistics.median(t[name] for t in timed) for name in PHASES}
+            print(f"{m:>7}  " + ", ".join(f"{name} {v * 1e3:.3f} ms" for name, v in phases[str(m)].items()))
+        results["phases"] = phases  # type: ignore[assignment]
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=2) + "\n")
@@ -438,7 +498,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"clock: {args.clock}, malloc: {args.malloc}; numpy {np.__version__}, Python {platform.python_version()}, "
             f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the end"
         )
-        write_readme(args.readme, results, reps_used, context)
+        write_readme(args.readme, {m: r for m, r in results.items() if m != "phases"}, reps_used, context)
+        if phases:
+            write_between(args.readme, "filter_phases", phase_table(phases, context))
         print(f"wrote the figures into {args.readme}")
     return 0
 
