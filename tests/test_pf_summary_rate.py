@@ -115,3 +115,29 @@ def test_only_published_steps_compute_the_shape_and_publish_what_the_eager_summa
     with monkeypatch.context() as patch:
         eager, _ = _run(patch, deferred=False)
     assert lazy == eager
+
+
+def test_without_a_consumer_of_the_shape_it_is_left_out_and_nothing_else_changes() -> None:
+    """``shape_wanted`` False (a live server whose shape key nobody subscribes to): the shape is
+    neither computed nor carried, the distances are left out of the estimate, and every other
+    field, and the filter's path, are what they were."""
+    sim = multi_scenario(seed=2, duration=8.0)
+    runs = []
+    for wanted in (True, False):
+        loc = ParticleFilterLocalizer(sim.config.with_filter(particles=600), seed=2)
+        loc.shape_wanted = wanted
+        computed: list[frozenset[str]] = []
+        out = []
+        for ev in sim.events():
+            for e in loc.process(ev):
+                out.append(e)
+                s = loc.filter.last_summary
+                computed.append(s.computed if isinstance(s, DeferredSummary) else frozenset({"shape", "distances"}))
+        runs.append((out, computed))
+    (full, full_computed), (lean, lean_computed) = runs
+    assert len(full) == len(lean) > 20
+    assert all(e.shape and e.distances for e in full) and all(not e.shape and not e.distances for e in lean)
+    assert all("shape" in c for c in full_computed) and not any("shape" in c for c in lean_computed)
+    for a, b in zip(full, lean, strict=True):
+        assert (a.t, a.positions, a.covariances, a.ess, a.mode_weight, a.n_modes) == (
+            b.t, b.positions, b.covariances, b.ess, b.mode_weight, b.n_modes)

@@ -143,6 +143,29 @@ def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
     assert all(r["trigger_key"] in server.source.routes for r in timed)
 
 
+def test_the_shape_is_computed_while_someone_subscribes_to_it(sessions: tuple[Any, Any]) -> None:
+    """Serve's localizers compute the shape only while its key has a subscriber: none at the
+    start, then one, then none again."""
+    srv_session, client = sessions
+    _, config = simulated_team(seed=0, duration=1.0)
+    server = LiveServer(config, srv_session, ServeOptions(particles=500))
+    server.start()
+    try:
+        loc = server.pipelines[0].localizer
+
+        def wanted() -> bool:
+            server._ask_consumers()
+            return loc.shape_wanted
+
+        assert not wanted()
+        sub = client.declare_subscriber("relloc/shape", lambda s: None)
+        assert wait_until(wanted, timeout=10.0)
+        sub.undeclare()
+        assert wait_until(lambda: not wanted(), timeout=10.0)
+    finally:
+        server.close()
+
+
 def test_malformed_payloads_and_unknown_keys_over_zenoh(sessions: tuple[Any, Any]) -> None:
     srv_session, client = sessions
     _, config = simulated_team(seed=0, duration=5.0)

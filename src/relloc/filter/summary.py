@@ -103,25 +103,31 @@ class ModeSummary:
     members: NDArray[np.bool_] = field(repr=False)  # (M,) hypotheses of the dominant mode
 
 
-def estimate_fields(summary: ModeSummary, reference: str, others: Sequence[str]) -> dict[str, Any]:
+def estimate_fields(
+    summary: ModeSummary, reference: str, others: Sequence[str], *, shape: bool = True
+) -> dict[str, Any]:
     """The :class:`~relloc.estimate.Estimate` fields of ``summary`` (robots ``others`` in state
-    order; pairs keyed by :func:`~relloc.events.pair_key`)."""
-    names = (reference, *others)
-    distances = {
-        pair_key(a, b): (float(summary.distances[i, j, 0]), float(summary.distances[i, j, 1]))
-        for i, a in enumerate(names)
-        for j, b in enumerate(names)
-        if j > i
-    }
-    return {
+    order; pairs keyed by :func:`~relloc.events.pair_key`). ``shape`` False: no consumer reads
+    the shape and the distances (a live server whose shape key nobody subscribes to), which
+    are then left out (empty) and, where deferred, uncomputed."""
+    wm = summary.weighted_mean.tolist()
+    out = {
         "orientation_observable": summary.orientation_observable,
         "mode_weight": summary.mode_weight,
         "n_modes": summary.n_modes,
-        "weighted_mean": {r: (float(summary.weighted_mean[k, 0]), float(summary.weighted_mean[k, 1])) for k, r in enumerate(others)},
-        "shape": {r: (float(summary.shape[k, 0]), float(summary.shape[k, 1])) for k, r in enumerate(others)},
-        "shape_gauge": others[0],
-        "distances": distances,
+        "weighted_mean": {r: (wm[k][0], wm[k][1]) for k, r in enumerate(others)},
     }
+    if not shape:
+        return out
+    names = (reference, *others)
+    d = summary.distances.tolist()
+    g = summary.shape.tolist()
+    out["shape"] = {r: (g[k][0], g[k][1]) for k, r in enumerate(others)}
+    out["shape_gauge"] = others[0]
+    out["distances"] = {
+        pair_key(a, b): (d[i][j][0], d[i][j][1]) for i, a in enumerate(names) for j, b in enumerate(names) if j > i
+    }
+    return out
 
 
 def gauge(rel: FloatArray) -> FloatArray:

@@ -134,6 +134,7 @@ class LiveServer:
     def start(self) -> None:
         """Subscribe to the team's keys."""
         self.source.attach(self.session, self.sink.node)
+        self._ask_consumers()
         self.started = time.time()
         self._last_counts = (self.started, self._counts())
 
@@ -167,7 +168,9 @@ class LiveServer:
             if now >= deadline:
                 break
             timeout = max(0.0, min(0.2, next_status - now, deadline - now))
-            self.feed(self.source.poll(timeout))
+            arrivals = self.source.poll(timeout)
+            self._ask_consumers()
+            self.feed(arrivals)
             now = time.time()
             if now >= next_status:
                 self.feed(self.source.take_queued())  # the status counts every message received
@@ -184,6 +187,12 @@ class LiveServer:
         self._publish_status(time.time())
         self.engine_thread_cpu_s += time.thread_time() - cpu_start
         return self.summary()
+
+    def _ask_consumers(self) -> None:
+        """Each localizer computes the shape and distances only while someone subscribes to
+        its method's shape key (they are published nowhere else)."""
+        for p in self.pipelines:
+            p.localizer.shape_wanted = self.sink.shape_wanted(p.name)
 
     def _wake_rule(self) -> WakeRule:
         """Which messages could make an estimate now: urgent for any method's localizer."""

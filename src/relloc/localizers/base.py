@@ -62,6 +62,9 @@ class Localizer:
         self._layout = layout or StateLayout(config.robot_names, config.reference)
         self.update_period = UPDATE_PERIOD
         self.estimate_period = ESTIMATE_PERIOD
+        self.shape_wanted = True
+        """Whether the estimates' consumers read their shape and distances (a live server sets
+        it from whether anyone subscribes to its shape key); False leaves them out, uncomputed."""
         self.stats: Counter[str] = Counter()
         self.last_estimate: Estimate | None = None
         self.clock = TeamClock()

@@ -249,7 +249,7 @@ class FilterLocalizer(Localizer):
         # The shape and distances a published estimate carries (a step whose estimate is not
         # emitted leaves them uncomputed, :class:`~relloc.filter.summary.DeferredSummary`).
         honest = {} if shown.summary is None or not self.publishes(t) else estimate_fields(
-            shown.summary, self.layout.reference, self.layout.others
+            shown.summary, self.layout.reference, self.layout.others, shape=self.shape_wanted
         )
         widening = self.watchdog.widening
         if widening > 1.0:

@@ -99,6 +99,11 @@ class ZenohSink:
             self._channels[("", method)] = channel
         return channel
 
+    def shape_wanted(self, method: str) -> bool:
+        """Whether anyone subscribes to the shapes by ``method`` (its publisher is declared
+        here, so that Zenoh can tell): what the localizer then computes for them."""
+        return self.node.publisher(self.shape_channel(method)).matching
+
     def key(self, robot: str, method: str) -> str:
         return self.channel(robot, method).key
 
