@@ -112,7 +112,7 @@ class ZenohSink:
             cov = [0.0] * 36  # row-major 6x6 over (x, y, z, roll, pitch, yaw)
             c = estimate.covariances.get(robot)
             if c is not None:
-                (cov[0], cov[1]), (cov[6], cov[7]) = np.asarray(c, dtype=float).tolist()
+                (cov[0], cov[1]), (cov[6], cov[7]) = ((float(v) for v in row) for row in c)
             cov[35] = UNKNOWN_VARIANCE
             payload = encode_pose_with_covariance_stamped(
                 estimate.t, float(x), float(y), 0.0, cov, estimate.frame_id
