@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/cdr_codecs.py [--n 20000] [--rounds 5] [--json FILE]
+    python benchmarks/cdr_codecs.py [--n 20000] [--rounds 5] [--json FILE] [--readme FILE]
 
 For each message the live engine handles per sample (decoding a ``nav_msgs/Odometry`` or a
 ``sensor_msgs/Range`` into the fields relloc uses; encoding a ``PoseWithCovarianceStamped``
@@ -10,18 +10,28 @@ estimate) it times ``relloc.ros.cdr`` and the ``rosbags`` path it replaces (dese
 build + serialise the message object) on the same payloads, alternating the two in every round,
 and prints the median time per message and the ratio. Both produce the same values (asserted
 once before timing). This is a warm tight loop: in the server, which sleeps between messages,
-both cost more, and the rosbags path more so (see ``docs/live.md``).
+both cost more, and the rosbags path more so (see ``docs/live.md``). ``--readme FILE`` writes
+the table of the run between the ``cdr_codecs`` figures markers of FILE (``benchmarks/figures.py``).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
+import platform
 import statistics
+import sys
 import time
 from collections.abc import Callable
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as dist_version
 from pathlib import Path
 from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from figures import markers, write_between
 
 from relloc.events import OdometryEvent, RangeEvent
 from relloc.ros import cdr as ros_cdr
@@ -67,12 +77,45 @@ def _time(fn: Callable[[], Any], n: int) -> float:
     return (time.perf_counter() - t0) / n
 
 
+def figures_table(results: dict[str, dict[str, float]], context: str) -> str:
+    """The Markdown table of one run (what ``--readme`` writes in section ``cdr_codecs``)."""
+    lines = [
+        f"Written by {context}:",
+        "",
+        "| message | relloc.ros.cdr | rosbags | ratio |",
+        "|---|---:|---:|---:|",
+    ]
+    for name, r in results.items():
+        lines.append(
+            f"| {name} | {r['relloc_us']:.2f} µs | {r['rosbags_us']:.2f} µs | {r['speedup']:.1f}x |"
+        )
+    return "\n".join(lines)
+
+
+def _rosbags_version() -> str:
+    try:
+        return dist_version("rosbags")
+    except PackageNotFoundError:
+        return "?"
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--n", type=int, default=20000, help="messages per timed batch")
     p.add_argument("--rounds", type=int, default=5, help="alternating batches per codec")
     p.add_argument("--json", default=None, metavar="FILE")
+    p.add_argument(
+        "--readme",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write the table into this Markdown file, between its cdr_codecs figures markers",
+    )
     args = p.parse_args(argv)
+    if args.readme is not None:  # before measuring, not after
+        text = args.readme.read_text() if args.readme.is_file() else ""
+        if any(marker not in text for marker in markers("cdr_codecs")):
+            p.error(f"{args.readme} has no {' ... '.join(markers('cdr_codecs'))} section")
     results = {}
     for name, (fast, ref) in _cases().items():
         assert fast() == ref(), name  # same values (bytes) before anything is timed
@@ -87,6 +130,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(results, indent=2))
+    if args.readme is not None:
+        context = (
+            f"`benchmarks/cdr_codecs.py --n {args.n} --rounds {args.rounds} --readme` (median per "
+            f"message, warm tight loop; rosbags {_rosbags_version()}, Python {platform.python_version()}, "
+            f"{os.cpu_count()} CPUs)"
+        )
+        write_between(args.readme, "cdr_codecs", figures_table(results, context))
+        print(f"wrote the figures into {args.readme}")
     return 0
 
 

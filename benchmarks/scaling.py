@@ -39,12 +39,15 @@ team sizes: the same predict + update + estimate + ``maybe_resample`` (pruning) 
 ``--hypotheses`` Gaussians (1: converged; 72: the start's orientation hypotheses), each started
 0.3 m about the truth. Its cost does not depend on a particle count: ``H`` batched ``D x D``
 solves and ``O(H K)`` for the ranges.
-``--json FILE`` writes every point.
+``--json FILE`` writes every point; ``--readme FILE`` writes the tables of the run (the particle
+and team sweeps in section ``scaling``, the range-graph sweep in ``scaling_graph``) between the
+markers of FILE (``benchmarks/figures.py``).
 
 Run it with relloc installed (no extra dependency)::
 
     python benchmarks/scaling.py                     # a subset, about a minute
     python benchmarks/scaling.py --full --json out/bench/scaling.json
+    python benchmarks/scaling.py --full --readme benchmarks/README.md
 """
 
 from __future__ import annotations
@@ -53,8 +56,10 @@ import argparse
 import gc
 import json
 import math
+import os
 import platform
 import statistics
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -62,6 +67,10 @@ from pathlib import Path
 
 import numpy as np
 from numpy.typing import NDArray
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from figures import markers, write_between
 
 from relloc.filter.base import WeightedFilter
 from relloc.filter.graph_filter import RangeGraphFilter
@@ -222,6 +231,89 @@ def _line(p: dict[str, float]) -> str:
     )
 
 
+def _thousands(n: int) -> str:
+    return f"{int(n):,}".replace(",", " ")
+
+
+def sweep_table(points: Sequence[dict[str, float]], context: str) -> str:
+    """The Markdown table of the particle and team sweeps (what ``--readme`` writes in section
+    ``scaling``): every point in the order measured, a team-sweep point that repeats a
+    particle-sweep one (same robots and particles) shown once, the first measured."""
+    lines = [
+        f"Written by {context}:",
+        "",
+        "| robots | particles | D | K | update | pass | floor | update / pass | update / floor |",
+        "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    seen: set[tuple[int, int]] = set()
+    for p in points:
+        key = (int(p["robots"]), int(p["particles"]))
+        if key in seen:
+            continue
+        seen.add(key)
+        lines.append(
+            f"| {int(p['robots'])} | {_thousands(int(p['particles']))} | {int(p['dim'])} | {int(p['pairs'])} | "
+            f"{p['update_s'] * 1e3:.2f} ms | {p['pass_s'] * 1e3:.3f} ms | {p['floor_s'] * 1e3:.3f} ms | "
+            f"{p['update_over_pass']:.0f} | {p['update_over_floor']:.0f} |"
+        )
+    return "\n".join(lines)
+
+
+def graph_table(points: Sequence[dict[str, float]], context: str) -> str:
+    """The Markdown table of the range-graph sweep (what ``--readme`` writes in section
+    ``scaling_graph``)."""
+    lines = [
+        f"Written by {context}:",
+        "",
+        "| robots | hypotheses | D | K | update |",
+        "|---:|---:|---:|---:|---:|",
+    ]
+    for p in points:
+        lines.append(
+            f"| {int(p['robots'])} | {int(p['hypotheses'])} | {int(p['dim'])} | {int(p['pairs'])} | "
+            f"{p['update_s'] * 1e3:.2f} ms |"
+        )
+    return "\n".join(lines)
+
+
+def command_options(args: argparse.Namespace) -> str:
+    """The options of this run that change its figures, as they would be typed (``--full`` or not,
+    ``--reps``, and every sweep or size option given away from its default)."""
+    opts = ["--full"] if args.full else []
+    if args.particles:
+        opts.append("--particles " + " ".join(str(m) for m in args.particles))
+    if args.robots:
+        opts.append("--robots " + " ".join(str(n) for n in args.robots))
+    if args.robots_fixed != 5:
+        opts.append(f"--robots-fixed {args.robots_fixed}")
+    if args.particles_fixed != 20_000:
+        opts.append(f"--particles-fixed {args.particles_fixed}")
+    opts.append(f"--reps {args.reps}")
+    if args.copy_mb != 256:
+        opts.append(f"--copy-mb {args.copy_mb}")
+    if list(args.hypotheses) != [1, 72]:
+        opts.append("--hypotheses " + " ".join(str(h) for h in args.hypotheses))
+    if args.seed != 0:
+        opts.append(f"--seed {args.seed}")
+    return " ".join(opts)
+
+
+def write_readme(path: Path, results: dict[str, object], args: argparse.Namespace) -> None:
+    """Replace the sections ``scaling`` (and ``scaling_graph``, when that sweep ran) of ``path``
+    with this run's tables."""
+    bandwidth = float(results["bandwidth_bytes_per_s"])  # type: ignore[arg-type]
+    context = (
+        f"`benchmarks/scaling.py {command_options(args)} --readme` (numpy {np.__version__}, "
+        f"Python {platform.python_version()}, {os.cpu_count()} CPUs; copy bandwidth "
+        f"{bandwidth / 1e9:.1f} GB/s, read + write, {args.copy_mb} MiB)"
+    )
+    points = [*results["particles_sweep"], *results["robots_sweep"]]  # type: ignore[misc]
+    write_between(path, "scaling", sweep_table(points, context))
+    graph = results.get("graph_sweep") or []
+    if graph:
+        write_between(path, "scaling_graph", graph_table(graph, context))  # type: ignore[arg-type]
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0] if __doc__ else None)
     parser.add_argument("--particles", type=int, nargs="+", default=None, help=f"particle sweep (default {DEFAULT_PARTICLES})")
@@ -234,11 +326,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--hypotheses", type=int, nargs="+", default=[1, 72], help="Gaussians of the range-graph sweep")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, help="write every point to this file")
+    parser.add_argument(
+        "--readme", type=Path,
+        help="write the tables into this Markdown file, between its scaling (and scaling_graph) figures markers",
+    )
     args = parser.parse_args(argv)
     particles = args.particles or (FULL_PARTICLES if args.full else DEFAULT_PARTICLES)
     robots = args.robots or (FULL_ROBOTS if args.full else DEFAULT_ROBOTS)
     if min(robots) < 2 or args.robots_fixed < 2:
         parser.error("a team has at least 2 robots")
+
+    if args.readme is not None:  # before minutes of measuring, not after
+        text = args.readme.read_text() if args.readme.is_file() else ""
+        for section in ("scaling", "scaling_graph"):
+            if any(marker not in text for marker in markers(section)):
+                parser.error(f"{args.readme} has no {' ... '.join(markers(section))} section")
 
     bandwidth = copy_bandwidth(args.copy_mb)
     print(
@@ -269,6 +371,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=2) + "\n")
         print(f"wrote {args.json}")
+    if args.readme is not None:
+        write_readme(args.readme, results, args)
+        print(f"wrote the figures into {args.readme}")
     return 0
 
 
