@@ -291,12 +291,12 @@ def main(argv: list[str] | None = None) -> int:
         args.json_path.parent.mkdir(parents=True, exist_ok=True)
         args.json_path.write_text(json.dumps({"cases": cases}, indent=2))
     if args.readme is not None:
-        import zenoh
+        from importlib.metadata import version
 
         window = "shipped default" if opts.reorder_window is None else f"{opts.reorder_window:g} s"
         context = (
             f"reorder window {window}, settle {opts.settle:g} s, seed {opts.seed}; "
-            f"eclipse-zenoh {getattr(zenoh, '__version__', '?')}, Python {sys.version.split()[0]}, "
+            f"eclipse-zenoh {version('eclipse-zenoh')}, Python {sys.version.split()[0]}, "
             f"{os.cpu_count()} CPUs"
         )
         write_readme(args.readme, cases, context)
