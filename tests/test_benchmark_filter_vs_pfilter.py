@@ -42,3 +42,18 @@ def test_the_figures_replace_only_the_marked_section(tmp_path: Path) -> None:
     assert "old figures" not in text
     assert "| 400 | 0.500 ms | 1.60 ms | 3.2x | 40, 40 |" in text
     assert "| 40 000 | 12.000 ms | 280.00 ms | 23.3x | 40, 20 |" in text
+
+
+def test_the_phases_time_a_whole_step_and_leave_the_filter_as_a_step_does() -> None:
+    rng = np.random.default_rng(1)
+    scenario = bench.make_scenario(3, rng)
+    cloud = bench.starting_cloud(scenario, 300, rng)
+    stepped, timed = (bench.RellocRunner(scenario, cloud, 0) for _ in range(2))
+    for s in scenario.steps:
+        stepped.step(s)
+        phases = timed.phases(s, bench.time.perf_counter)
+        assert list(phases) == list(bench.PHASES) and all(v >= 0.0 for v in phases.values())
+    # the extra likelihood is not fused, the noise drawn alone is another generator's
+    assert np.array_equal(stepped.pf.particles, timed.pf.particles)
+    table = bench.phase_table({"400": phases, "40000": phases}, "context")
+    assert "| phase | M = 400 | M = 40 000 |" in table and "| noise draws alone |" in table

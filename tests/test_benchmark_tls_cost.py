@@ -1,0 +1,37 @@
+"""benchmarks/tls_cost.py without processes: the live rectangles' table, as ``--readme``
+writes it between its markers."""
+
+from __future__ import annotations
+
+import importlib.util
+import sys
+from pathlib import Path
+
+_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "tls_cost.py"
+_spec = importlib.util.spec_from_file_location("bench_tls_cost", _PATH)
+assert _spec is not None and _spec.loader is not None
+bench = importlib.util.module_from_spec(_spec)
+sys.modules[_spec.name] = bench
+_spec.loader.exec_module(bench)
+
+
+def test_the_rectangles_table_gives_medians_ranges_and_the_difference(tmp_path: Path) -> None:
+    def run(tracking: float, ape: float) -> dict[str, float]:
+        return {"tracking_median_m": tracking, "ape_median_m": ape}
+
+    rect = {
+        "runs": {"plain": [run(0.070, 0.130), run(0.080, 0.150), run(0.075, 0.140)],
+                 "tls": [run(0.072, 0.131), run(0.090, 0.160), run(0.071, 0.135)]},
+        "median": {"plain": run(0.075, 0.140), "tls": run(0.072, 0.135)},
+    }
+    table = bench.rectangle_table(rect, 0.1)
+    assert "`--reorder-window 0.1`; runs alternated, 3 per transport" in table
+    assert "| plain TCP | 0.075 m (0.070-0.080) | 0.140 m (0.130-0.150) |" in table
+    assert "| mutual TLS | 0.072 m (0.071-0.090) | 0.135 m (0.131-0.160) |" in table
+    assert "| TLS - plain | -0.003 m | -0.005 m |" in table
+    page = tmp_path / "secure.md"
+    begin, end = importlib.import_module("figures").markers("tls_rectangle")  # benchmarks/figures.py
+    page.write_text(f"before\n{begin}\nold\n{end}\nafter\n")
+    bench.write_between(page, "tls_rectangle", table)
+    text = page.read_text()
+    assert text.startswith("before\n") and text.endswith(f"{end}\nafter\n") and "old" not in text
