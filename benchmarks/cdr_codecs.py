@@ -31,7 +31,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from figures import markers, write_between
+from figures import missing_section, write_between
 
 from relloc.events import OdometryEvent, RangeEvent
 from relloc.ros import cdr as ros_cdr
@@ -112,10 +112,9 @@ def main(argv: list[str] | None = None) -> int:
         help="write the table into this Markdown file, between its cdr_codecs figures markers",
     )
     args = p.parse_args(argv)
-    if args.readme is not None:  # before measuring, not after
-        text = args.readme.read_text() if args.readme.is_file() else ""
-        if any(marker not in text for marker in markers("cdr_codecs")):
-            p.error(f"{args.readme} has no {' ... '.join(markers('cdr_codecs'))} section")
+    problem = None if args.readme is None else missing_section(args.readme, "cdr_codecs")
+    if problem is not None:
+        p.error(problem)
     results = {}
     for name, (fast, ref) in _cases().items():
         assert fast() == ref(), name  # same values (bytes) before anything is timed

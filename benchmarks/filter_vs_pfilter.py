@@ -501,10 +501,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             timed = [runner.phases(s, clock) for s in scenario.steps[WARMUP:]]
             phases[str(m)] = {name: statistics.median(t[name] for t in timed) for name in PHASES}
             print(f"{m:>7}  " + ", ".join(f"{name} {v * 1e3:.3f} ms" for name, v in phases[str(m)].items()))
-        results["phases"] = phases  # type: ignore[assignment]
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(results, indent=2) + "\n")
+        args.json.write_text(json.dumps({**results, **({"phases": phases} if phases else {})}, indent=2) + "\n")
         print(f"wrote {args.json}")
     if args.readme is not None:
         context = (
@@ -512,7 +511,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             f"clock: {args.clock}, malloc: {args.malloc}; numpy {np.__version__}, Python {platform.python_version()}, "
             f"{os.cpu_count()} CPUs"
         )
-        write_readme(args.readme, {m: r for m, r in results.items() if m != "phases"}, reps_used, context)
+        write_readme(args.readme, results, reps_used, context)
         if phases:
             write_between(args.readme, "filter_phases", phase_table(phases, context))
         print(f"wrote the figures into {args.readme}")

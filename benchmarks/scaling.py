@@ -70,7 +70,7 @@ from numpy.typing import NDArray
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from figures import markers, write_between
+from figures import missing_section, write_between
 
 from relloc.filter.base import WeightedFilter
 from relloc.filter.graph_filter import RangeGraphFilter
@@ -336,11 +336,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if min(robots) < 2 or args.robots_fixed < 2:
         parser.error("a team has at least 2 robots")
 
-    if args.readme is not None:  # before minutes of measuring, not after
-        text = args.readme.read_text() if args.readme.is_file() else ""
-        for section in ("scaling", "scaling_graph"):
-            if any(marker not in text for marker in markers(section)):
-                parser.error(f"{args.readme} has no {' ... '.join(markers(section))} section")
+    problem = None if args.readme is None else missing_section(args.readme, "scaling", "scaling_graph")
+    if problem is not None:
+        parser.error(problem)
 
     bandwidth = copy_bandwidth(args.copy_mb)
     print(
