@@ -1,0 +1,73 @@
+"""``scripts/paired_seeds.py``: pairing, the score it reads and the seed-independent shortcut,
+on run reports written here (no recording is run)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "paired_seeds.py"
+
+
+def _script() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("paired_seeds", SCRIPT)
+    assert spec is not None and spec.loader is not None
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["paired_seeds"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def _report(path: Path, methods: dict[str, float], unobservable: bool = False) -> Path:
+    """A ``relloc run --json`` report with one robot whose APE median (or, with an
+    unobservable orientation, shape APE median) per method is given."""
+    robots = {
+        m: {
+            "orientation_unobservable_fraction": 1.0 if unobservable else 0.0,
+            "robots": {"r1": {"ape_median": 9.0 if unobservable else v, "shape_ape_median": v}},
+        }
+        for m, v in methods.items()
+    }
+    path.write_text(json.dumps({"seed": 0, "scenarios": {"rec": {"methods": robots}}}))
+    return path
+
+
+def test_the_score_is_the_shape_ape_where_the_orientation_is_unobservable(tmp_path: Path) -> None:
+    ps = _script()
+    assert ps._scores(_report(tmp_path / "a.json", {"pf": 0.1}), "pf") == {"r1": 0.1}
+    assert ps._scores(_report(tmp_path / "b.json", {"pf": 0.2}, unobservable=True), "pf") == {"r1": 0.2}
+
+
+def _args(tmp_path: Path, a_flags: str, b_flags: str) -> object:
+    return type("Args", (), {
+        "a_method": "pf", "b_method": "pf_ul", "a_flags": a_flags, "b_flags": b_flags,
+        "data": tmp_path, "work": tmp_path,
+    })()
+
+
+@pytest.mark.parametrize("independent", [True, False])
+def test_pairs_seed_by_seed_and_stops_at_two_identical_seeds(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, independent: bool
+) -> None:
+    ps = _script()
+    calls: list[tuple[str, tuple[str, ...], int]] = []
+
+    def fake_run(data: Path, name: str, flags: str, methods: list[str], seed: int, work: Path) -> Path:
+        calls.append((flags, tuple(methods), seed))
+        value = 0.1 if independent else 0.1 + 0.01 * seed
+        return _report(tmp_path / f"{seed}.json", {"pf": value, "pf_ul": value + 0.02})
+
+    monkeypatch.setattr(ps, "_run", fake_run)
+    with ThreadPoolExecutor(1) as pool:
+        a, b, used = ps._paired(pool, _args(tmp_path, "--models m", "--models m"), "rec", [0, 1, 2, 3])
+    # equal flags: one run per seed carries both methods
+    assert all(c[:2] == ("--models m", ("pf", "pf_ul")) for c in calls)
+    assert used == ([0, 1] if independent else [0, 1, 2, 3])
+    assert [s for _, _, s in calls] == used
+    assert [round(x["r1"], 3) for x in b] == [round(x["r1"] + 0.02, 3) for x in a]
