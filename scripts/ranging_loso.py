@@ -305,7 +305,7 @@ def build_sessions(data: Path, work: Path) -> dict[str, Path]:
     for name, (folder, bodies) in BAGS.items():
         path = work / f"{name}.csv"
         if not path.exists():
-            write_csv(path, bag_rows(data / folder, parse_bodies(bodies), MOCAP_TOPIC))
+            write_csv(bag_rows(data / folder, parse_bodies(bodies), MOCAP_TOPIC), path)
         sessions[name] = path
     return sessions
 

@@ -358,6 +358,24 @@ def test_fallback_pair_gets_the_constant_and_its_sigma(tmp_path: Path) -> None:
         ModelSet.load(bad)
 
 
+def test_evaluate_scores_as_deployed_with_the_support_guard(tmp_path: Path) -> None:
+    """``relloc ranging eval`` scores what the run time does: a window outside the pair's
+    training support gets the constant; ``support_guard=False`` scores the network there."""
+    from relloc.ranging.evaluate import evaluate
+    from relloc.ranging.support import YAW_CELLS, InputSupport
+
+    support = InputSupport((0.0, -9.0, -9.0, -9.0), (4.6, 9.0, 9.0, 9.0), frozenset(range(YAW_CELLS**2)))
+    known_model_dir(tmp_path / "models" / "stacked", n_steps=3, support=support.to_json())
+    csv = known_csv(tmp_path / "k.csv")
+    guarded = evaluate(csv, [tmp_path / "models"])["methods"]
+    raw = evaluate(csv, [tmp_path / "models"], support_guard=False)["methods"]
+    assert raw["stacked"]["mean_mse"] < 1e-12 and "out_of_support" not in raw["stacked"]
+    outside = guarded["stacked"]["out_of_support"]
+    assert 0 < outside < 78  # ranges above 4.6 m, not the others
+    # outside, the constant 0.3 misses by 0.1 yaw: the guarded MSE is the bias's on those rows
+    assert 0.0 < guarded["stacked"]["mean_mse"] < guarded["bias"]["mean_mse"]
+
+
 def test_filter_offset_mode_leaves_the_constant_to_the_filter(tmp_path: Path) -> None:
     """offset = filter: only the learned residual is removed, the range stays uncorrected."""
     from relloc.stages.range_correction import RangeCorrector
@@ -445,7 +463,12 @@ def test_eval_cli_writes_json_and_reports_bad_input(tmp_path: Path) -> None:
         main(["ranging", "eval", str(csv), "--models", str(tmp_path / "m"), "--json", str(out)])
         == 0
     )
-    assert json.loads(out.read_text())["methods"]["stacked"]["mean_mse"] < 1e-12
+    report = json.loads(out.read_text())["methods"]["stacked"]
+    assert report["mean_mse"] < 1e-12 and report["out_of_support"] == 0  # guarded by default
+    raw = tmp_path / "r" / "raw.json"
+    args = ["ranging", "eval", str(csv), "--models", str(tmp_path / "m"), "--no-support-guard"]
+    assert main([*args, "--json", str(raw)]) == 0
+    assert "out_of_support" not in json.loads(raw.read_text())["methods"]["stacked"]
     bad = write(tmp_path / "bad.csv", "timestamp,node1\n1,1\n")
     assert main(["ranging", "eval", str(bad), "--models", str(tmp_path / "m")]) == 2
     assert main(["ranging", "eval", str(csv), "--models", str(tmp_path / "nothing")]) == 2

@@ -176,6 +176,7 @@ def _eval(args: argparse.Namespace) -> int:
             part=args.part,
             node_map=args.node_map,
             timing_samples=args.timing_samples,
+            support_guard=not args.no_support_guard,
         )
     except (RangingDataError, ModelDirError) as exc:
         raise UserError(str(exc)) from None
@@ -191,6 +192,9 @@ def _eval(args: argparse.Namespace) -> int:
     table.add_column("ms/pred", justify="right")
     table.add_column("σ z-rms", justify="right")
     table.add_column("fallback", justify="left")
+    guarded = any("out_of_support" in m for m in report["methods"].values())
+    if guarded:
+        table.add_column("outside support", justify="right")
     for name, m in report["methods"].items():
         timing = m.get("time_per_prediction_s")
         table.add_row(
@@ -201,6 +205,7 @@ def _eval(args: argparse.Namespace) -> int:
             f"{timing['median'] * 1e3:.3f}" if timing else "-",
             f"{m['sigma_z_rms']:.2f}" if "sigma_z_rms" in m else "-",
             ",".join(m.get("fallback_pairs", [])) or "-",
+            *([str(m["out_of_support"]) if "out_of_support" in m else "-"] if guarded else []),
         )
     _stdout().print(table)
     if report["skipped_pairs"]:
@@ -368,6 +373,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=int,
         default=300,
         help="single-window predictions timed per variant",
+    )
+    ev.add_argument(
+        "--no-support-guard",
+        action="store_true",
+        help="score the networks' predictions on every window; by default a window outside "
+        "its pair's training support gets the pair's constant, as at run time",
     )
     ev.set_defaults(handler=_eval)
 

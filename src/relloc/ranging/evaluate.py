@@ -86,13 +86,14 @@ def evaluate(
     part: str = "auto",
     node_map: Mapping[str, str] | None = None,
     timing_samples: int = 300,
-    support_guard: bool = False,
+    support_guard: bool = True,
 ) -> dict[str, Any]:
     """Evaluate the models under ``model_dirs`` (each a model directory or a parent of some).
 
-    ``support_guard``: score the models as the run-time stage uses them, with windows outside a
-    pair's training support falling back to its constant (:func:`support_guarded`; counted in
-    each model's ``out_of_support``); off by default.
+    ``support_guard``: score the models as the run-time stage uses them (the default), with
+    windows outside a pair's training support falling back to its constant
+    (:func:`support_guarded`; counted in each model's ``out_of_support``); ``False`` scores the
+    networks' own predictions everywhere.
 
     Returns a JSON-ready dict: ``{"csv", "part", "pairs", "skipped_pairs", "n_targets",
     "methods": {name: {"kind", "per_pair_mse", "mean_mse", "pooled_mse",

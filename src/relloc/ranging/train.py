@@ -5,8 +5,9 @@ that depends on how the antennas are turned and on recent motion. The constant m
 sessions (the per-pair biases of one day are worse than one shared constant on another, see
 docs/ranging.md); the orientation- and motion-dependent part should not. So each model learns
 only the **residual around the pair's constant** (``error - train_bias``, with ``train_bias``
-the mean error of the rows before the test part), and the constant is stored beside it in the
-manifest: the run time adds it back, or leaves the offset to the filter
+the median error of the rows before the test part: the statistic of a pair calibration, so a
+pair that falls back gets what ``relloc calibrate`` would give), and the constant is stored
+in the manifest: the run time adds it back, or leaves the offset to the filter
 (``TrainConfig.offset``), and evaluation can estimate it online.
 
 The derivation: docs/explanation/internals.md, section ``relloc.ranging.train``.
@@ -281,7 +282,8 @@ class PairData:
     dropped: int
     split: BlockSplit
     train_bias: float
-    """Mean error of the rows before the test part: the pair's constant (offset)."""
+    """Median error of the rows before the test part: the pair's constant (offset), the
+    statistic of a pair calibration (robust to the one-sided NLOS excess a mean follows)."""
     windows: dict[str, tuple[np.ndarray, np.ndarray]]
     """``train``/``val``/``test`` -> ``(windows, residual targets = error - train_bias)``."""
 
@@ -291,7 +293,7 @@ def split_pair(series: PairSeries, config: TrainConfig) -> PairData:
     clean, dropped = drop_repeats(series)
     gap = config.n_steps if config.val_gap is None else config.val_gap
     split = block_split(len(clean), config.split, config.val_blocks, gap=gap)
-    train_bias = float(np.mean(clean.error[: split.end_dev])) if split.end_dev else 0.0
+    train_bias = float(np.median(clean.error[: split.end_dev])) if split.end_dev else 0.0
     parts: dict[str, np.ndarray | slice] = {
         "train": split.train,
         "val": split.val,
