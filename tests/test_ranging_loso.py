@@ -61,3 +61,16 @@ def test_too_thin_for_a_choice(tmp_path: Path) -> None:
     assert result.pairs == {"a": [], "b": []}
     assert result.recommended() is None
     assert "No choice" in loso.markdown(result, loso.pair_matrix(sessions), "x")
+
+
+def test_sessions_from_a_shared_bag(tmp_path: Path, shared_data: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The script's ``bag-csv`` of a shared bag: the training CSV's columns, one row per range
+    with motion capture at both ends, written once and reused."""
+    loso = _script()
+    monkeypatch.setattr(loso, "BAGS", {"chair_20220923": loso.BAGS["chair_20220923"]})
+    sessions = loso.build_sessions(shared_data, tmp_path)
+    assert set(sessions) == {"train_20221219", "chair_20220923"}
+    lines = sessions["chair_20220923"].read_text().splitlines()
+    assert lines[0].split(",") == list(loso.CSV_COLUMNS) and len(lines) > 200
+    stamp = sessions["chair_20220923"].stat().st_mtime_ns
+    assert loso.build_sessions(shared_data, tmp_path)["chair_20220923"].stat().st_mtime_ns == stamp
