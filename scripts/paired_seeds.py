@@ -13,9 +13,9 @@ static team without odometry).
         --seeds 0-19 --b-method pf_ul --a-flags "$M" --b-flags "$M" --bound 0.01
 
 Equal flags run both methods in one ``relloc run``. Runs go in ``--jobs`` processes (one numpy
-thread each); every run's JSON stays under ``--work`` and is reused; a recording whose first two
-seeds agree exactly in both variants (the smoother draws no random numbers) is not run on the
-others. ``--page FILE --section NAME`` writes the table between the page's markers
+thread each); every run's JSON stays under ``--work`` and is reused (keyed by flags and methods
+only: empty it after changing the code or the models); a recording whose first two seeds agree
+exactly in both variants (the smoother draws no random numbers) is not run on the others. ``--page FILE --section NAME`` writes the table between the page's markers
 (``benchmarks/figures.py``): docs/self-calibration.md, docs/ranging.md.
 """
 
@@ -67,7 +67,9 @@ def _run(data: Path, name: str, flags: str, methods: list[str], seed: int, work:
         "--no-progress", "--json", str(out), *shlex.split(flags),
     ]
     env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    done = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    if done.returncode != 0:
+        raise SystemExit(f"{' '.join(cmd)} failed:\n{done.stderr[-2000:]}")
     return out
 
 
@@ -90,7 +92,7 @@ def main() -> None:
     p.add_argument("--b-flags", default="")
     p.add_argument("--bound", type=float, default=0.03, help="B may be this much worse than A (m)")
     p.add_argument("--jobs", type=int, default=2)
-    p.add_argument("--work", type=Path, default=Path("out/paired_seeds"))
+    p.add_argument("--work", type=Path, default=Path("out/paired_seeds"), help="run reports, reused")
     p.add_argument("--page", type=Path, default=None, help="Markdown page to write the table into")
     p.add_argument("--section", default=None, help="the page's section (its markers' name)")
     args = p.parse_args()
