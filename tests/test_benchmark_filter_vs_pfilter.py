@@ -3,21 +3,15 @@ estimate carries, and the README figures are written between their markers."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from load_file import ROOT, load_module
 
 from relloc.filter.summary import DeferredSummary
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "filter_vs_pfilter.py"
-_spec = importlib.util.spec_from_file_location("bench_filter_vs_pfilter", _PATH)
-assert _spec is not None and _spec.loader is not None
-bench = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = bench  # dataclasses look their module up there
-_spec.loader.exec_module(bench)
+bench = load_module(ROOT / "benchmarks" / "filter_vs_pfilter.py", "bench_filter_vs_pfilter")
 
 
 @pytest.mark.parametrize(("published", "computed"), [(True, {"shape", "distances"}), (False, set())])

@@ -2,19 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
+from load_file import ROOT, load_module
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "scaling.py"
-_spec = importlib.util.spec_from_file_location("bench_scaling", _PATH)
-assert _spec is not None and _spec.loader is not None
-scaling = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = scaling  # dataclasses look their module up there
-_spec.loader.exec_module(scaling)
+scaling = load_module(ROOT / "benchmarks" / "scaling.py", "bench_scaling")
 
 
 def test_team_has_every_pair_and_a_static_reference() -> None:

@@ -2,18 +2,10 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
+from load_file import ROOT, load_module
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "serve_resources.py"
-_spec = importlib.util.spec_from_file_location("bench_serve_resources", _PATH)
-assert _spec is not None and _spec.loader is not None
-bench = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = bench  # dataclasses look their module up there
-_spec.loader.exec_module(bench)
+bench = load_module(ROOT / "benchmarks" / "serve_resources.py", "bench_serve_resources")
 
 
 def test_percentiles_in_milliseconds() -> None:

@@ -3,16 +3,12 @@ writes it between its markers."""
 
 from __future__ import annotations
 
-import importlib.util
-import sys
+import importlib
 from pathlib import Path
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "tls_cost.py"
-_spec = importlib.util.spec_from_file_location("bench_tls_cost", _PATH)
-assert _spec is not None and _spec.loader is not None
-bench = importlib.util.module_from_spec(_spec)
-sys.modules[_spec.name] = bench
-_spec.loader.exec_module(bench)
+from load_file import ROOT, load_module
+
+bench = load_module(ROOT / "benchmarks" / "tls_cost.py", "bench_tls_cost")
 
 
 def test_the_rectangles_table_gives_medians_ranges_and_the_difference(tmp_path: Path) -> None:

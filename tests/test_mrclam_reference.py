@@ -3,14 +3,13 @@ sessions, its command line, and the page of ``scripts/mrclam_references.py`` fro
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 from types import ModuleType
 
 import numpy as np
 import pytest
+from load_file import ROOT, load_module
 
 from relloc.config import TeamConfig
 from relloc.sources.mrclam import (
@@ -21,7 +20,6 @@ from relloc.sources.mrclam import (
     reference_candidates,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
 DATASET6 = ROOT.parent / "shared" / "data" / "mrclam" / "MRCLAM_Dataset6"
 HEADER = "# Time [s] \t a \t b\n# synthetic\n"
 BARCODES = {1: 5, 2: 14, 3: 41, 4: 32, 5: 23, 6: 90}
@@ -119,13 +117,7 @@ def test_the_generic_config_holds_the_rules_answer_for_dataset_6() -> None:
 
 # ------------------------------------------------------------------------- the page writer
 def _script() -> ModuleType:
-    path = ROOT / "scripts" / "mrclam_references.py"
-    spec = importlib.util.spec_from_file_location("mrclam_references", path)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["mrclam_references"] = module  # dataclasses look their module up
-    spec.loader.exec_module(module)
-    return module
+    return load_module(ROOT / "scripts" / "mrclam_references.py", "mrclam_references")
 
 
 def _fake_run(folder: Path, reference: str, seed: int, robots: dict[str, tuple[float, float, float]],

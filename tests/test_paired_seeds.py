@@ -3,25 +3,19 @@ on run reports written here (no recording is run)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from types import ModuleType
 
 import pytest
+from load_file import ROOT, load_module
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "paired_seeds.py"
+SCRIPT = ROOT / "scripts" / "paired_seeds.py"
 
 
 def _script() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("paired_seeds", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["paired_seeds"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_module(SCRIPT, "paired_seeds")
 
 
 def _report(path: Path, methods: dict[str, float], unobservable: bool = False) -> Path:

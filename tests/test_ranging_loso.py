@@ -2,28 +2,22 @@
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 from pathlib import Path
 from types import ModuleType
 
 import pytest
+from load_file import ROOT, load_module
 
 pytest.importorskip("torch")
 
 from relloc.ranging.evaluate import evaluate
 from relloc.ranging.synthetic import write_synthetic_csv
 
-SCRIPT = Path(__file__).resolve().parents[1] / "scripts" / "ranging_loso.py"
+SCRIPT = ROOT / "scripts" / "ranging_loso.py"
 
 
 def _script() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("ranging_loso", SCRIPT)
-    assert spec is not None and spec.loader is not None
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["ranging_loso"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_module(SCRIPT, "ranging_loso")
 
 
 def test_loso_table_and_baseline(tmp_path: Path) -> None:
