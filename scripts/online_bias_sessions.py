@@ -26,6 +26,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from relloc.cli import argtypes
 from relloc.config import TeamConfig
 from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
@@ -85,13 +86,6 @@ def _values(text: str) -> list[float]:
     return [float(v) for v in text.split(",")]
 
 
-def _seeds(text: str) -> list[int]:
-    if "-" in text:
-        lo, hi = text.split("-")
-        return list(range(int(lo), int(hi) + 1))
-    return [int(v) for v in text.split(",")]
-
-
 def _parse_set(items: list[str]) -> dict[str, object]:
     out: dict[str, object] = {}
     for item in items:
@@ -104,7 +98,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--biases", default="0.1,0.3,0.5")
     p.add_argument("--scales", default="0,0.08", help="odometry scale errors (path short by this fraction)")
-    p.add_argument("--seeds", default="0-2")
+    p.add_argument("--seeds", type=argtypes.seeds, default="0-2", help="LO-HI or a comma-separated list")
     p.add_argument("--particles", type=int, default=5000)
     p.add_argument("--warmup", type=float, default=10.0)
     p.add_argument("--duration", type=float, default=45.0, help="session length (s)")
@@ -119,7 +113,7 @@ def main() -> None:
     diffs = []
     for bias in _values(args.biases):
         for scale in _values(args.scales):
-            for seed in _seeds(args.seeds):
+            for seed in args.seeds:
                 sim, config = session(seed, bias, scale, args.duration, args.orientation)
                 config = config.with_filter(particles=args.particles)
                 d = float("nan")

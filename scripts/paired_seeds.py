@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from relloc.cli import argtypes
+
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
 from figures import missing_section, write_between
 
@@ -47,11 +49,11 @@ RECORDINGS = {
 """The shared recordings with UWB ranges and their warm-up windows (those of the results pages)."""
 
 
-def _seeds(text: str) -> list[int]:
-    if "-" in text:
-        lo, hi = text.split("-")
-        return list(range(int(lo), int(hi) + 1))
-    return [int(v) for v in text.split(",")]
+def _label(seeds: list[int]) -> str:
+    """``seeds`` as the command line says them: ``LO-HI`` when consecutive."""
+    if len(seeds) > 1 and seeds == list(range(seeds[0], seeds[-1] + 1)):
+        return f"{seeds[0]}-{seeds[-1]}"
+    return ",".join(map(str, seeds))
 
 
 def _run(data: Path, name: str, flags: str, methods: list[str], seed: int, work: Path) -> Path:
@@ -85,7 +87,7 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--data", type=Path, default=Path("../shared/data"))
     p.add_argument("--recordings", default=",".join(RECORDINGS), help="comma-separated names")
-    p.add_argument("--seeds", default="0-19")
+    p.add_argument("--seeds", type=argtypes.seeds, default="0-19", help="LO-HI or a comma-separated list")
     p.add_argument("--a-method", default="pf")
     p.add_argument("--a-flags", default="")
     p.add_argument("--b-method", default="pf")
@@ -100,11 +102,11 @@ def main() -> None:
         raise SystemExit("--page and --section go together")
     if args.page is not None and (problem := missing_section(args.page, args.section)) is not None:
         raise SystemExit(problem)
-    seeds = _seeds(args.seeds)
+    seeds = args.seeds
     names = args.recordings.split(",")
     lines = [
         f"A: `{f'{args.a_method} {args.a_flags}'.strip()}`; B: `{f'{args.b_method} {args.b_flags}'.strip()}`"
-        + f"; seeds {args.seeds} ({len(seeds)}); `scripts/paired_seeds.py`",
+        + f"; seeds {_label(seeds)} ({len(seeds)}); `scripts/paired_seeds.py`",
         "",
         f"| recording | robot | A mean | B mean | B - A mean +- s.e. | worst seed B - A | seeds with B - A <= {args.bound} |",
         "|---|---|---|---|---|---|---|",

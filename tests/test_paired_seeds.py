@@ -3,6 +3,7 @@ on run reports written here (no recording is run)."""
 
 from __future__ import annotations
 
+import argparse
 import json
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -10,6 +11,8 @@ from types import ModuleType
 
 import pytest
 from load_file import ROOT, load_module
+
+from relloc.cli.argtypes import seeds
 
 SCRIPT = ROOT / "scripts" / "paired_seeds.py"
 
@@ -65,3 +68,14 @@ def test_pairs_seed_by_seed_and_stops_at_two_identical_seeds(
     assert used == ([0, 1] if independent else [0, 1, 2, 3])
     assert [s for _, _, s in calls] == used
     assert [round(x["r1"], 3) for x in b] == [round(x["r1"] + 0.02, 3) for x in a]
+
+
+def test_seed_lists_of_the_sweep_scripts() -> None:
+    """``--seeds`` of paired_seeds and online_bias_sessions: a range or a list, usage errors
+    for the rest, and the table says a range back as a range."""
+    assert seeds("0-3") == [0, 1, 2, 3] and seeds("4") == [4] and seeds("1,5,2") == [1, 5, 2]
+    for bad in ("3-1", "a", "-1", "1,,2"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            seeds(bad)
+    ps = _script()
+    assert ps._label([0, 1, 2]) == "0-2" and ps._label([4]) == "4" and ps._label([1, 5]) == "1,5"

@@ -15,6 +15,16 @@ def seed(text: str) -> int:
     return value
 
 
+def seeds(text: str) -> list[int]:
+    """Seeds for a sweep: ``LO-HI`` (both included) or a comma-separated list, each a :func:`seed`."""
+    if "-" in text:
+        lo, hi = (seed(part) for part in text.split("-", 1))
+        if hi < lo:
+            raise argparse.ArgumentTypeError(f"empty range {text!r}")
+        return list(range(lo, hi + 1))
+    return [seed(part) for part in text.split(",")]
+
+
 def count(text: str) -> int:
     """A count of things (particles): an integer >= 1."""
     value = int(_parse(int, text))
