@@ -19,20 +19,24 @@ def missing_section(path: Path, *names: str) -> str | None:
     benchmark measures for minutes, not after."""
     text = path.read_text() if path.is_file() else ""
     for name in names:
-        begin, end = markers(name)
-        i, j = text.find(begin), text.find(end)
-        if i < 0 or j < i:
-            return f"{path} has no {begin} ... {end} section"
+        if (problem := _problem(path, text, name)) is not None:
+            return problem
     return None
 
 
 def write_between(path: Path, name: str, body: str) -> None:
     """Replace the text between the markers of section ``name`` in ``path`` with ``body``; a
     page without them is an error (the figures would land nowhere a reader looks)."""
-    problem = missing_section(path, name)
+    text = path.read_text() if path.is_file() else ""
+    problem = _problem(path, text, name)
     if problem is not None:
         raise SystemExit(problem)
     begin, end = markers(name)
-    text = path.read_text()
     i, j = text.find(begin), text.find(end)
     path.write_text(text[: i + len(begin)] + "\n" + body + "\n" + text[j:])
+
+
+def _problem(path: Path, text: str, name: str) -> str | None:
+    begin, end = markers(name)
+    i, j = text.find(begin), text.find(end)
+    return f"{path} has no {begin} ... {end} section" if i < 0 or j < i else None
