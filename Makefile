@@ -39,6 +39,7 @@ demo: setup
 
 test: setup-test
 	$(BIN)/ruff check src tests benchmarks examples scripts
+	$(BIN)/ruff format --check src tests benchmarks examples scripts
 	$(BIN)/python -m pytest -q
 
 # The documentation site: its own environment (relloc and the `docs` extra); the command, config

@@ -43,7 +43,14 @@ def _cases() -> list[tuple[str, TeamConfig, list[Any], float]]:
         events = [e for e in RosbagSource(BAG, config) if not isinstance(e, GroundTruthEvent)]
         out.append(("shortbag", config, events, 5.0))
     sim, config, _ = scenario_setup("multi", DemoOptions(seed=0))
-    out.append(("demo multi", config, [e for e in sim.events() if not isinstance(e, GroundTruthEvent)], 10.0))
+    out.append(
+        (
+            "demo multi",
+            config,
+            [e for e in sim.events() if not isinstance(e, GroundTruthEvent)],
+            10.0,
+        )
+    )
     return out
 
 
@@ -78,19 +85,28 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", default="0", help="comma-separated filter seeds")
     ap.add_argument("--repeats", type=int, default=2, help="interleaved runs per count and seed")
-    ap.add_argument("--tail", type=float, default=5.0, help="the steady state: the run's last seconds")
+    ap.add_argument(
+        "--tail", type=float, default=5.0, help="the steady state: the run's last seconds"
+    )
     ap.add_argument("--json", type=Path, default=None, help="write the figures here")
     ap.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE",
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
         help="a [filter.adaptive] key for the adaptive runs, e.g. mc_tolerance=0.009 (repeatable)",
     )
     ap.add_argument(
-        "--malloc", choices=("tuned", "default"), default="tuned",
+        "--malloc",
+        choices=("tuned", "default"),
+        default="tuned",
         help="tuned: glibc keeps freed memory mapped, as the relloc command does (relloc.malloc); "
         "default: glibc's own settings",
     )
     ap.add_argument(
-        "--clock", choices=("wall", "cpu"), default="wall",
+        "--clock",
+        choices=("wall", "cpu"),
+        default="wall",
         help="wall: elapsed time per step; cpu: the thread's CPU time per step (what other jobs "
         "on the machine disturb least)",
     )
@@ -100,7 +116,9 @@ def main() -> None:
         tune_malloc()
     seeds = [int(s) for s in args.seeds.split(",")]
     results = {}
-    changes = {k: float(v) if "." in v else int(v) for k, v in (item.split("=", 1) for item in args.set)}
+    changes = {
+        k: float(v) if "." in v else int(v) for k, v in (item.split("=", 1) for item in args.set)
+    }
     for name, base, events, warmup in _cases():
         fixed_config = base.with_filter(particle_count="fixed")
         config = base.with_filter(**changes)
@@ -111,15 +129,22 @@ def main() -> None:
                     t, d, n = _timed_run(cfg, events, seed, clock)
                     end = t[-1]
                     r = rows[label]
-                    r.setdefault("after_warmup_ms", []).append(1e3 * float(np.median(d[t >= warmup])))
-                    r.setdefault("tail_ms", []).append(1e3 * float(np.median(d[t >= end - args.tail])))
+                    r.setdefault("after_warmup_ms", []).append(
+                        1e3 * float(np.median(d[t >= warmup]))
+                    )
+                    r.setdefault("tail_ms", []).append(
+                        1e3 * float(np.median(d[t >= end - args.tail]))
+                    )
                     r.setdefault("count_after_warmup", []).append(float(np.median(n[t >= warmup])))
                     r.setdefault("count_tail", []).append(float(np.median(n[t >= end - args.tail])))
         summary = {
-            label: {k: round(statistics.median(v), 3) for k, v in r.items()} for label, r in rows.items()
+            label: {k: round(statistics.median(v), 3) for k, v in r.items()}
+            for label, r in rows.items()
         }
         for k in ("after_warmup_ms", "tail_ms"):
-            summary[f"ratio_{k.removesuffix('_ms')}"] = round(summary["fixed"][k] / summary["adaptive"][k], 2)
+            summary[f"ratio_{k.removesuffix('_ms')}"] = round(
+                summary["fixed"][k] / summary["adaptive"][k], 2
+            )
         results[name] = summary
         f, a = summary["fixed"], summary["adaptive"]
         print(

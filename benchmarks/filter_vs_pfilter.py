@@ -207,7 +207,9 @@ class RellocRunner:
 
     name = "relloc"
 
-    def __init__(self, scenario: Scenario, cloud: FloatArray, seed: int, published: bool = True) -> None:
+    def __init__(
+        self, scenario: Scenario, cloud: FloatArray, seed: int, published: bool = True
+    ) -> None:
         self.scenario = scenario
         self.published = published
         self.pf = ParticleFilter(
@@ -240,9 +242,14 @@ class RellocRunner:
         """One :meth:`step`, each phase timed (``PHASES``), and the odometry noise of the
         predict drawn alone from a generator of the same kind: the floor of any predict that
         draws the same numbers."""
-        batch = RangeBatch(self.scenario.pair_a, self.scenario.pair_b, s.ranges, self.bias, self.sigma_uwb)
+        batch = RangeBatch(
+            self.scenario.pair_a, self.scenario.pair_b, s.ranges, self.bias, self.sigma_uwb
+        )
         shipped = dataclasses.replace(
-            batch, outlier_fraction=GROSS_FRACTION, nlos_fraction=NLOS_FRACTION, nlos_sigma=NLOS_SIGMA
+            batch,
+            outlier_fraction=GROSS_FRACTION,
+            nlos_fraction=NLOS_FRACTION,
+            nlos_sigma=NLOS_SIGMA,
         )
         t0 = clock()
         self.pf.predict(s.disp, s.sigma, DT)
@@ -269,8 +276,13 @@ class RellocRunner:
 
 
 PHASES = (
-    "predict", "likelihood (update)", "moments and modes", "shape and distances", "resample",
-    "noise draws alone", "likelihood, NLOS-aware",
+    "predict",
+    "likelihood (update)",
+    "moments and modes",
+    "shape and distances",
+    "resample",
+    "noise draws alone",
+    "likelihood, NLOS-aware",
 )
 """What :meth:`RellocRunner.phases` times: the update's phases; the predict's noise drawn alone
 (its floor); and the likelihood of the same ranges under the NLOS-aware model the shipped
@@ -287,7 +299,9 @@ def phase_table(phases: dict[str, dict[str, float]], context: str) -> str:
         "|---|" + "---:|" * len(ms),
     ]
     for name in PHASES:
-        lines.append(f"| {name} | " + " | ".join(f"{phases[m][name] * 1e3:.3f} ms" for m in ms) + " |")
+        lines.append(
+            f"| {name} | " + " | ".join(f"{phases[m][name] * 1e3:.3f} ms" for m in ms) + " |"
+        )
     return "\n".join(lines)
 
 
@@ -500,10 +514,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                 runner.step(s)
             timed = [runner.phases(s, clock) for s in scenario.steps[WARMUP:]]
             phases[str(m)] = {name: statistics.median(t[name] for t in timed) for name in PHASES}
-            print(f"{m:>7}  " + ", ".join(f"{name} {v * 1e3:.3f} ms" for name, v in phases[str(m)].items()))
+            print(
+                f"{m:>7}  "
+                + ", ".join(f"{name} {v * 1e3:.3f} ms" for name, v in phases[str(m)].items())
+            )
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({**results, **({"phases": phases} if phases else {})}, indent=2) + "\n")
+        args.json.write_text(
+            json.dumps({**results, **({"phases": phases} if phases else {})}, indent=2) + "\n"
+        )
         print(f"wrote {args.json}")
     if args.readme is not None:
         context = (
@@ -521,7 +540,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 README_BEGIN, README_END = markers("filter_vs_pfilter")
 
 
-def figures_table(results: dict[str, dict[str, float]], reps: dict[str, tuple[int, int]], context: str) -> str:
+def figures_table(
+    results: dict[str, dict[str, float]], reps: dict[str, tuple[int, int]], context: str
+) -> str:
     """The Markdown figures of one run (what ``--readme`` writes)."""
     lines = [
         f"Written by `benchmarks/filter_vs_pfilter.py --readme` ({context}):",
@@ -531,13 +552,17 @@ def figures_table(results: dict[str, dict[str, float]], reps: dict[str, tuple[in
     ]
     for m, r in results.items():
         lines.append(
-            f"| {int(m):,} | {r['relloc_s'] * 1e3:.3f} ms | {r['pfilter_s'] * 1e3:.2f} ms | ".replace(",", " ")
+            f"| {int(m):,} | {r['relloc_s'] * 1e3:.3f} ms | {r['pfilter_s'] * 1e3:.2f} ms | ".replace(
+                ",", " "
+            )
             + f"{r['speedup']:.1f}x | {reps[m][0]}, {reps[m][1]} |"
         )
     return "\n".join(lines)
 
 
-def write_readme(path: Path, results: dict[str, dict[str, float]], reps: dict[str, tuple[int, int]], context: str) -> None:
+def write_readme(
+    path: Path, results: dict[str, dict[str, float]], reps: dict[str, tuple[int, int]], context: str
+) -> None:
     """Replace the text between the markers of ``path`` with this run's figures."""
     write_between(path, "filter_vs_pfilter", figures_table(results, reps, context))
 

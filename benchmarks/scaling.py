@@ -118,11 +118,15 @@ class Team:
 def make_team(n: int, rng: np.random.Generator) -> Team:
     robots = tuple(f"r{i}" for i in range(n))
     cols = math.ceil(math.sqrt(n))
-    centres = np.array([[(k % cols) * SPACING, (k // cols) * SPACING] for k in range(n)], dtype=float)
+    centres = np.array(
+        [[(k % cols) * SPACING, (k // cols) * SPACING] for k in range(n)], dtype=float
+    )
     omega = np.full(n, SPEED / 1.0)
     omega[0] = 0.0
     pair_a, pair_b = (np.asarray(ix, dtype=np.intp) for ix in np.triu_indices(n, k=1))
-    return Team(StateLayout(robots, "r0"), pair_a, pair_b, centres, rng.uniform(0, 2 * np.pi, n), omega)
+    return Team(
+        StateLayout(robots, "r0"), pair_a, pair_b, centres, rng.uniform(0, 2 * np.pi, n), omega
+    )
 
 
 def area_of(team: Team) -> tuple[float, float, float, float]:
@@ -130,7 +134,13 @@ def area_of(team: Team) -> tuple[float, float, float, float]:
     return (float(lo[0]), float(hi[0]), float(lo[1]), float(hi[1]))
 
 
-def _median_cycle(team: Team, f: WeightedFilter, resample: Callable[[], object], reps: int, rng: np.random.Generator) -> float:
+def _median_cycle(
+    team: Team,
+    f: WeightedFilter,
+    resample: Callable[[], object],
+    reps: int,
+    rng: np.random.Generator,
+) -> float:
     """Median seconds of one predict + update + estimate + ``resample`` of ``f`` on the team
     driving its circles, every pair ranging (the first ``WARMUP`` cycles not counted)."""
     n = len(team.layout.robots)
@@ -140,7 +150,9 @@ def _median_cycle(team: Team, f: WeightedFilter, resample: Callable[[], object],
     for k in range(1, WARMUP + reps + 1):
         before, now = team.positions(k - 1), team.positions(k)
         disp = now - before + rng.normal(0.0, SIGMA_ODOM, (n, 2))
-        ranges = np.linalg.norm(now[team.pair_a] - now[team.pair_b], axis=1) + rng.normal(0.0, SIGMA_UWB, k_pairs)
+        ranges = np.linalg.norm(now[team.pair_a] - now[team.pair_b], axis=1) + rng.normal(
+            0.0, SIGMA_UWB, k_pairs
+        )
         batch = RangeBatch(team.pair_a, team.pair_b, ranges, bias, sigma_uwb)
         gc.collect()
         t0 = time.perf_counter()
@@ -157,8 +169,13 @@ def time_update(team: Team, m: int, reps: int, seed: int) -> float:
     """Median seconds of one predict + update + estimate + resample at ``m`` particles."""
     rng = np.random.default_rng(seed)
     pf = ParticleFilter(
-        team.layout, m, area_of(team), rng=np.random.default_rng(seed + 1),
-        motion=OdometryMotion(process_noise=PROCESS_NOISE), resample="every_step", reinject_fraction=0.01,
+        team.layout,
+        m,
+        area_of(team),
+        rng=np.random.default_rng(seed + 1),
+        motion=OdometryMotion(process_noise=PROCESS_NOISE),
+        resample="every_step",
+        reinject_fraction=0.01,
     )
     start = team.positions(0)
     rel = (start[1:] - start[0]).reshape(-1)
@@ -172,11 +189,19 @@ def time_graph_update(team: Team, hypotheses: int, reps: int, seed: int) -> floa
     """Median seconds of one predict + update + estimate + prune of the range-graph filter with
     ``hypotheses`` Gaussians (none is pruned: all start equally near the truth)."""
     rng = np.random.default_rng(seed)
-    f = RangeGraphFilter(team.layout, area_of(team), rng=np.random.default_rng(seed + 1), motion=OdometryMotion(process_noise=PROCESS_NOISE))
+    f = RangeGraphFilter(
+        team.layout,
+        area_of(team),
+        rng=np.random.default_rng(seed + 1),
+        motion=OdometryMotion(process_noise=PROCESS_NOISE),
+    )
     start = team.positions(0)
     rel = (start[1:] - start[0]).reshape(-1)
     d = rel.size
-    f.initialize(rel + rng.normal(0.0, CLOUD_SPREAD, (hypotheses, d)), np.repeat(np.eye(d)[None] * CLOUD_SPREAD**2, hypotheses, axis=0))
+    f.initialize(
+        rel + rng.normal(0.0, CLOUD_SPREAD, (hypotheses, d)),
+        np.repeat(np.eye(d)[None] * CLOUD_SPREAD**2, hypotheses, axis=0),
+    )
     f.merge_distance = 0.0  # keep every hypothesis: the cost of H of them
     f.prune_weight = 0.0
     return _median_cycle(team, f, f.maybe_resample, reps, rng)
@@ -217,9 +242,15 @@ def measure(n: int, m: int, reps: int, bandwidth: float, seed: int) -> dict[str,
     plain = time_pass(m, d, reps)
     floor = floor_bytes(m, d, k) / bandwidth
     return {
-        "robots": n, "particles": m, "dim": d, "pairs": k,
-        "update_s": update, "pass_s": plain, "floor_s": floor,
-        "update_over_pass": update / plain, "update_over_floor": update / floor,
+        "robots": n,
+        "particles": m,
+        "dim": d,
+        "pairs": k,
+        "update_s": update,
+        "pass_s": plain,
+        "floor_s": floor,
+        "update_over_pass": update / plain,
+        "update_over_floor": update / floor,
     }
 
 
@@ -316,18 +347,47 @@ def write_readme(path: Path, results: dict[str, object], args: argparse.Namespac
 
 def main(argv: Sequence[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0] if __doc__ else None)
-    parser.add_argument("--particles", type=int, nargs="+", default=None, help=f"particle sweep (default {DEFAULT_PARTICLES})")
-    parser.add_argument("--robots", type=int, nargs="+", default=None, help=f"team-size sweep (default {DEFAULT_ROBOTS})")
-    parser.add_argument("--full", action="store_true", help=f"the full sweeps: particles {FULL_PARTICLES}, robots {FULL_ROBOTS}")
-    parser.add_argument("--robots-fixed", type=int, default=5, help="team size of the particle sweep")
-    parser.add_argument("--particles-fixed", type=int, default=20_000, help="particle count of the team sweep")
+    parser.add_argument(
+        "--particles",
+        type=int,
+        nargs="+",
+        default=None,
+        help=f"particle sweep (default {DEFAULT_PARTICLES})",
+    )
+    parser.add_argument(
+        "--robots",
+        type=int,
+        nargs="+",
+        default=None,
+        help=f"team-size sweep (default {DEFAULT_ROBOTS})",
+    )
+    parser.add_argument(
+        "--full",
+        action="store_true",
+        help=f"the full sweeps: particles {FULL_PARTICLES}, robots {FULL_ROBOTS}",
+    )
+    parser.add_argument(
+        "--robots-fixed", type=int, default=5, help="team size of the particle sweep"
+    )
+    parser.add_argument(
+        "--particles-fixed", type=int, default=20_000, help="particle count of the team sweep"
+    )
     parser.add_argument("--reps", type=int, default=10, help="timed updates per point")
-    parser.add_argument("--copy-mb", type=int, default=256, help="MiB copied to measure the bandwidth")
-    parser.add_argument("--hypotheses", type=int, nargs="+", default=[1, 72], help="Gaussians of the range-graph sweep")
+    parser.add_argument(
+        "--copy-mb", type=int, default=256, help="MiB copied to measure the bandwidth"
+    )
+    parser.add_argument(
+        "--hypotheses",
+        type=int,
+        nargs="+",
+        default=[1, 72],
+        help="Gaussians of the range-graph sweep",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--json", type=Path, help="write every point to this file")
     parser.add_argument(
-        "--readme", type=Path,
+        "--readme",
+        type=Path,
         help="write the tables into this Markdown file, between its scaling (and scaling_graph) figures markers",
     )
     args = parser.parse_args(argv)
@@ -336,7 +396,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if min(robots) < 2 or args.robots_fixed < 2:
         parser.error("a team has at least 2 robots")
 
-    problem = None if args.readme is None else missing_section(args.readme, "scaling", "scaling_graph")
+    problem = (
+        None if args.readme is None else missing_section(args.readme, "scaling", "scaling_graph")
+    )
     if problem is not None:
         parser.error(problem)
 
@@ -345,7 +407,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"numpy {np.__version__}, Python {platform.python_version()}, {platform.machine()}; "
         f"copy bandwidth {bandwidth / 1e9:.2f} GB/s (read + write, {args.copy_mb} MiB)"
     )
-    results: dict[str, object] = {"bandwidth_bytes_per_s": bandwidth, "particles_sweep": [], "robots_sweep": []}
+    results: dict[str, object] = {
+        "bandwidth_bytes_per_s": bandwidth,
+        "particles_sweep": [],
+        "robots_sweep": [],
+    }
     print(f"-- over particles, {args.robots_fixed} robots")
     for m in particles:
         p = measure(args.robots_fixed, m, args.reps, bandwidth, args.seed)
@@ -362,9 +428,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         team = make_team(n, np.random.default_rng(args.seed))
         for h in args.hypotheses:
             t = time_graph_update(team, h, args.reps, args.seed)
-            point = {"robots": n, "hypotheses": h, "dim": 2 * (n - 1), "pairs": len(team.pair_a), "update_s": t}
+            point = {
+                "robots": n,
+                "hypotheses": h,
+                "dim": 2 * (n - 1),
+                "pairs": len(team.pair_a),
+                "update_s": t,
+            }
             results["graph_sweep"].append(point)  # type: ignore[union-attr]
-            print(f"N={n:>3} H={h:>3}  D={point['dim']:>3} K={point['pairs']:>5}  update {t * 1e3:9.2f} ms", flush=True)
+            print(
+                f"N={n:>3} H={h:>3}  D={point['dim']:>3} K={point['pairs']:>5}  update {t * 1e3:9.2f} ms",
+                flush=True,
+            )
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(results, indent=2) + "\n")

@@ -55,7 +55,11 @@ from relloc.methods import build_pipeline
 from relloc.simulator import RobotMotion, Simulation
 
 TEAMS = {"two": "pair", "single": "single", "five": "multi"}
-DEFAULT_PARTICLES = {"two": (100, 300, 1000), "single": (100, 300, 1000), "five": (250, 500, 1000, 2000)}
+DEFAULT_PARTICLES = {
+    "two": (100, 300, 1000),
+    "single": (100, 300, 1000),
+    "five": (250, 500, 1000, 2000),
+}
 
 
 def two_moving(seed: int, bias: str) -> tuple[Simulation, TeamConfig, dict[str, float] | None]:
@@ -69,21 +73,27 @@ def two_moving(seed: int, bias: str) -> tuple[Simulation, TeamConfig, dict[str, 
         RobotMotion("b", "n_2", 1.2, -0.4, float(yaw_b), ((60.0, 0.22, 0.22),)),
     ]
     sim = Simulation(robots, reference="a", seed=seed, duration=45.0, name="pair")
-    config = replace(sim.config, robots=tuple(replace(r, heading_offset_deg=0.0) for r in sim.config.robots))
+    config = replace(
+        sim.config, robots=tuple(replace(r, heading_offset_deg=0.0) for r in sim.config.robots)
+    )
     if bias == "online":
         config = replace(config, uwb=replace(config.uwb, pairs={}))
     truth = dict(sim.true_biases) if bias == "online" else None
     return sim, config.with_modes(heading="estimate", bias=bias), truth
 
 
-def run_one(team: str, particles: int, seed: int, warmup: float, bias: str = "online") -> dict[str, Any]:
+def run_one(
+    team: str, particles: int, seed: int, warmup: float, bias: str = "online"
+) -> dict[str, Any]:
     scenario = TEAMS[team]
     if team == "two":
         sim, config, truth = two_moving(seed, bias)
     else:
         opts = DemoOptions(seed=seed, heading="estimate", bias=bias)
         sim, config, truth = scenario_setup(scenario, opts)
-    config = config.with_filter(selfcal_particles=particles, selfcal_init_particles=max(10000, particles))
+    config = config.with_filter(
+        selfcal_particles=particles, selfcal_init_particles=max(10000, particles)
+    )
     pipeline = build_pipeline("pf", config, seed=seed)
     loc = pipeline.localizer
     times: list[float] = []
@@ -116,21 +126,32 @@ def run_one(team: str, particles: int, seed: int, warmup: float, bias: str = "on
         "update_ms_p90": 1e3 * float(np.percentile(times[1:], 90)) if len(times) > 1 else math.nan,
         "updates": len(times),
         "ape_median_worst": max(s.median for s in pf.robots.values()),
-        "heading_median_deg_worst": max((pf.heading_median_deg(r) for r in moving), default=math.nan),
+        "heading_median_deg_worst": max(
+            (pf.heading_median_deg(r) for r in moving), default=math.nan
+        ),
         "bias_error_median_worst": max(biases) if biases else math.nan,
         "bias_error_median_median": float(np.median(biases)) if biases else math.nan,
     }
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     parser.add_argument("--team", choices=("two", "single", "five", "all"), default="all")
     parser.add_argument("--particles", type=int, nargs="*", default=None)
     parser.add_argument("--seeds", type=int, nargs="*", default=[0])
     parser.add_argument("--warmup", type=float, default=20.0)
-    parser.add_argument("--bias", choices=("online", "calibrated"), default="online", help="pair biases estimated or told")
     parser.add_argument(
-        "--range-error", choices=("colored", "white"), default="colored",
+        "--bias",
+        choices=("online", "calibrated"),
+        default="online",
+        help="pair biases estimated or told",
+    )
+    parser.add_argument(
+        "--range-error",
+        choices=("colored", "white"),
+        default="colored",
         help="online pairs: a time-correlated range-error state beside each bias (default), or white noise only",
     )
     parser.add_argument("--json", default=None, metavar="FILE")

@@ -151,7 +151,11 @@ def _percentiles(values: list[float]) -> dict[str, float | int | None]:
 
 
 def _bench_case(
-    scenario: str, particles: int | None, opts: BenchOptions, workdir: Path, say: Callable[[str], None]
+    scenario: str,
+    particles: int | None,
+    opts: BenchOptions,
+    workdir: Path,
+    say: Callable[[str], None],
 ) -> dict[str, Any]:
     """One serve subprocess fed over loopback; the server's figures while it was fed."""
     if scenario == "sim5":
@@ -192,7 +196,10 @@ def _bench_case(
     collector = EstimateCollector(session, config)
     served = config.filter.particles if particles is None else particles
     result: dict[str, Any] = {
-        "scenario": scenario, "robots": robots, "particles": served, "settings": label,
+        "scenario": scenario,
+        "robots": robots,
+        "particles": served,
+        "settings": label,
         "adaptive": particles is None and config.filter.adaptive.particle_count != "fixed",
     }
     sampler: _CpuSampler | None = None
@@ -370,7 +377,11 @@ def _case_line(c: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     bag = Path(args.bag) if args.bag else REPO.parent / "shared" / "data" / "tiers" / SHORTBAG
-    bag_config = Path(args.bag_config) if args.bag_config else REPO / "configs" / "tiers" / f"{SHORTBAG}.toml"
+    bag_config = (
+        Path(args.bag_config)
+        if args.bag_config
+        else REPO / "configs" / "tiers" / f"{SHORTBAG}.toml"
+    )
     scenarios = tuple(s.strip() for s in args.scenarios.split(",") if s.strip())
     if "shortbag" in scenarios and not bag.exists():
         if args.bag:
@@ -380,10 +391,14 @@ def main(argv: list[str] | None = None) -> int:
         scenarios = tuple(s for s in scenarios if s != "shortbag")
     try:
         particles = tuple(
-            None if p.strip() == "default" else argtypes.count(p.strip()) for p in args.particles.split(",")
+            None if p.strip() == "default" else argtypes.count(p.strip())
+            for p in args.particles.split(",")
         )
     except (ValueError, argparse.ArgumentTypeError):
-        print(f"--particles must be 'default' or counts like default,400,4000, got {args.particles!r}", file=sys.stderr)
+        print(
+            f"--particles must be 'default' or counts like default,400,4000, got {args.particles!r}",
+            file=sys.stderr,
+        )
         return 2
     opts = options_from_args(
         BenchOptions, args, particles=particles, scenarios=scenarios, bag=bag, bag_config=bag_config
@@ -400,11 +415,15 @@ def _parser() -> argparse.ArgumentParser:
         "particle count; measure CPU, peak RSS and estimate latency (docs/live.md).",
     )
     res.add_argument(
-        "--particles", default="default",
+        "--particles",
+        default="default",
         help="comma-separated particle counts; 'default': the shipped settings (the config's count, adaptive)",
     )
     res.add_argument(
-        "--settle", type=argtypes.non_negative, default=10.0, metavar="S",
+        "--settle",
+        type=argtypes.non_negative,
+        default=10.0,
+        metavar="S",
         help="seconds of feeding before the filter counts as converged (CPU also reported after it)",
     )
     res.add_argument(
@@ -412,19 +431,35 @@ def _parser() -> argparse.ArgumentParser:
         default="sim5,shortbag",
         help="sim5 (5 simulated robots), shortbag (4 robots, TIERS)",
     )
-    res.add_argument("--duration", dest="sim_duration", type=argtypes.positive, default=30.0, help="length of the simulated run (s)")
+    res.add_argument(
+        "--duration",
+        dest="sim_duration",
+        type=argtypes.positive,
+        default=30.0,
+        help="length of the simulated run (s)",
+    )
     res.add_argument("--rate", type=argtypes.positive, default=1.0, help="publishing speed factor")
     res.add_argument(
-        "--reorder-window", type=argtypes.non_negative, default=0.0, metavar="S",
+        "--reorder-window",
+        type=argtypes.non_negative,
+        default=0.0,
+        metavar="S",
         help="the server's --reorder-window",
     )
     res.add_argument("--seed", type=argtypes.seed, default=0, help="random seed")
-    res.add_argument("--bag", type=Path, default=None, help=f"default ../shared/data/tiers/{SHORTBAG}")
+    res.add_argument(
+        "--bag", type=Path, default=None, help=f"default ../shared/data/tiers/{SHORTBAG}"
+    )
     res.add_argument(
         "--bag-config", type=Path, default=None, help=f"default configs/tiers/{SHORTBAG}.toml"
     )
     res.add_argument(
-        "--json", dest="json_path", type=Path, default=None, metavar="FILE", help="write the figures as JSON"
+        "--json",
+        dest="json_path",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write the figures as JSON",
     )
     return res
 

@@ -63,8 +63,12 @@ def _pair(mode: str, folder: Path) -> tuple[Any, Any]:
         pub = open_session(ZenohOptions(connect=(f"tcp/127.0.0.1:{port}",), multicast=False))
     else:
         ep = f"tls/127.0.0.1:{port}"
-        sub = open_session(ZenohOptions(config_file=folder / "serve.json5", listen=(ep,), multicast=False))
-        pub = open_session(ZenohOptions(config_file=folder / "team.json5", connect=(ep,), multicast=False))
+        sub = open_session(
+            ZenohOptions(config_file=folder / "serve.json5", listen=(ep,), multicast=False)
+        )
+        pub = open_session(
+            ZenohOptions(config_file=folder / "team.json5", connect=(ep,), multicast=False)
+        )
     end = time.monotonic() + 10
     while not pub.info.links() and time.monotonic() < end:
         time.sleep(0.01)
@@ -141,7 +145,8 @@ def transport(folder: Path, messages: int, rate: float, rounds: int) -> dict[str
         for mode in order:
             runs[mode].append(_phase(mode, folder, messages, rate))
     medians = {
-        mode: {k: statistics.median(run[k] for run in rs) for k in rs[0]} for mode, rs in runs.items()
+        mode: {k: statistics.median(run[k] for run in rs) for k in rs[0]}
+        for mode, rs in runs.items()
     }
     ratios = {k: medians["tls"][k] / medians["plain"][k] for k in medians["plain"]}
     return {"runs": runs, "median": medians, "ratio_tls_over_plain": ratios}
@@ -163,7 +168,12 @@ def _rectangle(secure: Path | None, tmp: Path, team: Path, window: float) -> dic
 
     def start(*args: str, log: str) -> subprocess.Popen[bytes]:
         with (tmp / log).open("wb") as fh:
-            return subprocess.Popen([sys.executable, "-m", "relloc.cli", *args], stdout=fh, stderr=subprocess.STDOUT, cwd=REPO)
+            return subprocess.Popen(
+                [sys.executable, "-m", "relloc.cli", *args],
+                stdout=fh,
+                stderr=subprocess.STDOUT,
+                cwd=REPO,
+            )
 
     procs = [
         start("sim-robots", "--scenario", "nav", "--config", str(team), "--rate", "2", "--duration", "120",
@@ -173,7 +183,9 @@ def _rectangle(secure: Path | None, tmp: Path, team: Path, window: float) -> dic
               "--connect", ep(p_sim), log="serve.log"),
     ]  # fmt: skip
     options = ZenohOptions(
-        config_file=secure / "navigate.json5" if secure else None, connect=(ep(p_serve),), multicast=False
+        config_file=secure / "navigate.json5" if secure else None,
+        connect=(ep(p_serve),),
+        multicast=False,
     )
     watcher = open_session(options)
     from relloc.config import TeamConfig
@@ -205,7 +217,11 @@ def _rectangle(secure: Path | None, tmp: Path, team: Path, window: float) -> dic
     keep = t >= r2[0, 0] + 10.0  # the demo's warm-up
     true = np.column_stack([np.interp(t[keep], r2[:, 0], rel[:, i]) for i in range(2)])
     ape = float(np.median(np.linalg.norm(est[keep] - true, axis=1)))
-    return {"tracking_median_m": tracking, "ape_median_m": ape, "completed": bool(summary["completed"])}
+    return {
+        "tracking_median_m": tracking,
+        "ape_median_m": ape,
+        "completed": bool(summary["completed"]),
+    }
 
 
 def rectangle(runs: int, window: float) -> dict[str, Any]:
@@ -222,9 +238,14 @@ def rectangle(runs: int, window: float) -> dict[str, Any]:
             for mode in ("plain", "tls") if r % 2 == 0 else ("tls", "plain"):
                 run_dir = tmp / f"{mode}{r}"
                 run_dir.mkdir()
-                out[mode].append(_rectangle(tmp / "sec" if mode == "tls" else None, run_dir, team, window))
+                out[mode].append(
+                    _rectangle(tmp / "sec" if mode == "tls" else None, run_dir, team, window)
+                )
     medians = {
-        m: {k: statistics.median(run[k] for run in rs) for k in ("tracking_median_m", "ape_median_m")}
+        m: {
+            k: statistics.median(run[k] for run in rs)
+            for k in ("tracking_median_m", "ape_median_m")
+        }
         for m, rs in out.items()
     }
     return {"runs": out, "median": medians}
@@ -246,7 +267,10 @@ def rectangle_table(rect: dict[str, Any], window: float) -> str:
             values = [run[key] for run in rect["runs"][mode]]
             cells.append(f"{statistics.median(values):.3f} m ({min(values):.3f}-{max(values):.3f})")
         lines.append(f"| {label} | {cells[0]} | {cells[1]} |")
-    diff = {k: rect["median"]["tls"][k] - rect["median"]["plain"][k] for k in ("tracking_median_m", "ape_median_m")}
+    diff = {
+        k: rect["median"]["tls"][k] - rect["median"]["plain"][k]
+        for k in ("tracking_median_m", "ape_median_m")
+    }
     lines.append(
         f"| TLS - plain | {diff['tracking_median_m']:+.3f} m | {diff['ape_median_m']:+.3f} m |"
     )
@@ -259,8 +283,12 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=1000.0, help="paced messages per second")
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--rectangle-runs", type=int, default=0, help="live rectangles per transport")
-    ap.add_argument("--reorder-window", type=float, default=0.1, help="serve's, in the rectangles (s)")
-    ap.add_argument("--readme", type=Path, default=None, help="write the rectangles' table into FILE")
+    ap.add_argument(
+        "--reorder-window", type=float, default=0.1, help="serve's, in the rectangles (s)"
+    )
+    ap.add_argument(
+        "--readme", type=Path, default=None, help="write the rectangles' table into FILE"
+    )
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args()
     _, config = simulated_team(seed=0, duration=1.0)
@@ -276,9 +304,13 @@ def main() -> int:
         result["rectangle"] = rect = rectangle(args.rectangle_runs, args.reorder_window)
         for mode, runs in rect["runs"].items():
             for run in runs:
-                print(f"rectangle {mode:6}: tracking {run['tracking_median_m']:.3f} m, APE {run['ape_median_m']:.3f} m")
+                print(
+                    f"rectangle {mode:6}: tracking {run['tracking_median_m']:.3f} m, APE {run['ape_median_m']:.3f} m"
+                )
         for mode, m in rect["median"].items():
-            print(f"rectangle {mode:6} median: tracking {m['tracking_median_m']:.3f} m, APE {m['ape_median_m']:.3f} m")
+            print(
+                f"rectangle {mode:6} median: tracking {m['tracking_median_m']:.3f} m, APE {m['ape_median_m']:.3f} m"
+            )
         if args.readme:
             write_between(args.readme, "tls_rectangle", rectangle_table(rect, args.reorder_window))
     if args.json:

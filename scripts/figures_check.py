@@ -4,7 +4,8 @@
     .venv/bin/python scripts/figures_check.py --out out/figures-after --compare out/figures-before
 
 The runs: `relloc demo --seed 0`, the self-calibration demo, the TIERS shortbag seeds 0-4,
-`pair_range` with calibrated and online biases, and MRCLAM Dataset 6. Wall and compute times are
+`pair_range` with calibrated and online biases, the static seven-robot team `case4_test1_static`
+(the smoother) and MRCLAM Dataset 6. Wall and compute times are
 dropped before comparing; every other field, and every TUM trajectory file byte for byte, must
 be equal.
 """
@@ -23,19 +24,55 @@ TIMING_KEYS = {"compute_s", "wall_s", "elapsed_s", "cpu_s", "seconds"}
 
 def runs(data: Path) -> dict[str, list[str]]:
     tiers = data / "tiers"
-    shortbag = ["run", str(tiers / "multi4_shortbag_20221011"),
-                "--config", "configs/tiers/multi4_shortbag_20221011.toml", "--methods", "pf"]
-    pair = ["run", str(tiers / "pair_range_20220907_1725"),
-            "--config", "configs/tiers/pair_range_20220907_1725.toml", "--warmup", "10"]
+    shortbag = [
+        "run",
+        str(tiers / "multi4_shortbag_20221011"),
+        "--config",
+        "configs/tiers/multi4_shortbag_20221011.toml",
+        "--methods",
+        "pf",
+    ]
+    pair = [
+        "run",
+        str(tiers / "pair_range_20220907_1725"),
+        "--config",
+        "configs/tiers/pair_range_20220907_1725.toml",
+        "--warmup",
+        "10",
+    ]
     table = {
         "demo": ["demo", "--seed", "0"],
-        "demo_selfcal": ["demo", "--seed", "0", "--heading", "estimate", "--bias", "online",
-                         "--warmup", "20", "--scenarios", "multi"],
+        "demo_selfcal": [
+            "demo",
+            "--seed",
+            "0",
+            "--heading",
+            "estimate",
+            "--bias",
+            "online",
+            "--warmup",
+            "20",
+            "--scenarios",
+            "multi",
+        ],
         "pair_range": pair,
         "pair_range_online": [*pair, "--bias", "online"],
-        "mrclam6": ["run", str(data / "mrclam" / "MRCLAM_Dataset6"),
-                    "--config", "configs/mrclam/dataset6.toml", "--methods", "pf",
-                    "--warmup", "30"],
+        "case4_static": [
+            "run",
+            str(data / "tiers_uwb_rel" / "case4_test1_static"),
+            "--config",
+            "configs/tiers_uwb_rel/case4.toml",
+        ],
+        "mrclam6": [
+            "run",
+            str(data / "mrclam" / "MRCLAM_Dataset6"),
+            "--config",
+            "configs/mrclam/dataset6.toml",
+            "--methods",
+            "pf",
+            "--warmup",
+            "30",
+        ],
     }
     for seed in range(5):
         table[f"shortbag_seed{seed}"] = [*shortbag, "--seed", str(seed)]
@@ -52,8 +89,17 @@ def strip(value: object) -> object:
 
 def run_one(name: str, argv: list[str], out: Path) -> str:
     json_path = out / f"{name}.json"
-    cmd = [sys.executable, "-m", "relloc.cli", *argv, "--no-progress",
-           "--out", str(out / name), "--json", str(json_path)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "relloc.cli",
+        *argv,
+        "--no-progress",
+        "--out",
+        str(out / name),
+        "--json",
+        str(json_path),
+    ]
     done = subprocess.run(cmd, capture_output=True, text=True)
     if done.returncode != 0:
         return f"{name}: exit {done.returncode}\n{done.stderr[-2000:]}"
@@ -70,10 +116,16 @@ def compare(a: Path, b: Path) -> int:
             continue
         same = strip(json.loads(path.read_text())) == strip(json.loads(other.read_text()))
         tum = sorted((a / path.stem).glob("**/*.txt"))
-        differ = [t.name for t in tum
-                  if not (b / t.relative_to(a)).exists() or t.read_bytes() != (b / t.relative_to(a)).read_bytes()]
+        differ = [
+            t.name
+            for t in tum
+            if not (b / t.relative_to(a)).exists()
+            or t.read_bytes() != (b / t.relative_to(a)).read_bytes()
+        ]
         same = same and not differ
-        detail = f" (TUM files differ: {', '.join(differ)})" if differ else f" ({len(tum)} TUM files)"
+        detail = (
+            f" (TUM files differ: {', '.join(differ)})" if differ else f" ({len(tum)} TUM files)"
+        )
         print(f"{path.stem}: {'identical' if same else 'DIFFERENT'}{detail}")
         bad += not same
     return bad

@@ -78,25 +78,80 @@ def rows(out: Path) -> list[Row]:
     grid20 = ("demo", "--scenarios", "grid", "--robots", "20")
     grid50 = ("demo", "--scenarios", "grid", "--robots", "50")
     return [
-        Row("shortbag_no_odometry", "shortbag, odometry topics left out (4 robots, two drive)",
-            ("run", str(shortbag), "--config", str(no_odom)), shortbag),
-        Row("shortbag", "shortbag as shipped (odometry, compass)",
-            ("run", str(shortbag), "--config", str(sb_config)), shortbag),
-        Row("pair_range", "pair_range as shipped (two robots, one range)",
-            ("run", str(pair), "--config", str(ROOT / "configs" / "tiers" / "pair_range_20220907_1725.toml")), pair),
-        Row("case4_static", "seven robots standing still, no odometry; biases from the first 17 s, scored on the rest",
-            ("run", str(static), "--config", str(static_cal), "--span", "17:"), static,
-            calibrate=("calibrate", str(static), "--config", str(ROOT / "configs" / "tiers_uwb_rel" / "case4.toml"),
-                       "--span", ":17", "--write", str(static_cal))),
+        Row(
+            "shortbag_no_odometry",
+            "shortbag, odometry topics left out (4 robots, two drive)",
+            ("run", str(shortbag), "--config", str(no_odom)),
+            shortbag,
+        ),
+        Row(
+            "shortbag",
+            "shortbag as shipped (odometry, compass)",
+            ("run", str(shortbag), "--config", str(sb_config)),
+            shortbag,
+        ),
+        Row(
+            "pair_range",
+            "pair_range as shipped (two robots, one range)",
+            (
+                "run",
+                str(pair),
+                "--config",
+                str(ROOT / "configs" / "tiers" / "pair_range_20220907_1725.toml"),
+            ),
+            pair,
+        ),
+        Row(
+            "case4_static",
+            "seven robots standing still, no odometry; biases from the first 17 s, scored on the rest",
+            ("run", str(static), "--config", str(static_cal), "--span", "17:"),
+            static,
+            calibrate=(
+                "calibrate",
+                str(static),
+                "--config",
+                str(ROOT / "configs" / "tiers_uwb_rel" / "case4.toml"),
+                "--span",
+                ":17",
+                "--write",
+                str(static_cal),
+            ),
+        ),
         Row("multi", "simulator: the demo's five robots", ("demo", "--scenarios", "multi")),
-        Row("mrclam", "MRCLAM Dataset 6 as shipped (odometry, camera sightings, headings estimated; "
+        Row(
+            "mrclam",
+            "MRCLAM Dataset 6 as shipped (odometry, camera sightings, headings estimated; "
             "the smoother with compass headings and fixed scales, as it needs)",
-            ("run", str(mrclam), "--config", str(ROOT / "configs" / "mrclam" / "dataset6.toml"), "--warmup", "30"), mrclam,
-            multilateration=False, kind_args=(("smoother", ("--heading", "compass", "--odom-scale", "fixed")),)),
-        Row("grid20", "simulator: grid of 20 robots, all driving", grid20, kinds=("range_graph", "smoother", "auto")),
-        Row("grid20_seed1", "the same, seed 1", (*grid20, "--seed", "1"), kinds=("smoother", "auto")),
-        Row("grid20_seed2", "the same, seed 2", (*grid20, "--seed", "2"), kinds=("smoother", "auto")),
-        Row("grid50", "simulator: grid of 50 robots, all driving", grid50, kinds=("range_graph", "smoother", "auto")),
+            (
+                "run",
+                str(mrclam),
+                "--config",
+                str(ROOT / "configs" / "mrclam" / "dataset6.toml"),
+                "--warmup",
+                "30",
+            ),
+            mrclam,
+            multilateration=False,
+            kind_args=(("smoother", ("--heading", "compass", "--odom-scale", "fixed")),),
+        ),
+        Row(
+            "grid20",
+            "simulator: grid of 20 robots, all driving",
+            grid20,
+            kinds=("range_graph", "smoother", "auto"),
+        ),
+        Row(
+            "grid20_seed1", "the same, seed 1", (*grid20, "--seed", "1"), kinds=("smoother", "auto")
+        ),
+        Row(
+            "grid20_seed2", "the same, seed 2", (*grid20, "--seed", "2"), kinds=("smoother", "auto")
+        ),
+        Row(
+            "grid50",
+            "simulator: grid of 50 robots, all driving",
+            grid50,
+            kinds=("range_graph", "smoother", "auto"),
+        ),
         Row("grid50_seed1", "the same, seed 1", (*grid50, "--seed", "1"), kinds=("smoother",)),
         Row("grid50_seed2", "the same, seed 2", (*grid50, "--seed", "2"), kinds=("smoother",)),
     ]
@@ -110,8 +165,19 @@ def run_cell(row: Row, kind: str, out: Path) -> dict[str, Any]:
     """One run; its JSON path gets the figures plus ``wall_s`` and the chosen kind."""
     path = _json(out, row, kind)
     method = "multilateration" if kind == "multilateration" else "pf"
-    cmd = [sys.executable, "-m", "relloc.cli", *row.args, "--methods", method, "--no-progress",
-           "--json", str(path), "--out", str(out / "plots" / f"{row.name}__{kind}")]
+    cmd = [
+        sys.executable,
+        "-m",
+        "relloc.cli",
+        *row.args,
+        "--methods",
+        method,
+        "--no-progress",
+        "--json",
+        str(path),
+        "--out",
+        str(out / "plots" / f"{row.name}__{kind}"),
+    ]
     if kind != "multilateration":
         cmd += ["--filter-kind", kind, *dict(row.kind_args).get(kind, ())]
     start = time.perf_counter()
@@ -134,7 +200,9 @@ def run_cell(row: Row, kind: str, out: Path) -> dict[str, Any]:
 def robot_figure(robot: dict[str, Any]) -> Any:
     """The figure of one robot: its shape APE where the orientation was unobservable, else its
     APE under one rotation/reflection for the run (multilateration's own alignment)."""
-    return robot.get("shape_ape_median", robot.get("run_aligned_ape_median", robot.get("ape_median")))
+    return robot.get(
+        "shape_ape_median", robot.get("run_aligned_ape_median", robot.get("ape_median"))
+    )
 
 
 def robots(payload: dict[str, Any]) -> dict[str, dict[str, Any]] | str:
@@ -200,9 +268,13 @@ def page(table_rows: list[tuple[Row, dict[str, dict[str, Any]]]], command: str) 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--out", type=Path, default=ROOT / "out" / "filter_kinds", help="the runs' JSON files")
+    parser.add_argument(
+        "--out", type=Path, default=ROOT / "out" / "filter_kinds", help="the runs' JSON files"
+    )
     parser.add_argument("--page", type=Path, default=None, help="write the markdown page here")
-    parser.add_argument("--from-json", action="store_true", help="rebuild from --out without running")
+    parser.add_argument(
+        "--from-json", action="store_true", help="rebuild from --out without running"
+    )
     parser.add_argument("--only", default=None, help="comma-separated row names")
     args = parser.parse_args(argv)
     wanted = set(args.only.split(",")) if args.only else None
@@ -215,8 +287,13 @@ def main(argv: list[str] | None = None) -> int:
             continue
         cells: dict[str, dict[str, Any]] = {}
         if not args.from_json and row.calibrate:
-            subprocess.run([sys.executable, "-m", "relloc.cli", *row.calibrate], cwd=ROOT, check=True,
-                           capture_output=True, timeout=TIMEOUT)
+            subprocess.run(
+                [sys.executable, "-m", "relloc.cli", *row.calibrate],
+                cwd=ROOT,
+                check=True,
+                capture_output=True,
+                timeout=TIMEOUT,
+            )
         for kind in (*row.kinds, *(("multilateration",) if row.multilateration else ())):
             path = _json(args.out, row, kind)
             if args.from_json:
@@ -226,7 +303,9 @@ def main(argv: list[str] | None = None) -> int:
             cells[kind] = run_cell(row, kind, args.out)
             print(f"{row.name} {kind}: {cell(cells[kind])}", file=sys.stderr, flush=True)
         table_rows.append((row, cells))
-    text = page(table_rows, "python scripts/filter_kinds.py" + (" --from-json" if args.from_json else ""))
+    text = page(
+        table_rows, "python scripts/filter_kinds.py" + (" --from-json" if args.from_json else "")
+    )
     if args.page is not None:
         args.page.write_text(text)
     print(text)

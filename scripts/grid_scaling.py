@@ -51,7 +51,9 @@ class GraphStartedParticles(ParticleFilterLocalizer):
         f, pf = graph.filter, self.filter
         pick = self.rng.integers(0, f.n, pf.n)
         chol = np.linalg.cholesky(f.cov)
-        noise = np.einsum("mde,me->md", chol[pick], self.rng.standard_normal((pf.n, f.mean.shape[1])))
+        noise = np.einsum(
+            "mde,me->md", chol[pick], self.rng.standard_normal((pf.n, f.mean.shape[1]))
+        )
         pf.particles[:, : f.mean.shape[1]] = f.mean[pick] + noise
         pf.logw = np.full(pf.n, -np.log(pf.n))
         self._started(t)
@@ -107,7 +109,14 @@ def alternating_circles() -> Any:
     return loop
 
 
-def run(n: int, representation: str, seed: int, particles: int, heading_error: bool, multilateration: bool = True, alternate: bool = False
+def run(
+    n: int,
+    representation: str,
+    seed: int,
+    particles: int,
+    heading_error: bool,
+    multilateration: bool = True,
+    alternate: bool = False,
 ) -> dict[str, Any]:
     uwb = None if heading_error else UwbErrorModel(orientation_amplitude=0.0)
     if alternate:
@@ -136,30 +145,58 @@ def run(n: int, representation: str, seed: int, particles: int, heading_error: b
     out: dict[str, Any] = {"robots": n, "representation": representation, "wall_s": wall}
     for method, mr in report.methods.items():
         meds = [s.median for s in mr.robots.values() if s.n]
-        out[method] = {"median": statistics.median(meds), "worst": max(meds), "compute_s": mr.compute_s}
+        out[method] = {
+            "median": statistics.median(meds),
+            "worst": max(meds),
+            "compute_s": mr.compute_s,
+        }
         cov = [c.coverage for c in mr.consistency.values()]
         if cov:
             out[method]["coverage"] = statistics.median(cov)
             out[method]["nees"] = statistics.median(c.nees_median for c in mr.consistency.values())
     out["rotation_deg"], out["aligned"] = rotation_stats(estimates, sim)
-    out["stats"] = {k: v for k, v in pipelines[0].localizer.stats.items() if "hypoth" in k or "diverg" in k}
+    out["stats"] = {
+        k: v for k, v in pipelines[0].localizer.stats.items() if "hypoth" in k or "diverg" in k
+    }
     return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--robots", default="5,10,20")
-    ap.add_argument("--representations", default="graph", help="comma-separated: graph, sampled, sampled_graph_start")
+    ap.add_argument(
+        "--representations",
+        default="graph",
+        help="comma-separated: graph, sampled, sampled_graph_start",
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--particles", type=int, default=20000, help="the sampled filter's particles")
-    ap.add_argument("--no-heading-error", action="store_true", help="the grid without the heading-dependent range error")
-    ap.add_argument("--alternate-directions", action="store_true", help="every second robot circles clockwise")
-    ap.add_argument("--no-multilateration", action="store_true", help="skip multilateration (slow at 50 robots)")
+    ap.add_argument(
+        "--no-heading-error",
+        action="store_true",
+        help="the grid without the heading-dependent range error",
+    )
+    ap.add_argument(
+        "--alternate-directions", action="store_true", help="every second robot circles clockwise"
+    )
+    ap.add_argument(
+        "--no-multilateration", action="store_true", help="skip multilateration (slow at 50 robots)"
+    )
     args = ap.parse_args()
-    print("robots repr     PF median/worst  multilat  compute  coverage  NEES  rotation  aligned  stats")
+    print(
+        "robots repr     PF median/worst  multilat  compute  coverage  NEES  rotation  aligned  stats"
+    )
     for n in (int(v) for v in args.robots.split(",")):
         for rep in args.representations.split(","):
-            r = run(n, rep, args.seed, args.particles, not args.no_heading_error, not args.no_multilateration, args.alternate_directions)
+            r = run(
+                n,
+                rep,
+                args.seed,
+                args.particles,
+                not args.no_heading_error,
+                not args.no_multilateration,
+                args.alternate_directions,
+            )
             pf, ml = r["pf"], r.get("multilateration", {"median": float("nan")})
             print(
                 f"{n:6d} {rep:8s} {pf['median']:.3f} / {pf['worst']:.3f}   {ml['median']:.3f}    "

@@ -154,11 +154,15 @@ def table(rows: list[Row], rule: str | None = None) -> list[str]:
             f"| {name} | {r.seed} | {ape} | {_f(r.worst_nees, 1)} | {_f(r.median_nees, 1)} | {cov} "
             f"| {_count(r.inconsistency_restarts)} / {_count(r.calibration_restarts)} | {_f(r.wall_s, 0)} | {_f(r.compute_s, 0)} |"
         )
-    out += ["", "Per reference, over its seeds: the worst run's figure (the highest APE and NEES, the "
-            "lowest coverage) and the median wall time.", "",
-            "| reference | seeds | worst body APE median (m) | worst NEES median | lowest 95 % coverage "
-            "| restarts (inconsistency / calibration) | median wall (s) |",
-            "| --- | --- | --- | --- | --- | --- | --- |"]
+    out += [
+        "",
+        "Per reference, over its seeds: the worst run's figure (the highest APE and NEES, the "
+        "lowest coverage) and the median wall time.",
+        "",
+        "| reference | seeds | worst body APE median (m) | worst NEES median | lowest 95 % coverage "
+        "| restarts (inconsistency / calibration) | median wall (s) |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
     for ref in sorted({r.reference for r in rows}):
         mine = [r for r in rows if r.reference == ref]
         apes = [w[1] for r in mine if (w := r.worst_ape) is not None]
@@ -183,7 +187,9 @@ def table(rows: list[Row], rule: str | None = None) -> list[str]:
     for key, text in checks:
         passed = [r for r in rows if r.passes()[key]]
         refs = sorted({r.reference for r in rows})
-        every_seed = [ref for ref in refs if all(r.passes()[key] for r in rows if r.reference == ref)]
+        every_seed = [
+            ref for ref in refs if all(r.passes()[key] for r in rows if r.reference == ref)
+        ]
         verdict = "PASS" if len(passed) == len(rows) and rows else "FAIL"
         out.append(
             f"- {verdict}: {text}: {len(passed)} of {len(rows)} runs"
@@ -192,7 +198,9 @@ def table(rows: list[Row], rule: str | None = None) -> list[str]:
     return out
 
 
-def page(rows: list[Row], command: str, data: str, config: str, rule: str | None, rebuilt: bool = False) -> str:
+def page(
+    rows: list[Row], command: str, data: str, config: str, rule: str | None, rebuilt: bool = False
+) -> str:
     seeds = sorted({r.seed for r in rows})
     lines = [
         "# MRCLAM: every robot as the reference",
@@ -203,8 +211,11 @@ def page(rows: list[Row], command: str, data: str, config: str, rule: str | None
         command,
         "```",
         "",
-        ("(the table rebuilt from that command's JSON files with `--from-json`; do not edit by hand). "
-         if rebuilt else "from the runs' JSON files (do not edit by hand). ")
+        (
+            "(the table rebuilt from that command's JSON files with `--from-json`; do not edit by hand). "
+            if rebuilt
+            else "from the runs' JSON files (do not edit by hand). "
+        )
         + f"Session `{data}`, config `{config}`, "
         f"method `{METHOD}`, warm-up {WARMUP:.0f} s, seeds {', '.join(map(str, seeds))}; each run is "
         "`relloc run DATA --config CONFIG --methods pf --warmup 30 --reference R --seed S`. "
@@ -230,9 +241,26 @@ def run_one(data: Path, config: Path, reference: str, seed: int, out: Path) -> P
     target = out / json_name(reference, seed)
     stem = target.with_suffix("")
     argv = [
-        sys.executable, "-m", "relloc.cli", "run", str(data), "--config", str(config), "--methods", METHOD,
-        "--warmup", f"{WARMUP:g}", "--reference", reference, "--seed", str(seed), "--json", str(target),
-        "--out", str(stem), "--no-progress",
+        sys.executable,
+        "-m",
+        "relloc.cli",
+        "run",
+        str(data),
+        "--config",
+        str(config),
+        "--methods",
+        METHOD,
+        "--warmup",
+        f"{WARMUP:g}",
+        "--reference",
+        reference,
+        "--seed",
+        str(seed),
+        "--json",
+        str(target),
+        "--out",
+        str(stem),
+        "--no-progress",
     ]
     target.unlink(missing_ok=True)
     t0 = time.monotonic()
@@ -240,7 +268,9 @@ def run_one(data: Path, config: Path, reference: str, seed: int, out: Path) -> P
     wall = time.monotonic() - t0
     stem.with_suffix(".log").write_text(proc.stdout + proc.stderr)
     if proc.returncode != 0 or not target.is_file():
-        raise RuntimeError(f"{reference} seed {seed} failed (exit {proc.returncode}): see {stem.with_suffix('.log')}")
+        raise RuntimeError(
+            f"{reference} seed {seed} failed (exit {proc.returncode}): see {stem.with_suffix('.log')}"
+        )
     payload = json.loads(target.read_text())
     payload["run"] = {"reference": reference, "seed": seed, "wall_s": round(wall, 2)}
     target.write_text(json.dumps(payload, indent=2))
@@ -273,15 +303,32 @@ def _shown(path: Path) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n", 1)[0])
-    parser.add_argument("--data", type=Path, default=DATA, help="MRCLAM session folder (default: Dataset 6)")
-    parser.add_argument("--config", type=Path, default=CONFIG, help="team config (default: configs/mrclam/mrclam.toml)")
-    parser.add_argument("--seeds", type=int, nargs="+", default=None, help="default: 0 1 2 (with --from-json: all)")
-    parser.add_argument("--references", nargs="+", default=None, help="default: every robot of the config")
+    parser.add_argument(
+        "--data", type=Path, default=DATA, help="MRCLAM session folder (default: Dataset 6)"
+    )
+    parser.add_argument(
+        "--config",
+        type=Path,
+        default=CONFIG,
+        help="team config (default: configs/mrclam/mrclam.toml)",
+    )
+    parser.add_argument(
+        "--seeds", type=int, nargs="+", default=None, help="default: 0 1 2 (with --from-json: all)"
+    )
+    parser.add_argument(
+        "--references", nargs="+", default=None, help="default: every robot of the config"
+    )
     parser.add_argument("--jobs", type=int, default=2, help="runs at once (default 2)")
-    parser.add_argument("--out", type=Path, default=ROOT / "out" / "mrclam_references", help="folder for the JSON")
+    parser.add_argument(
+        "--out", type=Path, default=ROOT / "out" / "mrclam_references", help="folder for the JSON"
+    )
     parser.add_argument("--page", type=Path, default=None, help="write the markdown page here")
-    parser.add_argument("--from-json", action="store_true", help="rebuild from --out's JSON, run nothing")
-    parser.add_argument("--skip-missing", action="store_true", help="exit 0 with a note when --data is absent")
+    parser.add_argument(
+        "--from-json", action="store_true", help="rebuild from --out's JSON, run nothing"
+    )
+    parser.add_argument(
+        "--skip-missing", action="store_true", help="exit 0 with a note when --data is absent"
+    )
     args = parser.parse_args(argv)
     given = [a for a in (sys.argv[1:] if argv is None else argv) if a != "--from-json"]
     command = shlex.join(["python", "scripts/mrclam_references.py", *given])
@@ -298,7 +345,10 @@ def main(argv: list[str] | None = None) -> int:
         args.out.mkdir(parents=True, exist_ok=True)
         jobs = [(ref, seed) for ref in references for seed in (args.seeds or [0, 1, 2])]
         with ThreadPoolExecutor(max_workers=max(1, args.jobs)) as pool:
-            futures = [pool.submit(run_one, args.data, args.config, ref, seed, args.out) for ref, seed in jobs]
+            futures = [
+                pool.submit(run_one, args.data, args.config, ref, seed, args.out)
+                for ref, seed in jobs
+            ]
             paths = [f.result() for f in futures]
         rows = sorted((read_row(p) for p in paths), key=lambda r: (r.reference, r.seed))
     else:

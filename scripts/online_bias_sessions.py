@@ -38,7 +38,11 @@ from relloc.simulator.error_models import OdometryErrorModel, UwbErrorModel
 
 
 def session(
-    seed: int, bias: float, scale_error: float, duration: float = 45.0, orientation: float | None = None
+    seed: int,
+    bias: float,
+    scale_error: float,
+    duration: float = 45.0,
+    orientation: float | None = None,
 ) -> tuple[object, TeamConfig]:
     """The simulation and the config a user would have: no pair calibration. ``orientation``:
     the heading-dependent range error's amplitude (``None``: the simulator's default)."""
@@ -90,25 +94,39 @@ def _parse_set(items: list[str]) -> dict[str, object]:
     out: dict[str, object] = {}
     for item in items:
         key, value = item.split("=", 1)
-        out[key] = value if not value.replace(".", "", 1).replace("-", "", 1).isdigit() else float(value)
+        out[key] = (
+            value if not value.replace(".", "", 1).replace("-", "", 1).isdigit() else float(value)
+        )
     return out
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--biases", default="0.1,0.3,0.5")
-    p.add_argument("--scales", default="0,0.08", help="odometry scale errors (path short by this fraction)")
-    p.add_argument("--seeds", type=argtypes.seeds, default="0-2", help="LO-HI or a comma-separated list")
+    p.add_argument(
+        "--scales", default="0,0.08", help="odometry scale errors (path short by this fraction)"
+    )
+    p.add_argument(
+        "--seeds", type=argtypes.seeds, default="0-2", help="LO-HI or a comma-separated list"
+    )
     p.add_argument("--particles", type=int, default=5000)
     p.add_argument("--warmup", type=float, default=10.0)
     p.add_argument("--duration", type=float, default=45.0, help="session length (s)")
-    p.add_argument("--orientation", type=float, default=None,
-                   help="amplitude of the heading-dependent range error (m); 0 switches it off")
+    p.add_argument(
+        "--orientation",
+        type=float,
+        default=None,
+        help="amplitude of the heading-dependent range error (m); 0 switches it off",
+    )
     p.add_argument("--set", action="append", default=[], help="filter parameter for the online run")
     p.add_argument("--skip-default", action="store_true")
     args = p.parse_args()
     changes = _parse_set(args.set)
-    print("| seed | true bias | session median error | scale error | default APE | online APE | online - default | final bias |")
+    print(
+        "| seed | true bias | session median error | scale error | default APE | online APE | online - default | final bias |"
+    )
     print("|---|---|---|---|---|---|---|---|")
     diffs = []
     for bias in _values(args.biases):
@@ -122,7 +140,10 @@ def main() -> None:
                 online = config.with_modes(bias="online").with_filter(**changes)
                 o, b = ape_median(sim, online, seed, args.warmup)
                 diffs.append(o - d)
-                print(f"| {seed} | {bias:.2f} | {median_range_error(sim):.3f} | {scale:.2f} | {d:.3f} | {o:.3f} | {o - d:+.3f} | {b:.3f} |", flush=True)
+                print(
+                    f"| {seed} | {bias:.2f} | {median_range_error(sim):.3f} | {scale:.2f} | {d:.3f} | {o:.3f} | {o - d:+.3f} | {b:.3f} |",
+                    flush=True,
+                )
     arr = np.array(diffs)
     if not args.skip_default:
         print(f"online - default: max {np.nanmax(arr):+.3f}, median {np.nanmedian(arr):+.3f}")

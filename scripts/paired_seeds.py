@@ -41,10 +41,26 @@ from figures import missing_section, write_between
 
 RECORDINGS = {
     # name: (folder under --data, config, warm-up in s)
-    "multi4_shortbag_20221011": ("tiers/multi4_shortbag_20221011", "configs/tiers/multi4_shortbag_20221011.toml", 5.0),
-    "pair_range_20220907_1725": ("tiers/pair_range_20220907_1725", "configs/tiers/pair_range_20220907_1725.toml", 10.0),
-    "pair_chair_moving_20220923": ("tiers/pair_chair_moving_20220923", "configs/tiers/pair_chair_moving_20220923.toml", 10.0),
-    "case4_test1_static": ("tiers_uwb_rel/case4_test1_static", "configs/tiers_uwb_rel/case4.toml", 5.0),
+    "multi4_shortbag_20221011": (
+        "tiers/multi4_shortbag_20221011",
+        "configs/tiers/multi4_shortbag_20221011.toml",
+        5.0,
+    ),
+    "pair_range_20220907_1725": (
+        "tiers/pair_range_20220907_1725",
+        "configs/tiers/pair_range_20220907_1725.toml",
+        10.0,
+    ),
+    "pair_chair_moving_20220923": (
+        "tiers/pair_chair_moving_20220923",
+        "configs/tiers/pair_chair_moving_20220923.toml",
+        10.0,
+    ),
+    "case4_test1_static": (
+        "tiers_uwb_rel/case4_test1_static",
+        "configs/tiers_uwb_rel/case4.toml",
+        5.0,
+    ),
 }
 """The shared recordings with UWB ranges and their warm-up windows (those of the results pages)."""
 
@@ -64,12 +80,33 @@ def _run(data: Path, name: str, flags: str, methods: list[str], seed: int, work:
         return out
     out.parent.mkdir(parents=True, exist_ok=True)
     cmd = [
-        sys.executable, "-m", "relloc.cli", "run", str(data / folder), "--config", config,
-        "--methods", ",".join(methods), "--warmup", str(warmup), "--seed", str(seed),
-        "--no-progress", "--json", str(out), *shlex.split(flags),
+        sys.executable,
+        "-m",
+        "relloc.cli",
+        "run",
+        str(data / folder),
+        "--config",
+        config,
+        "--methods",
+        ",".join(methods),
+        "--warmup",
+        str(warmup),
+        "--seed",
+        str(seed),
+        "--no-progress",
+        "--json",
+        str(out),
+        *shlex.split(flags),
     ]
-    env = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    done = subprocess.run(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env)
+    env = {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "OPENBLAS_NUM_THREADS": "1",
+        "MKL_NUM_THREADS": "1",
+    }
+    done = subprocess.run(
+        cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env
+    )
     if done.returncode != 0:
         raise SystemExit(f"{' '.join(cmd)} failed:\n{done.stderr[-2000:]}")
     return out
@@ -84,17 +121,23 @@ def _scores(path: Path, method: str) -> dict[str, float]:
 
 
 def main() -> None:
-    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     p.add_argument("--data", type=Path, default=Path("../shared/data"))
     p.add_argument("--recordings", default=",".join(RECORDINGS), help="comma-separated names")
-    p.add_argument("--seeds", type=argtypes.seeds, default="0-19", help="LO-HI or a comma-separated list")
+    p.add_argument(
+        "--seeds", type=argtypes.seeds, default="0-19", help="LO-HI or a comma-separated list"
+    )
     p.add_argument("--a-method", default="pf")
     p.add_argument("--a-flags", default="")
     p.add_argument("--b-method", default="pf")
     p.add_argument("--b-flags", default="")
     p.add_argument("--bound", type=float, default=0.03, help="B may be this much worse than A (m)")
     p.add_argument("--jobs", type=int, default=2)
-    p.add_argument("--work", type=Path, default=Path("out/paired_seeds"), help="run reports, reused")
+    p.add_argument(
+        "--work", type=Path, default=Path("out/paired_seeds"), help="run reports, reused"
+    )
     p.add_argument("--page", type=Path, default=None, help="Markdown page to write the table into")
     p.add_argument("--section", default=None, help="the page's section (its markers' name)")
     args = p.parse_args()
@@ -120,7 +163,11 @@ def main() -> None:
                 d = vb - va
                 se = float(d.std(ddof=1) / math.sqrt(d.size)) if d.size > 1 else float("nan")
                 worst = int(np.argmax(d))
-                count = f"{int((d <= args.bound).sum())} of {d.size}" if used == seeds else "all (seed-independent)"
+                count = (
+                    f"{int((d <= args.bound).sum())} of {d.size}"
+                    if used == seeds
+                    else "all (seed-independent)"
+                )
                 lines.append(
                     f"| {name} | {robot} | {va.mean():.3f} | {vb.mean():.3f} | {d.mean():+.3f} +- {se:.3f} "
                     f"| {d[worst]:+.3f} (seed {used[worst]}) | {count} |"
@@ -140,11 +187,22 @@ def _paired(
     methods_a = [args.a_method, args.b_method] if same else [args.a_method]
 
     def scores(batch: list[int]) -> tuple[list[dict[str, float]], list[dict[str, float]]]:
-        runs_a = list(pool.map(lambda s: _run(args.data, name, args.a_flags, methods_a, s, args.work), batch))
-        runs_b = runs_a if same else list(
-            pool.map(lambda s: _run(args.data, name, args.b_flags, [args.b_method], s, args.work), batch)
+        runs_a = list(
+            pool.map(lambda s: _run(args.data, name, args.a_flags, methods_a, s, args.work), batch)
         )
-        return [_scores(r, args.a_method) for r in runs_a], [_scores(r, args.b_method) for r in runs_b]
+        runs_b = (
+            runs_a
+            if same
+            else list(
+                pool.map(
+                    lambda s: _run(args.data, name, args.b_flags, [args.b_method], s, args.work),
+                    batch,
+                )
+            )
+        )
+        return [_scores(r, args.a_method) for r in runs_a], [
+            _scores(r, args.b_method) for r in runs_b
+        ]
 
     a, b = scores(seeds[:2])
     if len(seeds) > 2 and a[0] == a[1] and b[0] == b[1]:

@@ -197,21 +197,31 @@ def run_loso(
             continue
         fold = work / held
         fold.mkdir(parents=True, exist_ok=True)
-        train_csv = merge_csvs([sessions[s] for s in names if s != held], fold / "train.csv", set(pairs))
+        train_csv = merge_csvs(
+            [sessions[s] for s in names if s != held], fold / "train.csv", set(pairs)
+        )
         dirs = []
         for c in configs:
             arch = Architecture(variant=c.variant, hidden=c.hidden, dropout=c.dropout)
             config = TrainConfig(
-                n_steps=c.n_steps, epochs=epochs, patience=patience, weight_decay=c.weight_decay,
-                seed=seed, split=(0.8, 0.2, 0.0),
+                n_steps=c.n_steps,
+                epochs=epochs,
+                patience=patience,
+                weight_decay=c.weight_decay,
+                seed=seed,
+                split=(0.8, 0.2, 0.0),
             )
             if log:
                 log(f"{held}: training {c.label} on {len(pairs)} pair(s)")
             train_directory(train_csv, fold / c.label, arch, config, node_map={})
             dirs.append(fold / c.label)
         for guard in (False, True):
-            report = evaluate(sessions[held], dirs, part="all", timing_samples=1, support_guard=guard)
-            by_dir = {Path(m.get("directory", "")).name: (n, m) for n, m in report["methods"].items()}
+            report = evaluate(
+                sessions[held], dirs, part="all", timing_samples=1, support_guard=guard
+            )
+            by_dir = {
+                Path(m.get("directory", "")).name: (n, m) for n, m in report["methods"].items()
+            }
             for c in configs:
                 _, entry = by_dir[c.label]
                 row = f"{c.label}+guard" if guard else c.label
@@ -221,7 +231,9 @@ def run_loso(
                     result.out_of_support.setdefault(row, {})[held] = int(entry["out_of_support"])
             if not guard:
                 for key, label in BASELINE_ROWS.items():
-                    result.per_pair.setdefault(label, {})[held] = report["methods"][key]["per_pair_mse"]
+                    result.per_pair.setdefault(label, {})[held] = report["methods"][key][
+                        "per_pair_mse"
+                    ]
     result.train_seconds = time.perf_counter() - t0
     return result
 
@@ -255,7 +267,8 @@ def markdown(result: LosoResult, matrix: Mapping[str, Mapping[str, int]], comman
         "Mean over the session's scored pairs; LOSO mean: the mean over held-out sessions; worst "
         "pair: the largest per-pair MSE over all folds.",
         "",
-        "| row | " + " | ".join(f"{s} ({len(result.pairs[s])} pairs)" for s in scored)
+        "| row | "
+        + " | ".join(f"{s} ({len(result.pairs[s])} pairs)" for s in scored)
         + " | LOSO mean | worst pair |",
         "|---|" + "---|" * (len(scored) + 2),
     ]
@@ -268,12 +281,21 @@ def markdown(result: LosoResult, matrix: Mapping[str, Mapping[str, int]], comman
         name = f"**{row}**" if row == best else row
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {mean} | {worst} {value:.4f} |")
     described = [f"`{r}`: {d}" for r, d in result.descriptions.items() if not r.endswith("+guard")]
-    lines += ["", "Rows: " + "; ".join(described) + "; `+guard`: the same models with the run-time "
-              "support guard (a window outside the training support gets the pair's constant)."]
+    lines += [
+        "",
+        "Rows: " + "; ".join(described) + "; `+guard`: the same models with the run-time "
+        "support guard (a window outside the training support gets the pair's constant).",
+    ]
     if result.out_of_support:
-        lines += ["", "Windows outside the training support (guarded rows): " + "; ".join(
-            f"{r} " + ", ".join(f"{s} {n}" for s, n in d.items()) for r, d in result.out_of_support.items()
-        ) + "."]
+        lines += [
+            "",
+            "Windows outside the training support (guarded rows): "
+            + "; ".join(
+                f"{r} " + ", ".join(f"{s} {n}" for s, n in d.items())
+                for r, d in result.out_of_support.items()
+            )
+            + ".",
+        ]
     lines += ["", "## Recommendation", ""]
     lines.append(
         "Rule: the row with the lowest LOSO mean (each held-out session weighs the same); a "
@@ -285,12 +307,15 @@ def markdown(result: LosoResult, matrix: Mapping[str, Mapping[str, int]], comman
             f"No choice: only {len(scored)} held-out session(s) share a pair with another session."
         )
     else:
-        lines.append(f"Lowest LOSO mean: **{best}** ({result.loso_mean(best):.4f} m²), "
-                     f"{result.descriptions.get(best, 'a baseline')}.")
+        lines.append(
+            f"Lowest LOSO mean: **{best}** ({result.loso_mean(best):.4f} m²), "
+            f"{result.descriptions.get(best, 'a baseline')}."
+        )
         lines.append("")
         lines.append(
             f"Sessions scored: {len(scored)}; pairs scored per session: "
-            + ", ".join(f"{s} {len(result.pairs[s])}" for s in scored) + ". Training time of the "
+            + ", ".join(f"{s} {len(result.pairs[s])}" for s in scored)
+            + ". Training time of the "
             f"table: {result.train_seconds / 60:.1f} min."
         )
     return "\n".join(lines) + "\n"
@@ -313,7 +338,9 @@ def build_sessions(data: Path, work: Path) -> dict[str, Path]:
 def main(argv: Sequence[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=DATA, help="shared data root")
-    ap.add_argument("--work", type=Path, default=ROOT / "out" / "ranging_loso", help="scratch folder")
+    ap.add_argument(
+        "--work", type=Path, default=ROOT / "out" / "ranging_loso", help="scratch folder"
+    )
     ap.add_argument("--epochs", type=int, default=30, help="maximum epochs per model")
     ap.add_argument("--patience", type=int, default=6, help="early-stopping patience")
     ap.add_argument("--quick", action="store_true", help="one small configuration per variant")
@@ -323,7 +350,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     sessions = build_sessions(args.data, args.work)
     matrix = pair_matrix(sessions)
     result = run_loso(
-        sessions, args.work, candidates(args.quick), epochs=args.epochs, patience=args.patience,
+        sessions,
+        args.work,
+        candidates(args.quick),
+        epochs=args.epochs,
+        patience=args.patience,
         log=lambda m: print(m, file=sys.stderr, flush=True),
     )
     command = "python scripts/ranging_loso.py" + (" --quick" if args.quick else "")
@@ -334,7 +365,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.page:
         args.page.write_text(page)
     if args.json:
-        args.json.write_text(json.dumps({"pairs": result.pairs, "per_pair": result.per_pair}, indent=1))
+        args.json.write_text(
+            json.dumps({"pairs": result.pairs, "per_pair": result.per_pair}, indent=1)
+        )
     return 0
 
 

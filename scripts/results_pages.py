@@ -55,11 +55,16 @@ def machine() -> str:
     model = ""
     cpuinfo = Path("/proc/cpuinfo")
     if cpuinfo.exists():
-        names = [ln.split(":", 1)[1].strip() for ln in cpuinfo.read_text().splitlines()
-                 if ln.startswith("model name")]
+        names = [
+            ln.split(":", 1)[1].strip()
+            for ln in cpuinfo.read_text().splitlines()
+            if ln.startswith("model name")
+        ]
         model = names[0] if names else ""
-    return (f"{model or cpu}, {os.cpu_count()} CPUs, {platform.system()} {platform.release()}, "
-            f"Python {platform.python_version()}, NumPy {numpy.__version__}")
+    return (
+        f"{model or cpu}, {os.cpu_count()} CPUs, {platform.system()} {platform.release()}, "
+        f"Python {platform.python_version()}, NumPy {numpy.__version__}"
+    )
 
 
 # ---------------------------------------------------------------- evaluation runs
@@ -69,28 +74,48 @@ def evaluation_runs(data: Path, quick: bool) -> dict[str, list[str]]:
     if quick:
         return {"demo": ["demo", "--seed", "0", "--scenarios", "single"]}
     table = runs(data)
-    table["grid10"] = ["demo", "--scenarios", "grid", "--robots", "10", "--particles", "20000",
-                       "--seed", "0"]
+    table["grid10"] = [
+        "demo",
+        "--scenarios",
+        "grid",
+        "--robots",
+        "10",
+        "--particles",
+        "20000",
+        "--seed",
+        "0",
+    ]
     return table
 
 
 def scenario_table(name: str, scenario: dict[str, Any]) -> list[str]:
     nav = scenario.get("navigation")
     if "methods" not in scenario:
-        return [f"**{name}**: positioning APE median {_fmt((nav or {}).get('ape_median'))} m, "
-                f"tracking error median {_fmt((nav or {}).get('tracking_median'))} m.", ""]
-    out = [f"**{name}**: reference `{scenario.get('reference')}`, warm-up "
-           f"{_fmt(scenario.get('warmup_s'), 0)} s, {_fmt(scenario.get('duration_s'), 1)} s long.", "",
-           "| method | robot | APE median (m) | APE RMSE (m) | NEES median | 95 % coverage |",
-           "| --- | --- | --- | --- | --- | --- |"]
+        return [
+            f"**{name}**: positioning APE median {_fmt((nav or {}).get('ape_median'))} m, "
+            f"tracking error median {_fmt((nav or {}).get('tracking_median'))} m.",
+            "",
+        ]
+    out = [
+        f"**{name}**: reference `{scenario.get('reference')}`, warm-up "
+        f"{_fmt(scenario.get('warmup_s'), 0)} s, {_fmt(scenario.get('duration_s'), 1)} s long.",
+        "",
+        "| method | robot | APE median (m) | APE RMSE (m) | NEES median | 95 % coverage |",
+        "| --- | --- | --- | --- | --- | --- |",
+    ]
     for method, m in scenario.get("methods", {}).items():
         for robot, r in m.get("robots", {}).items():
-            out.append(f"| {method} | {robot} | {_fmt(r.get('ape_median'))} | "
-                       f"{_fmt(r.get('ape_rmse'))} | {_fmt(r.get('nees_median'), 2)} | "
-                       f"{_fmt(r.get('coverage95'), 2)} |")
+            out.append(
+                f"| {method} | {robot} | {_fmt(r.get('ape_median'))} | "
+                f"{_fmt(r.get('ape_rmse'))} | {_fmt(r.get('nees_median'), 2)} | "
+                f"{_fmt(r.get('coverage95'), 2)} |"
+            )
     if nav:
-        out += ["", f"Navigation: positioning APE median {_fmt(nav.get('ape_median'))} m, tracking "
-                f"error median {_fmt(nav.get('tracking_median'))} m."]
+        out += [
+            "",
+            f"Navigation: positioning APE median {_fmt(nav.get('ape_median'))} m, tracking "
+            f"error median {_fmt(nav.get('tracking_median'))} m.",
+        ]
     return [*out, ""]
 
 
@@ -112,8 +137,17 @@ def _last_line(done: subprocess.CompletedProcess[str]) -> str:
 
 def run_one(name: str, argv: list[str], folder: Path) -> str:
     (folder / f"{name}.json").unlink(missing_ok=True)  # no stale figures from an earlier run
-    cmd = [sys.executable, "-m", "relloc.cli", *argv, "--no-progress",
-           "--out", str(folder / name), "--json", str(folder / f"{name}.json")]
+    cmd = [
+        sys.executable,
+        "-m",
+        "relloc.cli",
+        *argv,
+        "--no-progress",
+        "--out",
+        str(folder / name),
+        "--json",
+        str(folder / f"{name}.json"),
+    ]
     done = subprocess.run(cmd, capture_output=True, text=True)
     return "ok" if done.returncode == 0 else _last_line(done)
 
@@ -127,11 +161,25 @@ def first_run(generated: Path, quick: bool) -> str:
     argv, out = FIRST_RUN, ROOT / "out" / "demo"
     if quick:
         out = generated / "demo"
-        argv = ["demo", "--seed", "0", "--scenarios", "single", "--out", str(out),
-                "--json", str(out / "demo.json")]
+        argv = [
+            "demo",
+            "--seed",
+            "0",
+            "--scenarios",
+            "single",
+            "--out",
+            str(out),
+            "--json",
+            str(out / "demo.json"),
+        ]
     env = {**os.environ, "COLUMNS": COLUMNS, "NO_COLOR": "1"}
-    done = subprocess.run([sys.executable, "-m", "relloc.cli", *argv, "--no-progress"],
-                          capture_output=True, text=True, env=env, cwd=ROOT)
+    done = subprocess.run(
+        [sys.executable, "-m", "relloc.cli", *argv, "--no-progress"],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=ROOT,
+    )
     if done.returncode != 0:
         return _last_line(done)
     generated.mkdir(parents=True, exist_ok=True)
@@ -152,9 +200,21 @@ def first_run(generated: Path, quick: bool) -> str:
 def benchmarks(quick: bool) -> dict[str, list[str]]:
     """The benchmarks that take seconds, with their arguments (tiny ones with ``quick``)."""
     if quick:
-        return {"cdr_codecs": ["--n", "200", "--rounds", "1"],
-                "scaling": ["--particles", "1000", "--robots", "2", "--reps", "2",
-                            "--copy-mb", "8", "--hypotheses", "1"]}
+        return {
+            "cdr_codecs": ["--n", "200", "--rounds", "1"],
+            "scaling": [
+                "--particles",
+                "1000",
+                "--robots",
+                "2",
+                "--reps",
+                "2",
+                "--copy-mb",
+                "8",
+                "--hypotheses",
+                "1",
+            ],
+        }
     return {
         "cdr_codecs": ["--n", "5000", "--rounds", "3"],
         "scaling": [],
@@ -175,8 +235,18 @@ def bench_one(name: str, argv: list[str], folder: Path) -> str:
     json_path = folder / f"{name}.json"
     json_path.unlink(missing_ok=True)
     env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
-    done = subprocess.run([str(bench_python(name)), str(ROOT / "benchmarks" / f"{name}.py"), *argv,
-                           "--json", str(json_path)], capture_output=True, text=True, env=env)
+    done = subprocess.run(
+        [
+            str(bench_python(name)),
+            str(ROOT / "benchmarks" / f"{name}.py"),
+            *argv,
+            "--json",
+            str(json_path),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+    )
     if done.returncode == 0:
         return "ok"
     if name == "filter_vs_pfilter" and done.returncode == 2:
@@ -191,63 +261,91 @@ def _ms(seconds: float | None) -> str:
 def cdr_table(d: dict[str, Any]) -> list[str]:
     out = ["| operation | relloc.ros.cdr | rosbags | speed-up |", "| --- | ---: | ---: | ---: |"]
     for op, r in d.items():
-        out.append(f"| {op} | {r['relloc_us']:.2f} µs | {r['rosbags_us']:.2f} µs | "
-                   f"{r['speedup']:.1f}x |")
+        out.append(
+            f"| {op} | {r['relloc_us']:.2f} µs | {r['rosbags_us']:.2f} µs | {r['speedup']:.1f}x |"
+        )
     return out
 
 
 def scaling_table(d: dict[str, Any]) -> list[str]:
-    out = [f"Copy bandwidth {d['bandwidth_bytes_per_s'] / 1e9:.1f} GB/s (read + write).", "",
-           "| robots | particles | D | K | update | update / pass | update / floor |",
-           "| ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+    out = [
+        f"Copy bandwidth {d['bandwidth_bytes_per_s'] / 1e9:.1f} GB/s (read + write).",
+        "",
+        "| robots | particles | D | K | update | update / pass | update / floor |",
+        "| ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
     for p in [*d.get("particles_sweep", []), *d.get("robots_sweep", [])]:
-        out.append(f"| {p['robots']} | {p['particles']} | {p['dim']} | {p['pairs']} | "
-                   f"{_ms(p['update_s'])} | {p['update_over_pass']:.0f} | "
-                   f"{p['update_over_floor']:.0f} |")
+        out.append(
+            f"| {p['robots']} | {p['particles']} | {p['dim']} | {p['pairs']} | "
+            f"{_ms(p['update_s'])} | {p['update_over_pass']:.0f} | "
+            f"{p['update_over_floor']:.0f} |"
+        )
     if d.get("graph_sweep"):
-        out += ["", "The range-graph Gaussian sum (`pf` from 12 robots on), per update:", "",
-                "| robots | hypotheses | D | K | update |", "| ---: | ---: | ---: | ---: | ---: |"]
-        out += [f"| {g['robots']} | {g['hypotheses']} | {g['dim']} | {g['pairs']} | "
-                f"{_ms(g['update_s'])} |" for g in d["graph_sweep"]]
+        out += [
+            "",
+            "The range-graph Gaussian sum (`pf` from 12 robots on), per update:",
+            "",
+            "| robots | hypotheses | D | K | update |",
+            "| ---: | ---: | ---: | ---: | ---: |",
+        ]
+        out += [
+            f"| {g['robots']} | {g['hypotheses']} | {g['dim']} | {g['pairs']} | "
+            f"{_ms(g['update_s'])} |"
+            for g in d["graph_sweep"]
+        ]
     return out
 
 
 def pfilter_table(d: dict[str, Any]) -> list[str]:
-    out = ["| particles | relloc / update | pfilter / update | speed-up |",
-           "| ---: | ---: | ---: | ---: |"]
+    out = [
+        "| particles | relloc / update | pfilter / update | speed-up |",
+        "| ---: | ---: | ---: | ---: |",
+    ]
     for m, r in d.items():
         out.append(f"| {m} | {_ms(r['relloc_s'])} | {_ms(r['pfilter_s'])} | {r['speedup']:.1f}x |")
     return out
 
 
 def adaptive_table(d: dict[str, Any]) -> list[str]:
-    out = ["| case | fixed: particles, ms / update | adaptive: particles, ms / update | "
-           "ratio after warm-up | ratio, last seconds |", "| --- | --- | --- | ---: | ---: |"]
+    out = [
+        "| case | fixed: particles, ms / update | adaptive: particles, ms / update | "
+        "ratio after warm-up | ratio, last seconds |",
+        "| --- | --- | --- | ---: | ---: |",
+    ]
     for case, r in d.items():
         f, a = r["fixed"], r["adaptive"]
-        out.append(f"| {case} | {f['count_tail']:.0f}, {f['tail_ms']:.2f} | "
-                   f"{a['count_tail']:.0f}, {a['tail_ms']:.2f} | {r['ratio_after_warmup']:.2f}x | "
-                   f"{r['ratio_tail']:.2f}x |")
+        out.append(
+            f"| {case} | {f['count_tail']:.0f}, {f['tail_ms']:.2f} | "
+            f"{a['count_tail']:.0f}, {a['tail_ms']:.2f} | {r['ratio_after_warmup']:.2f}x | "
+            f"{r['ratio_tail']:.2f}x |"
+        )
     return out
 
 
 def ranging_table(d: dict[str, Any]) -> list[str]:
-    out = [f"Budget {d['budget_s'] * 1e3:.0f} ms per prediction, on {d['core']}.", "",
-           "| variant | model alone (median / p90) | engine stage (median / p90) |",
-           "| --- | ---: | ---: |"]
+    out = [
+        f"Budget {d['budget_s'] * 1e3:.0f} ms per prediction, on {d['core']}.",
+        "",
+        "| variant | model alone (median / p90) | engine stage (median / p90) |",
+        "| --- | ---: | ---: |",
+    ]
     for name, v in d["variants"].items():
-        out.append(f"| {name} | {_ms(v['onnx']['median'])} / {_ms(v['onnx']['p90'])} | "
-                   f"{_ms(v['stage']['median'])} / {_ms(v['stage']['p90'])} |")
+        out.append(
+            f"| {name} | {_ms(v['onnx']['median'])} / {_ms(v['onnx']['p90'])} | "
+            f"{_ms(v['stage']['median'])} / {_ms(v['stage']['p90'])} |"
+        )
     return out
 
 
 def tls_table(d: dict[str, Any]) -> list[str]:
     med = d["transport"]["median"]
-    rows = [("CPU per paced message", "paced_cpu_us_per_msg", "µs"),
-            ("latency median", "latency_median_us", "µs"),
-            ("latency 99th percentile", "latency_p99_us", "µs"),
-            ("CPU per message, burst", "burst_cpu_us_per_msg", "µs"),
-            ("burst throughput", "burst_msgs_per_s", "msg/s")]
+    rows = [
+        ("CPU per paced message", "paced_cpu_us_per_msg", "µs"),
+        ("latency median", "latency_median_us", "µs"),
+        ("latency 99th percentile", "latency_p99_us", "µs"),
+        ("CPU per message, burst", "burst_cpu_us_per_msg", "µs"),
+        ("burst throughput", "burst_msgs_per_s", "msg/s"),
+    ]
     out = ["| quantity | plain TCP | mutual TLS | TLS / plain |", "| --- | ---: | ---: | ---: |"]
     for label, key, unit in rows:
         p, t = med["plain"][key], med["tls"][key]
@@ -259,11 +357,16 @@ def tls_table(d: dict[str, Any]) -> list[str]:
 BENCH_PAGES: dict[str, tuple[str, Callable[[dict[str, Any]], list[str]]]] = {
     "cdr_codecs": ("the live engine's CDR fast path against `rosbags`, per message", cdr_table),
     "scaling": ("time per particle-filter update over particles and team size", scaling_table),
-    "filter_vs_pfilter": ("relloc's filter against the research configuration on `pfilter`",
-                          pfilter_table),
+    "filter_vs_pfilter": (
+        "relloc's filter against the research configuration on `pfilter`",
+        pfilter_table,
+    ),
     "adaptive_particles": ("the adaptive particle count against the fixed count", adaptive_table),
-    "ranging_inference": ("range-error prediction time per variant (untrained weights: the cost "
-                          "does not depend on them)", ranging_table),
+    "ranging_inference": (
+        "range-error prediction time per variant (untrained weights: the cost "
+        "does not depend on them)",
+        ranging_table,
+    ),
     "tls_cost": ("mutual TLS and access control against plain TCP on loopback", tls_table),
 }
 
@@ -307,13 +410,23 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=Path("../shared/data"))
     parser.add_argument("--json-dir", type=Path, default=Path("out/results"))
     parser.add_argument("--out", type=Path, default=Path("docs/results.md"))
-    parser.add_argument("--generated", type=Path, default=Path("docs/generated"),
-                        help="where the first-run tutorial's output and plot go")
+    parser.add_argument(
+        "--generated",
+        type=Path,
+        default=Path("docs/generated"),
+        help="where the first-run tutorial's output and plot go",
+    )
     parser.add_argument("--jobs", type=int, default=2)
-    parser.add_argument("--quick", action="store_true",
-                        help="the demo's single scenario and tiny benchmarks (for the tests)")
-    parser.add_argument("--from-json", action="store_true",
-                        help="rewrite the page from the JSON already in --json-dir, running nothing")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="the demo's single scenario and tiny benchmarks (for the tests)",
+    )
+    parser.add_argument(
+        "--from-json",
+        action="store_true",
+        help="rewrite the page from the JSON already in --json-dir, running nothing",
+    )
     args = parser.parse_args()
     args.json_dir.mkdir(parents=True, exist_ok=True)
     (args.json_dir / "bench").mkdir(exist_ok=True)
@@ -323,36 +436,57 @@ def main() -> None:
     if args.from_json:
         earlier = json.loads(status_path.read_text()) if status_path.exists() else {}
         missing = "no JSON from an earlier run in --json-dir"
-        status = {name: "ok" if (args.json_dir / f"{name}.json").exists()
-                  else earlier.get("runs", {}).get(name, missing) for name in table}
-        bench_status = {name: "ok" if (args.json_dir / "bench" / f"{name}.json").exists()
-                        else earlier.get("bench", {}).get(name, missing) for name in bench}
+        status = {
+            name: "ok"
+            if (args.json_dir / f"{name}.json").exists()
+            else earlier.get("runs", {}).get(name, missing)
+            for name in table
+        }
+        bench_status = {
+            name: "ok"
+            if (args.json_dir / "bench" / f"{name}.json").exists()
+            else earlier.get("bench", {}).get(name, missing)
+            for name in bench
+        }
         first = "not rerun (--from-json)"
     else:
         with ThreadPoolExecutor(args.jobs) as pool:
             tutorial = pool.submit(first_run, args.generated.resolve(), args.quick)
-            status = dict(zip(table, pool.map(lambda kv: run_one(*kv, args.json_dir),
-                                              table.items()), strict=True))
+            status = dict(
+                zip(
+                    table,
+                    pool.map(lambda kv: run_one(*kv, args.json_dir), table.items()),
+                    strict=True,
+                )
+            )
             first = tutorial.result()
         # Benchmarks time things: one at a time, after the runs, on an otherwise idle machine.
-        bench_status = {name: bench_one(name, argv, args.json_dir / "bench")
-                        for name, argv in bench.items()}
+        bench_status = {
+            name: bench_one(name, argv, args.json_dir / "bench") for name, argv in bench.items()
+        }
         status_path.write_text(json.dumps({"runs": status, "bench": bench_status}, indent=2))
     lines = [INTRO, f"Machine: {machine()}.", "", "## Evaluation runs", ""]
     for name, argv in table.items():
         lines += run_section(name, argv, args.json_dir / f"{name}.json", status[name])
-    lines += ["## Benchmarks", "",
-              "From `benchmarks/` (what each measures and its options: `benchmarks/README.md`),",
-              "the ones that take seconds, run one after the other after the runs above. Times",
-              "are this machine's and move with its load; the ratios measured in one process",
-              "are the figures to compare.", ""]
+    lines += [
+        "## Benchmarks",
+        "",
+        "From `benchmarks/` (what each measures and its options: `benchmarks/README.md`),",
+        "the ones that take seconds, run one after the other after the runs above. Times",
+        "are this machine's and move with its load; the ratios measured in one process",
+        "are the figures to compare.",
+        "",
+    ]
     for name, argv in bench.items():
-        lines += bench_section(name, argv, args.json_dir / "bench" / f"{name}.json",
-                               bench_status[name])
+        lines += bench_section(
+            name, argv, args.json_dir / "bench" / f"{name}.json", bench_status[name]
+        )
     args.out.write_text("\n".join(lines).rstrip() + "\n")
     ok = sum(s == "ok" for s in [*status.values(), *bench_status.values()])
-    print(f"wrote {args.out}: {ok} of {len(status) + len(bench_status)} runs and benchmarks; "
-          f"first-run tutorial: {first}")
+    print(
+        f"wrote {args.out}: {ok} of {len(status) + len(bench_status)} runs and benchmarks; "
+        f"first-run tutorial: {first}"
+    )
 
 
 if __name__ == "__main__":

@@ -28,15 +28,23 @@ from ros2_peer import STORES, PeerRun, run_against_serve
 def main(argv: list[str] | None = None) -> int:
     defaults = PeerRun()
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--distro", choices=sorted(STORES), default="jazzy", help="the peer's definitions")
-    parser.add_argument("--serve-distro", default=None, help="serve's --ros-distro (default: --distro)")
+    parser.add_argument(
+        "--distro", choices=sorted(STORES), default="jazzy", help="the peer's definitions"
+    )
+    parser.add_argument(
+        "--serve-distro", default=None, help="serve's --ros-distro (default: --distro)"
+    )
     parser.add_argument("--duration", type=float, default=60.0, help="simulated seconds")
     parser.add_argument("--rate", type=float, default=1.0, help="simulated seconds per wall second")
     parser.add_argument("--robots", type=int, default=defaults.robots)
     parser.add_argument("--seed", type=int, default=defaults.seed)
     parser.add_argument("--particles", type=int, default=defaults.particles)
-    parser.add_argument("--reorder-window", type=float, default=defaults.reorder_window, help="serve's (s)")
-    parser.add_argument("--warmup", type=float, default=defaults.warmup, help="simulated s left out of the APE")
+    parser.add_argument(
+        "--reorder-window", type=float, default=defaults.reorder_window, help="serve's (s)"
+    )
+    parser.add_argument(
+        "--warmup", type=float, default=defaults.warmup, help="simulated s left out of the APE"
+    )
     parser.add_argument("--json", default=None, help="also write the figures here")
     args = parser.parse_args(argv)
     run = PeerRun(

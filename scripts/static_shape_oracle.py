@@ -34,13 +34,18 @@ def shape_errors(seed: int) -> dict[str, float]:
     ref = sim.reference
     others = [r for r in sim.robots if r != ref]
     mid = 0.5 * sim.duration
-    truth = np.array([np.subtract(sim.true_pose(r, mid)[:2], sim.true_pose(ref, mid)[:2]) for r in others])
+    truth = np.array(
+        [np.subtract(sim.true_pose(r, mid)[:2], sim.true_pose(ref, mid)[:2]) for r in others]
+    )
     ranges: dict[tuple[str, str], list[float]] = {}
     for e in sim.events():
         if isinstance(e, RangeEvent):
             ranges.setdefault((e.robot_a, e.robot_b), []).append(e.distance)
     pairs = sorted(ranges)
-    bias = [sim.true_biases[pair_key(*sim.config.range_nodes(RangeEvent(0.0, a, b, 0.0)))] for a, b in pairs]
+    bias = [
+        sim.true_biases[pair_key(*sim.config.range_nodes(RangeEvent(0.0, a, b, 0.0)))]
+        for a, b in pairs
+    ]
     measured = np.array([np.median(ranges[p]) for p in pairs]) - np.array(bias)
     index = {r: k for k, r in enumerate(others)}
 
@@ -48,7 +53,9 @@ def shape_errors(seed: int) -> dict[str, float]:
         return np.zeros(2) if robot == ref else x[2 * index[robot] : 2 * index[robot] + 2]
 
     def residuals(x: FloatArray) -> FloatArray:
-        return np.array([np.linalg.norm(position(x, a) - position(x, b)) for a, b in pairs]) - measured
+        return (
+            np.array([np.linalg.norm(position(x, a) - position(x, b)) for a, b in pairs]) - measured
+        )
 
     # Started near the truth: the oracle asks how good the best fit is, not whether one is found.
     fit = least_squares(residuals, truth.reshape(-1) + 0.2).x.reshape(-1, 2)

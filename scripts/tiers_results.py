@@ -41,14 +41,21 @@ def main() -> None:
     args = parser.parse_args()
     logging.disable(logging.WARNING)
     methods = tuple(args.methods.split(","))
-    lines = ["| recording | method | robot | APE median (seed 0) | RMSE (seed 0) | median over seeds | range over seeds |",
-             "|---|---|---|---|---|---|---|"]
+    lines = [
+        "| recording | method | robot | APE median (seed 0) | RMSE (seed 0) | median over seeds | range over seeds |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for bag, warmup in BAGS.items():
         config = TeamConfig.load(Path(args.configs) / f"{bag}.toml")
         per_seed = []
         for seed in range(args.seeds):
-            opts = RunOptions(methods=methods, seed=seed, warmup=warmup, progress=False,
-                              models=Path(args.models) if args.models else None)
+            opts = RunOptions(
+                methods=methods,
+                seed=seed,
+                warmup=warmup,
+                progress=False,
+                models=Path(args.models) if args.models else None,
+            )
             per_seed.append(run_recording(Path(args.data) / "tiers" / bag, config, opts))
         first = per_seed[0]
         for method in first.methods:  # the requested methods, and multilateration's oracle
@@ -57,17 +64,28 @@ def main() -> None:
             for robot in robots:
                 meds = np.array([r.methods[method].robots[robot].median for r in per_seed])
                 s0 = first.methods[method].robots[robot]
-                rows.append((robot, s0.median, s0.rmse, np.nanmedian(meds) if np.isfinite(meds).any() else math.nan,
-                             np.nanmin(meds) if np.isfinite(meds).any() else math.nan,
-                             np.nanmax(meds) if np.isfinite(meds).any() else math.nan))
+                rows.append(
+                    (
+                        robot,
+                        s0.median,
+                        s0.rmse,
+                        np.nanmedian(meds) if np.isfinite(meds).any() else math.nan,
+                        np.nanmin(meds) if np.isfinite(meds).any() else math.nan,
+                        np.nanmax(meds) if np.isfinite(meds).any() else math.nan,
+                    )
+                )
             for robot, med, rmse, mos, lo, hi in rows:
                 rng = "–" if not math.isfinite(lo) else f"{lo:.3f}–{hi:.3f}"
-                lines.append(f"| {bag} | {method} | {robot} | {_fmt(med)} | {_fmt(rmse)} | {_fmt(mos)} | {rng} |")
+                lines.append(
+                    f"| {bag} | {method} | {robot} | {_fmt(med)} | {_fmt(rmse)} | {_fmt(mos)} | {rng} |"
+                )
             means = [first.methods[method].mean_ape_median]
             mean_seeds = [r.methods[method].mean_ape_median for r in per_seed]
             finite = [m for m in mean_seeds if math.isfinite(m)]
-            lines.append(f"| {bag} | {method} | **mean** | {_fmt(means[0])} | | {_fmt(float(np.median(finite)) if finite else math.nan)} | "
-                         + (f"{min(finite):.3f}–{max(finite):.3f} |" if finite else "– |"))
+            lines.append(
+                f"| {bag} | {method} | **mean** | {_fmt(means[0])} | | {_fmt(float(np.median(finite)) if finite else math.nan)} | "
+                + (f"{min(finite):.3f}–{max(finite):.3f} |" if finite else "– |")
+            )
     text = "\n".join(lines) + "\n"
     print(text)
     if args.out:

@@ -41,7 +41,11 @@ def bag_writer() -> Callable[..., Path]:
     from relloc.ros.messages import encode, typestore
 
     def write(
-        path: Path, messages: Iterable[BagMessage], *, storage: str = "sqlite3", distro: str = "jazzy"
+        path: Path,
+        messages: Iterable[BagMessage],
+        *,
+        storage: str = "sqlite3",
+        distro: str = "jazzy",
     ) -> Path:
         """Messages in ``distro``'s layouts, with that distribution's definitions stored."""
         plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3

@@ -9,7 +9,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 
-def assert_rows_are_the_log_likelihood_and_its_gradient(model: Any, layout: Any, x: NDArray[np.float64]) -> None:
+def assert_rows_are_the_log_likelihood_and_its_gradient(
+    model: Any, layout: Any, x: NDArray[np.float64]
+) -> None:
     """Check ``model``'s rows at the states ``x`` (``(M, layout.width)``) of ``layout``."""
     ll = model.log_likelihood(layout.positions(x), x)
     grad = np.zeros_like(x)
@@ -25,5 +27,8 @@ def assert_rows_are_the_log_likelihood_and_its_gradient(model: Any, layout: Any,
         up, down = x.copy(), x.copy()
         up[:, c] += h
         down[:, c] -= h
-        fd = (model.log_likelihood(layout.positions(up), up) - model.log_likelihood(layout.positions(down), down)) / (2 * h)
+        fd = (
+            model.log_likelihood(layout.positions(up), up)
+            - model.log_likelihood(layout.positions(down), down)
+        ) / (2 * h)
         np.testing.assert_allclose(grad[:, c], fd, rtol=1e-5, atol=1e-6)

@@ -365,7 +365,9 @@ def _qualified(topic: str, scope: str) -> str:
 
 def _stamp(t: float, types: Any) -> Any:
     sec = math.floor(t)
-    return types["builtin_interfaces/msg/Time"](sec=int(sec), nanosec=round((t - sec) * 1e9) % 10**9)
+    return types["builtin_interfaces/msg/Time"](
+        sec=int(sec), nanosec=round((t - sec) * 1e9) % 10**9
+    )
 
 
 class TeamPublisher:
@@ -382,7 +384,11 @@ class TeamPublisher:
         for ev in events:
             if isinstance(ev, OdometryEvent) and ev.robot in topics.odom:
                 self.items.append((ev.t, topics.odom[ev.robot], ev))
-            elif isinstance(ev, RangeEvent) and ev.node_a in topics.nodes and ev.node_b in topics.nodes:
+            elif (
+                isinstance(ev, RangeEvent)
+                and ev.node_a in topics.nodes
+                and ev.node_b in topics.nodes
+            ):
                 self.items.append((ev.t, topics.range_topic(ev.node_a, ev.node_b), ev))
         self.items.sort(key=lambda item: item[0])
         self.pubs: dict[str, Any] = {}
@@ -434,12 +440,16 @@ class TeamPublisher:
                 x=0.0, y=0.0, z=math.sin(ev.yaw / 2), w=math.cos(ev.yaw / 2)
             ),
         )
-        twist = types[TWIST](linear=vec(x=float(ev.v), y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=float(ev.w)))
+        twist = types[TWIST](
+            linear=vec(x=float(ev.v), y=0.0, z=0.0), angular=vec(x=0.0, y=0.0, z=float(ev.w))
+        )
         return {
             "header": header,
             "child_frame_id": "base_link",
             "pose": types["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=zero36),
-            "twist": types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=zero36.copy()),
+            "twist": types["geometry_msgs/msg/TwistWithCovariance"](
+                twist=twist, covariance=zero36.copy()
+            ),
         }
 
     def _range(self, ev: Any, header: Any) -> dict[str, Any]:
@@ -472,7 +482,9 @@ class PoseInbox:
             r: peer.subscribe(topics.pose_topic(r, prefix), POSE, type_hash=hash_of(POSE))
             for r in topics.others
         }
-        self.status = peer.subscribe(f"/{prefix.strip('/')}/status", STRING, type_hash=hash_of(STRING))
+        self.status = peer.subscribe(
+            f"/{prefix.strip('/')}/status", STRING, type_hash=hash_of(STRING)
+        )
 
     def counts(self) -> dict[str, int]:
         return {r: inbox.count for r, inbox in self.poses.items()}
@@ -533,7 +545,9 @@ def clean_team(seed: int = 0, robots: int = 4, duration: float = 20.0) -> Any:
         bias_range=(0.0, 0.0), orientation_amplitude=0.0, sigma=0.02, nlos_probability=0.0,
         dropout_probability=0.0,
     )  # fmt: skip
-    odometry = OdometryErrorModel(scale_range=(1.0, 1.0), sigma_v=0.0, sigma_w=0.0, gyro_bias_max=0.0)
+    odometry = OdometryErrorModel(
+        scale_range=(1.0, 1.0), sigma_v=0.0, sigma_w=0.0, gyro_bias_max=0.0
+    )
     return grid_scenario(seed, robots=robots, duration=duration, uwb=uwb, odometry=odometry)
 
 
@@ -583,7 +597,9 @@ class RellocProcess:
             "--listen", f"tcp/127.0.0.1:{port}", "--no-multicast",
         ]  # fmt: skip
         self._log = tempfile.TemporaryFile(mode="w+")  # noqa: SIM115 (closed by stop)
-        self.proc = subprocess.Popen(self.args, stdout=self._log, stderr=subprocess.STDOUT, text=True)
+        self.proc = subprocess.Popen(
+            self.args, stdout=self._log, stderr=subprocess.STDOUT, text=True
+        )
         self.output = ""
         if not wait_for(lambda: _listening(port) or self.proc.poll() is not None, startup, 0.05):
             self.stop()

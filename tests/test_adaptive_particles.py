@@ -63,10 +63,17 @@ def test_the_rule_keeps_the_full_count_while_wide_and_clamps_a_narrow_posterior(
 def _ring_filter(n: int, rule: KldSampling | None) -> ParticleFilter:
     layout = StateLayout(("r", "a", "b"), "r")
     pf = ParticleFilter(
-        layout, n, (-5.0, 5.0, -5.0, 5.0), rng=np.random.default_rng(0), count_rule=rule, reinject_fraction=0.0
+        layout,
+        n,
+        (-5.0, 5.0, -5.0, 5.0),
+        rng=np.random.default_rng(0),
+        count_rule=rule,
+        reinject_fraction=0.0,
     )
     pf.particles = pf.rng.normal(0.0, 0.03, (n, 4)) + np.array([2.0, 0.0, 0.0, 2.0])
-    pf.evidence.moved(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0]]))  # motion: the orientation can be resolved
+    pf.evidence.moved(
+        np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 0.0]])
+    )  # motion: the orientation can be resolved
     return pf
 
 
@@ -155,7 +162,9 @@ def test_the_count_is_in_the_json_report() -> None:
     p = out["particles"]
     assert p["max"] == 5000 and p["series"][0][1] == 5000
     assert p["final"] < 5000 and p["median_after_warmup"] < 5000
-    assert all(later[0] > earlier[0] for earlier, later in zip(p["series"], p["series"][1:], strict=False))
+    assert all(
+        later[0] > earlier[0] for earlier, later in zip(p["series"], p["series"][1:], strict=False)
+    )
     assert p["final"] == engine.pipelines[0].estimates[-1].particles
 
 
@@ -177,9 +186,16 @@ def test_the_adaptive_keys_are_validated() -> None:
         with pytest.raises(ConfigError, match=r"filter\.adaptive"):
             FilterConfig.from_dict({"adaptive": bad})
     # what became a constant says so, and the rule's defaults are those constants
-    with pytest.raises(ConfigError, match=r"kld_bin is no longer a setting: it is the constant relloc\.filter\.adaptive\.KLD_BIN"):
+    with pytest.raises(
+        ConfigError,
+        match=r"kld_bin is no longer a setting: it is the constant relloc\.filter\.adaptive\.KLD_BIN",
+    ):
         FilterConfig.from_dict({"adaptive": {"kld_bin": 0.2}})
-    assert (KldSampling(1, 2).epsilon, KldSampling(1, 2).quantile, KldSampling(1, 2).bin_size) == (0.05, 0.99, 0.2)
+    assert (KldSampling(1, 2).epsilon, KldSampling(1, 2).quantile, KldSampling(1, 2).bin_size) == (
+        0.05,
+        0.99,
+        0.2,
+    )
     # min_particles above the full count caps at it; a pair (no orientation kernel) has its own
     # floor; "fixed" turns the rule off.
     sim = multi_scenario(seed=0, duration=1.0)

@@ -316,7 +316,9 @@ def test_pf_uv_fuses_detections_in_the_filter() -> None:
     sim = single_scenario(seed=0, duration=25.0, detections=True)
     config = sim.config.with_filter(particles=3000)
     gt = GroundTruth("r0")
-    engine = Engine([build_pipeline(m, config, seed=0) for m in ("pf", "pf_uv")], truth_sinks=[gt.add])
+    engine = Engine(
+        [build_pipeline(m, config, seed=0) for m in ("pf", "pf_uv")], truth_sinks=[gt.add]
+    )
     engine.run(sim.events())
     report = evaluate(engine, gt, "single", warmup=10.0)
     stats = engine.pipelines[1].stats()

@@ -14,11 +14,17 @@ from relloc.filter.summary import DeferredSummary
 bench = load_module(ROOT / "benchmarks" / "filter_vs_pfilter.py", "bench_filter_vs_pfilter")
 
 
-@pytest.mark.parametrize(("published", "computed"), [(True, {"shape", "distances"}), (False, set())])
-def test_relloc_step_computes_the_published_summary_only_when_asked(published: bool, computed: set[str]) -> None:
+@pytest.mark.parametrize(
+    ("published", "computed"), [(True, {"shape", "distances"}), (False, set())]
+)
+def test_relloc_step_computes_the_published_summary_only_when_asked(
+    published: bool, computed: set[str]
+) -> None:
     rng = np.random.default_rng(0)
     scenario = bench.make_scenario(4, rng)
-    runner = bench.RellocRunner(scenario, bench.starting_cloud(scenario, 300, rng), 0, published=published)
+    runner = bench.RellocRunner(
+        scenario, bench.starting_cloud(scenario, 300, rng), 0, published=published
+    )
     mean = runner.step(scenario.steps[0])
     assert mean.shape == (4, 2)
     summary = runner.pf.last_summary
@@ -28,8 +34,10 @@ def test_relloc_step_computes_the_published_summary_only_when_asked(published: b
 def test_the_figures_replace_only_the_marked_section(tmp_path: Path) -> None:
     readme = tmp_path / "README.md"
     readme.write_text(f"intro\n{bench.README_BEGIN}\nold figures\n{bench.README_END}\noutro\n")
-    results = {"400": {"relloc_s": 0.0005, "pfilter_s": 0.0016, "speedup": 3.2},
-               "40000": {"relloc_s": 0.012, "pfilter_s": 0.28, "speedup": 23.3}}
+    results = {
+        "400": {"relloc_s": 0.0005, "pfilter_s": 0.0016, "speedup": 3.2},
+        "40000": {"relloc_s": 0.012, "pfilter_s": 0.28, "speedup": 23.3},
+    }
     bench.write_readme(readme, results, {"400": (40, 40), "40000": (40, 20)}, "context")
     text = readme.read_text()
     assert text.startswith("intro\n") and text.endswith(f"{bench.README_END}\noutro\n")

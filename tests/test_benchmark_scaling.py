@@ -25,9 +25,26 @@ def test_floor_bytes_counts_state_ranges_and_weights() -> None:
 
 def test_a_point_reports_the_update_against_both_references(tmp_path: Path) -> None:
     out = tmp_path / "s.json"
-    assert scaling.main(
-        ["--particles", "500", "--robots", "3", "--reps", "2", "--copy-mb", "8", "--hypotheses", "1", "4", "--json", str(out)]
-    ) == 0
+    assert (
+        scaling.main(
+            [
+                "--particles",
+                "500",
+                "--robots",
+                "3",
+                "--reps",
+                "2",
+                "--copy-mb",
+                "8",
+                "--hypotheses",
+                "1",
+                "4",
+                "--json",
+                str(out),
+            ]
+        )
+        == 0
+    )
     data = json.loads(out.read_text())
     (p,) = data["particles_sweep"]
     (q,) = data["robots_sweep"]

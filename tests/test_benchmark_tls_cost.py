@@ -16,8 +16,10 @@ def test_the_rectangles_table_gives_medians_ranges_and_the_difference(tmp_path: 
         return {"tracking_median_m": tracking, "ape_median_m": ape}
 
     rect = {
-        "runs": {"plain": [run(0.070, 0.130), run(0.080, 0.150), run(0.075, 0.140)],
-                 "tls": [run(0.072, 0.131), run(0.090, 0.160), run(0.071, 0.135)]},
+        "runs": {
+            "plain": [run(0.070, 0.130), run(0.080, 0.150), run(0.075, 0.140)],
+            "tls": [run(0.072, 0.131), run(0.090, 0.160), run(0.071, 0.135)],
+        },
         "median": {"plain": run(0.075, 0.140), "tls": run(0.072, 0.135)},
     }
     table = bench.rectangle_table(rect, 0.1)
@@ -26,7 +28,9 @@ def test_the_rectangles_table_gives_medians_ranges_and_the_difference(tmp_path: 
     assert "| mutual TLS | 0.072 m (0.071-0.090) | 0.135 m (0.131-0.160) |" in table
     assert "| TLS - plain | -0.003 m | -0.005 m |" in table
     page = tmp_path / "secure.md"
-    begin, end = importlib.import_module("figures").markers("tls_rectangle")  # benchmarks/figures.py
+    begin, end = importlib.import_module("figures").markers(
+        "tls_rectangle"
+    )  # benchmarks/figures.py
     page.write_text(f"before\n{begin}\nold\n{end}\nafter\n")
     bench.write_between(page, "tls_rectangle", table)
     text = page.read_text()

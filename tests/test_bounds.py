@@ -16,7 +16,12 @@ TEAM = TeamConfig((RobotConfig("r0"), RobotConfig("r1")), reference="r0").with_f
 
 
 def _fe(heading: float, spread: float) -> FilterEstimate:
-    return FilterEstimate(np.zeros((1, 2)), np.eye(2)[None], 1.0, headings={"r0": (0.0, 0.01), "r1": (heading, spread)})
+    return FilterEstimate(
+        np.zeros((1, 2)),
+        np.eye(2)[None],
+        1.0,
+        headings={"r0": (0.0, 0.01), "r1": (heading, spread)},
+    )
 
 
 def test_a_known_heading_may_turn_with_its_walk_not_faster() -> None:

@@ -35,7 +35,9 @@ def _subcommand_parsers() -> list[argparse.ArgumentParser]:
 
 def test_every_command_has_a_description() -> None:
     parsers = _subcommand_parsers()
-    assert {"relloc demo", "relloc run", "relloc calibrate", "relloc serve"} <= {p.prog for p in parsers}
+    assert {"relloc demo", "relloc run", "relloc calibrate", "relloc serve"} <= {
+        p.prog for p in parsers
+    }
     for p in parsers:
         assert p.description and len(p.description) > 30, p.prog
 
@@ -48,9 +50,11 @@ def test_every_option_has_help_and_says_its_default() -> None:
             if isinstance(action, argparse._HelpAction | argparse._SubParsersAction):
                 continue
             assert action.help, (p.prog, action.option_strings or action.dest)
-            has_value = action.option_strings and not any(
-                action.default is v for v in (None, False, True)
-            ) and action.default != []
+            has_value = (
+                action.option_strings
+                and not any(action.default is v for v in (None, False, True))
+                and action.default != []
+            )
             if has_value:
                 text = formatter._get_help_string(action) % {"default": action.default}
                 assert "default" in text, (p.prog, action.option_strings, text)
@@ -77,9 +81,18 @@ def test_no_command_prints_the_help(capsys: pytest.CaptureFixture[str]) -> None:
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["demo", "--warmup", "-3"], "relloc demo: error: argument --warmup: must be a finite number >= 0"),
-        (["run", "bag", "--config", "c.toml", "--warmup", "-3"], "relloc run: error: argument --warmup"),
-        (["demo", "--scenarios", "single", "--warmup", "1000", "--no-progress"], "relloc demo: error: --warmup 1000 s is not shorter than single (45.0 s)"),
+        (
+            ["demo", "--warmup", "-3"],
+            "relloc demo: error: argument --warmup: must be a finite number >= 0",
+        ),
+        (
+            ["run", "bag", "--config", "c.toml", "--warmup", "-3"],
+            "relloc run: error: argument --warmup",
+        ),
+        (
+            ["demo", "--scenarios", "single", "--warmup", "1000", "--no-progress"],
+            "relloc demo: error: --warmup 1000 s is not shorter than single (45.0 s)",
+        ),
         (["ranging", "eval", "absent.csv", "--models", "absent"], "relloc ranging: error: "),
     ],
 )
@@ -91,12 +104,20 @@ def test_bad_arguments_fail_before_the_run_in_one_format(
     assert message in err and "Traceback" not in err
 
 
-def test_unwritable_out_fails_before_the_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_unwritable_out_fails_before_the_run(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     blocker = tmp_path / "a_file"
     blocker.write_text("")
-    assert _code(["demo", "--scenarios", "single", "--out", str(blocker / "plots"), "--no-progress"]) == 2
+    assert (
+        _code(["demo", "--scenarios", "single", "--out", str(blocker / "plots"), "--no-progress"])
+        == 2
+    )
     assert "relloc demo: error: cannot write to --out" in capsys.readouterr().err
-    assert _code(["demo", "--scenarios", "single", "--json", str(blocker / "d.json"), "--no-progress"]) == 2
+    assert (
+        _code(["demo", "--scenarios", "single", "--json", str(blocker / "d.json"), "--no-progress"])
+        == 2
+    )
     assert "cannot write to --json" in capsys.readouterr().err
     config = tmp_path / "team.toml"
     synthetic_team().save(config)
@@ -124,13 +145,31 @@ def synthetic_run(tmp_path: Path, bag_writer: Callable[..., Path]) -> tuple[Path
 
 
 def test_run_writes_to_out_recording_by_default(
-    synthetic_run: tuple[Path, Path], tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+    synthetic_run: tuple[Path, Path],
+    tmp_path: Path,
+    monkeypatch: pytest.MonkeyPatch,
+    capsys: pytest.CaptureFixture[str],
 ) -> None:
     bag, config = synthetic_run
     work = tmp_path / "work"
     work.mkdir()
     monkeypatch.chdir(work)
-    assert main(["run", str(bag), "--config", str(config), "--methods", "pf", "--warmup", "0.5", "--no-progress"]) == 0
+    assert (
+        main(
+            [
+                "run",
+                str(bag),
+                "--config",
+                str(config),
+                "--methods",
+                "pf",
+                "--warmup",
+                "0.5",
+                "--no-progress",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     folder = work / "out" / "synthetic"
     assert (folder / "synthetic_trajectories.png").stat().st_size > 5_000
@@ -140,7 +179,10 @@ def test_run_writes_to_out_recording_by_default(
     warning = out.index("r3: uwb_node 'n_9' matches no range topic")
     assert warning < out.index("APE after 0.5 s warm-up")
     # the source's rejections as sentences: one NaN and one negative range
-    assert "the source dropped 1 UWB ranges that were NaN or infinite [range_nonfinite]: harmless" in out
+    assert (
+        "the source dropped 1 UWB ranges that were NaN or infinite [range_nonfinite]: harmless"
+        in out
+    )
     assert "the source dropped 1 UWB ranges of zero or less [range_nonpositive]: harmless" in out
 
 
@@ -151,7 +193,22 @@ def test_run_without_any_team_range_is_an_error_before_the_run(
     config = tmp_path / "team.toml"
     synthetic_team(uwb=UwbConfig(range_topic="/other/{a}/{b}/distance")).save(config)
     out = tmp_path / "plots"
-    assert main(["run", str(bag), "--config", str(config), "--out", str(out), "--warmup", "0", "--no-progress"]) == 2
+    assert (
+        main(
+            [
+                "run",
+                str(bag),
+                "--config",
+                str(config),
+                "--out",
+                str(out),
+                "--warmup",
+                "0",
+                "--no-progress",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "relloc run: error: no UWB range topic of the bag joins two of the team's nodes" in err
 
@@ -160,7 +217,16 @@ def test_run_warmup_longer_than_the_bag_is_an_error(
     synthetic_run: tuple[Path, Path], tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     bag, config = synthetic_run
-    args = ["run", str(bag), "--config", str(config), "--warmup", "1000", "--out", str(tmp_path / "o")]
+    args = [
+        "run",
+        str(bag),
+        "--config",
+        str(config),
+        "--warmup",
+        "1000",
+        "--out",
+        str(tmp_path / "o"),
+    ]
     assert main([*args, "--no-progress"]) == 2
     assert "--warmup 1000 s is not shorter than synthetic (3.0 s)" in capsys.readouterr().err
 
@@ -208,7 +274,9 @@ def team_files(tmp_path: Path) -> tuple[Path, Path]:
     return _write_csv(tmp_path / "errors.csv"), config
 
 
-def test_calibrate_writes_nothing_unasked(team_files: tuple[Path, Path], capsys: pytest.CaptureFixture[str]) -> None:
+def test_calibrate_writes_nothing_unasked(
+    team_files: tuple[Path, Path], capsys: pytest.CaptureFixture[str]
+) -> None:
     csv, config = team_files
     assert main(["calibrate", str(csv), "--config", str(config)]) == 0
     assert config.read_text() == TEAM_TOML
@@ -231,7 +299,9 @@ def test_calibrate_in_place_keeps_comments_and_adds_no_sigma(team_files: tuple[P
     assert pairs["n_3-n_7"] == {"bias": 0.5, "source": "errors"}
     assert pairs["n_3-n_4"] == {"bias": 0.25, "source": "errors"}
     assert "sigma =" not in text
-    assert "bias = 0.5                 # sigma 0.296" in text  # the robust sigma (1.4826 MAD), as a note
+    assert (
+        "bias = 0.5                 # sigma 0.296" in text
+    )  # the robust sigma (1.4826 MAD), as a note
     assert "bias = 0.25  # sigma 0.074" in text
     assert TeamConfig.load(config).uwb.pairs["n_3-n_7"].sigma is None
 
@@ -246,19 +316,26 @@ def test_calibrate_write_leaves_the_config_and_updates_a_set_sigma(
     assert main(["calibrate", str(csv), "--config", str(config), "--write", str(copy)]) == 0
     assert config.read_text() == before
     pairs = TeamConfig.load(copy).uwb.pairs
-    assert pairs["n_3-n_7"].bias == 0.5 and pairs["n_3-n_7"].sigma == pytest.approx(0.2965, abs=1e-4)
+    assert pairs["n_3-n_7"].bias == 0.5 and pairs["n_3-n_7"].sigma == pytest.approx(
+        0.2965, abs=1e-4
+    )
     assert pairs["n_3-n_4"].sigma is None  # not set before: stays unset
 
 
 def test_calibrate_in_place_and_write_exclude_each_other(team_files: tuple[Path, Path]) -> None:
     csv, config = team_files
-    assert _code(["calibrate", str(csv), "--config", str(config), "--in-place", "--write", "x.toml"]) == 2
+    assert (
+        _code(["calibrate", str(csv), "--config", str(config), "--in-place", "--write", "x.toml"])
+        == 2
+    )
     assert config.read_text() == TEAM_TOML
 
 
 # ---------------------------------------------------------------------------- output
 def test_rejection_lines_say_what_and_whether_it_matters() -> None:
-    lines = rejection_lines("pf", {"repeated_range": 539, "time_jump": 2, "late_measurement": 0, "new_reason": 1})
+    lines = rejection_lines(
+        "pf", {"repeated_range": 539, "time_jump": 2, "late_measurement": 0, "new_reason": 1}
+    )
     assert lines == [
         f"pf dropped 539 {REASONS['repeated_range'][0]} [repeated_range]: {REASONS['repeated_range'][1]}",
         f"pf dropped 2 {REASONS['time_jump'][0]} [time_jump]: {REASONS['time_jump'][1]}",
@@ -283,8 +360,11 @@ def test_serve_summary_in_sentences_and_iso_times(capsys: pytest.CaptureFixture[
         "source": {"messages": 1000, "rejected": {"decode_error": 2}, "out_of_order": 3},
         "methods": {
             "pf": {
-                "estimates": 120, "last_estimate_t": 1796140551.69, "ess": 800.0,
-                "compute_s": 1.5, "rejected": {"repeated_range": 539},
+                "estimates": 120,
+                "last_estimate_t": 1796140551.69,
+                "ess": 800.0,
+                "compute_s": 1.5,
+                "rejected": {"repeated_range": 539},
             }
         },
     }

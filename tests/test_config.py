@@ -44,21 +44,30 @@ def test_the_minimal_team_loads(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
-        ('[filter.likelihood]\nrange_model = "nlso"', "filter.likelihood.range_model: expected one of"),
+        (
+            '[filter.likelihood]\nrange_model = "nlso"',
+            "filter.likelihood.range_model: expected one of",
+        ),
         ('[filter.self_calibration]\nheading_mode = "estimated"', "heading_mode: expected one of"),
         ('[filter.self_calibration]\nbias_mode = "Online"', "bias_mode: expected one of"),
-        ('[[robots]]\nname = "c"\nodom_zero_stamps = "false"', "odom_zero_stamps: expected true or false"),
+        (
+            '[[robots]]\nname = "c"\nodom_zero_stamps = "false"',
+            "odom_zero_stamps: expected true or false",
+        ),
         ("[filter]\nparticles = 500.5", "particles: expected an integer"),
         ("[filter]\nparticles = 0", "particles must be >= 1"),
         ("[filter]\ninit_window = -1.0", "init_window must be >= 0"),
         ("[uwb]\nlos_sigma = nan", "los_sigma: expected a finite number"),
         ("[uwb]\nsigma = 0.0", "uwb.sigma must be > 0"),
-        ("[filter.resampling]\nrotation_kernel = 5.0", "filter.resampling.rotation_kernel must be in [0, 1]"),
+        (
+            "[filter.resampling]\nrotation_kernel = 5.0",
+            "filter.resampling.rotation_kernel must be in [0, 1]",
+        ),
         ("[association]\nsigma_det = -0.1", "association.sigma_det must be > 0"),
         ('[filter]\nkind = "kalman"', "filter.kind: expected one of"),
         ("[filter.likelihood]\nparticles = 10", "filter.likelihood: unknown key"),
         ("[filter]\nlikelihood = 3", "filter.likelihood must be a table"),
-        ('[uwb.pairs.n_1-n_2]\nbias = 0.3\nscale = 0.0', "range scale must be > 0"),
+        ("[uwb.pairs.n_1-n_2]\nbias = 0.3\nscale = 0.0", "range scale must be > 0"),
         ('[uwb.pairs.n_1-n_2]\nbias = 0.3\nsigma = "x"', "sigma: expected a finite number"),
         ("area = [-inf, inf, -1.0, 1.0]", "area must be"),
         ("[uwb]\ndefault_bias = inf", "default_bias: expected a finite number"),
@@ -90,28 +99,44 @@ def test_configs_made_in_code_are_checked_too() -> None:
 
 @pytest.mark.parametrize(
     ("key", "section"),
-    [("range_model = \"nlos\"", "likelihood"), ("unseen_speed = 0.1", "odometry"), ("rotation_kernel = 0.1", "resampling"),
-     ("heading_mode = \"estimate\"", "self_calibration"), ("selfcal_particles = 10", "self_calibration"),
-     ("min_particles = 10", "adaptive")],
+    [
+        ('range_model = "nlos"', "likelihood"),
+        ("unseen_speed = 0.1", "odometry"),
+        ("rotation_kernel = 0.1", "resampling"),
+        ('heading_mode = "estimate"', "self_calibration"),
+        ("selfcal_particles = 10", "self_calibration"),
+        ("min_particles = 10", "adaptive"),
+    ],
 )
 def test_an_old_flat_filter_key_names_its_new_place(tmp_path: Path, key: str, section: str) -> None:
     name = key.split(" ")[0]
-    with pytest.raises(ConfigError, match=rf"filter\.{name} has moved to the \[filter\.{section}\] table"):
+    with pytest.raises(
+        ConfigError, match=rf"filter\.{name} has moved to the \[filter\.{section}\] table"
+    ):
         _load(tmp_path, f"[filter]\n{key}")
 
 
 def test_the_filter_sections_round_trip_and_take_changes_by_name(tmp_path: Path) -> None:
-    config = _load(tmp_path, "[filter]\nparticles = 700\n[filter.likelihood]\nrange_model = \"symmetric\"\n"
-                             "[filter.self_calibration]\nbias_mode = \"online\"\n[uwb]\nlos_sigma = 0.12\n"
-                             "[association]\nd_th = 0.2")
+    config = _load(
+        tmp_path,
+        '[filter]\nparticles = 700\n[filter.likelihood]\nrange_model = "symmetric"\n'
+        '[filter.self_calibration]\nbias_mode = "online"\n[uwb]\nlos_sigma = 0.12\n'
+        "[association]\nd_th = 0.2",
+    )
     fc = config.filter
-    assert (fc.particles, fc.likelihood.range_model, fc.self_calibration.bias_mode) == (700, "symmetric", "online")
+    assert (fc.particles, fc.likelihood.range_model, fc.self_calibration.bias_mode) == (
+        700,
+        "symmetric",
+        "online",
+    )
     assert (config.uwb.los_sigma, config.association.d_th) == (0.12, 0.2)
     assert TeamConfig.from_dict(config.to_dict()) == config
     assert "[filter.likelihood]" in config.to_toml() and "[association]" in config.to_toml()
     changed = config.with_filter(particles=5, selfcal_particles=7, min_particles=300)
     assert (changed.filter.particles, changed.filter.self_calibration.selfcal_particles) == (5, 7)
-    assert changed.filter.adaptive.min_particles == 300 and changed.filter.likelihood == fc.likelihood
+    assert (
+        changed.filter.adaptive.min_particles == 300 and changed.filter.likelihood == fc.likelihood
+    )
     assert FilterConfig.choices("heading_mode") == ("compass", "estimate")
     with pytest.raises(TypeError, match="no field 'particle'"):
         config.with_filter(particle=5)
@@ -120,29 +145,52 @@ def test_the_filter_sections_round_trip_and_take_changes_by_name(tmp_path: Path)
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
-        ("[filter.likelihood]\nsigma_uwb = 0.2", "[filter.likelihood] sigma_uwb moved to [uwb] sigma"),
-        ("[filter.likelihood]\nlos_sigma = 0.2", "[filter.likelihood] los_sigma moved to [uwb] los_sigma"),
+        (
+            "[filter.likelihood]\nsigma_uwb = 0.2",
+            "[filter.likelihood] sigma_uwb moved to [uwb] sigma",
+        ),
+        (
+            "[filter.likelihood]\nlos_sigma = 0.2",
+            "[filter.likelihood] los_sigma moved to [uwb] los_sigma",
+        ),
         ("[filter]\nsigma_uwb = 0.2", "[filter.likelihood] sigma_uwb moved to [uwb] sigma"),
-        ("[filter.adaptive]\nkld_bin = 0.3",
-         "[filter.adaptive] kld_bin is no longer a setting: it is the constant relloc.filter.adaptive.KLD_BIN (0.2 m)"),
-        ("[filter]\nupdate_period = 0.2", "[filter] update_period is no longer a setting: it is the constant "
-         "relloc.localizers.grid.UPDATE_PERIOD (0.1 s)"),
+        (
+            "[filter.adaptive]\nkld_bin = 0.3",
+            "[filter.adaptive] kld_bin is no longer a setting: it is the constant relloc.filter.adaptive.KLD_BIN (0.2 m)",
+        ),
+        (
+            "[filter]\nupdate_period = 0.2",
+            "[filter] update_period is no longer a setting: it is the constant "
+            "relloc.localizers.grid.UPDATE_PERIOD (0.1 s)",
+        ),
         ("[filter.odometry]\nprocess_noise = 0.01", "relloc.filter.motion.PROCESS_NOISE"),
-        ("[filter.adaptive]\nmc_tolerance_ordered = 0.012", "the ordered resampling it switched on was removed"),
-        ("[filter.association]\nd_th = 0.2", "[filter.association] d_th moved to [association] d_th"),
+        (
+            "[filter.adaptive]\nmc_tolerance_ordered = 0.012",
+            "the ordered resampling it switched on was removed",
+        ),
+        (
+            "[filter.association]\nd_th = 0.2",
+            "[filter.association] d_th moved to [association] d_th",
+        ),
         ("[filter.association]\ndet_gate_sigmas = 3.0", "relloc.stages.association.GATE_SIGMAS"),
-        ("[association]\ndet_gate_sigmas = 3.0",
-         "[filter.association] det_gate_sigmas is no longer a setting: it is the constant relloc.stages.association.GATE_SIGMAS"),
+        (
+            "[association]\ndet_gate_sigmas = 3.0",
+            "[filter.association] det_gate_sigmas is no longer a setting: it is the constant relloc.stages.association.GATE_SIGMAS",
+        ),
     ],
 )
-def test_an_old_key_is_an_error_that_names_the_change(tmp_path: Path, extra: str, message: str) -> None:
+def test_an_old_key_is_an_error_that_names_the_change(
+    tmp_path: Path, extra: str, message: str
+) -> None:
     with pytest.raises(ConfigError, match=re.escape(message)):
         _load(tmp_path, extra)
 
 
 def test_an_old_name_in_code_names_the_change_too() -> None:
     config = TeamConfig.from_dict({"reference": "a", "robots": [{"name": "a"}, {"name": "b"}]})
-    with pytest.raises(ConfigError, match=re.escape("[filter.likelihood] sigma_uwb moved to [uwb] sigma")):
+    with pytest.raises(
+        ConfigError, match=re.escape("[filter.likelihood] sigma_uwb moved to [uwb] sigma")
+    ):
         config.with_filter(sigma_uwb=0.2)
     with pytest.raises(ConfigError, match=re.escape("relloc.filter.base.ESS_THRESHOLD (0.5)")):
         config.filter.with_changes(ess_threshold=0.4)
@@ -169,7 +217,9 @@ def test_every_old_key_is_gone_and_what_it_names_exists(key: str) -> None:
     moved = re.search(r"moved to \[(\w+)\] (\w+)", message)
     if moved is not None:
         table, name = moved.groups()
-        assert name in {f.name for f in fields({"uwb": UwbConfig, "association": AssociationConfig}[table])}
+        assert name in {
+            f.name for f in fields({"uwb": UwbConfig, "association": AssociationConfig}[table])
+        }
     assert constant or moved or "no longer a setting" in message
 
 
@@ -177,4 +227,10 @@ def test_at_most_thirty_filter_tunables() -> None:
     top = [f.name for f in fields(FilterConfig) if f.name not in FilterConfig.sections()]
     tunables = top + [f.name for cls in FilterConfig.sections().values() for f in fields(cls)]
     assert len(tunables) == 23 <= 30
-    assert "kind" in top and FilterConfig.choices("kind") == ("auto", "particle", "gaussian_sum", "range_graph", "smoother")
+    assert "kind" in top and FilterConfig.choices("kind") == (
+        "auto",
+        "particle",
+        "gaussian_sum",
+        "range_graph",
+        "smoother",
+    )

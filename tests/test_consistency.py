@@ -25,7 +25,13 @@ def _truth() -> GroundTruth:
 def test_nees_and_coverage_of_known_errors() -> None:
     # r1: error (0.3, 0) with variance 0.01 on x: NEES 9 (outside); then error 0.1: NEES 1.
     ests = [
-        Estimate(float(t), "pf", "r0", {"r1": (2.0 + (0.3 if t < 5 else 0.1), 0.0)}, {"r1": ((0.01, 0.0), (0.0, 0.04))})
+        Estimate(
+            float(t),
+            "pf",
+            "r0",
+            {"r1": (2.0 + (0.3 if t < 5 else 0.1), 0.0)},
+            {"r1": ((0.01, 0.0), (0.0, 0.04))},
+        )
         for t in range(10)
     ]
     c = consistency(ests, _truth(), ["r1"], t_start=2.0)["r1"]
@@ -45,8 +51,15 @@ def test_shape_ape_fits_one_rotation_and_reflection_for_the_run() -> None:
         return (c * x + s * y, s * x - c * y)  # mirror y, then rotate
 
     ests = [
-        Estimate(float(t), "pf", "r0", {"r1": (0.0, 0.0), "r2": (0.0, 0.0)}, orientation_observable=False,
-                 shape={"r1": turned(2.0, 0.0), "r2": turned(0.0, 1.0)}, shape_gauge="r1")
+        Estimate(
+            float(t),
+            "pf",
+            "r0",
+            {"r1": (0.0, 0.0), "r2": (0.0, 0.0)},
+            orientation_observable=False,
+            shape={"r1": turned(2.0, 0.0), "r2": turned(0.0, 1.0)},
+            shape_gauge="r1",
+        )
         for t in range(10)
     ]
     shaped = align(associate_shapes(ests, _truth(), ["r1", "r2"]), "run")
@@ -74,4 +87,7 @@ def test_run_aligned_ape_removes_one_rotation_for_every_method() -> None:
     assert aligned["r1"].median == pytest.approx(0.05, abs=0.01)
     assert aligned["r2"].median < 0.02 < raw["r2"].median
     # Multilateration's own run alignment is kept; the per-step oracle gets no figure.
-    assert RunAlignedApe().compute(MethodRun("m", ests, truth, ["r1"], 0.0, 2.0, paired, "step")).stats == {}
+    assert (
+        RunAlignedApe().compute(MethodRun("m", ests, truth, ["r1"], 0.0, 2.0, paired, "step")).stats
+        == {}
+    )

@@ -14,12 +14,27 @@ from relloc.cli import main
 @pytest.fixture(scope="module")
 def demo_json(tmp_path_factory: pytest.TempPathFactory) -> dict:
     out = tmp_path_factory.mktemp("demo")
-    rc = main([
-        "demo", "--seed", "0", "--scenarios", "multi,single", "--out", str(out),
-        "--json", str(out / "demo.json"), "--no-progress",
-    ])
+    rc = main(
+        [
+            "demo",
+            "--seed",
+            "0",
+            "--scenarios",
+            "multi,single",
+            "--out",
+            str(out),
+            "--json",
+            str(out / "demo.json"),
+            "--no-progress",
+        ]
+    )
     assert rc == 0
-    for name in ("multi_trajectories.png", "multi_ape.png", "single_trajectories.png", "single_ape.png"):
+    for name in (
+        "multi_trajectories.png",
+        "multi_ape.png",
+        "single_trajectories.png",
+        "single_ape.png",
+    ):
         assert (out / name).stat().st_size > 10_000, name
     return json.loads((out / "demo.json").read_text())
 
@@ -52,8 +67,22 @@ def test_demo_is_reproducible(tmp_path: Path) -> None:
     figures = []
     for k in range(2):
         path = tmp_path / f"d{k}.json"
-        main(["demo", "--seed", "3", "--scenarios", "single", "--particles", "2000", "--json", str(path),
-              "--out", str(tmp_path / f"o{k}"), "--no-progress"])
+        main(
+            [
+                "demo",
+                "--seed",
+                "3",
+                "--scenarios",
+                "single",
+                "--particles",
+                "2000",
+                "--json",
+                str(path),
+                "--out",
+                str(tmp_path / f"o{k}"),
+                "--no-progress",
+            ]
+        )
         figures.append(json.loads(path.read_text())["scenarios"]["single"]["methods"]["pf"])
     assert figures[0]["robots"] == figures[1]["robots"]
 
@@ -64,10 +93,15 @@ def test_demo_is_reproducible(tmp_path: Path) -> None:
         (["demo", "--seed", "-1"], "--seed: must be >= 0"),
         (["demo", "--particles", "0"], "--particles: must be >= 1"),
         (["demo", "--scenarios", "multi,bogus"], "unknown scenario 'bogus'"),
-        (["serve", "--config", "x.toml", "--duration", "nan"], "--duration: must be a finite number"),
+        (
+            ["serve", "--config", "x.toml", "--duration", "nan"],
+            "--duration: must be a finite number",
+        ),
     ],
 )
-def test_bad_arguments_are_one_line_errors(args: list[str], message: str, capsys: pytest.CaptureFixture[str]) -> None:
+def test_bad_arguments_are_one_line_errors(
+    args: list[str], message: str, capsys: pytest.CaptureFixture[str]
+) -> None:
     try:
         code = main(args)
     except SystemExit as exc:  # argparse's usage error

@@ -54,8 +54,12 @@ def _report(with_empty: bool = True) -> ScenarioReport:
     methods = {
         "pf": MethodReport(
             {
-                "ape": ApeResult({r: ApeStats.of(p.errors[p.t >= 10.0]) for r, p in robots.items()}),
-                "ate": AteResult({r: 0.05 for r in robots}, {r: len(p.t) for r, p in robots.items()}),
+                "ape": ApeResult(
+                    {r: ApeStats.of(p.errors[p.t >= 10.0]) for r, p in robots.items()}
+                ),
+                "ate": AteResult(
+                    {r: 0.05 for r in robots}, {r: len(p.t) for r, p in robots.items()}
+                ),
                 "convergence": ConvergenceResult(convergence_time(robots)),
             },
             paired=robots,
@@ -71,7 +75,9 @@ def _report(with_empty: bool = True) -> ScenarioReport:
             },
             paired=empty,
         )
-    return ScenarioReport("toy", 10.0, 60.0, methods, 0.0, reference="r0", truth_name="ground truth")
+    return ScenarioReport(
+        "toy", 10.0, 60.0, methods, 0.0, reference="r0", truth_name="ground truth"
+    )
 
 
 def test_table_names_the_reference_and_defines_converged_after() -> None:

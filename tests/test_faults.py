@@ -48,7 +48,11 @@ def _errors(ests, gt: GroundTruth, shift: float = 0.0) -> np.ndarray:
     rows = []
     for e in ests:
         t = e.t - shift
-        errs = [math.hypot(p[0] - q[0], p[1] - q[1]) for r, p in e.positions.items() if (q := gt.relative_at(r, t))]
+        errs = [
+            math.hypot(p[0] - q[0], p[1] - q[1])
+            for r, p in e.positions.items()
+            if (q := gt.relative_at(r, t))
+        ]
         if errs:
             rows.append((t, float(np.mean(errs)), float(e.recovering)))
     return np.array(rows)
@@ -83,15 +87,25 @@ def test_faults_transform_the_stream_and_none_leaves_it_unchanged() -> None:
     events = list(sim.events())
     assert list(inject(events, Faults())) == events
     f = parse(
-        drop=0.3, silence=["r1:1:2"], range_burst=["0.5:1:1.5"], odom_reset=["r2:1"], odom_jump=["r3:1:5:0"],
-        kidnap=["r4:1:2:0"], stamp_shift=["10:3600"], seed=1,
+        drop=0.3,
+        silence=["r1:1:2"],
+        range_burst=["0.5:1:1.5"],
+        odom_reset=["r2:1"],
+        odom_jump=["r3:1:5:0"],
+        kidnap=["r4:1:2:0"],
+        stamp_shift=["10:3600"],
+        seed=1,
     )
     out = list(inject(events, f))
     measured = [e for e in events if not isinstance(e, GroundTruthEvent)]
     kept = [e for e in out if not isinstance(e, GroundTruthEvent)]
     assert 0.6 * len(measured) < len(kept) < 0.72 * len(measured)
-    assert not any("r1" in (getattr(e, "robot", ""), getattr(e, "robot_a", ""), getattr(e, "robot_b", ""))
-                   and 1.0 <= e.t < 2.0 for e in kept if not isinstance(e, GroundTruthEvent))
+    assert not any(
+        "r1" in (getattr(e, "robot", ""), getattr(e, "robot_a", ""), getattr(e, "robot_b", ""))
+        and 1.0 <= e.t < 2.0
+        for e in kept
+        if not isinstance(e, GroundTruthEvent)
+    )
     r2 = [e for e in kept if isinstance(e, OdometryEvent) and e.robot == "r2" and e.t >= 1.0]
     assert r2 and math.hypot(r2[0].x, r2[0].y) < 0.05  # restarted at the origin
     r3 = [e for e in kept if isinstance(e, OdometryEvent) and e.robot == "r3" and e.t >= 1.0]
@@ -129,13 +143,21 @@ def test_stamp_outliers_are_rejected_and_change_nothing_else(shifts: dict[int, f
     sim = multi_scenario(seed=0, duration=20.0)
     config = sim.config.with_filter(particles=PARTICLES)
     events = [e for e in sim.events() if not isinstance(e, GroundTruthEvent)]
-    shifted = [dataclasses.replace(e, t=e.t + shifts[i]) if i in shifts else e for i, e in enumerate(events)]
+    shifted = [
+        dataclasses.replace(e, t=e.t + shifts[i]) if i in shifts else e
+        for i, e in enumerate(events)
+    ]
     without = [e for i, e in enumerate(events) if i not in shifts]
     ests, loc = _feed(config, shifted)
     ref, _ = _feed(config, without)
     assert [(e.t, e.positions) for e in ests] == [(e.t, e.positions) for e in ref]
     assert sum(loc.rejected.values()) == len(shifts)
-    assert set(loc.rejected) <= {"time_jump", "time_jump_backward", "out_of_order_odometry", "late_measurement"}
+    assert set(loc.rejected) <= {
+        "time_jump",
+        "time_jump_backward",
+        "out_of_order_odometry",
+        "late_measurement",
+    }
     assert "clock_jumps_followed" not in loc.stats
 
 
@@ -257,13 +279,20 @@ def test_replay_publishes_the_faulted_messages_over_zenoh(
         out = encoder.encode(ev, SIM_TIME_BASE)
         if out is not None and (not isinstance(ev, GroundTruthEvent) or ev.robot in ("r0", "r2")):
             channel, payload = out
-            messages.append((channel.name, channel.msgtype, ev.t + 0.01, decode(payload, channel.msgtype)))
+            messages.append(
+                (channel.name, channel.msgtype, ev.t + 0.01, decode(payload, channel.msgtype))
+            )
     bag = bag_writer(tmp_path / "sim", messages)
     t0 = SIM_TIME_BASE
     faults = parse(
-        drop=0.2, silence=[f"r1:{t0 + 1}:{t0 + 2}"], range_burst=[f"{t0 + 2}:{t0 + 3}:1.5"],
-        odom_reset=[f"r3:{t0 + 3}"], odom_jump=[f"r4:{t0 + 4}:2:0"], kidnap=[f"r2:{t0 + 4.5}:1:0"],
-        stamp_shift=["200:0.05"], seed=4,
+        drop=0.2,
+        silence=[f"r1:{t0 + 1}:{t0 + 2}"],
+        range_burst=[f"{t0 + 2}:{t0 + 3}:1.5"],
+        odom_reset=[f"r3:{t0 + 3}"],
+        odom_jump=[f"r4:{t0 + 4}:2:0"],
+        kidnap=[f"r2:{t0 + 4.5}:1:0"],
+        stamp_shift=["200:0.05"],
+        seed=4,
     )
     srv, client = sessions
     source = ZenohSource(config)
@@ -275,40 +304,66 @@ def test_replay_publishes_the_faulted_messages_over_zenoh(
     finally:
         source.detach()
     expected = list(inject(RosbagSource(bag, config), faults))
-    def key(e: Any) -> tuple:  # values at float32 (a range's precision on the wire), the stamp exact
-        values = dataclasses.astuple(e)
-        return (type(e).__name__, values[0], *(float(np.float32(v)) if isinstance(v, float) else v for v in values[1:]))
 
-    assert sorted(map(key, received)) == sorted(map(key, (e for e in expected if not isinstance(e, GroundTruthEvent))))
+    def key(
+        e: Any,
+    ) -> tuple:  # values at float32 (a range's precision on the wire), the stamp exact
+        values = dataclasses.astuple(e)
+        return (
+            type(e).__name__,
+            values[0],
+            *(float(np.float32(v)) if isinstance(v, float) else v for v in values[1:]),
+        )
+
+    assert sorted(map(key, received)) == sorted(
+        map(key, (e for e in expected if not isinstance(e, GroundTruthEvent)))
+    )
     counts = stats.injected
     assert counts["dropped"] > 100 and counts["silenced"] > 20 and counts["shifted"] == 1
     assert counts["changed"] > 100
-    ranges = [e for e in received if isinstance(e, RangeEvent) and "r2" in (e.robot_a, e.robot_b) and e.t > t0 + 5]
-    clean = {(e.t, e.robot_a, e.robot_b): e.distance for e in RosbagSource(bag, config) if isinstance(e, RangeEvent)}
-    assert any(abs(e.distance - clean[(e.t, e.robot_a, e.robot_b)]) > 0.3 for e in ranges)  # kidnapped
+    ranges = [
+        e
+        for e in received
+        if isinstance(e, RangeEvent) and "r2" in (e.robot_a, e.robot_b) and e.t > t0 + 5
+    ]
+    clean = {
+        (e.t, e.robot_a, e.robot_b): e.distance
+        for e in RosbagSource(bag, config)
+        if isinstance(e, RangeEvent)
+    }
+    assert any(
+        abs(e.distance - clean[(e.t, e.robot_a, e.robot_b)]) > 0.3 for e in ranges
+    )  # kidnapped
 
 
 # ---------------------------------------------------------------- the live shortbag
 SHORTBAG = "multi4_shortbag_20221011"
 
 
-def _shortbag_error(shared_data: Path, seed: int, faults: Faults, outside: tuple[float, float]) -> tuple[float, Any]:
+def _shortbag_error(
+    shared_data: Path, seed: int, faults: Faults, outside: tuple[float, float]
+) -> tuple[float, Any]:
     """Mean over estimates after ``outside[1]`` s (and after the 5 s warm-up, before
     ``outside[0]``) of the mean error over robots, on the shortbag's events through the
     localizer (the events a live replay gives the server) with ``faults`` injected."""
     from relloc.config import TeamConfig
     from relloc.sources.rosbag import RosbagSource
 
-    config = TeamConfig.load(Path(__file__).resolve().parents[1] / "configs" / "tiers" / f"{SHORTBAG}.toml")
+    config = TeamConfig.load(
+        Path(__file__).resolve().parents[1] / "configs" / "tiers" / f"{SHORTBAG}.toml"
+    )
     source = RosbagSource(shared_data / "tiers" / SHORTBAG, config)
     t0 = source.start_time
     events = list(source)
     gt = GroundTruth(config.reference)
     loc = ParticleFilterLocalizer(config, seed=seed)
     ests = []
-    for ev in inject(events, dataclasses.replace(faults, silence=tuple(
-        Window(t0 + w.start, t0 + w.end, w.robot) for w in faults.silence
-    ))):
+    for ev in inject(
+        events,
+        dataclasses.replace(
+            faults, silence=tuple(Window(t0 + w.start, t0 + w.end, w.robot) for w in faults.silence)
+        ),
+    ):
         if isinstance(ev, GroundTruthEvent):
             gt.add(ev)
         else:
@@ -343,7 +398,10 @@ def test_the_orientation_kernel_waits_while_a_robot_is_out_of_ranging() -> None:
     ranges are back; it never pauses on the clean run."""
     sim = multi_scenario(seed=0, duration=26.0)
     config = sim.config.with_filter(particles=PARTICLES)
-    for faults, expect_pause in ((Faults(), False), (Faults(silence=(Window(10.0, 20.0, "r2"),)), True)):
+    for faults, expect_pause in (
+        (Faults(), False),
+        (Faults(silence=(Window(10.0, 20.0, "r2"),)), True),
+    ):
         loc = ParticleFilterLocalizer(config, seed=0)
         paused = []
         for ev in inject(sim.events(), faults):

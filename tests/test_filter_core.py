@@ -57,13 +57,20 @@ def test_range_likelihood_peaks_at_true_distance_and_is_robust() -> None:
     pos = np.zeros((2, 2, 3))  # (xy, robot, particle)
     pos[0, 1, :] = [1.0, 2.0, 3.0]  # three particles: robot 1 at x = 1, 2, 3
     batch = RangeBatch(
-        np.array([0]), np.array([1]), np.array([2.3]), np.array([0.3]), np.array([0.1]),
-        outlier_fraction=0.1, max_range=15.0,
+        np.array([0]),
+        np.array([1]),
+        np.array([2.3]),
+        np.array([0.3]),
+        np.array([0.1]),
+        outlier_fraction=0.1,
+        max_range=15.0,
     )
     ll = batch.log_likelihood(pos)
     assert np.argmax(ll) == 1
     # a wild outlier cannot push the log-likelihood below the uniform floor
-    far = RangeBatch(np.array([0]), np.array([1]), np.array([50.0]), np.array([0.0]), np.array([0.1]))
+    far = RangeBatch(
+        np.array([0]), np.array([1]), np.array([50.0]), np.array([0.0]), np.array([0.1])
+    )
     assert np.all(far.log_likelihood(pos) >= np.log(0.1 / 15.0) - 1e-9)
 
 
@@ -71,7 +78,9 @@ def test_relative_position_likelihood_peaks_at_measured_vector() -> None:
     pos = np.zeros((2, 2, 2))  # (xy, robot, particle)
     pos[:, 1, 0] = [1.0, 1.0]
     pos[:, 1, 1] = [1.0, -1.0]
-    batch = RelativePositionBatch(np.array([0]), np.array([1]), np.array([[1.0, 1.0]]), np.array([0.1]))
+    batch = RelativePositionBatch(
+        np.array([0]), np.array([1]), np.array([[1.0, 1.0]]), np.array([0.1])
+    )
     ll = batch.log_likelihood(pos)
     assert ll[0] > ll[1]
 
@@ -81,7 +90,9 @@ def test_odometry_motion_moves_by_relative_displacement() -> None:
     particles = np.zeros((20000, 4))
     disp = np.array([[0.5, 0.0], [1.0, 0.0], [0.0, 2.0]])  # robots a (ref), b, c
     sigma = np.array([0.0, 0.1, 0.0])
-    OdometryMotion(process_noise=0.0).propagate(particles, np.array([1, 2]), 0, disp, sigma, 0.1, rng)
+    OdometryMotion(process_noise=0.0).propagate(
+        particles, np.array([1, 2]), 0, disp, sigma, 0.1, rng
+    )
     np.testing.assert_allclose(particles.mean(axis=0), [0.5, 0.0, -0.5, 2.0], atol=0.01)
     assert particles[:, 0].std() == pytest.approx(0.1, rel=0.05)
     assert particles[:, 2].std() == pytest.approx(0.0, abs=1e-12)
@@ -93,7 +104,9 @@ def _triangle_loglik(truth: np.ndarray, sigma: float = 0.05):
     full = np.vstack([[0.0, 0.0], truth])
     d = np.linalg.norm(full[pairs[:, 0]] - full[pairs[:, 1]], axis=1)
     robust = RangeBatch(pairs[:, 0], pairs[:, 1], d, np.zeros(3), np.full(3, sigma))
-    gaussian = RangeBatch(pairs[:, 0], pairs[:, 1], d, np.zeros(3), np.full(3, sigma), outlier_fraction=0.0)
+    gaussian = RangeBatch(
+        pairs[:, 0], pairs[:, 1], d, np.zeros(3), np.full(3, sigma), outlier_fraction=0.0
+    )
     return layout, robust.log_likelihood, gaussian.log_likelihood
 
 
@@ -132,7 +145,9 @@ def test_annealed_start_finds_the_formation_up_to_symmetry() -> None:
 
 def test_resample_reinjects_prior_fraction() -> None:
     layout = StateLayout(("r", "a"), "r")
-    pf = ParticleFilter(layout, 1000, (-4, 4, -4.5, 4.5), rng=np.random.default_rng(0), reinject_fraction=0.05)
+    pf = ParticleFilter(
+        layout, 1000, (-4, 4, -4.5, 4.5), rng=np.random.default_rng(0), reinject_fraction=0.05
+    )
     pf.particles[:] = 0.0
     pf.resample()
     moved = np.any(pf.particles != 0.0, axis=1).sum()
@@ -144,7 +159,9 @@ def test_filter_rejects_bad_parameters() -> None:
     with pytest.raises(ValueError):
         ParticleFilter(layout, 0, (-1, 1, -1, 1), rng=np.random.default_rng(0))
     with pytest.raises(ValueError):
-        ParticleFilter(layout, 10, (-1, 1, -1, 1), rng=np.random.default_rng(0), resample="sometimes")
+        ParticleFilter(
+            layout, 10, (-1, 1, -1, 1), rng=np.random.default_rng(0), resample="sometimes"
+        )
 
 
 def test_estimate_keeps_the_weighted_mean_and_publishes_the_ring_before_any_evidence() -> None:
@@ -184,8 +201,15 @@ def test_estimate_is_the_weighted_mean_and_covariance_of_one_mode_once_resolved(
 def test_robust_likelihood_matches_the_log_space_formula() -> None:
     rng = np.random.default_rng(2)
     pos = rng.normal(size=(2, 3, 50))
-    batch = RangeBatch(np.array([0, 1]), np.array([1, 2]), np.array([1.0, 2.0]), np.array([0.2, 0.3]),
-                       np.array([0.1, 0.2]), outlier_fraction=0.1, max_range=15.0)
+    batch = RangeBatch(
+        np.array([0, 1]),
+        np.array([1, 2]),
+        np.array([1.0, 2.0]),
+        np.array([0.2, 0.3]),
+        np.array([0.1, 0.2]),
+        outlier_fraction=0.1,
+        max_range=15.0,
+    )
     d = batch.predicted(pos)
     r = (batch.distance - batch.bias)[:, None] - d
     s = batch.sigma[:, None]

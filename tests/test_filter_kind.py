@@ -36,12 +36,20 @@ def _run(config: TeamConfig, duration: float = 15.0) -> tuple[type, dict[str, fl
     engine.run(sim.events())
     report = evaluate(engine, gt, "multi", 5.0).methods["pf"]
     last = pipeline.estimates[-1]
-    return type(pipeline.localizer), {r: s.median for r, s in report.robots.items()}, np.array(last.positions["r1"])
+    return (
+        type(pipeline.localizer),
+        {r: s.median for r, s in report.robots.items()},
+        np.array(last.positions["r1"]),
+    )
 
 
 @pytest.mark.parametrize(
     ("kind", "localizer"),
-    [("particle", ParticleFilterLocalizer), ("gaussian_sum", SelfCalibratingLocalizer), ("range_graph", RangeGraphLocalizer)],
+    [
+        ("particle", ParticleFilterLocalizer),
+        ("gaussian_sum", SelfCalibratingLocalizer),
+        ("range_graph", RangeGraphLocalizer),
+    ],
 )
 def test_each_kind_runs_the_filter_it_names(kind: str, localizer: type) -> None:
     config = multi_scenario(seed=0, duration=15.0).config.with_filter(kind=kind, **SMALL)
@@ -65,7 +73,10 @@ def test_auto_picks_as_before() -> None:
     large = grid_scenario(0, robots=LARGE_TEAM_ROBOTS, duration=2.0).config
     assert filter_kind(large) == "smoother"
     assert filter_kind(large.with_modes(bias="online")) == "particle"
-    assert filter_kind(grid_scenario(0, robots=LARGE_TEAM_ROBOTS - 1, duration=2.0).config) == "particle"
+    assert (
+        filter_kind(grid_scenario(0, robots=LARGE_TEAM_ROBOTS - 1, duration=2.0).config)
+        == "particle"
+    )
 
 
 def test_auto_gives_robots_without_odometry_the_smoother() -> None:
@@ -75,10 +86,19 @@ def test_auto_gives_robots_without_odometry_the_smoother() -> None:
     assert filter_choice(config) == ("particle", "5 robots with odometry")
     tag = config.with_robot("r3", odom_topic="")
     assert filter_choice(tag) == ("smoother", "1 of 5 robots without odometry")
-    assert filter_choice(tag.with_modes(bias="online")) == ("smoother", "1 of 5 robots without odometry, biases online")
-    assert filter_choice(tag.with_modes(heading="estimate")) == ("gaussian_sum", "headings estimated")
+    assert filter_choice(tag.with_modes(bias="online")) == (
+        "smoother",
+        "1 of 5 robots without odometry, biases online",
+    )
+    assert filter_choice(tag.with_modes(heading="estimate")) == (
+        "gaussian_sum",
+        "headings estimated",
+    )
     assert filter_choice(tag.with_filter(kind="particle")) == ("particle", "the config's")
-    assert filter_header(["pf"], tag) == 'filter: smoother (kind "auto": 1 of 5 robots without odometry)'
+    assert (
+        filter_header(["pf"], tag)
+        == 'filter: smoother (kind "auto": 1 of 5 robots without odometry)'
+    )
 
 
 @pytest.mark.parametrize(
@@ -87,31 +107,69 @@ def test_auto_gives_robots_without_odometry_the_smoother() -> None:
         ("particle", {"heading": "estimate"}, "'particle' cannot estimate the headings"),
         ("particle", {"odom_scale": "online"}, "'particle' cannot estimate the odometry scales"),
         ("range_graph", {"heading": "estimate"}, "'range_graph' cannot estimate the headings"),
-        ("range_graph", {"bias": "online"}, "'range_graph' cannot estimate the range biases online"),
+        (
+            "range_graph",
+            {"bias": "online"},
+            "'range_graph' cannot estimate the range biases online",
+        ),
     ],
 )
-def test_a_kind_that_cannot_do_what_the_modes_ask_is_a_config_error(kind: str, modes: dict[str, str], message: str) -> None:
+def test_a_kind_that_cannot_do_what_the_modes_ask_is_a_config_error(
+    kind: str, modes: dict[str, str], message: str
+) -> None:
     config = multi_scenario(seed=0, duration=1.0).config
     with pytest.raises(ConfigError, match=message):
         config.with_filter(kind=kind).with_modes(**modes)
     with pytest.raises(ConfigError, match=message):
         config.with_modes(**modes).with_filter(kind=kind)
-    raw = {**config.to_dict(), "filter": {"kind": kind, "self_calibration": {
-        {"heading": "heading_mode", "odom_scale": "odom_scale_mode", "bias": "bias_mode"}[k]: v for k, v in modes.items()
-    }}}
+    raw = {
+        **config.to_dict(),
+        "filter": {
+            "kind": kind,
+            "self_calibration": {
+                {"heading": "heading_mode", "odom_scale": "odom_scale_mode", "bias": "bias_mode"}[
+                    k
+                ]: v
+                for k, v in modes.items()
+            },
+        },
+    }
     with pytest.raises(ConfigError, match=message):
         TeamConfig.from_dict(raw)
     # the Gaussian sum does all of it
-    assert filter_kind(config.with_filter(kind="gaussian_sum").with_modes(**modes)) == "gaussian_sum"
+    assert (
+        filter_kind(config.with_filter(kind="gaussian_sum").with_modes(**modes)) == "gaussian_sum"
+    )
 
 
-def test_the_run_header_names_the_filter(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_run_header_names_the_filter(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     config = multi_scenario(seed=0, duration=1.0).config
     assert filter_header(["multilateration"], config) is None
-    assert filter_header(["multilateration", "pf_uv"], config) == 'filter: particle (kind "auto": 5 robots with odometry)'
-    assert filter_header(["pf"], config.with_modes(heading="estimate")) == 'filter: gaussian_sum (kind "auto": headings estimated)'
+    assert (
+        filter_header(["multilateration", "pf_uv"], config)
+        == 'filter: particle (kind "auto": 5 robots with odometry)'
+    )
+    assert (
+        filter_header(["pf"], config.with_modes(heading="estimate"))
+        == 'filter: gaussian_sum (kind "auto": headings estimated)'
+    )
     path = tmp_path / "demo.json"
-    main(["demo", "--seed", "0", "--scenarios", "single", "--particles", "500", "--no-progress", "--json", str(path)])
+    main(
+        [
+            "demo",
+            "--seed",
+            "0",
+            "--scenarios",
+            "single",
+            "--particles",
+            "500",
+            "--no-progress",
+            "--json",
+            str(path),
+        ]
+    )
     out = capsys.readouterr().out
     assert 'single: filter: particle (kind "auto": 2 robots with odometry)' in out
     assert json.loads(path.read_text())["scenarios"]["single"]["methods"]["pf"]["robots"]
@@ -122,8 +180,20 @@ def test_the_run_header_of_a_recording_names_the_filter(
 ) -> None:
     bag = bag_writer(tmp_path / "synthetic", synthetic_messages())
     config = tmp_path / "team.toml"
-    synthetic_team().with_filter(particles=300, kind="gaussian_sum", selfcal_particles=50, selfcal_init_particles=300).save(config)
-    args = ["run", str(bag), "--config", str(config), "--methods", "pf", "--warmup", "0.5", "--no-progress"]
+    synthetic_team().with_filter(
+        particles=300, kind="gaussian_sum", selfcal_particles=50, selfcal_init_particles=300
+    ).save(config)
+    args = [
+        "run",
+        str(bag),
+        "--config",
+        str(config),
+        "--methods",
+        "pf",
+        "--warmup",
+        "0.5",
+        "--no-progress",
+    ]
     assert main([*args, "--out", str(tmp_path / "out")]) == 0
     out = capsys.readouterr().out
     assert 'synthetic: filter: gaussian_sum (kind "gaussian_sum")' in out
@@ -131,6 +201,15 @@ def test_the_run_header_of_a_recording_names_the_filter(
     # --filter-kind overrides the config's kind, for a recording and for the demo.
     assert main([*args, "--out", str(tmp_path / "out"), "--filter-kind", "particle"]) == 0
     assert 'synthetic: filter: particle (kind "particle")' in capsys.readouterr().out
-    demo = ["demo", "--scenarios", "single", "--particles", "300", "--methods", "pf", "--no-progress"]
+    demo = [
+        "demo",
+        "--scenarios",
+        "single",
+        "--particles",
+        "300",
+        "--methods",
+        "pf",
+        "--no-progress",
+    ]
     assert main([*demo, "--out", str(tmp_path / "demo"), "--filter-kind", "gaussian_sum"]) == 0
     assert 'single: filter: gaussian_sum (kind "gaussian_sum")' in capsys.readouterr().out

@@ -57,9 +57,15 @@ def test_adding_a_robot_keeps_the_noise_of_existing_pairs() -> None:
 
     def errors(n: int) -> np.ndarray:
         sim = grid_scenario(1, robots=n, duration=3.0)
-        ev = [e for e in sim.events() if isinstance(e, RangeEvent) and {e.robot_a, e.robot_b} == {"r0", "r1"}]
+        ev = [
+            e
+            for e in sim.events()
+            if isinstance(e, RangeEvent) and {e.robot_a, e.robot_b} == {"r0", "r1"}
+        ]
         t = np.array([e.t for e in ev])
-        true = np.linalg.norm(sim.true_poses("r0", t)[:, :2] - sim.true_poses("r1", t)[:, :2], axis=1)
+        true = np.linalg.norm(
+            sim.true_poses("r0", t)[:, :2] - sim.true_poses("r1", t)[:, :2], axis=1
+        )
         return np.array([e.distance for e in ev]) - true
 
     e4, e9 = errors(4), errors(9)
@@ -85,10 +91,24 @@ def test_too_small_a_team_is_refused() -> None:
 
 def test_demo_runs_the_grid_end_to_end(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / "grid.json"
-    rc = main([
-        "demo", "--scenarios", "grid", "--robots", "3", "--particles", "2000", "--seed", "0",
-        "--json", str(path), "--out", str(tmp_path / "o"), "--no-progress",
-    ])
+    rc = main(
+        [
+            "demo",
+            "--scenarios",
+            "grid",
+            "--robots",
+            "3",
+            "--particles",
+            "2000",
+            "--seed",
+            "0",
+            "--json",
+            str(path),
+            "--out",
+            str(tmp_path / "o"),
+            "--no-progress",
+        ]
+    )
     assert rc == 0
     methods = json.loads(path.read_text())["scenarios"]["grid"]["methods"]
     assert set(methods["pf"]["robots"]) == {"r1", "r2"}

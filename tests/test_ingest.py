@@ -89,7 +89,13 @@ def test_team_routes_per_robot_then_objects_then_both_orders_of_every_pair() -> 
         )
     ]
     r = route_of(routes, "/uwb/tof/n_3/n_2/distance")
-    assert (r.robot, r.robot_b, r.node_a, r.node_b, r.what) == ("c", "b", "n_3", "n_2", "UWB ranges n_3-n_2")
+    assert (r.robot, r.robot_b, r.node_a, r.node_b, r.what) == (
+        "c",
+        "b",
+        "n_3",
+        "n_2",
+        "UWB ranges n_3-n_2",
+    )
     assert route_of(routes, "/vrpn_client_node/body_a/pose").what == "motion capture of a"
     assert route_of(routes, "/vrpn_client_node/chair/pose").what == "motion capture of object chair"
     assert route_of(routes, "/c/odom").zero_stamps and not route_of(routes, "/a/odom").zero_stamps

@@ -40,32 +40,62 @@ def _synthetic_bag(path: Path, bag_writer: Callable[..., Path]) -> Path:
         t = 100.0 + 0.05 * i
         for name in NODES:
             x, y = pos(name, t)
-            msgs.append((f"/vrpn_client_node/{name}_cap/pose", "geometry_msgs/msg/PoseStamped", t,
-                         pose_stamped_msg(GroundTruthEvent(t, name, x, y))))
+            msgs.append(
+                (
+                    f"/vrpn_client_node/{name}_cap/pose",
+                    "geometry_msgs/msg/PoseStamped",
+                    t,
+                    pose_stamped_msg(GroundTruthEvent(t, name, x, y)),
+                )
+            )
             if i % 2 == 0:
                 yaw = 0.0 if name == "tb3" else 0.1 * i
                 stamp = 0.0 if name == "tb2" else t
-                msgs.append((f"/{name}/odom", "nav_msgs/msg/Odometry", t,
-                             odometry_msg(OdometryEvent(stamp, name, x, y, yaw, v=0.3, w=0.3))))
+                msgs.append(
+                    (
+                        f"/{name}/odom",
+                        "nav_msgs/msg/Odometry",
+                        t,
+                        odometry_msg(OdometryEvent(stamp, name, x, y, yaw, v=0.3, w=0.3)),
+                    )
+                )
         names = list(NODES)
         for a in range(3):
             for b in range(a + 1, 3):
                 na, nb = NODES[names[a]], NODES[names[b]]
                 d = math.dist(pos(names[a], t), pos(names[b], t)) + 0.3 + rng.normal(0, 0.03)
-                msgs.append((f"/uwb/tof/{na}/{nb}/distance", "sensor_msgs/msg/Range", t,
-                             range_msg(RangeEvent(t, "", "", d))))
-        msgs.append(("/uwb/tof/n_7/n_5/distance", "sensor_msgs/msg/Range", t, range_msg(RangeEvent(t, "", "", 2.0))))
+                msgs.append(
+                    (
+                        f"/uwb/tof/{na}/{nb}/distance",
+                        "sensor_msgs/msg/Range",
+                        t,
+                        range_msg(RangeEvent(t, "", "", d)),
+                    )
+                )
+        msgs.append(
+            (
+                "/uwb/tof/n_7/n_5/distance",
+                "sensor_msgs/msg/Range",
+                t,
+                range_msg(RangeEvent(t, "", "", 2.0)),
+            )
+        )
     return bag_writer(path, msgs)
 
 
-def test_synthetic_bag_inventory_and_mapping(tmp_path: Path, bag_writer: Callable[..., Path]) -> None:
+def test_synthetic_bag_inventory_and_mapping(
+    tmp_path: Path, bag_writer: Callable[..., Path]
+) -> None:
     bag = _synthetic_bag(tmp_path / "bag", bag_writer)
     inv = inspect_bag(bag)
     assert inv.range_pattern == "/uwb/tof/{a}/{b}/distance"
     assert inv.range_layout != "humble"
     assert set(inv.nodes) == {"n_2", "n_5", "n_7", "n_9"}
     assert inv.odometry["/tb2/odom"].zero_stamps and not inv.odometry["/tb1/odom"].zero_stamps
-    assert inv.odometry["/tb3/odom"].frozen_orientation and not inv.odometry["/tb1/odom"].frozen_orientation
+    assert (
+        inv.odometry["/tb3/odom"].frozen_orientation
+        and not inv.odometry["/tb1/odom"].frozen_orientation
+    )
     best = assign_nodes(inv, ["tb1_cap", "tb2_cap", "tb3_cap"])
     assert best[0].nodes == {f"{k}_cap": v for k, v in NODES.items()}
     assert best[0].rms < 0.1 < best[1].rms
@@ -98,7 +128,9 @@ def _draft(shared: Path, bag: str, tmp_path: Path, *extra: str) -> tuple[int, Te
 
 def test_tiers_shortbag_mapping(shared_data: Path, tmp_path: Path) -> None:
     rc, cfg, _ = _draft(shared_data, "tiers/multi4_shortbag_20221011", tmp_path)
-    shipped = TeamConfig.load(Path(__file__).parents[1] / "configs/tiers/multi4_shortbag_20221011.toml")
+    shipped = TeamConfig.load(
+        Path(__file__).parents[1] / "configs/tiers/multi4_shortbag_20221011.toml"
+    )
     assert rc == 0
     fields = ("name", "uwb_node", "mocap_body", "odom_topic", "odom_mode", "odom_zero_stamps")
     assert [[getattr(r, f) for f in fields] for r in cfg.robots] == [
@@ -110,10 +142,14 @@ def test_tiers_shortbag_mapping(shared_data: Path, tmp_path: Path) -> None:
 def test_tiers_case4_mapping(shared_data: Path, tmp_path: Path) -> None:
     rc, cfg, text = _draft(shared_data, "tiers_uwb_rel/case4_test1_static", tmp_path)
     assert rc == 0
-    assert {r.name: r.uwb_node for r in cfg.robots} == {f"turtlebot{k}": f"n_{k}" for k in range(1, 8)}
+    assert {r.name: r.uwb_node for r in cfg.robots} == {
+        f"turtlebot{k}": f"n_{k}" for k in range(1, 8)
+    }
     assert all(not r.odom_topic for r in cfg.robots)
     assert "left out" in text and "n_8" in text
-    assert len(cfg.uwb.pairs) == 21 and all(p.source == "case4_test1_static" for p in cfg.uwb.pairs.values())
+    assert len(cfg.uwb.pairs) == 21 and all(
+        p.source == "case4_test1_static" for p in cfg.uwb.pairs.values()
+    )
     rc, cfg, _ = _draft(shared_data, "tiers_uwb_rel/case4_test1_static", tmp_path, "--no-calibrate")
     assert rc == 0 and not cfg.uwb.pairs
 
@@ -128,7 +164,9 @@ def _mean_ape(bag: Path, config: Path, tmp_path: Path) -> dict[str, float]:
     for seed in SEEDS:
         out = tmp_path / f"{config.stem}-{seed}.json"
         args = ["run", str(bag), "--config", str(config), "--methods", "pf", "--seed", str(seed)]
-        assert main([*args, "--out", str(tmp_path / "out"), "--json", str(out), "--no-progress"]) == 0
+        assert (
+            main([*args, "--out", str(tmp_path / "out"), "--json", str(out), "--no-progress"]) == 0
+        )
         (scenario,) = json.loads(out.read_text())["scenarios"].values()
         for robot, fig in scenario["methods"]["pf"]["robots"].items():
             sums[robot] = sums.get(robot, 0.0) + fig["ape_median"] / len(SEEDS)
@@ -140,11 +178,16 @@ def test_tiers_shortbag_draft_runs_as_well_as_shipped(shared_data: Path, tmp_pat
     reference gives each robot's APE within 0.02 m of the shipped config's."""
     shipped_path = Path(__file__).parents[1] / "configs/tiers/multi4_shortbag_20221011.toml"
     shipped = TeamConfig.load(shipped_path)
-    rc, cfg, _ = _draft(shared_data, "tiers/multi4_shortbag_20221011", tmp_path, "--reference", shipped.reference)
+    rc, cfg, _ = _draft(
+        shared_data, "tiers/multi4_shortbag_20221011", tmp_path, "--reference", shipped.reference
+    )
     assert rc == 0 and cfg.reference == shipped.reference and len(cfg.uwb.pairs) == 6
     assert cfg.robot("turtle01").heading_offset_deg == shipped.robot("turtle01").heading_offset_deg
     bag = shared_data / "tiers/multi4_shortbag_20221011"
-    drafted, expected = _mean_ape(bag, tmp_path / "draft.toml", tmp_path), _mean_ape(bag, shipped_path, tmp_path)
+    drafted, expected = (
+        _mean_ape(bag, tmp_path / "draft.toml", tmp_path),
+        _mean_ape(bag, shipped_path, tmp_path),
+    )
     assert drafted.keys() == expected.keys()
     for robot, ape in expected.items():
         assert abs(drafted[robot] - ape) < 0.02, (robot, drafted, expected)
@@ -154,12 +197,26 @@ def test_tiers_pair_is_ambiguous_without_node(shared_data: Path, tmp_path: Path)
     rc, cfg, text = _draft(shared_data, "tiers/pair_range_20220907_1725", tmp_path)
     assert rc == 2 and "UNDECIDED" in text
     assert cfg.robot_names == ("turtle01", "turtle03")
-    rc, cfg, text = _draft(shared_data, "tiers/pair_range_20220907_1725", tmp_path, "--node", "turtle01=n_2")
+    rc, cfg, text = _draft(
+        shared_data, "tiers/pair_range_20220907_1725", tmp_path, "--node", "turtle01=n_2"
+    )
     assert rc == 0 and "UNDECIDED" not in text
     assert {r.name: r.uwb_node for r in cfg.robots} == {"turtle01": "n_2", "turtle03": "n_3"}
 
 
 def test_bad_node_argument(shared_data: Path, tmp_path: Path) -> None:
     out = tmp_path / "x.toml"
-    assert main(["init", str(shared_data / "tiers/pair_range_20220907_1725"), "--out", str(out), "--node", "turtle01=n_9"]) == 2
+    assert (
+        main(
+            [
+                "init",
+                str(shared_data / "tiers/pair_range_20220907_1725"),
+                "--out",
+                str(out),
+                "--node",
+                "turtle01=n_9",
+            ]
+        )
+        == 2
+    )
     assert not out.exists()

@@ -60,7 +60,9 @@ def test_every_part_of_the_package_has_a_layer() -> None:
 def test_no_import_reaches_a_higher_layer(path: Path) -> None:
     own = LAYER_OF[path.relative_to(SRC).parts[0].removesuffix(".py")]
     higher = sorted(
-        m for m in _imports(path) if (part := _part(m)) is not None and part in LAYER_OF and LAYER_OF[part] > own
+        m
+        for m in _imports(path)
+        if (part := _part(m)) is not None and part in LAYER_OF and LAYER_OF[part] > own
     )
     assert not higher, f"{path.relative_to(SRC)} (layer {own + 1}) imports {higher}"
 
@@ -82,7 +84,10 @@ def _edges(path: Path) -> set[str]:
         if isinstance(node, ast.Import):
             out.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            out.update(f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in PACKAGE else node.module for a in node.names)
+            out.update(
+                f"{node.module}.{a.name}" if f"{node.module}.{a.name}" in PACKAGE else node.module
+                for a in node.names
+            )
     return out & PACKAGE.keys()
 
 

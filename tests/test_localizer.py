@@ -194,7 +194,9 @@ def test_an_estimate_per_batch_despite_jittered_batch_times() -> None:
     events = []
     for x, y in (("a", "b"), ("a", "c"), ("b", "c")):
         for t in np.arange(rng.uniform(0.0, 0.1), 20.0, 0.1) + rng.normal(0.0, 0.01, 200):
-            events.append(RangeEvent(float(t), x, y, math.dist(where[x], where[y]) + rng.normal(0.0, 0.01)))
+            events.append(
+                RangeEvent(float(t), x, y, math.dist(where[x], where[y]) + rng.normal(0.0, 0.01))
+            )
     estimates = _feed(loc, sorted(events, key=lambda e: e.t))
     times = np.array([e.t for e in estimates])
     assert len(times) >= 0.97 * 200
@@ -227,7 +229,9 @@ def test_a_calibrated_range_scale_is_applied_to_range_bias_and_sigma() -> None:
     from relloc.config import PairCalibration
 
     sim = single_scenario(seed=0, duration=5.0)
-    uwb = replace(sim.config.uwb, pairs={"n_0-n_1": PairCalibration(bias=0.3, scale=1.1, sigma=0.11)})
+    uwb = replace(
+        sim.config.uwb, pairs={"n_0-n_1": PairCalibration(bias=0.3, scale=1.1, sigma=0.11)}
+    )
     config = replace(sim.config, uwb=uwb)
     layout = StateLayout(config.robot_names, config.reference)
     event = RangeEvent(1.0, "r0", "r1", 5.8, "n_0", "n_1")

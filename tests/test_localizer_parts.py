@@ -87,14 +87,20 @@ def test_the_wake_rule_is_the_grid_s_own_bounds() -> None:
     assert grid.wake_rule(20.0, 1.0) == (-math.inf, math.inf, 19.00001, 20.99999)
     grid.add(RangeEvent(20.03, "r1", "r2", 2.0))
     rule = grid.wake_rule(20.03, 1.0)
-    assert rule.measurement_from == pytest.approx(20.1 - 1e-5) and rule.odometry_from == pytest.approx(20.2 - 1e-5)
+    assert rule.measurement_from == pytest.approx(
+        20.1 - 1e-5
+    ) and rule.odometry_from == pytest.approx(20.2 - 1e-5)
     for t in (20.05, 20.0999, 20.1001, 20.15, 20.1999, 20.2001, 20.3):
         assert grid.closed_by(t) == (t >= 20.1), t
         assert grid.due(t) == (t >= 20.2), t
         assert rule.urgent(t, odometry=False) == grid.closed_by(t)
         assert rule.urgent(t, odometry=True) == grid.due(t)
     t, batch = grid.take()
-    assert (t, len(batch), grid.pending) == (20.03, 1, []) and grid.is_late(20.02) and not grid.is_late(20.03)
+    assert (
+        (t, len(batch), grid.pending) == (20.03, 1, [])
+        and grid.is_late(20.02)
+        and not grid.is_late(20.03)
+    )
 
 
 # ---------------------------------------------------------------------------- filter hooks

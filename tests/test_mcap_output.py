@@ -29,7 +29,9 @@ def read_mcap(path: Path) -> dict[str, list[tuple[str, int, Any]]]:
     return out
 
 
-def test_run_writes_mcap_that_an_independent_reader_decodes(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_run_writes_mcap_that_an_independent_reader_decodes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     import relloc.cli.recording as recording
     from relloc.cli import main
 
@@ -43,7 +45,17 @@ def test_run_writes_mcap_that_an_independent_reader_decodes(tmp_path: Path, monk
 
     monkeypatch.setattr(recording, "write_mcap", spy)
     json_path, mcap_path, out = tmp_path / "run.json", tmp_path / "run.mcap", tmp_path / "out"
-    args = ["run", "multi", "--methods", "pf", "--particles", "500", "--no-progress", "--span", ":15"]
+    args = [
+        "run",
+        "multi",
+        "--methods",
+        "pf",
+        "--particles",
+        "500",
+        "--no-progress",
+        "--span",
+        ":15",
+    ]
     assert main([*args, "--json", str(json_path), "--out", str(out), "--mcap", str(mcap_path)]) == 0
     assert mcap_path.is_file()
     topics = read_mcap(mcap_path)

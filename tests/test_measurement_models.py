@@ -87,7 +87,9 @@ class XFixModel:
     def row(self, k: int, mean: np.ndarray) -> LinearRow:
         col = 2 * self.layout.slot_of(int(self.index[k]))  # type: ignore[attr-defined]
         n = mean.shape[0]
-        return LinearRow(np.array([col]), np.ones((n, 1)), self.x[k] - mean[:, col], float(self.sigma[k]) ** 2)
+        return LinearRow(
+            np.array([col]), np.ones((n, 1)), self.x[k] - mean[:, col], float(self.sigma[k]) ** 2
+        )
 
     def condition(self, positions: np.ndarray, particles: np.ndarray) -> None:
         """No sufficient statistics."""
@@ -120,7 +122,9 @@ def test_a_model_from_outside_the_package_pulls_the_particle_filter(x_fix) -> No
 def test_a_model_from_outside_the_package_pulls_the_gaussian_sum_filter(x_fix) -> None:
     config = _config()
     layout = CalibrationLayout(config.robot_names, config.reference)
-    gsf = GaussianSumFilter(layout, 50, (-4, 4, -4, 4), rng=np.random.default_rng(0), position_sigma=1.0)
+    gsf = GaussianSumFilter(
+        layout, 50, (-4, 4, -4, 4), rng=np.random.default_rng(0), position_sigma=1.0
+    )
     start, y = gsf.mean[:, 0].copy(), gsf.mean[:, 1].copy()
     (model,) = x_fix.build([XFix(0.0, "r1", 2.5, 0.1)], ModelContext(config, layout))
     assert gsf.update([model])
@@ -162,18 +166,27 @@ def _events(config: TeamConfig) -> dict[type, list[object]]:
     """Sample events for every built-in model: a model registered without a case here fails
     the linearisation test below."""
     return {
-        RangeEvent: [RangeEvent(0.0, "r0", "r1", 3.1, "n_0", "n_1"), RangeEvent(0.0, "r1", "r2", 2.2, "n_1", "n_2"),
-                     RangeEvent(0.0, "r0", "r2", 4.0, corrected=True)],
-        RelativeObservation: [RelativeObservation(0.0, "r1", "r2", 1.0, -2.0, 0.2),
-                              RelativeObservation(0.0, "r2", "r0", -0.5, 0.7, 0.3)],
-        SightingEvent: [SightingEvent(0.0, "r1", "r2", 2.0, 0.4, 0.1, 0.02),
-                        SightingEvent(0.0, "r0", "r1", None, -2.9, 0.1, 0.05),
-                        SightingEvent(0.0, "r2", "r0", 1.5, None, 0.2, 0.05)],
+        RangeEvent: [
+            RangeEvent(0.0, "r0", "r1", 3.1, "n_0", "n_1"),
+            RangeEvent(0.0, "r1", "r2", 2.2, "n_1", "n_2"),
+            RangeEvent(0.0, "r0", "r2", 4.0, corrected=True),
+        ],
+        RelativeObservation: [
+            RelativeObservation(0.0, "r1", "r2", 1.0, -2.0, 0.2),
+            RelativeObservation(0.0, "r2", "r0", -0.5, 0.7, 0.3),
+        ],
+        SightingEvent: [
+            SightingEvent(0.0, "r1", "r2", 2.0, 0.4, 0.1, 0.02),
+            SightingEvent(0.0, "r0", "r1", None, -2.9, 0.1, 0.05),
+            SightingEvent(0.0, "r2", "r0", 1.5, None, 0.2, 0.05),
+        ],
     }
 
 
 @pytest.mark.parametrize(("online", "heading"), [(False, False), (True, False), (False, True)])
-def test_every_models_rows_are_the_gradient_of_its_log_likelihood(online: bool, heading: bool) -> None:
+def test_every_models_rows_are_the_gradient_of_its_log_likelihood(
+    online: bool, heading: bool
+) -> None:
     """navlie's Jacobian check: for the plain (outlier-free) models, the log-likelihood of a
     state is the sum of its rows' Gaussian densities, and its gradient ``sum r h / var`` (all
     columns, online bias columns included) matches central finite differences."""
@@ -189,7 +202,9 @@ def test_every_models_rows_are_the_gradient_of_its_log_likelihood(online: bool, 
     rng = np.random.default_rng(0)
     x = rng.normal(0.0, 2.0, (4, layout.width))  # four states, one per row
     yaws = {"r0": 0.3, "r1": -2.0, "r2": 3.1}  # the observers' odometry yaws (sightings' bearings)
-    context = ModelContext(config, layout, robust=False, range_model="symmetric", yaws=yaws, shared_heading=not heading)
+    context = ModelContext(
+        config, layout, robust=False, range_model="symmetric", yaws=yaws, shared_heading=not heading
+    )
     checked = 0
     for event_type, cls in MODELS.items():
         for model in cls.build(samples[event_type], context):
@@ -200,11 +215,16 @@ def test_every_models_rows_are_the_gradient_of_its_log_likelihood(online: bool, 
 
 def test_models_say_which_symmetries_they_keep_and_which_frame_they_need() -> None:
     assert MODELS[RangeEvent].invariant and not MODELS[RangeEvent].needs_shared_heading
-    assert not MODELS[RelativeObservation].invariant and MODELS[RelativeObservation].needs_shared_heading
+    assert (
+        not MODELS[RelativeObservation].invariant
+        and MODELS[RelativeObservation].needs_shared_heading
+    )
 
 
 @pytest.mark.parametrize(("model_sigma", "expected"), [(None, 0.15), (0.05, 0.15), (0.4, 0.4)])
-def test_a_corrected_ranges_own_sigma_only_widens_its_noise(model_sigma: float | None, expected: float) -> None:
+def test_a_corrected_ranges_own_sigma_only_widens_its_noise(
+    model_sigma: float | None, expected: float
+) -> None:
     """A learned correction's sigma (RangeEvent.sigma) makes an unsure range weigh less; a
     confident one never weighs more than the configured noise (sigma_uwb 0.15 m)."""
     from relloc.filter.ranges import RangeBatch

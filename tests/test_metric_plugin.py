@@ -37,14 +37,20 @@ class Within20cm(metric.Metric):
     columns = (metric.Column("within 0.2 m"),)
 
     def compute(self, run: metric.MethodRun) -> WithinResult:
-        return WithinResult({r: float(np.mean(q.errors <= 0.2)) for r, q in run.late.items() if len(q.t)})
+        return WithinResult(
+            {r: float(np.mean(q.errors <= 0.2)) for r, q in run.late.items() if len(q.t)}
+        )
 
 
-def test_a_registered_metric_shows_in_the_json_and_the_table(request: pytest.FixtureRequest) -> None:
+def test_a_registered_metric_shows_in_the_json_and_the_table(
+    request: pytest.FixtureRequest,
+) -> None:
     sim = single_scenario(seed=0, duration=30.0)
     config = sim.config.with_filter(particles=1000)
     gt = GroundTruth(config.reference)
-    engine = Engine([build_pipeline(m, config, seed=0) for m in ("pf", "multilateration")], truth_sinks=[gt.add])
+    engine = Engine(
+        [build_pipeline(m, config, seed=0) for m in ("pf", "multilateration")], truth_sinks=[gt.add]
+    )
     engine.run(sim.events())
     before = evaluate(engine, gt, "single", warmup=10.0).to_json()
 

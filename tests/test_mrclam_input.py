@@ -16,8 +16,13 @@ from relloc.config import RobotConfig, TeamConfig
 from relloc.events import SightingEvent
 from relloc.sources.mrclam import MalformedRow, MrclamError, MrclamSource, read_table
 
-GARBAGE = ("garbage \t 14 \t 2.0 \t 0.1", "1248444200.0 \t 14", "nan \t 14 \t 2.0 \t 0.1", "1248444200.0 \t 14 \t inf \t 0.1",
-           "1.0 2.0 3.0 4.0 5.0")
+GARBAGE = (
+    "garbage \t 14 \t 2.0 \t 0.1",
+    "1248444200.0 \t 14",
+    "nan \t 14 \t 2.0 \t 0.1",
+    "1248444200.0 \t 14 \t inf \t 0.1",
+    "1.0 2.0 3.0 4.0 5.0",
+)
 """The kinds of bad row: text, too few columns, NaN, infinity, too many columns."""
 REASONS = ("text", "columns", "nonfinite", "nonfinite", "columns")
 
@@ -52,7 +57,9 @@ def _team(*names: str) -> TeamConfig:
     return TeamConfig(tuple(RobotConfig(n) for n in names), names[0])
 
 
-def test_garbage_rows_and_a_truncated_odometry_file_in_dataset_6(shared_data: Path, tmp_path: Path) -> None:
+def test_garbage_rows_and_a_truncated_odometry_file_in_dataset_6(
+    shared_data: Path, tmp_path: Path
+) -> None:
     clean = shared_data / "mrclam" / "MRCLAM_Dataset6"
     if not (clean / "Barcodes.dat").is_file():
         pytest.skip(f"{clean} not found")
@@ -69,7 +76,9 @@ def test_garbage_rows_and_a_truncated_odometry_file_in_dataset_6(shared_data: Pa
     source = MrclamSource(folder, team)
     assert source.malformed == [MalformedRow("Robot1_Odometry.dat", cut, "columns"), *bad]
     assert source.stats.rejected == {"malformed_row": 51}
-    assert source.warnings[0] == f"Robot1_Odometry.dat: 1 malformed rows skipped: line {cut} (columns)"
+    assert (
+        source.warnings[0] == f"Robot1_Odometry.dat: 1 malformed rows skipped: line {cut} (columns)"
+    )
     assert source.warnings[1].startswith("Robot3_Measurement.dat: 50 malformed rows skipped: line ")
     assert source.warnings[1].endswith(" and 45 more")
     # every good row is read as from the clean file: the sightings of robot3 are the same
@@ -81,10 +90,15 @@ def test_garbage_rows_and_a_truncated_odometry_file_in_dataset_6(shared_data: Pa
     assert len(sightings) == source.stats.counts["sightings"] > 0
     # The team the source runs says where each robot's odometry comes from (robots with
     # odometry are not ranges-only robots to the filter's automatic choice).
-    assert [r.odom_topic for r in source.config.robots][:2] == ["Robot1_Odometry.dat", "Robot2_Odometry.dat"]
+    assert [r.odom_topic for r in source.config.robots][:2] == [
+        "Robot1_Odometry.dat",
+        "Robot2_Odometry.dat",
+    ]
 
 
-def test_a_run_over_damaged_files_counts_the_rows(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_a_run_over_damaged_files_counts_the_rows(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     folder = tmp_path / "MRCLAM_Test"
     _write_dataset(folder)
     bad = _damage_measurements(folder / "Robot1_Measurement.dat", 2)
@@ -93,14 +107,35 @@ def test_a_run_over_damaged_files_counts_the_rows(tmp_path: Path, capsys: pytest
     config = tmp_path / "team.toml"
     _team("robot1", "robot2").save(config)
     json_path = tmp_path / "run.json"
-    argv = ["run", str(folder), "--config", str(config), "--methods", "multilateration", "--warmup", "0",
-            "--out", str(tmp_path / "o"), "--json", str(json_path), "--no-progress"]
+    argv = [
+        "run",
+        str(folder),
+        "--config",
+        str(config),
+        "--methods",
+        "multilateration",
+        "--warmup",
+        "0",
+        "--out",
+        str(tmp_path / "o"),
+        "--json",
+        str(json_path),
+        "--no-progress",
+    ]
     assert main(argv) == 0
     out = capsys.readouterr().out
-    assert f"Robot1_Measurement.dat: 2 malformed rows skipped: line {bad[0].line} (text), line {bad[1].line} (columns)" in out
+    assert (
+        f"Robot1_Measurement.dat: 2 malformed rows skipped: line {bad[0].line} (text), line {bad[1].line} (columns)"
+        in out
+    )
     assert "Robot2_Odometry.dat: 1 malformed rows skipped: line 5 (columns)" in out
     assert "malformed_row" in out
-    assert json.loads(json_path.read_text())["scenarios"]["MRCLAM_Test"]["source"]["rejected_malformed_row"] == 3
+    assert (
+        json.loads(json_path.read_text())["scenarios"]["MRCLAM_Test"]["source"][
+            "rejected_malformed_row"
+        ]
+        == 3
+    )
 
 
 @pytest.mark.parametrize("damage", ["missing", "empty", "comments only", "all malformed"])
@@ -113,13 +148,29 @@ def test_a_missing_or_empty_file_is_one_line_naming_it(
     if damage == "missing":
         path.unlink()
     else:
-        path.write_text({"empty": "", "comments only": "# a header\n", "all malformed": "x y\n1 2 3\n"}[damage])
+        path.write_text(
+            {"empty": "", "comments only": "# a header\n", "all malformed": "x y\n1 2 3\n"}[damage]
+        )
     with pytest.raises(MrclamError, match=r"Robot2_Measurement\.dat"):
         MrclamSource(folder, _team("robot1", "robot2"))
     config = tmp_path / "team.toml"
     _team("robot1", "robot2").save(config)
-    assert main(["run", str(folder), "--config", str(config), "--warmup", "0", "--no-progress",
-                 "--out", str(tmp_path / "o")]) == 2
+    assert (
+        main(
+            [
+                "run",
+                str(folder),
+                "--config",
+                str(config),
+                "--warmup",
+                "0",
+                "--no-progress",
+                "--out",
+                str(tmp_path / "o"),
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err.strip()
     assert "Robot2_Measurement.dat" in err and "Traceback" not in err and len(err.splitlines()) == 1
 

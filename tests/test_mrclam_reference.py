@@ -36,16 +36,22 @@ def _session(
     10 Hz over each ``(from, to)`` span of ``truth[i]``, and robot ``i`` seeing the subjects
     ``sightings[i]`` (one row each) and a landmark (subject 6)."""
     folder.mkdir()
-    (folder / "Barcodes.dat").write_text(HEADER + "".join(f"{s} \t {b}\n" for s, b in BARCODES.items()))
+    (folder / "Barcodes.dat").write_text(
+        HEADER + "".join(f"{s} \t {b}\n" for s, b in BARCODES.items())
+    )
     for i, spans in truth.items():
         odo = np.linspace(start, end, 11)
-        (folder / f"Robot{i}_Odometry.dat").write_text(HEADER + "".join(f"{t:.3f} \t 0.1 \t 0.0\n" for t in odo))
+        (folder / f"Robot{i}_Odometry.dat").write_text(
+            HEADER + "".join(f"{t:.3f} \t 0.1 \t 0.0\n" for t in odo)
+        )
         stamps = np.concatenate([np.arange(a, b + 1e-9, 0.1) for a, b in spans])
         (folder / f"Robot{i}_Groundtruth.dat").write_text(
             HEADER + "".join(f"{t:.3f} \t {i}.0 \t 0.5 \t 0.1\n" for t in stamps)
         )
         seen = [*(sightings or {}).get(i, []), 6]  # every robot sees a landmark too
-        rows = "".join(f"{start + 1 + k:.3f} \t {BARCODES[s]} \t 2.0 \t 0.1\n" for k, s in enumerate(seen))
+        rows = "".join(
+            f"{start + 1 + k:.3f} \t {BARCODES[s]} \t 2.0 \t 0.1\n" for k, s in enumerate(seen)
+        )
         (folder / f"Robot{i}_Measurement.dat").write_text(HEADER + rows)
     return folder
 
@@ -77,19 +83,27 @@ def test_the_longest_ground_truth_wins(tmp_path: Path) -> None:
 def test_ties_go_to_the_most_sightings_then_the_lowest_number(tmp_path: Path) -> None:
     whole = [(100.0, 200.0)]
     folder = _session(
-        tmp_path / "MRCLAM_Tie", {1: whole, 2: [(100.0, 199.5)], 3: whole, 4: whole},
+        tmp_path / "MRCLAM_Tie",
+        {1: whole, 2: [(100.0, 199.5)], 3: whole, 4: whole},
         sightings={1: [3], 2: [3, 3], 4: [1]},  # robot3 is seen three times: 3 sightings
     )
     assert choose_reference(folder) == "robot3"  # robot2 within the 1 s tolerance, fewer sightings
     # robot1 (saw robot3, seen by robot4) and robot2 (saw robot3 twice) tie at 2: the lower number
-    assert [c.robot for c in reference_candidates(folder)] == ["robot3", "robot1", "robot2", "robot4"]
+    assert [c.robot for c in reference_candidates(folder)] == [
+        "robot3",
+        "robot1",
+        "robot2",
+        "robot4",
+    ]
     # robot1 and robot4 tie on both: the lower subject number
     assert choose_reference(folder, ("robot1", "robot4")) == "robot1"
     folder = _session(tmp_path / "MRCLAM_Plain", {4: whole, 1: whole, 2: whole})
     assert choose_reference(folder) == "robot1"
 
 
-def test_the_command_line_prints_the_reference(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_command_line_prints_the_reference(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     folder = _session(tmp_path / "MRCLAM_Cli", {1: [(100.0, 150.0)], 2: [(100.0, 200.0)]})
     assert main(["--reference", str(folder), "--explain"]) == 0
     out, err = capsys.readouterr()
@@ -120,35 +134,77 @@ def _script() -> ModuleType:
     return load_module(ROOT / "scripts" / "mrclam_references.py", "mrclam_references")
 
 
-def _fake_run(folder: Path, reference: str, seed: int, robots: dict[str, tuple[float, float, float]],
-              restarts: tuple[int, int], wall: float | None) -> None:
+def _fake_run(
+    folder: Path,
+    reference: str,
+    seed: int,
+    robots: dict[str, tuple[float, float, float]],
+    restarts: tuple[int, int],
+    wall: float | None,
+) -> None:
     """A ``relloc run --json`` file as the script leaves it: robot -> (body APE, NEES, coverage)."""
-    figures = {name: {"ape_median": 1.0, "body_ape_median": a, "nees_median": n, "coverage95": c}
-               for name, (a, n, c) in robots.items()}
-    figures[reference] = {"heading_median_deg": 20.0}  # the reference itself has no position figures
+    figures = {
+        name: {"ape_median": 1.0, "body_ape_median": a, "nees_median": n, "coverage95": c}
+        for name, (a, n, c) in robots.items()
+    }
+    figures[reference] = {
+        "heading_median_deg": 20.0
+    }  # the reference itself has no position figures
     payload = {
         "seed": seed,
-        "scenarios": {"MRCLAM_Fake": {
-            "reference": reference,
-            "methods": {"pf": {"robots": figures, "compute_s": 30.4}},
-            "faults": {"pf": {"inconsistency_restarts": restarts[0], "calibration_restarts": restarts[1]}},
-        }},
+        "scenarios": {
+            "MRCLAM_Fake": {
+                "reference": reference,
+                "methods": {"pf": {"robots": figures, "compute_s": 30.4}},
+                "faults": {
+                    "pf": {
+                        "inconsistency_restarts": restarts[0],
+                        "calibration_restarts": restarts[1],
+                    }
+                },
+            }
+        },
     }
     if wall is not None:
         payload["run"] = {"reference": reference, "seed": seed, "wall_s": wall}
     (folder / f"{reference}_s{seed}.json").write_text(json.dumps(payload))
 
 
-def test_the_page_is_built_from_the_runs_json(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_the_page_is_built_from_the_runs_json(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     script = _script()
     runs = tmp_path / "runs"
     runs.mkdir()
-    _fake_run(runs, "robot2", 0, {"robot1": (0.15, 1.8, 0.93), "robot3": (0.20, 2.5, 0.90), "robot4": (0.18, 3.0, 0.88)},
-              (0, 1), 41.3)
-    _fake_run(runs, "robot1", 1, {"robot2": (0.31, 57.6, 0.02), "robot3": (0.12, 2.0, 0.97)}, (3, 0), 95.0)
-    _fake_run(runs, "robot1", 0, {"robot2": (0.21, 4.0, 0.86), "robot3": (0.10, 2.0, 0.95)}, (0, 0), None)
+    _fake_run(
+        runs,
+        "robot2",
+        0,
+        {"robot1": (0.15, 1.8, 0.93), "robot3": (0.20, 2.5, 0.90), "robot4": (0.18, 3.0, 0.88)},
+        (0, 1),
+        41.3,
+    )
+    _fake_run(
+        runs, "robot1", 1, {"robot2": (0.31, 57.6, 0.02), "robot3": (0.12, 2.0, 0.97)}, (3, 0), 95.0
+    )
+    _fake_run(
+        runs, "robot1", 0, {"robot2": (0.21, 4.0, 0.86), "robot3": (0.10, 2.0, 0.95)}, (0, 0), None
+    )
     page = tmp_path / "page.md"
-    assert script.main(["--from-json", "--out", str(runs), "--data", str(tmp_path / "none"), "--page", str(page)]) == 0
+    assert (
+        script.main(
+            [
+                "--from-json",
+                "--out",
+                str(runs),
+                "--data",
+                str(tmp_path / "none"),
+                "--page",
+                str(page),
+            ]
+        )
+        == 0
+    )
     text = page.read_text()
     assert text in capsys.readouterr().out
     assert f"python scripts/mrclam_references.py --out {runs} --data" in text
@@ -171,18 +227,40 @@ def test_the_page_is_built_from_the_runs_json(tmp_path: Path, capsys: pytest.Cap
         "- FAIL: wall time <= 90 s: 1 of 3 runs (references passing for every seed: robot2)",
     ]
     # a subset by seed, and every check passing
-    assert script.main(["--from-json", "--out", str(runs), "--data", str(tmp_path), "--seeds", "0",
-                        "--references", "robot2", "--page", str(page)]) == 0
+    assert (
+        script.main(
+            [
+                "--from-json",
+                "--out",
+                str(runs),
+                "--data",
+                str(tmp_path),
+                "--seeds",
+                "0",
+                "--references",
+                "robot2",
+                "--page",
+                str(page),
+            ]
+        )
+        == 0
+    )
     text = page.read_text()
     assert [line for line in text.splitlines() if line.startswith("| robot")] == [
         "| robot2 | 0 | 0.200 (robot3) | 3.0 | 2.5 | 88 %–93 % | 0 / 1 | 41 | 30 |",
-        "| robot2 | 1 | 0.200 | 3.0 | 88 % | 0 / 1 | 41 |"]
+        "| robot2 | 1 | 0.200 | 3.0 | 88 % | 0 / 1 | 41 |",
+    ]
     assert sum(line.startswith("- PASS") for line in text.splitlines()) == 4
     assert script.main(["--from-json", "--out", str(tmp_path / "empty")]) == 2
 
 
 def test_a_missing_session_is_skipped_only_when_asked(tmp_path: Path) -> None:
     script = _script()
-    assert script.main(["--data", str(tmp_path / "none"), "--out", str(tmp_path / "o"), "--skip-missing"]) == 0
+    assert (
+        script.main(
+            ["--data", str(tmp_path / "none"), "--out", str(tmp_path / "o"), "--skip-missing"]
+        )
+        == 0
+    )
     assert script.main(["--data", str(tmp_path / "none"), "--out", str(tmp_path / "o")]) == 2
     assert not (tmp_path / "o").exists()

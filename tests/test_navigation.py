@@ -275,7 +275,9 @@ def test_gate_starts_below_start_std_and_stops_above_max_std() -> None:
     assert gate.evaluate(0.0, estimate(0.0, "r1", (0, 0), std=0.15), 0.0) == "uncertain"
     assert "0.150 m > 0.1 m" in gate.records[-1].detail
     assert gate.evaluate(0.1, estimate(0.1, "r1", (0, 0), std=0.09), 0.1) is None
-    assert gate.evaluate(0.2, estimate(0.2, "r1", (0, 0), std=0.15), 0.2) is None  # moving: 0.2 holds
+    assert (
+        gate.evaluate(0.2, estimate(0.2, "r1", (0, 0), std=0.15), 0.2) is None
+    )  # moving: 0.2 holds
     assert gate.evaluate(0.3, estimate(0.3, "r1", (0, 0), std=0.25), 0.3) == "uncertain"
     assert gate.evaluate(0.4, estimate(0.4, "r1", (0, 0), std=0.15), 0.4) == "uncertain"
     assert [r.reason for r in gate.records] == ["uncertain", "released", "uncertain"]
@@ -516,7 +518,12 @@ def test_closed_loop_in_the_simulator_drives_a_small_rectangle() -> None:
     assert s["tracking_median"] < 0.15 and s["ape_median"] < 0.2
     # The gate held the robot while the formation's orientation was unobservable (the team
     # has just started to move) and until the estimate had converged, then released it once.
-    assert [x["reason"] for x in s["stops"]] == ["unobservable", "uncertain", "released", "goal reached"]
+    assert [x["reason"] for x in s["stops"]] == [
+        "unobservable",
+        "uncertain",
+        "released",
+        "goal reached",
+    ]
     first_move = result.t[np.flatnonzero(np.any(result.command != 0.0, axis=1))[0]]
     assert first_move == pytest.approx(result.start_time)
     assert s["start_s"] is not None and s["start_s"] > 1.0

@@ -210,7 +210,9 @@ def test_sim_robots_serve_and_navigate_drive_a_small_rectangle_over_zenoh(tmp_pa
 def test_the_same_loop_on_rmw_zenoh(tmp_path: Path) -> None:
     """The three processes as rmw_zenoh nodes on ROS domain 7: rmw_zenoh keys (type names and
     RIHS01 hashes), attachments and liveliness tokens, no bridge."""
-    summary, truth = drive_small_rectangle(tmp_path, "--ros-interface", "rmw_zenoh", "--domain-id", "7")
+    summary, truth = drive_small_rectangle(
+        tmp_path, "--ros-interface", "rmw_zenoh", "--domain-id", "7"
+    )
     twist = "RIHS01_9c45bf16fe0983d80e3cfe750d6835843d265a9a6c46bd2e609fcddde6fb8d2a"
     assert summary["cmd_vel_key"] == f"7/r2/cmd_vel/geometry_msgs::msg::dds_::Twist_/{twist}"
     assert summary["estimate_key"].startswith(

@@ -19,7 +19,9 @@ from relloc.filter.state import StateLayout
 
 
 def _batch(z: float, sigma: float = 0.1, **kw) -> RangeBatch:
-    return RangeBatch(np.array([0]), np.array([1]), np.array([z]), np.array([0.0]), np.array([sigma]), **kw)
+    return RangeBatch(
+        np.array([0]), np.array([1]), np.array([z]), np.array([0.0]), np.array([sigma]), **kw
+    )
 
 
 def _positions(xs: list[float]) -> np.ndarray:
@@ -40,7 +42,9 @@ def test_nlos_mixture_is_a_density_with_the_stated_parts() -> None:
 
 def test_a_long_range_is_explained_as_a_blocked_path_a_short_one_is_not() -> None:
     nlos = _batch(2.0, outlier_fraction=0.02, nlos_fraction=0.1, nlos_sigma=0.3)
-    ll = nlos.log_likelihood(_positions([1.6, 2.4, 2.0]))  # range 0.4 m too long / too short / right
+    ll = nlos.log_likelihood(
+        _positions([1.6, 2.4, 2.0])
+    )  # range 0.4 m too long / too short / right
     assert ll[0] > ll[1] + 2.0  # too long: plausible NLOS; too short: only the gross-error floor
     assert ll[2] > ll[0]
     # a particle 0.3 m short of a long (NLOS) range is penalised less than by the Gaussian alone
@@ -67,8 +71,15 @@ def test_online_bias_learns_less_from_a_long_range_than_from_a_short_one() -> No
     def moved(z: float) -> float:
         p = particles.copy()
         batch = RangeBatch(
-            np.array([0]), np.array([1]), np.array([z]), np.array([0.0]), np.array([0.1]),
-            outlier_fraction=0.02, bias_columns=np.array([2]), nlos_fraction=0.1, nlos_sigma=0.3,
+            np.array([0]),
+            np.array([1]),
+            np.array([z]),
+            np.array([0.0]),
+            np.array([0.1]),
+            outlier_fraction=0.02,
+            bias_columns=np.array([2]),
+            nlos_fraction=0.1,
+            nlos_sigma=0.3,
         )
         batch.condition(pos, p)
         return abs(p[0, 2])
@@ -78,17 +89,26 @@ def test_online_bias_learns_less_from_a_long_range_than_from_a_short_one() -> No
 
 def _cloud(rng: np.random.Generator, m: int, spread_rad: float) -> ParticleFilter:
     layout = StateLayout(("r", "a", "b"), "r")
-    pf = ParticleFilter(layout, m, (-5.0, 5.0, -5.0, 5.0), rng=rng, reinject_fraction=0.0, rotation_kernel=0.1)
+    pf = ParticleFilter(
+        layout, m, (-5.0, 5.0, -5.0, 5.0), rng=rng, reinject_fraction=0.0, rotation_kernel=0.1
+    )
     shape = np.array([3.0, 0.0, 0.0, 4.0]) + 0.02 * rng.standard_normal((m, 4))
     pf.particles = shape
-    pf.rotate(rng.normal(0.3, spread_rad, m) if spread_rad < np.pi else rng.uniform(-np.pi, np.pi, m))
+    pf.rotate(
+        rng.normal(0.3, spread_rad, m) if spread_rad < np.pi else rng.uniform(-np.pi, np.pi, m)
+    )
     return pf
 
 
 def _distances(pf: ParticleFilter) -> np.ndarray:
     rel = pf.particles[:, :4].reshape(-1, 2, 2)
-    return np.stack([np.linalg.norm(rel[:, 0], axis=1), np.linalg.norm(rel[:, 1], axis=1),
-                     np.linalg.norm(rel[:, 0] - rel[:, 1], axis=1)])
+    return np.stack(
+        [
+            np.linalg.norm(rel[:, 0], axis=1),
+            np.linalg.norm(rel[:, 1], axis=1),
+            np.linalg.norm(rel[:, 0] - rel[:, 1], axis=1),
+        ]
+    )
 
 
 def test_orientation_kernel_keeps_ranges_mean_and_spread_and_renews_the_orientations() -> None:
@@ -100,7 +120,10 @@ def test_orientation_kernel_keeps_ranges_mean_and_spread_and_renews_the_orientat
 
     def angles() -> np.ndarray:  # orientation relative to one fixed formation
         rel = pf.particles[:, :4].reshape(-1, 2, 2)
-        return np.arctan2(rel[:, :, 1] @ ref[:, 0] - rel[:, :, 0] @ ref[:, 1], rel[:, :, 0] @ ref[:, 0] + rel[:, :, 1] @ ref[:, 1])
+        return np.arctan2(
+            rel[:, :, 1] @ ref[:, 0] - rel[:, :, 0] @ ref[:, 1],
+            rel[:, :, 0] @ ref[:, 0] + rel[:, :, 1] @ ref[:, 1],
+        )
 
     before_theta, before_d = angles(), _distances(pf)
     assert len(np.unique(np.round(before_theta, 9))) == 5
@@ -122,7 +145,9 @@ def test_orientation_kernel_leaves_an_unresolved_bearing_alone() -> None:
 
 def test_orientation_kernel_needs_a_formation() -> None:
     rng = np.random.default_rng(3)
-    pf = ParticleFilter(StateLayout(("r", "a"), "r"), 2_000, (-5.0, 5.0, -5.0, 5.0), rng=rng, rotation_kernel=0.1)
+    pf = ParticleFilter(
+        StateLayout(("r", "a"), "r"), 2_000, (-5.0, 5.0, -5.0, 5.0), rng=rng, rotation_kernel=0.1
+    )
     pf.particles = np.array([3.0, 0.0]) + 0.05 * rng.standard_normal((2_000, 2))
     assert not pf.rejuvenate_rotation(0.1)  # one relative position: its bearing is the state
 
@@ -131,8 +156,13 @@ def test_defaults_use_the_nlos_model_and_the_kernel() -> None:
     fc = FilterConfig()
     assert fc.likelihood.range_model == "nlos" and fc.resampling.rotation_kernel > 0.0
     with pytest.raises(ValueError):
-        ParticleFilter(StateLayout(("r", "a"), "r"), 10, (-1.0, 1.0, -1.0, 1.0), rng=np.random.default_rng(0),
-                       rotation_kernel=1.0)
+        ParticleFilter(
+            StateLayout(("r", "a"), "r"),
+            10,
+            (-1.0, 1.0, -1.0, 1.0),
+            rng=np.random.default_rng(0),
+            rotation_kernel=1.0,
+        )
 
 
 def test_an_online_bias_keeps_the_nlos_model_only_where_its_prior_is_a_calibration() -> None:
@@ -144,13 +174,19 @@ def test_an_online_bias_keeps_the_nlos_model_only_where_its_prior_is_a_calibrati
     from relloc.simulator import multi_scenario
 
     config = multi_scenario(seed=0, duration=1.0).config
-    config = config.with_filter(self_calibration=dataclasses.replace(config.filter.self_calibration, bias_mode="online"))
+    config = config.with_filter(
+        self_calibration=dataclasses.replace(config.filter.self_calibration, bias_mode="online")
+    )
     calibrated = next(iter(config.uwb.pairs))
-    uncalibrated = dataclasses.replace(config.uwb, pairs={k: v for k, v in config.uwb.pairs.items() if k != calibrated})
+    uncalibrated = dataclasses.replace(
+        config.uwb, pairs={k: v for k, v in config.uwb.pairs.items() if k != calibrated}
+    )
     for uwb, nlos in ((config.uwb, True), (uncalibrated, False)):
         team = dataclasses.replace(config, uwb=uwb)
         layout, _ = bias_layout(team)
         a, b = calibrated.split("-")
         ra, rb = (next(r.name for r in team.robots if r.uwb_node == n) for n in (a, b))
-        (model,) = RangeBatch.build([RangeEvent(0.0, ra, rb, 3.0, a, b)], ModelContext(team, layout, range_model="nlos"))
+        (model,) = RangeBatch.build(
+            [RangeEvent(0.0, ra, rb, 3.0, a, b)], ModelContext(team, layout, range_model="nlos")
+        )
         assert (model.nlos_fraction > 0.0) == nlos

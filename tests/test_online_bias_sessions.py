@@ -38,7 +38,9 @@ def _session(seed: int, bias: float, scale_error: float) -> tuple[Simulation, Te
     return sim, config
 
 
-def _ape(sim: Simulation, config: TeamConfig, seed: int) -> tuple[float, tuple[float, float] | None]:
+def _ape(
+    sim: Simulation, config: TeamConfig, seed: int
+) -> tuple[float, tuple[float, float] | None]:
     gt = GroundTruth(config.reference)
     engine = Engine([build_pipeline("pf", config, seed=seed)], truth_sinks=[gt.add])
     engine.run(sim.events())
@@ -63,7 +65,9 @@ def test_the_online_prior_of_an_uncalibrated_pair_is_the_default_bias_with_its_w
     ("seed", "bias", "scale_error"),
     [(1, 0.3, 0.08), (0, 0.1, 0.0), (3, 0.5, 0.08)],
 )
-def test_online_bias_is_no_worse_than_the_default_on_a_new_session(seed: int, bias: float, scale_error: float) -> None:
+def test_online_bias_is_no_worse_than_the_default_on_a_new_session(
+    seed: int, bias: float, scale_error: float
+) -> None:
     sim, config = _session(seed, bias, scale_error)
     default, _ = _ape(sim, config, seed)
     online, belief = _ape(sim, config.with_modes(bias="online"), seed)

@@ -38,14 +38,24 @@ def _report(path: Path, methods: dict[str, float], unobservable: bool = False) -
 def test_the_score_is_the_shape_ape_where_the_orientation_is_unobservable(tmp_path: Path) -> None:
     ps = _script()
     assert ps._scores(_report(tmp_path / "a.json", {"pf": 0.1}), "pf") == {"r1": 0.1}
-    assert ps._scores(_report(tmp_path / "b.json", {"pf": 0.2}, unobservable=True), "pf") == {"r1": 0.2}
+    assert ps._scores(_report(tmp_path / "b.json", {"pf": 0.2}, unobservable=True), "pf") == {
+        "r1": 0.2
+    }
 
 
 def _args(tmp_path: Path, a_flags: str, b_flags: str) -> object:
-    return type("Args", (), {
-        "a_method": "pf", "b_method": "pf_ul", "a_flags": a_flags, "b_flags": b_flags,
-        "data": tmp_path, "work": tmp_path,
-    })()
+    return type(
+        "Args",
+        (),
+        {
+            "a_method": "pf",
+            "b_method": "pf_ul",
+            "a_flags": a_flags,
+            "b_flags": b_flags,
+            "data": tmp_path,
+            "work": tmp_path,
+        },
+    )()
 
 
 @pytest.mark.parametrize("independent", [True, False])
@@ -55,14 +65,18 @@ def test_pairs_seed_by_seed_and_stops_at_two_identical_seeds(
     ps = _script()
     calls: list[tuple[str, tuple[str, ...], int]] = []
 
-    def fake_run(data: Path, name: str, flags: str, methods: list[str], seed: int, work: Path) -> Path:
+    def fake_run(
+        data: Path, name: str, flags: str, methods: list[str], seed: int, work: Path
+    ) -> Path:
         calls.append((flags, tuple(methods), seed))
         value = 0.1 if independent else 0.1 + 0.01 * seed
         return _report(tmp_path / f"{seed}.json", {"pf": value, "pf_ul": value + 0.02})
 
     monkeypatch.setattr(ps, "_run", fake_run)
     with ThreadPoolExecutor(1) as pool:
-        a, b, used = ps._paired(pool, _args(tmp_path, "--models m", "--models m"), "rec", [0, 1, 2, 3])
+        a, b, used = ps._paired(
+            pool, _args(tmp_path, "--models m", "--models m"), "rec", [0, 1, 2, 3]
+        )
     # equal flags: one run per seed carries both methods
     assert all(c[:2] == ("--models m", ("pf", "pf_ul")) for c in calls)
     assert used == ([0, 1] if independent else [0, 1, 2, 3])

@@ -15,8 +15,16 @@ from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.simulator import multi_scenario
 
 
-def _broadcast_propagate(particles: np.ndarray, others: np.ndarray, reference: int, disp: np.ndarray,
-                         sigma: np.ndarray, dt: float, rng: np.random.Generator, motion: OdometryMotion) -> None:
+def _broadcast_propagate(
+    particles: np.ndarray,
+    others: np.ndarray,
+    reference: int,
+    disp: np.ndarray,
+    sigma: np.ndarray,
+    dt: float,
+    rng: np.random.Generator,
+    motion: OdometryMotion,
+) -> None:
     """The noise model written plainly over ``(M, N-1, 2)`` with broadcasting."""
     m, k = particles.shape[0], len(others)
     rel = particles[:, : 2 * k].reshape(m, k, 2)
@@ -27,8 +35,12 @@ def _broadcast_propagate(particles: np.ndarray, others: np.ndarray, reference: i
     rel += noise
 
 
-@pytest.mark.parametrize(("width", "k", "sigma_ref"), [(8, 4, 0.02), (10, 4, 0.02), (8, 4, 0.0), (2, 1, 0.1)])
-def test_predict_draws_the_same_numbers_as_the_plain_broadcast(width: int, k: int, sigma_ref: float) -> None:
+@pytest.mark.parametrize(
+    ("width", "k", "sigma_ref"), [(8, 4, 0.02), (10, 4, 0.02), (8, 4, 0.0), (2, 1, 0.1)]
+)
+def test_predict_draws_the_same_numbers_as_the_plain_broadcast(
+    width: int, k: int, sigma_ref: float
+) -> None:
     data = np.random.default_rng(5)
     particles = data.normal(size=(700, width))
     disp = data.normal(size=(k + 1, 2))
@@ -56,7 +68,9 @@ def _two_modes(m: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 @pytest.mark.parametrize("m", [300, 5000])
 @pytest.mark.parametrize("can_resolve", [True, False])
-def test_a_deferred_summary_computes_only_what_is_read_and_equals_the_eager_one(m: int, can_resolve: bool) -> None:
+def test_a_deferred_summary_computes_only_what_is_read_and_equals_the_eager_one(
+    m: int, can_resolve: bool
+) -> None:
     rel, w = _two_modes(m, seed=m)
     eager = summarize(rel, w, can_resolve=can_resolve, floor=0.01)
     lazy = summarize(rel, w, can_resolve=can_resolve, floor=0.01, deferred=True)
@@ -65,15 +79,23 @@ def test_a_deferred_summary_computes_only_what_is_read_and_equals_the_eager_one(
     for name in ("mean", "cov", "weighted_mean", "members"):
         assert np.array_equal(getattr(lazy, name), getattr(eager, name))
     assert (lazy.mode_weight, lazy.n_modes, lazy.orientation_std, lazy.orientation_observable) == (
-        eager.mode_weight, eager.n_modes, eager.orientation_std, eager.orientation_observable)
+        eager.mode_weight,
+        eager.n_modes,
+        eager.orientation_std,
+        eager.orientation_observable,
+    )
     assert lazy.computed == frozenset()
     assert np.array_equal(lazy.distances, eager.distances)
     assert lazy.computed == {"distances"}
-    assert np.array_equal(lazy.shape, eager.shape) and np.array_equal(lazy.shape_cov, eager.shape_cov)
+    assert np.array_equal(lazy.shape, eager.shape) and np.array_equal(
+        lazy.shape_cov, eager.shape_cov
+    )
     assert lazy.computed == {"shape", "distances"}
 
 
-def _run(monkeypatch: pytest.MonkeyPatch, deferred: bool) -> tuple[list[str], list[tuple[bool, frozenset[str]]]]:
+def _run(
+    monkeypatch: pytest.MonkeyPatch, deferred: bool
+) -> tuple[list[str], list[tuple[bool, frozenset[str]]]]:
     """Published estimates (reprs) of a short run with one estimate per 0.2 s (half the steps
     unpublished) and, per step, whether it published and what of its summary was computed."""
     if not deferred:
@@ -132,12 +154,24 @@ def test_without_a_consumer_of_the_shape_it_is_left_out_and_nothing_else_changes
             for e in loc.process(ev):
                 out.append(e)
                 s = loc.filter.last_summary
-                computed.append(s.computed if isinstance(s, DeferredSummary) else frozenset({"shape", "distances"}))
+                computed.append(
+                    s.computed
+                    if isinstance(s, DeferredSummary)
+                    else frozenset({"shape", "distances"})
+                )
         runs.append((out, computed))
     (full, full_computed), (lean, lean_computed) = runs
     assert len(full) == len(lean) > 20
-    assert all(e.shape and e.distances for e in full) and all(not e.shape and not e.distances for e in lean)
+    assert all(e.shape and e.distances for e in full) and all(
+        not e.shape and not e.distances for e in lean
+    )
     assert all("shape" in c for c in full_computed) and not any("shape" in c for c in lean_computed)
     for a, b in zip(full, lean, strict=True):
         assert (a.t, a.positions, a.covariances, a.ess, a.mode_weight, a.n_modes) == (
-            b.t, b.positions, b.covariances, b.ess, b.mode_weight, b.n_modes)
+            b.t,
+            b.positions,
+            b.covariances,
+            b.ess,
+            b.mode_weight,
+            b.n_modes,
+        )

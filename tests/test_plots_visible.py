@@ -40,7 +40,11 @@ def unobservable() -> ScenarioReport:
 
 def _points(ax: Axes, gid: str) -> np.ndarray:
     lines = [ln for ln in ax.get_lines() if ln.get_gid() == gid]
-    return np.concatenate([np.c_[ln.get_xdata(), ln.get_ydata()] for ln in lines]) if lines else np.zeros((0, 2))
+    return (
+        np.concatenate([np.c_[ln.get_xdata(), ln.get_ydata()] for ln in lines])
+        if lines
+        else np.zeros((0, 2))
+    )
 
 
 def _inside(ax: Axes, points: np.ndarray) -> bool:
@@ -50,7 +54,9 @@ def _inside(ax: Axes, points: np.ndarray) -> bool:
     return bool(np.all((x >= x0 - eps) & (x <= x1 + eps) & (y >= y0 - eps) & (y <= y1 + eps)))
 
 
-def test_an_unobservable_orientation_plots_the_aligned_shapes(unobservable: ScenarioReport, tmp_path: Path) -> None:
+def test_an_unobservable_orientation_plots_the_aligned_shapes(
+    unobservable: ScenarioReport, tmp_path: Path
+) -> None:
     m = unobservable.methods["pf"]
     assert m.unobservable_fraction == 1.0
     # the published positions are moments over the ring, all at the reference: drawn as they
@@ -71,7 +77,9 @@ def test_an_unobservable_orientation_plots_the_aligned_shapes(unobservable: Scen
     assert plot_trajectories(unobservable, tmp_path / "t.png").stat().st_size > 10_000
 
 
-def test_an_estimate_far_off_is_marked_at_the_edge_and_counted(unobservable: ScenarioReport) -> None:
+def test_an_estimate_far_off_is_marked_at_the_edge_and_counted(
+    unobservable: ScenarioReport,
+) -> None:
     m = unobservable.methods["pf"]
     pairs = dict(m.paired)
     robot = sorted(pairs)[0]

@@ -59,7 +59,9 @@ def with_toy(config: TeamConfig) -> TeamConfig:
 
 
 @pytest.fixture(scope="module")
-def recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, TeamConfig, GroundTruth, list[ToyFixEvent]]:
+def recording(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> tuple[Path, TeamConfig, GroundTruth, list[ToyFixEvent]]:
     """A simulated team's odometry, ranges and toy fixes (2 Hz, ``PULL`` m east of the truth)
     in an MCAP bag, encoded by the replay's encoder; the config (with the toy table), the
     ground truth and the fixes."""
@@ -82,7 +84,9 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, TeamConfi
     try:
         encoder = EventEncoder(config)
         data = sorted(
-            (ev.t, i, ev) for i, ev in enumerate([*events, *fixes]) if isinstance(ev, OdometryEvent | RangeEvent | ToyFixEvent)
+            (ev.t, i, ev)
+            for i, ev in enumerate([*events, *fixes])
+            if isinstance(ev, OdometryEvent | RangeEvent | ToyFixEvent)
         )
         bag = tmp_path_factory.mktemp("toy") / "toy_bag"
         with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
@@ -92,7 +96,9 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, TeamConfi
                 assert out is not None, ev
                 channel, payload = out
                 if channel.name not in conns:
-                    conns[channel.name] = writer.add_connection(channel.name, channel.msgtype, typestore=typestore())
+                    conns[channel.name] = writer.add_connection(
+                        channel.name, channel.msgtype, typestore=typestore()
+                    )
                 writer.write(conns[channel.name], round((t + SIM_TIME_BASE) * 1e9), payload)
     finally:
         unregister(TOY)
@@ -112,7 +118,10 @@ def east_error(estimates: list[Estimate], truth: GroundTruth, reference: str) ->
     for e in estimates:
         if e.t - SIM_TIME_BASE < WARMUP:
             continue
-        p, ref = truth.pose_at(TARGET, e.t - SIM_TIME_BASE), truth.pose_at(reference, e.t - SIM_TIME_BASE)
+        p, ref = (
+            truth.pose_at(TARGET, e.t - SIM_TIME_BASE),
+            truth.pose_at(reference, e.t - SIM_TIME_BASE),
+        )
         assert p is not None and ref is not None
         errors.append(e.positions[TARGET][0] - (p[0] - ref[0]))
     assert len(errors) > 20
@@ -129,7 +138,11 @@ def test_the_toy_sensor_is_decoded_counted_and_fused(toy: None, recording: Any) 
     assert source.topics["/r2/toy_fix"] == "toy_fix"
     assert source.stats.events["toy_fix"] == len(fixes) == 22
     decoded = [e for e in source if isinstance(e, ToyFixEvent)]
-    assert np.allclose([(e.t - SIM_TIME_BASE, e.x, e.y, e.sigma) for e in decoded], [(f.t, f.x, f.y, f.sigma) for f in fixes], atol=1e-6)
+    assert np.allclose(
+        [(e.t - SIM_TIME_BASE, e.x, e.y, e.sigma) for e in decoded],
+        [(f.t, f.x, f.y, f.sigma) for f in fixes],
+        atol=1e-6,
+    )
     assert stats["toy_fix"] == len(fixes)  # every fix accepted, counted under the model's stat
 
     unregister(TOY)  # the same bag without the plug-in (and without its table)
@@ -138,7 +151,10 @@ def test_the_toy_sensor_is_decoded_counted_and_fused(toy: None, recording: Any) 
     assert "toy_fix" not in plain_source.stats.events and "toy_fix" not in plain_stats
     register(TOY)
 
-    pulled, without = east_error(fused, truth, config.reference), east_error(plain, truth, config.reference)
+    pulled, without = (
+        east_error(fused, truth, config.reference),
+        east_error(plain, truth, config.reference),
+    )
     assert abs(without) < 0.15
     assert pulled > 0.25 and pulled - without > 0.25  # towards the fixes' +0.5 m
 
@@ -149,16 +165,22 @@ def test_an_unknown_plug_in_or_a_bad_table_is_a_config_error(toy: None) -> None:
     assert TeamConfig.from_dict(good.to_dict()) == good  # the table survives a round trip
     assert "[sensors.toy_fix]" in good.to_toml()
     with pytest.raises(ConfigError, match=r"sensors\.toy_fix\.sigma"):
-        team_routes(dataclasses.replace(config, sensors={"toy_fix": {"topic": "/{robot}/t", "sigma": -1.0}}))
+        team_routes(
+            dataclasses.replace(config, sensors={"toy_fix": {"topic": "/{robot}/t", "sigma": -1.0}})
+        )
     with pytest.raises(ConfigError, match=r"sensors\.range: this sensor takes no table"):
         team_routes(dataclasses.replace(config, sensors={"range": {}}))
     unregister(TOY)
-    with pytest.raises(ConfigError, match=r"sensors\.toy_fix: no sensor plug-in of that name is registered"):
+    with pytest.raises(
+        ConfigError, match=r"sensors\.toy_fix: no sensor plug-in of that name is registered"
+    ):
         team_routes(good)
     register(TOY)
 
 
-def test_the_toy_sensor_replays_over_zenoh(toy: None, recording: Any, sessions: tuple[Any, Any]) -> None:
+def test_the_toy_sensor_replays_over_zenoh(
+    toy: None, recording: Any, sessions: tuple[Any, Any]
+) -> None:
     bag, config, _, fixes = recording
     server, client = sessions
     source = ZenohSource(config)
@@ -177,7 +199,11 @@ def test_the_toy_sensor_replays_over_zenoh(toy: None, recording: Any, sessions: 
     finally:
         source.detach()
     toy_fixes = [e for e in got if isinstance(e, ToyFixEvent)]
-    assert np.allclose([(e.t - SIM_TIME_BASE, e.x, e.y) for e in toy_fixes], [(f.t, f.x, f.y) for f in fixes], atol=1e-6)
+    assert np.allclose(
+        [(e.t - SIM_TIME_BASE, e.x, e.y) for e in toy_fixes],
+        [(f.t, f.x, f.y) for f in fixes],
+        atol=1e-6,
+    )
     assert source.stats.events["toy_fix"] == len(fixes)
     assert not source.stats.rejected
 
@@ -193,6 +219,7 @@ def test_the_toy_models_rows_are_its_log_likelihood_and_its_gradient(toy: None) 
     (model,) = ToyFixBatch.build(fixes, ModelContext(with_toy(config), layout))
     x = np.random.default_rng(0).normal(0.0, 2.0, (4, layout.width))
     assert_rows_are_the_log_likelihood_and_its_gradient(model, layout, x)
+
 
 def test_the_simulator_runs_the_toy_sensors_hook(toy: None) -> None:
     """A registered plug-in adds its events to a simulation; the simulator's own are unchanged."""

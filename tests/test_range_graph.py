@@ -76,7 +76,9 @@ def test_one_hypothesis_is_within_half_a_step_of_any_orientation() -> None:
         assert (np.argmin(err) >= 36) == (flip < 0)
     cov = start_covariance(hyp[:1], 0.3, 0.1)[0]
     tangent = np.stack([-hyp[0, :, 1], hyp[0, :, 0]], axis=1).reshape(-1)
-    assert np.isclose(tangent @ cov @ tangent / (tangent @ tangent) ** 2, (0.3**2 / (tangent @ tangent) + 0.01))
+    assert np.isclose(
+        tangent @ cov @ tangent / (tangent @ tangent) ** 2, (0.3**2 / (tangent @ tangent) + 0.01)
+    )
 
 
 def test_the_sparse_update_is_the_batch_kalman_update() -> None:
@@ -94,7 +96,9 @@ def test_the_sparse_update_is_the_batch_kalman_update() -> None:
     ia, ib = np.triu_indices(n, 1)
     truth = rng.uniform(-5.0, 5.0, (n, 2))
     z = np.linalg.norm(truth[ia] - truth[ib], axis=1)
-    batch = RangeBatch(ia, ib, z, np.zeros(z.size), np.full(z.size, 0.2), outlier_fraction=0.0, layout=layout)
+    batch = RangeBatch(
+        ia, ib, z, np.zeros(z.size), np.full(z.size, 0.2), outlier_fraction=0.0, layout=layout
+    )
     f._range_update(batch)
     slot = [layout.slot(r) for r in layout.robots]
     for m in range(3):
@@ -127,7 +131,9 @@ def test_the_localizer_is_chosen_by_team_size_and_modes() -> None:
     assert isinstance(filter_localizer(large), SmootherLocalizer)
     assert isinstance(filter_localizer(large.with_filter(kind="range_graph")), RangeGraphLocalizer)
     assert isinstance(filter_localizer(large.with_modes(bias="online")), ParticleFilterLocalizer)
-    assert isinstance(filter_localizer(large.with_modes(heading="estimate")), SelfCalibratingLocalizer)
+    assert isinstance(
+        filter_localizer(large.with_modes(heading="estimate")), SelfCalibratingLocalizer
+    )
 
 
 @pytest.mark.parametrize("heading_error", [True, False])
@@ -171,7 +177,10 @@ def test_the_twenty_robot_grid_converges_fast(heading_error: bool) -> None:
     last = loc.last_estimate
     assert last is not None and last.orientation_observable and last.n_modes == 1
     others = [r for r in sim.robots if r != sim.reference]
-    true = np.array([sim.true_poses(r, np.array([last.t]))[0, :2] for r in others]) - sim.true_poses("r0", np.array([last.t]))[0, :2]
+    true = (
+        np.array([sim.true_poses(r, np.array([last.t]))[0, :2] for r in others])
+        - sim.true_poses("r0", np.array([last.t]))[0, :2]
+    )
     est = np.array([last.positions[r] for r in others])
     assert _fit_rotation(true, est) < 0.1
     cover = [c.coverage for c in pf.consistency.values()]
@@ -197,7 +206,9 @@ def test_recovery_restarts_from_the_range_graph() -> None:
         other = ev.robot_b if ev.robot_a == "r5" else ev.robot_a
         t = np.array([ev.t])
         p5, po = sim.true_poses("r5", t)[0, :2], sim.true_poses(other, t)[0, :2]
-        return replace(ev, distance=ev.distance - np.linalg.norm(p5 - po) + np.linalg.norm(p5 + shift - po))
+        return replace(
+            ev, distance=ev.distance - np.linalg.norm(p5 - po) + np.linalg.norm(p5 + shift - po)
+        )
 
     estimates = [e for ev in sim.events() for e in loc.process(carried(ev))]
     assert loc.stats["divergence_detected"] >= 1 and loc.stats["graph_restarts"] >= 1

@@ -64,10 +64,16 @@ def linktrack_config(config: TeamConfig, layout: str) -> TeamConfig:
 def _frame(ev: RangeEvent, node: str, peer: str) -> Any:
     """A node frame of ``node`` listing one peer, stamped with the range's time if it can be."""
     msg = rm.zero_message(FRAME)
-    peers = [rm.typestore().types["nlink_parser/msg/LinktrackNode2"](role=1, id=int(peer), dis=ev.distance, fp_rssi=0.0, rx_rssi=0.0)]
+    peers = [
+        rm.typestore().types["nlink_parser/msg/LinktrackNode2"](
+            role=1, id=int(peer), dis=ev.distance, fp_rssi=0.0, rx_rssi=0.0
+        )
+    ]
     msg = dataclasses.replace(msg, id=int(node), nodes=peers)
     if hasattr(msg, "header"):
-        msg = dataclasses.replace(msg, header=dataclasses.replace(msg.header, stamp=rm.time_msg(ev.t)))
+        msg = dataclasses.replace(
+            msg, header=dataclasses.replace(msg.header, stamp=rm.time_msg(ev.t))
+        )
     return msg
 
 
@@ -81,7 +87,9 @@ def write_bags(folder: Path, layout: str) -> tuple[Path, Path, TeamConfig, TeamC
     register_types(custom_types(EXAMPLES / layout))
     node_of = {r.name: r.uwb_node for r in frames.robots}
     encoder = EventEncoder(config, ground_truth=True)
-    events = [ev for ev in sim.events() if isinstance(ev, OdometryEvent | RangeEvent | GroundTruthEvent)]
+    events = [
+        ev for ev in sim.events() if isinstance(ev, OdometryEvent | RangeEvent | GroundTruthEvent)
+    ]
     bags = folder / f"range_{layout}", folder / f"frames_{layout}"
     for bag, as_frames in zip(bags, (False, True), strict=True):
         with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
@@ -132,7 +140,9 @@ def ape_median(found: list[Any], reference: str) -> float:
 
 
 @pytest.mark.parametrize("layout", ["linktrack_ros2", "linktrack_ros1"])
-def test_node_frames_give_the_estimates_of_the_same_ranges_as_range(tmp_path: Path, layout: str) -> None:
+def test_node_frames_give_the_estimates_of_the_same_ranges_as_range(
+    tmp_path: Path, layout: str
+) -> None:
     ranges_bag, frames_bag, config, frames = write_bags(tmp_path, layout)
     plain_source, plain = estimates(ranges_bag, config)
     source, found = estimates(frames_bag, frames)
@@ -143,21 +153,39 @@ def test_node_frames_give_the_estimates_of_the_same_ranges_as_range(tmp_path: Pa
     apes = []
     for bag, cfg in ((ranges_bag, config), (frames_bag, frames)):
         robots = tuple(dataclasses.replace(r, mocap_body=r.name) for r in cfg.robots)  # as encoded
-        dataclasses.replace(cfg, robots=robots).with_filter(particles=1000).save(tmp_path / "team.toml")
+        dataclasses.replace(cfg, robots=robots).with_filter(particles=1000).save(
+            tmp_path / "team.toml"
+        )
         out = tmp_path / f"{bag.name}.json"
-        args = ["run", str(bag), "--config", str(tmp_path / "team.toml"), "--methods", "pf", "--warmup", "5"]
+        args = [
+            "run",
+            str(bag),
+            "--config",
+            str(tmp_path / "team.toml"),
+            "--methods",
+            "pf",
+            "--warmup",
+            "5",
+        ]
         assert main([*args, "--json", str(out), "--no-progress"]) == 0
         (scenario,) = json.loads(out.read_text())["scenarios"].values()
         apes.append(scenario["methods"]["pf"]["mean_ape_median"])
-    print(f"relloc run, mean APE median: as Range {apes[0]:.4f} m, as {layout} node frames {apes[1]:.4f} m")
+    print(
+        f"relloc run, mean APE median: as Range {apes[0]:.4f} m, as {layout} node frames {apes[1]:.4f} m"
+    )
     assert apes[1] == pytest.approx(apes[0], abs=0.0 if layout == "linktrack_ros2" else 0.01)
     if layout == "linktrack_ros2":  # stamped: the very same events, the very same estimates
         assert np.array_equal(_positions(found), _positions(plain))
         assert source.stats.restamped == {}
     else:  # no header: receive times, equal to the stamps up to the bag's nanoseconds
         assert sum(source.stats.restamped.values()) == source.stats.events["range"]
-        plain_ape, found_ape = ape_median(plain, config.reference), ape_median(found, config.reference)
-        print(f"APE median: ranges as Range {plain_ape:.4f} m, as headerless node frames {found_ape:.4f} m")
+        plain_ape, found_ape = (
+            ape_median(plain, config.reference),
+            ape_median(found, config.reference),
+        )
+        print(
+            f"APE median: ranges as Range {plain_ape:.4f} m, as headerless node frames {found_ape:.4f} m"
+        )
         assert found_ape == pytest.approx(plain_ape, abs=0.01)
 
 
@@ -168,14 +196,19 @@ def test_node_frames_replayed_over_zenoh(tmp_path: Path, sessions: tuple[Any, An
     offline_source, offline = estimates(frames_bag, frames)
     srv, client = sessions
     collector = EstimateCollector(client, frames)
-    server = LiveServer(frames, srv, ServeOptions(particles=1000, seed=0, reorder_window=1.0, clock_rate=4.0))
+    server = LiveServer(
+        frames, srv, ServeOptions(particles=1000, seed=0, reorder_window=1.0, clock_rate=4.0)
+    )
     server.start()
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     try:
         stats = replay_bag(frames_bag, frames, client, ReplayOptions(rate=4.0, wait=5.0))
         assert stats.unmatched == []
-        assert wait_until(lambda: server.source.stats.events["range"] >= offline_source.stats.events["range"], timeout=20)
+        assert wait_until(
+            lambda: server.source.stats.events["range"] >= offline_source.stats.events["range"],
+            timeout=20,
+        )
     finally:
         server.stop()
         thread.join(timeout=10)
@@ -186,7 +219,10 @@ def test_node_frames_replayed_over_zenoh(tmp_path: Path, sessions: tuple[Any, An
     assert summary["stats"]["events"]["range"] == offline_source.stats.events["range"]
     served = server.pipelines[0].estimates
     assert len(served) == pytest.approx(len(offline), abs=2)
-    served_ape, offline_ape = ape_median(served, frames.reference), ape_median(offline, frames.reference)
+    served_ape, offline_ape = (
+        ape_median(served, frames.reference),
+        ape_median(offline, frames.reference),
+    )
     print(f"APE median: served {served_ape:.4f} m, offline {offline_ape:.4f} m")
     assert served_ape == pytest.approx(offline_ape, abs=0.01)
 
@@ -194,16 +230,25 @@ def test_node_frames_replayed_over_zenoh(tmp_path: Path, sessions: tuple[Any, An
 def test_a_type_relloc_cannot_load_is_a_clear_error_before_the_run(tmp_path: Path) -> None:
     _, config = simulated_team(seed=0, duration=1.0)
     broken = linktrack_config(config, "linktrack_ros2")
-    missing = dataclasses.replace(broken, uwb=dataclasses.replace(broken.uwb, range_type="acme_uwb/msg/Ranges", msg_dirs=(str(tmp_path),)))
+    missing = dataclasses.replace(
+        broken,
+        uwb=dataclasses.replace(
+            broken.uwb, range_type="acme_uwb/msg/Ranges", msg_dirs=(str(tmp_path),)
+        ),
+    )
     with pytest.raises(ConfigError, match=rf"acme_uwb/msg/Ranges.*no definition found.*{tmp_path}"):
         _routes(missing)
-    wrong = dataclasses.replace(broken, uwb=dataclasses.replace(broken.uwb, distance_field="nodes[].range"))
+    wrong = dataclasses.replace(
+        broken, uwb=dataclasses.replace(broken.uwb, distance_field="nodes[].range")
+    )
     with pytest.raises(ConfigError, match="LinktrackNode2 has no field 'range'"):
         _routes(wrong)
     lonely = dataclasses.replace(broken, uwb=dataclasses.replace(broken.uwb, peer_field=""))
     with pytest.raises(ConfigError, match="give peer_field too"):
         _routes(lonely)
-    paired = dataclasses.replace(broken, uwb=dataclasses.replace(broken.uwb, range_topic="/uwb/{a}/{b}"))
+    paired = dataclasses.replace(
+        broken, uwb=dataclasses.replace(broken.uwb, range_topic="/uwb/{a}/{b}")
+    )
     with pytest.raises(ConfigError, match=r"not \{b\}"):
         _routes(paired)
 

@@ -364,7 +364,9 @@ def test_evaluate_scores_as_deployed_with_the_support_guard(tmp_path: Path) -> N
     from relloc.ranging.evaluate import evaluate
     from relloc.ranging.support import YAW_CELLS, InputSupport
 
-    support = InputSupport((0.0, -9.0, -9.0, -9.0), (4.6, 9.0, 9.0, 9.0), frozenset(range(YAW_CELLS**2)))
+    support = InputSupport(
+        (0.0, -9.0, -9.0, -9.0), (4.6, 9.0, 9.0, 9.0), frozenset(range(YAW_CELLS**2))
+    )
     known_model_dir(tmp_path / "models" / "stacked", n_steps=3, support=support.to_json())
     csv = known_csv(tmp_path / "k.csv")
     guarded = evaluate(csv, [tmp_path / "models"])["methods"]

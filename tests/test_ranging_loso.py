@@ -24,14 +24,24 @@ def test_loso_table_and_baseline(tmp_path: Path) -> None:
     loso = _script()
     sessions = {
         "a": write_synthetic_csv(tmp_path / "a.csv", robots=("1", "3", "4"), n_samples=160, seed=0),
-        "b": write_synthetic_csv(tmp_path / "b.csv", robots=("1", "3"), n_samples=160, bias=0.35, seed=1),
-        "c": write_synthetic_csv(tmp_path / "c.csv", robots=("3", "4"), n_samples=160, bias=0.25, seed=2),
+        "b": write_synthetic_csv(
+            tmp_path / "b.csv", robots=("1", "3"), n_samples=160, bias=0.35, seed=1
+        ),
+        "c": write_synthetic_csv(
+            tmp_path / "c.csv", robots=("3", "4"), n_samples=160, bias=0.25, seed=2
+        ),
     }
     configs = [loso.Candidate("stacked-base", "stacked", hidden=(4,))]
     result = loso.run_loso(sessions, tmp_path / "work", configs, epochs=2, patience=1)
     # every pair of a held-out session that another session has, and only those
     assert result.pairs == {"a": ["n_3-n_4", "n_3-n_7"], "b": ["n_3-n_7"], "c": ["n_3-n_4"]}
-    assert set(result.per_pair) == {"zero", "training constant", "per-pair bias", "stacked-base", "stacked-base+guard"}
+    assert set(result.per_pair) == {
+        "zero",
+        "training constant",
+        "per-pair bias",
+        "stacked-base",
+        "stacked-base+guard",
+    }
     for row in result.per_pair.values():
         assert set(row) == {"a", "b", "c"}
     # a baseline row is what the evaluation computes on the held-out session
@@ -41,7 +51,9 @@ def test_loso_table_and_baseline(tmp_path: Path) -> None:
     assert result.recommended() in result.per_pair
     page = loso.markdown(result, loso.pair_matrix(sessions), "python scripts/ranging_loso.py")
     assert "| row | a (2 pairs) | b (1 pairs) | c (1 pairs) | LOSO mean | worst pair |" in page
-    assert page.count("\n| ") == 1 + 3 + 1 + len(result.per_pair)  # matrix header, pairs, table header, rows
+    assert page.count("\n| ") == 1 + 3 + 1 + len(
+        result.per_pair
+    )  # matrix header, pairs, table header, rows
     assert "Lowest LOSO mean" in page
 
 
@@ -57,7 +69,9 @@ def test_too_thin_for_a_choice(tmp_path: Path) -> None:
     assert "No choice" in loso.markdown(result, loso.pair_matrix(sessions), "x")
 
 
-def test_sessions_from_a_shared_bag(tmp_path: Path, shared_data: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_sessions_from_a_shared_bag(
+    tmp_path: Path, shared_data: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """The script's ``bag-csv`` of a shared bag: the training CSV's columns, one row per range
     with motion capture at both ends, written once and reused."""
     loso = _script()

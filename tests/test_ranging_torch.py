@@ -44,7 +44,9 @@ def test_tiny_model_learns_orientation_dependent_error(tmp_path: Path) -> None:
     win = data.windows
     model, info = train_model(win["train"], win["val"], arch, config)
     test_w, test_y = win["test"]  # residuals around the pair's constant
-    assert data.train_bias == pytest.approx(float(np.median(data.clean.error[: data.split.end_dev])))
+    assert data.train_bias == pytest.approx(
+        float(np.median(data.clean.error[: data.split.end_dev]))
+    )
     with torch.no_grad():
         pred = model(torch.from_numpy(test_w.astype(np.float32)))[0][:, 0].numpy()
     mse = float(np.mean((pred - test_y) ** 2))

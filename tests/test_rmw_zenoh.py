@@ -150,7 +150,9 @@ def test_attachment_layout_and_malformed_attachments() -> None:
     raw = RmwAttachment(7, 1_700_000_000_123_456_789, gid).encode()
     assert len(raw) == 33 and raw[:8] == struct.pack("<q", 7) and raw[16] == 16
     att = RmwAttachment.decode(raw)
-    assert (att.sequence, att.gid) == (7, gid) and att.timestamp == pytest.approx(1.7e9 + 0.123456789)
+    assert (att.sequence, att.gid) == (7, gid) and att.timestamp == pytest.approx(
+        1.7e9 + 0.123456789
+    )
     for bad in (raw[:-1], raw + b"\x00", raw[:16] + b"\x08" + raw[17:], b""):
         with pytest.raises(ValueError):
             RmwAttachment.decode(bad)
@@ -183,7 +185,9 @@ def test_rmw_source_checks_types_and_hashes_and_counts_loss_and_bad_attachments(
     src.handle(channel.key, _odom(T0 + 0.30), T0, b"\x00" * 12)  # malformed
     src.handle(channel.key, b"\x00\x01\x00\x00 garbage", T0, att(7))
     arrivals = src.flush()
-    assert [a.event.t - T0 for a in arrivals] == pytest.approx([0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3])
+    assert [a.event.t - T0 for a in arrivals] == pytest.approx(
+        [0.0, 0.05, 0.1, 0.15, 0.2, 0.25, 0.3]
+    )
     assert [a.sent for a in arrivals[:2]] == pytest.approx([T0 + 1, T0 + 2])
     assert arrivals[-1].sent is None and all(a.key == "0/r1/odom" for a in arrivals)
     assert src.stats.rejected == {"unknown_type": 1, "decode_error": 1}
@@ -228,7 +232,9 @@ def test_served_over_rmw_zenoh_seen_by_a_subscriber_written_from_the_design_docu
     )
     collector = EstimateCollector(client, config, interface=RMW)
     server = LiveServer(
-        config, srv_session, ServeOptions(particles=1000, clock_rate=rate, interface=RMW, trace=True)
+        config,
+        srv_session,
+        ServeOptions(particles=1000, clock_rate=rate, interface=RMW, trace=True),
     )
     server.start()
     thread = threading.Thread(target=server.run, daemon=True)
@@ -245,8 +251,11 @@ def test_served_over_rmw_zenoh_seen_by_a_subscriber_written_from_the_design_docu
         thread.join(timeout=10)
     n_own = len(server.pipelines[0].estimates)  # the last one was published as the server ended
     assert wait_until(
-        lambda: len(collector.estimates()) >= n_own and len(poses) >= 4 * n_own
-        and set(collector.estimates()[-1].positions) == set(config.others)
+        lambda: (
+            len(collector.estimates()) >= n_own
+            and len(poses) >= 4 * n_own
+            and set(collector.estimates()[-1].positions) == set(config.others)
+        )
     )
     estimates = collector.estimates()
     traces = collector.traces()
@@ -284,13 +293,19 @@ def test_served_over_rmw_zenoh_seen_by_a_subscriber_written_from_the_design_docu
     pubs = [t.split("/") for t in tokens if t.split("/")[5] == "MP" and t.split("/")[8] == "relloc"]
     topics = {p[9] for p in pubs}
     assert {f"%relloc%{r}%pose" for r in config.others} | {"%relloc%status"} <= topics
-    subs = {t.split("/")[9] for t in tokens if t.split("/")[5] == "MS" and t.split("/")[8] == "relloc"}
+    subs = {
+        t.split("/")[9] for t in tokens if t.split("/")[5] == "MS" and t.split("/")[8] == "relloc"
+    }
     assert {"%r1%odom", "%uwb%tof%n_1%n_2%distance", "%uwb%tof%n_2%n_1%distance"} <= subs
     for p in pubs:
         assert p[:2] == ["@ros2_lv", "0"] and p[6:8] == ["%", "%"] and len(p) == 13
         if p[9].endswith("%pose"):
             assert p[10:12] == ["geometry_msgs::msg::dds_::PoseWithCovarianceStamped_", hash_]
-    sim_pubs = [t for t in set(announced) if "/MP/%/%/relloc_events/%r1%odom/nav_msgs::msg::dds_::Odometry_/" in t]
+    sim_pubs = [
+        t
+        for t in set(announced)
+        if "/MP/%/%/relloc_events/%r1%odom/nav_msgs::msg::dds_::Odometry_/" in t
+    ]
     assert len(sim_pubs) == 1 and sim_pubs[0].endswith(
         "RIHS01_" + PUBLISHED_HASHES[ODOMETRY] + "/::,10:,:,:,,"
     )
@@ -326,8 +341,10 @@ def test_malformed_attachments_and_foreign_types_over_zenoh(sessions: tuple[Any,
         # The foreign type was put last: wait for its rejection too, not only for the three
         # events (then a little longer, for anything that should not come).
         assert wait_until(
-            lambda: bool(released.extend(source.poll(0.05)))
-            or (len(released) >= 3 and sum(source.stats.rejected.values()) >= 1)
+            lambda: (
+                bool(released.extend(source.poll(0.05)))
+                or (len(released) >= 3 and sum(source.stats.rejected.values()) >= 1)
+            )
         )
         time.sleep(0.1)
         released.extend(source.drain())
@@ -338,7 +355,11 @@ def test_malformed_attachments_and_foreign_types_over_zenoh(sessions: tuple[Any,
     assert len(released) == 3
     assert source.stats.rejected == {"unknown_type": 1}
     tr = source.transport
-    assert (tr.attachment_malformed, tr.attachment_missing, tr.unknown_type_hash.total()) == (1, 1, 1)
+    assert (tr.attachment_malformed, tr.attachment_missing, tr.unknown_type_hash.total()) == (
+        1,
+        1,
+        1,
+    )
 
 
 def test_replay_on_rmw_zenoh_leaves_out_topics_whose_type_it_cannot_hash() -> None:

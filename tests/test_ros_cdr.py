@@ -31,7 +31,9 @@ def _odometry(rng: np.random.Generator, frame: str, child: str):
         header=t["std_msgs/msg/Header"](stamp=rm.time_msg(rng.uniform(0, 2e9)), frame_id=frame),
         child_frame_id=child,
         pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=rng.normal(size=36)),
-        twist=t["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=rng.normal(size=36)),
+        twist=t["geometry_msgs/msg/TwistWithCovariance"](
+            twist=twist, covariance=rng.normal(size=36)
+        ),
     )
 
 
@@ -40,9 +42,7 @@ def _range(rng: np.random.Generator, frame: str, distro: str):
     types = rm.typestore(distro).types
     extra = {"variance": float(rng.normal())} if distro != "humble" else {}
     return types[rm.RANGE](
-        header=types["std_msgs/msg/Header"](
-            stamp=rm.time_msg(rng.uniform(0, 2e9)), frame_id=frame
-        ),
+        header=types["std_msgs/msg/Header"](stamp=rm.time_msg(rng.uniform(0, 2e9)), frame_id=frame),
         radiation_type=int(rng.integers(0, 3)),
         field_of_view=float(rng.normal()),
         min_range=float(rng.normal()),

@@ -73,7 +73,9 @@ def test_config_and_interface_know_the_distributions() -> None:
 
 
 @pytest.mark.parametrize("server_distro", ["jazzy", "humble"])
-def test_rmw_source_picks_the_layout_from_the_hash_and_tries_each_without_one(server_distro: str) -> None:
+def test_rmw_source_picks_the_layout_from_the_hash_and_tries_each_without_one(
+    server_distro: str,
+) -> None:
     _, config = simulated_team(seed=0, duration=1.0)
     iface = RosInterface(RMW_ZENOH, 0, server_distro)
     src = ZenohSource(config, ZenohSourceOptions(interface=iface))
@@ -127,7 +129,9 @@ def test_bags_of_either_distribution_give_the_same_events(
         bag = bag_writer(tmp_path / distro, _bag_messages(config), storage=storage, distro=distro)
         source = RosbagSource(bag, config, ground_truth=False)
         range_topic = next(t for t, kind in source.topics.items() if kind == "range")
-        assert source.layouts[range_topic].distros[0] == ("humble" if distro == "humble" else "iron")
+        assert source.layouts[range_topic].distros[0] == (
+            "humble" if distro == "humble" else "iron"
+        )
         events[distro] = list(source)
         assert source.stats.rejected == {}
         assert sum(n for k, n in source.stats.layouts.items() if k.startswith(rm.RANGE)) == 20
@@ -137,7 +141,14 @@ def test_bags_of_either_distribution_give_the_same_events(
 
 def test_write_config_records_the_interface_and_distribution(tmp_path: Path) -> None:
     team = tmp_path / "team.toml"
-    args = ["sim-robots", "--write-config", str(team), "--config-only", "--ros-interface", "rmw_zenoh"]
+    args = [
+        "sim-robots",
+        "--write-config",
+        str(team),
+        "--config-only",
+        "--ros-interface",
+        "rmw_zenoh",
+    ]
     assert main([*args, "--ros-distro", "humble"]) == 0
     config = TeamConfig.load(team)
     assert (config.ros_interface, config.ros_distro) == ("rmw_zenoh", "humble")
@@ -160,12 +171,16 @@ def _serve(
             keys.add(str(sample.key_expr))
 
     sub = client.declare_subscriber("0/**", seen)
-    live = LiveServer(config, srv_session, ServeOptions(particles=500, clock_rate=4.0, interface=server))
+    live = LiveServer(
+        config, srv_session, ServeOptions(particles=500, clock_rate=4.0, interface=server)
+    )
     live.start()
     thread = threading.Thread(target=live.run, daemon=True)
     thread.start()
     try:
-        stats = publish_events(sim.events(), config, client, rate=4.0, interface=robots, time_base=T0, wait=5.0)
+        stats = publish_events(
+            sim.events(), config, client, rate=4.0, interface=robots, time_base=T0, wait=5.0
+        )
         assert stats.unmatched == []
         assert wait_until(lambda: live.source.stats.events.total() >= stats.messages)
         assert wait_until(lambda: any("/pose/" in k for k in keys))
@@ -194,9 +209,13 @@ def test_humble_keys_and_tokens_carry_type_hash_not_supported(sessions: tuple[An
 
 
 def test_a_jazzy_server_serves_a_humble_team(sessions: tuple[Any, Any]) -> None:
-    server, keys, _ = _serve(sessions, RosInterface(RMW_ZENOH, 0, "humble"), RosInterface(RMW_ZENOH, 0))
+    server, keys, _ = _serve(
+        sessions, RosInterface(RMW_ZENOH, 0, "humble"), RosInterface(RMW_ZENOH, 0)
+    )
     summary = server.summary()["source"]
     assert summary["rejected"] == {} and summary["layouts"][f"{rm.RANGE}@humble"] > 0
     poses = [k for k in keys if "/pose/" in k]
-    assert poses and all(k.endswith(key_hash(rm.POSE_WITH_COVARIANCE_STAMPED, "jazzy")) for k in poses)
+    assert poses and all(
+        k.endswith(key_hash(rm.POSE_WITH_COVARIANCE_STAMPED, "jazzy")) for k in poses
+    )
     assert len(server.pipelines[0].estimates) > 5

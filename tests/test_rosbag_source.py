@@ -374,7 +374,9 @@ def _copy_bag(shared_data: Path, tmp_path: Path, folder: str) -> Path:
 
 @pytest.mark.shared_data
 @pytest.mark.parametrize("damage", ["truncate", "garble"])
-def test_damaged_bag_is_read_as_far_as_readable(shared_data: Path, tmp_path: Path, damage: str) -> None:
+def test_damaged_bag_is_read_as_far_as_readable(
+    shared_data: Path, tmp_path: Path, damage: str
+) -> None:
     folder = "pair_chair_moving_20220923"
     bag = _copy_bag(shared_data, tmp_path, folder)
     (db3,) = bag.glob("*.db3")
@@ -394,12 +396,20 @@ def test_damaged_bag_is_read_as_far_as_readable(shared_data: Path, tmp_path: Pat
     # garbled pages: the rows before them are read, with a warning that says how much was lost
     source = RosbagSource(bag, cfg)
     events = list(source)
-    assert source.warnings[-1].endswith("3230 of its 8923 messages readable, 5693 (64 %) lost; reading what is readable")
+    assert source.warnings[-1].endswith(
+        "3230 of its 8923 messages readable, 5693 (64 %) lost; reading what is readable"
+    )
     assert len(events) == 2476 and source.stats.rejected["bag_damaged"] == 1
 
 
 @pytest.mark.parametrize(
-    "text", ["this: is: [not yaml\n\x00\xff", "a: [1, 2\n", "rosbag2_bagfile_information:\n  version: 5\n", "42\n"]
+    "text",
+    [
+        "this: is: [not yaml\n\x00\xff",
+        "a: [1, 2\n",
+        "rosbag2_bagfile_information:\n  version: 5\n",
+        "42\n",
+    ],
 )
 def test_garbage_metadata_is_a_bag_error_naming_the_file(tmp_path: Path, text: str) -> None:
     (tmp_path / "metadata.yaml").write_bytes(text.encode("latin-1"))

@@ -65,7 +65,9 @@ def tls(port: int) -> str:
     return f"tls/127.0.0.1:{port}"
 
 
-def open_role(folder: Path, role: str, *, listen: int | None = None, connect: tuple[int, ...] = ()) -> Any:
+def open_role(
+    folder: Path, role: str, *, listen: int | None = None, connect: tuple[int, ...] = ()
+) -> Any:
     """A session with ``folder/<role>.json5``."""
     return open_session(
         ZenohOptions(
@@ -84,11 +86,32 @@ def test_secure_init_writes_a_ca_a_certificate_and_a_config_per_role(tmp_path: P
 
     team = REPO / "configs" / "tiers" / "multi4_shortbag_20221011.toml"
     out = tmp_path / "sec"
-    args = [sys.executable, "-m", "relloc.cli", "secure", "init", "--config", str(team), "--out", str(out)]
-    done = subprocess.run([*args, "--host", "robot1.lan", "--host", "10.0.0.7"], capture_output=True, text=True, cwd=REPO, timeout=60)
+    args = [
+        sys.executable,
+        "-m",
+        "relloc.cli",
+        "secure",
+        "init",
+        "--config",
+        str(team),
+        "--out",
+        str(out),
+    ]
+    done = subprocess.run(
+        [*args, "--host", "robot1.lan", "--host", "10.0.0.7"],
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+        timeout=60,
+    )
     assert done.returncode == 0, done.stderr
     config = TeamConfig.load(team)
-    assert roles(config) == ["serve", "navigate", "team", *(f"robot-{r}" for r in config.robot_names)]
+    assert roles(config) == [
+        "serve",
+        "navigate",
+        "team",
+        *(f"robot-{r}" for r in config.robot_names),
+    ]
     ca = x509.load_pem_x509_certificate((out / "ca.pem").read_bytes())
     for role in roles(config):
         cert = x509.load_pem_x509_certificate((out / f"{role}.pem").read_bytes())
@@ -154,11 +177,26 @@ def test_refusals_are_counted_from_zenohs_trace_log() -> None:
     refusals = AccessRefusals()
     lines = [
         head + "ACL (ingress): caching permissions for `r2/cmd_vel` ...",
-        head + link.format(cn="team", verdict="authorized", msg="Query", flow="ingress", key="r2/cmd_vel"),
-        head + link.format(cn="team", verdict="unauthorized", msg="Put", flow="ingress", key="r2/cmd_vel"),
-        head + link.format(cn="robot-r1", verdict="unauthorized", msg="Put", flow="ingress", key="r2/odom"),
-        head + link.format(cn="robot-r1", verdict="unauthorized", msg="Put", flow="ingress", key="r2/odom"),
-        head + link.format(cn="serve", verdict="authorized", msg="Put", flow="egress", key="relloc/r2/pose"),
+        head
+        + link.format(
+            cn="team", verdict="authorized", msg="Query", flow="ingress", key="r2/cmd_vel"
+        ),
+        head
+        + link.format(
+            cn="team", verdict="unauthorized", msg="Put", flow="ingress", key="r2/cmd_vel"
+        ),
+        head
+        + link.format(
+            cn="robot-r1", verdict="unauthorized", msg="Put", flow="ingress", key="r2/odom"
+        ),
+        head
+        + link.format(
+            cn="robot-r1", verdict="unauthorized", msg="Put", flow="ingress", key="r2/odom"
+        ),
+        head
+        + link.format(
+            cn="serve", verdict="authorized", msg="Put", flow="egress", key="relloc/r2/pose"
+        ),
     ]
     assert all(refusals.feed(line) for line in lines)
     assert not refusals.feed("relloc serve: sim_nav, pf, 4000 particles")
@@ -187,7 +225,9 @@ def test_a_session_without_a_certificate_of_the_teams_ca_cannot_connect(
     import zenoh
 
     intruders = {
-        "plain TCP": open_session(ZenohOptions(connect=(f"tcp/127.0.0.1:{port}",), multicast=False)),
+        "plain TCP": open_session(
+            ZenohOptions(connect=(f"tcp/127.0.0.1:{port}",), multicast=False)
+        ),
         "another CA": open_role(other, "robot-r1", connect=(port,)),
         "no certificate": zenoh.open(zenoh.Config.from_json5(ca_only)),
     }
@@ -203,7 +243,9 @@ def test_a_session_without_a_certificate_of_the_teams_ca_cannot_connect(
         robot.put("r1/odom", b"robot-r1 again")
         assert wait_until(lambda: b"robot-r1 again" in got, timeout=10)
         assert got == [b"robot-r1", b"robot-r1 again"]
-        assert {name: s.info.links() for name, s in intruders.items()} == {name: [] for name in intruders}
+        assert {name: s.info.links() for name, s in intruders.items()} == {
+            name: [] for name in intruders
+        }
         assert [link.auth_identifier for link in serve.info.links()] == ["robot-r1"]
     finally:
         sub.undeclare()
@@ -229,10 +271,18 @@ class Attacker:
         while not self.halt.is_set():
             t += 0.05
             s = self.session
-            s.put("r2/odom", encode(odometry_msg(OdometryEvent(self.base + t, "r2", 5.0, 5.0, 0.0))))
-            s.put("uwb/tof/n_2/n_0/distance", encode(range_msg(RangeEvent(self.base + t, "r2", "r0", 9.0, "n_2", "n_0"))))
+            s.put(
+                "r2/odom", encode(odometry_msg(OdometryEvent(self.base + t, "r2", 5.0, 5.0, 0.0)))
+            )
+            s.put(
+                "uwb/tof/n_2/n_0/distance",
+                encode(range_msg(RangeEvent(self.base + t, "r2", "r0", 9.0, "n_2", "n_0"))),
+            )
             cov = [[1e-4, 0.0], [0.0, 1e-4]]
-            s.put("relloc/r2/pose", encode(pose_with_covariance_msg(self.base + t, 9.0, 9.0, cov=cov, frame_id="r0")))
+            s.put(
+                "relloc/r2/pose",
+                encode(pose_with_covariance_msg(self.base + t, 9.0, 9.0, cov=cov, frame_id="r0")),
+            )
             s.put("r2/cmd_vel", encode(twist_msg(1.0, 1.0)))
             self.cmd_pub.put(encode(twist_msg(1.0, 1.0)))
             self.sent += 1
@@ -266,10 +316,14 @@ def _serve_simulated_team(folder: Path, attack: bool) -> tuple[list[Any], dict[s
     ]  # fmt: skip
     rate = 4.0
     base = 1_700_000_000.0
-    server = LiveServer(config, serve, ServeOptions(particles=1000, clock_rate=rate, reorder_window=2.0))
+    server = LiveServer(
+        config, serve, ServeOptions(particles=1000, clock_rate=rate, reorder_window=2.0)
+    )
     attacker = None
     try:
-        assert wait_until(lambda: len(serve.info.links()) == 2 and len(nav.info.links()) == 2, timeout=10)
+        assert wait_until(
+            lambda: len(serve.info.links()) == 2 and len(nav.info.links()) == 2, timeout=10
+        )
         if attack:
             attacker_session = open_role(folder, "robot-r1", connect=(p_serve, p_team))
             sessions.insert(0, attacker_session)
@@ -368,6 +422,7 @@ def test_secure_sim_robots_serve_and_navigate_drive_the_small_rectangle_under_at
     logs = {p.stem: p.read_text() for p in tmp_path.glob("*.log")}
     assert "zenoh session authenticated as 'serve' (mutual TLS" in logs["serve"]
     assert "authenticated as 'navigate'" in logs["nav"] and "poses only from 'serve'" in logs["nav"]
+
     # Zenoh reports a refused key once when it caches the sender's permissions for it, or per
     # message while it judges them one by one: each attack is reported, at least once.
     def reported(refused: dict[str, Any]) -> set[str]:
@@ -394,7 +449,9 @@ class _Sample:
         return self._bytes
 
 
-def test_navigate_acts_only_on_poses_it_can_tell_come_from_serve(team: tuple[TeamConfig, Path]) -> None:
+def test_navigate_acts_only_on_poses_it_can_tell_come_from_serve(
+    team: tuple[TeamConfig, Path],
+) -> None:
     """With ``pose_identity`` a pose is used only while a link authenticated as serve is up;
     otherwise the robot is held (``unverified``) at the next control step."""
     from relloc.navigation.live import LiveNavigation, NavigateOptions
@@ -402,7 +459,11 @@ def test_navigate_acts_only_on_poses_it_can_tell_come_from_serve(team: tuple[Tea
 
     config, folder = team
     x0, y0 = load_path(SMALL).waypoints[0]
-    pose = _Sample(encode(pose_with_covariance_msg(100.0, x0, y0, cov=[[1e-3, 0.0], [0.0, 1e-3]], frame_id="r0")))
+    pose = _Sample(
+        encode(
+            pose_with_covariance_msg(100.0, x0, y0, cov=[[1e-3, 0.0], [0.0, 1e-3]], frame_id="r0")
+        )
+    )
     opts = NavigateOptions(robot="r2", path=load_path(SMALL), pose_identity="serve")
     port = free_tcp_port()
     nav_session = open_role(folder, "navigate", listen=port)
@@ -412,7 +473,10 @@ def test_navigate_acts_only_on_poses_it_can_tell_come_from_serve(team: tuple[Tea
         assert wait_until(lambda: len(nav_session.info.links()) == 1, timeout=10)
         live._on_pose(pose)
         assert live.received == {"odometry": 0, "estimate": 0, "decode_error": 0, "unverified": 1}
-        assert live.navigator.gate.check(100.0, None, None) == ("unverified", "no link authenticated as 'serve'")
+        assert live.navigator.gate.check(100.0, None, None) == (
+            "unverified",
+            "no link authenticated as 'serve'",
+        )
         cmd = live.navigator.update(100.0)
         assert (cmd.v, cmd.w) == (0.0, 0.0) and live.navigator.gate.reason == "unverified"
         serve = open_role(folder, "serve", connect=(port,))

@@ -55,9 +55,13 @@ def _pair(seed: int, *, moving_b: bool = True, duration: float = 30.0) -> Simula
     return Simulation(robots, reference="a", seed=seed, duration=duration, name="pair")
 
 
-def _estimate_config(sim: Simulation, *, bias: str = "calibrated", particles: int = 300) -> TeamConfig:
+def _estimate_config(
+    sim: Simulation, *, bias: str = "calibrated", particles: int = 300
+) -> TeamConfig:
     config = sim.config
-    config = replace(config, robots=tuple(replace(r, heading_offset_deg=0.0) for r in config.robots))
+    config = replace(
+        config, robots=tuple(replace(r, heading_offset_deg=0.0) for r in config.robots)
+    )
     if bias == "online":
         config = replace(config, uwb=replace(config.uwb, pairs={}))
     return config.with_modes(heading="estimate", bias=bias).with_filter(
@@ -73,7 +77,9 @@ def _run(sim: Simulation, config: TeamConfig, seed: int = 0) -> tuple[Engine, Gr
 
 
 def _true_heading(sim: Simulation, robot: str, reference: str) -> float:
-    return math.remainder(sim.true_heading_offsets[robot] - sim.true_heading_offsets[reference], math.tau)
+    return math.remainder(
+        sim.true_heading_offsets[robot] - sim.true_heading_offsets[reference], math.tau
+    )
 
 
 # ---------------------------------------------------------------------------- simulated runs
@@ -92,7 +98,9 @@ def test_heading_converges_from_the_uniform_prior_when_both_robots_move() -> Non
     pf = report.methods["pf"]
     assert pf.robots["b"].median < 0.2
     assert pf.heading_median_deg("b") < 5.0
-    assert report.methods["pf"].frame_rotation_deg == pytest.approx(math.degrees(sim.true_heading_offsets["a"]), abs=0.1)
+    assert report.methods["pf"].frame_rotation_deg == pytest.approx(
+        math.degrees(sim.true_heading_offsets["a"]), abs=0.1
+    )
 
 
 def test_static_robot_keeps_a_wide_heading_spread_while_its_position_converges() -> None:
@@ -124,7 +132,13 @@ def test_bias_recovered_on_a_simulated_pair_with_motion(heading: str) -> None:
         RobotMotion("a", "n_1", -1.0, -1.0, float(yaw_a), square),
         RobotMotion("b", "n_2", -1.0 + 1.6 * c - s, -1.0 + 1.6 * s + c, float(yaw_b), ()),
     ]
-    sim = Simulation(robots, reference="a", seed=seed, duration=40.0, uwb=UwbErrorModel(orientation_amplitude=0.0))
+    sim = Simulation(
+        robots,
+        reference="a",
+        seed=seed,
+        duration=40.0,
+        uwb=UwbErrorModel(orientation_amplitude=0.0),
+    )
     config = replace(sim.config, uwb=replace(sim.config.uwb, pairs={}))
     if heading == "estimate":
         config = _estimate_config(sim, bias="online")
@@ -146,7 +160,9 @@ def test_five_robots_all_online_short_run() -> None:
     acceptance run and its figures: docs/self-calibration.md)."""
     opts = DemoOptions(seed=0, heading="estimate", bias="online", particles=800)
     sim, config, truth = scenario_setup("multi", opts)
-    sim = type(sim)(sim.motions, reference=sim.reference, seed=sim.seed, duration=40.0, name="sim_multi")
+    sim = type(sim)(
+        sim.motions, reference=sim.reference, seed=sim.seed, duration=40.0, name="sim_multi"
+    )
     engine, gt = _run(sim, config.with_filter(selfcal_init_particles=10000), seed=0)
     report = evaluate(engine, gt, "multi", warmup=20.0, bias_truth=truth)
     pf = report.methods["pf"]
@@ -168,7 +184,9 @@ def test_the_acceptance_run_of_the_self_calibration_issue() -> None:
     odometry frame, turned once by the truth, it was 0.06-0.08 m. The bias bound holds narrowly
     (n_0-n_2 0.047 m): pairs with the static r0 are at the edge of what the simulated data
     determine (docs/self-calibration.md), and other seeds have pairs over 0.05 m."""
-    opts = DemoOptions(seed=0, heading="estimate", bias="online", scenarios=("multi",), methods=("pf",))
+    opts = DemoOptions(
+        seed=0, heading="estimate", bias="online", scenarios=("multi",), methods=("pf",)
+    )
     sim, config, truth = scenario_setup("multi", opts)
     report = evaluate(*_run(sim, config, seed=0), "multi", warmup=20.0, bias_truth=truth)
     pf = report.methods["pf"]
@@ -180,8 +198,15 @@ def test_the_acceptance_run_of_the_self_calibration_issue() -> None:
 
 # ---------------------------------------------------------------------------- pieces
 def test_wrapping_at_180_degrees_in_the_mean_and_in_the_error() -> None:
-    assert math.degrees(abs(float(wrap_angle(math.radians(179.0) - math.radians(-179.0))))) == pytest.approx(2.0)
-    h = HeadingPaired(np.array([0.0]), np.array([math.radians(-179.0)]), np.array([0.01]), np.array([math.radians(179.0)]))
+    assert math.degrees(
+        abs(float(wrap_angle(math.radians(179.0) - math.radians(-179.0))))
+    ) == pytest.approx(2.0)
+    h = HeadingPaired(
+        np.array([0.0]),
+        np.array([math.radians(-179.0)]),
+        np.array([0.01]),
+        np.array([math.radians(179.0)]),
+    )
     assert math.degrees(h.errors[0]) == pytest.approx(2.0)
     # a mixture straddling +-180 deg has its circular mean there, with a small spread
     layout = CalibrationLayout(("a", "b"), "a", heading=True)
@@ -197,7 +222,13 @@ def test_wrapping_at_180_degrees_in_the_mean_and_in_the_error() -> None:
 
 def test_prediction_rotates_odometry_by_the_heading_and_propagates_covariance() -> None:
     layout = CalibrationLayout(("a", "b"), "a", heading=True, scale=True)
-    gsf = GaussianSumFilter(layout, 3, (-4, 4, -4, 4), rng=np.random.default_rng(0), motion=OdometryMotion(process_noise=0.0))
+    gsf = GaussianSumFilter(
+        layout,
+        3,
+        (-4, 4, -4, 4),
+        rng=np.random.default_rng(0),
+        motion=OdometryMotion(process_noise=0.0),
+    )
     theta, s = 0.7, 1.1
     c0, c1 = layout.u_columns("b")
     gsf.mean[:, c0], gsf.mean[:, c1] = s * math.cos(theta), s * math.sin(theta)
@@ -219,13 +250,24 @@ def test_prediction_rotates_odometry_by_the_heading_and_propagates_covariance() 
 def test_range_update_is_the_kalman_update_and_the_weight_its_predictive_density() -> None:
     layout = CalibrationLayout(("a", "b"), "a", bias_pairs=("n_1-n_2",))
     assert layout.width == 4  # position of b, the pair's bias, its time-correlated error
-    gsf = GaussianSumFilter(layout, 1, (-4, 4, -4, 4), rng=np.random.default_rng(0),
-                            bias_prior=(np.array([0.3]), np.array([0.04])))
+    gsf = GaussianSumFilter(
+        layout,
+        1,
+        (-4, 4, -4, 4),
+        rng=np.random.default_rng(0),
+        bias_prior=(np.array([0.3]), np.array([0.04])),
+    )
     gsf.mean[0, :2] = [3.0, 4.0]
     p0, m0 = gsf.cov[0].copy(), gsf.mean[0].copy()
     ranges = RangeBatch(
-        np.array([0]), np.array([1]), np.array([5.5]), np.array([0.0]), np.array([0.1]), outlier_fraction=0.0,
-        state_columns=(layout.bias_state_columns("n_1-n_2"),), layout=layout,
+        np.array([0]),
+        np.array([1]),
+        np.array([5.5]),
+        np.array([0.0]),
+        np.array([0.1]),
+        outlier_fraction=0.0,
+        state_columns=(layout.bias_state_columns("n_1-n_2"),),
+        layout=layout,
     )
     logw = gsf.logw.copy()
     assert gsf.update([ranges])
@@ -240,15 +282,24 @@ def test_range_update_is_the_kalman_update_and_the_weight_its_predictive_density
     np.testing.assert_allclose(gsf.cov[0], p0 - np.outer(k, h @ p0), atol=1e-12)
     # the weight is multiplied by the predictive density (one Gaussian: normalised away)
     row = ranges.row(0, m0[None, :])
-    assert row.density(np.array([r]), np.array([s]))[0][0] == pytest.approx(-0.5 * r * r / s - 0.5 * math.log(2 * math.pi * s))
+    assert row.density(np.array([r]), np.array([s]))[0][0] == pytest.approx(
+        -0.5 * r * r / s - 0.5 * math.log(2 * math.pi * s)
+    )
     assert gsf.logw == pytest.approx(logw)
 
 
 def test_correlated_range_error_is_a_gauss_markov_state_beside_the_constant_bias() -> None:
     layout = CalibrationLayout(("a", "b"), "a", bias_pairs=("n_1-n_2",))
     noise = CalibrationNoise(colored_sigma=0.05, colored_time=10.0, bias_walk=0.0)
-    gsf = GaussianSumFilter(layout, 2, (-4, 4, -4, 4), rng=np.random.default_rng(0), noise=noise,
-                            bias_prior=(np.array([0.3]), np.array([0.04])), motion=OdometryMotion(process_noise=0.0))
+    gsf = GaussianSumFilter(
+        layout,
+        2,
+        (-4, 4, -4, 4),
+        rng=np.random.default_rng(0),
+        noise=noise,
+        bias_prior=(np.array([0.3]), np.array([0.04])),
+        motion=OdometryMotion(process_noise=0.0),
+    )
     b, c = layout.bias_column("n_1-n_2"), layout.colored_column("n_1-n_2")
     assert gsf.mean[0, c] == 0.0 and gsf.cov[0, c, c] == pytest.approx(0.05**2)  # stationary
     gsf.mean[:, c] = 0.1
@@ -283,8 +334,15 @@ def test_deferred_covariance_updates_equal_the_sequential_ones() -> None:
         for k, (i, j) in enumerate(((0, 1), (0, 2), (1, 2))):
             z = 2.0 + 0.1 * step + 0.3 * k
             ranges = RangeBatch(
-                np.array([i]), np.array([j]), np.array([z]), np.array([0.0]), np.array([0.15]), 0.1, 15.0,
-                state_columns=(layout.bias_state_columns(pairs[k]),), layout=layout,
+                np.array([i]),
+                np.array([j]),
+                np.array([z]),
+                np.array([0.0]),
+                np.array([0.15]),
+                0.1,
+                15.0,
+                state_columns=(layout.bias_state_columns(pairs[k]),),
+                layout=layout,
             )
             for gsf in (a, b):
                 for row in range(ranges.rows):
@@ -343,18 +401,35 @@ def test_a_static_robot_end_makes_a_pair_bias_differ_from_the_drawn_one() -> Non
 
 # ---------------------------------------------------------------------------- configuration
 def test_modes_from_the_command_line_and_the_config() -> None:
-    args = build_parser().parse_args(["demo", "--heading", "estimate", "--bias", "online", "--odom-scale", "online"])
+    args = build_parser().parse_args(
+        ["demo", "--heading", "estimate", "--bias", "online", "--odom-scale", "online"]
+    )
     assert (args.heading, args.bias, args.odom_scale) == ("estimate", "online", "online")
-    args = build_parser().parse_args(["run", "bag", "--config", "c.toml", "--heading", "estimate", "--reference", "x"])
+    args = build_parser().parse_args(
+        ["run", "bag", "--config", "c.toml", "--heading", "estimate", "--reference", "x"]
+    )
     assert (args.heading, args.reference, args.bias) == ("estimate", "x", None)
     sim = single_scenario(seed=0, duration=5.0)
     with pytest.raises(ConfigError):
         sim.config.with_modes(heading="magnetometer")
     with pytest.raises(ConfigError):
         sim.config.with_modes(reference="ghost")
-    cfg = TeamConfig.from_dict({**sim.config.to_dict(), "filter": {"self_calibration": {"heading_mode": "estimate", "odom_scale_mode": "online"}}})
-    loc = build_pipeline("pf", cfg.with_filter(selfcal_particles=50, selfcal_init_particles=50)).localizer
-    assert isinstance(loc, SelfCalibratingLocalizer) and loc.filter.layout.heading and loc.filter.layout.scale
+    cfg = TeamConfig.from_dict(
+        {
+            **sim.config.to_dict(),
+            "filter": {
+                "self_calibration": {"heading_mode": "estimate", "odom_scale_mode": "online"}
+            },
+        }
+    )
+    loc = build_pipeline(
+        "pf", cfg.with_filter(selfcal_particles=50, selfcal_init_particles=50)
+    ).localizer
+    assert (
+        isinstance(loc, SelfCalibratingLocalizer)
+        and loc.filter.layout.heading
+        and loc.filter.layout.scale
+    )
     # the config's heading offsets and scales are not read in these modes
     assert all(t.heading_offset == 0.0 and t.scale == 1.0 for t in loc.tracks.values())
 
@@ -366,14 +441,20 @@ def test_demo_hides_what_is_estimated_and_moves_the_reference() -> None:
     assert config.uwb.pairs == {} and truth == sim.true_biases
     assert len({round(v, 3) for v in sim.true_heading_offsets.values()}) == 5  # random frames
     _, default, none = scenario_setup("multi", DemoOptions())
-    assert default.reference == "r0" and default.filter.self_calibration.heading_mode == "compass" and none is None
+    assert (
+        default.reference == "r0"
+        and default.filter.self_calibration.heading_mode == "compass"
+        and none is None
+    )
 
 
 # ---------------------------------------------------------------------------- TIERS recordings
 def _bag(shared_data: Path, name: str, **modes) -> object:
     config = TeamConfig.load(CONFIGS / f"{name}.toml")
     if modes.get("heading") == "estimate":  # no heading offset anywhere
-        config = replace(config, robots=tuple(replace(r, heading_offset_deg=0.0) for r in config.robots))
+        config = replace(
+            config, robots=tuple(replace(r, heading_offset_deg=0.0) for r in config.robots)
+        )
     opts = RunOptions(methods=("pf",), warmup=10.0, progress=False, **modes)
     return run_recording(shared_data / "tiers" / name, config, opts)
 
@@ -386,7 +467,9 @@ def test_single_range_bag_with_estimated_heading_and_a_moving_reference(shared_d
     assert pf.heading_spread_deg("turtle03") > 90.0  # turtle03 never moves
 
 
-def test_single_range_bag_with_a_static_reference_says_the_bearing_is_unobservable(shared_data: Path) -> None:
+def test_single_range_bag_with_a_static_reference_says_the_bearing_is_unobservable(
+    shared_data: Path,
+) -> None:
     report = _bag(shared_data, "pair_range_20220907_1725", heading="estimate")  # turtle03, static
     pf = report.methods["pf"]
     assert pf.heading_spread_deg("turtle01") > 90.0
@@ -423,8 +506,12 @@ def test_configured_offsets_are_only_an_optional_prior() -> None:
     assert math.degrees(spread) < 10.0  # known from the start ...
     assert abs(math.degrees(float(wrap_angle(mean - _true_heading(sim, "b", "a"))))) < 5.0
     # ... while without the prior the same config's offsets are not read at all
-    untold = sim.config.with_modes(heading="estimate").with_filter(selfcal_particles=300, selfcal_init_particles=5000)
-    assert _run(sim, untold, seed=4)[0].pipelines[0].estimates[0].headings["b"][1] > math.radians(90.0)
+    untold = sim.config.with_modes(heading="estimate").with_filter(
+        selfcal_particles=300, selfcal_init_particles=5000
+    )
+    assert _run(sim, untold, seed=4)[0].pipelines[0].estimates[0].headings["b"][1] > math.radians(
+        90.0
+    )
 
 
 def test_a_heading_prior_holds_the_scale_once() -> None:

@@ -35,7 +35,12 @@ REPO = Path(__file__).resolve().parents[1]
 def relloc(*args: str, log: Path) -> subprocess.Popen[bytes]:
     """Start ``relloc ARGS`` (this interpreter) with its output in ``log``."""
     with log.open("wb") as fh:
-        return subprocess.Popen([sys.executable, "-m", "relloc.cli", *args], stdout=fh, stderr=subprocess.STDOUT, cwd=REPO)
+        return subprocess.Popen(
+            [sys.executable, "-m", "relloc.cli", *args],
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            cwd=REPO,
+        )
 
 
 def read_mcap(path: Path) -> dict[str, list[tuple[str, int, Any]]]:
@@ -49,7 +54,11 @@ def read_mcap(path: Path) -> dict[str, list[tuple[str, int, Any]]]:
 
 
 def test_serve_records_what_it_publishes_to_mcap(tmp_path: Path) -> None:
-    team, record, summary_path = tmp_path / "team.toml", tmp_path / "live.mcap", tmp_path / "serve.json"
+    team, record, summary_path = (
+        tmp_path / "team.toml",
+        tmp_path / "live.mcap",
+        tmp_path / "serve.json",
+    )
     made = subprocess.run(
         [sys.executable, "-m", "relloc.cli", "sim-robots", "--scenario", "multi", "--config-only",
          "--write-config", str(team), "--particles", "500"],
@@ -68,8 +77,12 @@ def test_serve_records_what_it_publishes_to_mcap(tmp_path: Path) -> None:
     session = open_session(ZenohOptions(connect=(endpoint,), multicast=False))
     status: list[dict[str, Any]] = []
     try:
-        collector = EstimateCollector(session, config, interface=RosInterface(distro=config.ros_distro))
-        session.declare_subscriber("relloc/status", lambda s: status.append(json.loads(s.payload.to_bytes())))
+        collector = EstimateCollector(
+            session, config, interface=RosInterface(distro=config.ros_distro)
+        )
+        session.declare_subscriber(
+            "relloc/status", lambda s: status.append(json.loads(s.payload.to_bytes()))
+        )
         # the team starts once the test hears serve (its status, every second): the test's
         # subscribers have reached serve before the first estimate
         assert wait_until(lambda: bool(status), timeout=60.0), (tmp_path / "serve.log").read_text()
@@ -82,9 +95,12 @@ def test_serve_records_what_it_publishes_to_mcap(tmp_path: Path) -> None:
         assert sim.wait(timeout=120) == 0, (tmp_path / "sim.log").read_text()
         sent = json.loads((tmp_path / "sim.json").read_text())["messages"]
         # serve has every message (its status says so) and the test every estimate of it so far
-        assert wait_until(lambda: bool(status) and status[-1]["source"]["messages"] == sent, timeout=30.0), status[-1:]
         assert wait_until(
-            lambda: len(collector.estimates()) == status[-1]["methods"]["pf"]["estimates"], timeout=30.0
+            lambda: bool(status) and status[-1]["source"]["messages"] == sent, timeout=30.0
+        ), status[-1:]
+        assert wait_until(
+            lambda: len(collector.estimates()) == status[-1]["methods"]["pf"]["estimates"],
+            timeout=30.0,
         ), (len(collector.estimates()), status[-1]["methods"]["pf"])
         serve.send_signal(signal.SIGTERM)
         assert serve.wait(timeout=30) == 0, (tmp_path / "serve.log").read_text()
@@ -117,13 +133,20 @@ def test_serve_records_what_it_publishes_to_mcap(tmp_path: Path) -> None:
     status_msgs = topics["/relloc/pf/status"]
     assert len(status_msgs) == n
     assert all(schema == "diagnostic_msgs/msg/DiagnosticArray" for schema, _, _ in status_msgs)
-    assert {kv.key for kv in status_msgs[-1][2].status[0].values} == {"orientation_observable", "inconsistent", "recovering"}
+    assert {kv.key for kv in status_msgs[-1][2].status[0].values} == {
+        "orientation_observable",
+        "inconsistent",
+        "recovering",
+    }
 
     # The poses and covariances are the ones serve published on Zenoh (the last estimate, fused
     # as serve stopped, may not have reached the test before its session closed)
     assert n - 1 <= len(published) <= n
     for robot in robots:
-        recorded = {m.header.stamp.sec + m.header.stamp.nanosec * 1e-9: m for _, _, m in topics[f"/relloc/pf/{robot}/pose"]}
+        recorded = {
+            m.header.stamp.sec + m.header.stamp.nanosec * 1e-9: m
+            for _, _, m in topics[f"/relloc/pf/{robot}/pose"]
+        }
         for est in published:
             msg = recorded[est.t]  # the stamp, as the collector rebuilds it
             assert msg.header.frame_id == config.reference

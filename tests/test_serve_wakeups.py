@@ -142,13 +142,18 @@ def test_the_wake_rule_judges_the_header_stamp_the_decoder_reads() -> None:
     message stamped exactly at the rule's bound wakes the engine, one a microsecond before
     does not; bytes that are no CDR header wake it (judged by the decoder later)."""
     src = ZenohSource(team())
-    for key, payload in (("a/odom", odom_payload("a", T0 + 0.123456789)), ("uwb/tof/n_1/n_2/distance", range_payload(T0 + 2.5))):
+    for key, payload in (
+        ("a/odom", odom_payload("a", T0 + 0.123456789)),
+        ("uwb/tof/n_1/n_2/distance", range_payload(T0 + 2.5)),
+    ):
         t = header_stamp_from_cdr(payload)
         odometry = key.endswith("odom")
         at = WakeRule(-math.inf if odometry else t, t if odometry else math.inf, T0 - 5.0, T0 + 5.0)
         before = WakeRule(*(b + 1e-6 if math.isfinite(b) and b == t else b for b in at))
         assert src._urgent(at, key, payload, 0.0) and not src._urgent(before, key, payload, 0.0)
-    assert src._urgent(WakeRule(math.inf, math.inf, T0 - 5.0, T0 + 5.0), "a/odom", b"\x07\x01" + bytes(20), 0.0)
+    assert src._urgent(
+        WakeRule(math.inf, math.inf, T0 - 5.0, T0 + 5.0), "a/odom", b"\x07\x01" + bytes(20), 0.0
+    )
 
 
 def test_source_wakes_only_for_urgent_messages_and_keeps_arrival_order() -> None:

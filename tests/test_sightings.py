@@ -21,7 +21,9 @@ from relloc.sources.mrclam import MrclamSource, integrate_odometry, is_mrclam
 
 
 def _config(n: int = 2) -> TeamConfig:
-    return TeamConfig(tuple(RobotConfig(f"r{i}") for i in range(n)), "r0", area=(-5.0, 5.0, -5.0, 5.0))
+    return TeamConfig(
+        tuple(RobotConfig(f"r{i}") for i in range(n)), "r0", area=(-5.0, 5.0, -5.0, 5.0)
+    )
 
 
 class _Validation:
@@ -69,7 +71,9 @@ def test_the_bearing_residual_wraps_at_pi() -> None:
     context = ModelContext(config, layout, robust=False, yaws={"r0": 0.0, "r1": 0.0})
     lls = []
     for b in (math.radians(179.0), math.radians(-179.0)):
-        (model,) = SightingBatch.build([SightingEvent(0.0, "r0", "r1", None, b, 0.1, math.radians(1.0))], context)
+        (model,) = SightingBatch.build(
+            [SightingEvent(0.0, "r0", "r1", None, b, 0.1, math.radians(1.0))], context
+        )
         lls.append(float(model.log_likelihood(layout.positions(x), x)[0]))
     expected = -0.5 - math.log(math.radians(1.0)) - 0.5 * math.log(2 * math.pi)
     assert lls == pytest.approx([expected, expected], abs=1e-9)
@@ -107,14 +111,18 @@ def test_a_sighting_turns_an_unknown_heading_in_the_gaussian_sum_filter() -> Non
     heading unknown (u ~ N(0, I/2)); the sightings turn u to 70 deg."""
     config = _config()
     layout = CalibrationLayout(config.robot_names, config.reference, heading=True)
-    gsf = GaussianSumFilter(layout, 20, config.area, rng=np.random.default_rng(0), position_sigma=0.05)
+    gsf = GaussianSumFilter(
+        layout, 20, config.area, rng=np.random.default_rng(0), position_sigma=0.05
+    )
     theta = math.radians(70.0)
     p1 = np.array([1.0, 2.0])
     gsf.initialize(np.tile(p1, (20, 1)))
     # the reference as r1 sees it: -p1 turned into r1's body frame (r1's heading is theta)
     c, s = math.cos(theta), math.sin(theta)
     body = np.array([c * -p1[0] + s * -p1[1], -s * -p1[0] + c * -p1[1]])
-    sighting = SightingEvent(0.0, "r1", "r0", float(np.hypot(*body)), math.atan2(body[1], body[0]), 0.05, 0.01)
+    sighting = SightingEvent(
+        0.0, "r1", "r0", float(np.hypot(*body)), math.atan2(body[1], body[0]), 0.05, 0.01
+    )
     context = ModelContext(config, layout, yaws={"r0": 0.0, "r1": 0.0}, shared_heading=False)
     for _ in range(5):
         assert gsf.update(SightingBatch.build([sighting], context))
@@ -131,7 +139,9 @@ def test_a_sighting_does_not_read_the_observers_odometry_scale_into_the_range() 
     0.14 m error.)"""
     config = _config()
     layout = CalibrationLayout(config.robot_names, config.reference, heading=True, scale=True)
-    gsf = GaussianSumFilter(layout, 20, config.area, rng=np.random.default_rng(0), position_sigma=0.3)
+    gsf = GaussianSumFilter(
+        layout, 20, config.area, rng=np.random.default_rng(0), position_sigma=0.3
+    )
     theta, scale = math.radians(40.0), 0.9
     c, s = math.cos(theta), math.sin(theta)
     p1 = np.array([2.0, 1.0])
@@ -140,12 +150,18 @@ def test_a_sighting_does_not_read_the_observers_odometry_scale_into_the_range() 
     psi = 0.0
     for k in range(300):
         turn = math.pi / 2 if k % 20 == 19 else 0.0
-        odo = 0.1 * np.array([math.cos(psi + 0.5 * turn), math.sin(psi + 0.5 * turn)])  # in r1's odometry frame
+        odo = 0.1 * np.array(
+            [math.cos(psi + 0.5 * turn), math.sin(psi + 0.5 * turn)]
+        )  # in r1's odometry frame
         p1 = p1 + scale * np.array([c * odo[0] - s * odo[1], s * odo[0] + c * odo[1]])
         psi += turn
         gsf.predict(np.array([[0.0, 0.0], odo]), np.array([0.0, 0.002]), 0.5)
-        bearing = math.remainder(math.atan2(-p1[1], -p1[0]) - (theta + psi) + rng.normal(0.0, 0.005), math.tau)
-        sighting = SightingEvent(0.5 * k, "r1", "r0", float(np.hypot(*p1)) + rng.normal(0.0, 0.03), bearing, 0.03, 0.005)
+        bearing = math.remainder(
+            math.atan2(-p1[1], -p1[0]) - (theta + psi) + rng.normal(0.0, 0.005), math.tau
+        )
+        sighting = SightingEvent(
+            0.5 * k, "r1", "r0", float(np.hypot(*p1)) + rng.normal(0.0, 0.03), bearing, 0.03, 0.005
+        )
         context = ModelContext(config, layout, yaws={"r0": 0.0, "r1": psi}, shared_heading=False)
         assert gsf.update(SightingBatch.build([sighting], context))
         gsf.maybe_resample()
@@ -192,16 +208,22 @@ def _write_dataset(folder: Path) -> None:
     (folder / "Barcodes.dat").write_text(_HEADER + "  1 \t 5\n  2 \t 14\n  3 \t 41\n  6 \t 90\n")
     # robot1 drives straight at 0.1 m/s for 2 s, then turns in place at 0.5 rad/s for 1 s
     (folder / "Robot1_Odometry.dat").write_text(
-        _HEADER + "100.0 \t 0.1 \t 0.0\n101.0 \t 0.1 \t 0.0\n102.0 \t 0.0 \t 0.5\n103.0 \t 0.0 \t 0.0\n"
+        _HEADER
+        + "100.0 \t 0.1 \t 0.0\n101.0 \t 0.1 \t 0.0\n102.0 \t 0.0 \t 0.5\n103.0 \t 0.0 \t 0.0\n"
     )
-    (folder / "Robot2_Odometry.dat").write_text(_HEADER + "100.5 \t 0.0 \t 0.0\n102.5 \t 0.0 \t 0.0\n")
+    (folder / "Robot2_Odometry.dat").write_text(
+        _HEADER + "100.5 \t 0.0 \t 0.0\n102.5 \t 0.0 \t 0.0\n"
+    )
     # robot1 sees robot2 (barcode 14), a landmark (90) and an unknown barcode (77)
     (folder / "Robot1_Measurement.dat").write_text(
-        _HEADER + "100.2 \t 14 \t 2.0 \t 0.1\n100.4 \t 90 \t 3.0 \t -0.2\n101.1 \t 77 \t 1.0 \t 0.0\n"
+        _HEADER
+        + "100.2 \t 14 \t 2.0 \t 0.1\n100.4 \t 90 \t 3.0 \t -0.2\n101.1 \t 77 \t 1.0 \t 0.0\n"
     )
     (folder / "Robot2_Measurement.dat").write_text(_HEADER + "101.5 \t 5 \t 1.9 \t 3.0\n")
     for i in (1, 2):
-        (folder / f"Robot{i}_Groundtruth.dat").write_text(_HEADER + f"100.0 \t {i}.0 \t 0.5 \t 0.1\n103.0 \t {i}.5 \t 0.5 \t 0.2\n")
+        (folder / f"Robot{i}_Groundtruth.dat").write_text(
+            _HEADER + f"100.0 \t {i}.0 \t 0.5 \t 0.1\n103.0 \t {i}.5 \t 0.5 \t 0.2\n"
+        )
 
 
 def test_the_mrclam_reader_turns_a_data_set_into_events(tmp_path: Path) -> None:
@@ -217,11 +239,15 @@ def test_the_mrclam_reader_turns_a_data_set_into_events(tmp_path: Path) -> None:
     # stamped ODOMETRY_DELAY after the velocity command, when the robot follows it
     assert [e.t for e in odo] == pytest.approx([100.24, 101.24, 102.24, 103.24])
     assert [(round(e.x, 9), round(e.y, 9), round(e.yaw, 9)) for e in odo] == [
-        (0.0, 0.0, 0.0), (0.1, 0.0, 0.0), (0.2, 0.0, 0.0), (0.2, 0.0, 0.5),
+        (0.0, 0.0, 0.0),
+        (0.1, 0.0, 0.0),
+        (0.2, 0.0, 0.0),
+        (0.2, 0.0, 0.5),
     ]
     sightings = [e for e in events if isinstance(e, SightingEvent)]
     assert [(s.observer, s.target, s.range, s.bearing) for s in sightings] == [
-        ("robot1", "robot2", 2.0, 0.1), ("robot2", "robot1", 1.9, 3.0),
+        ("robot1", "robot2", 2.0, 0.1),
+        ("robot2", "robot1", 1.9, 3.0),
     ]
     assert sightings[0].sigma_range == pytest.approx(0.06 + 0.02 * 2.0)
     assert source.stats.counts["landmark_sightings"] == 1
@@ -254,16 +280,24 @@ def test_the_first_300_s_of_mrclam_dataset_6_from_the_uniform_prior(shared_data:
     folder = shared_data / "mrclam" / "MRCLAM_Dataset6"
     if not is_mrclam(folder):
         pytest.skip(f"MRCLAM Dataset 6 not found: {folder}")
-    config = TeamConfig.load(Path(__file__).resolve().parents[1] / "configs" / "mrclam" / "dataset6.toml")
-    config = config.with_filter(selfcal_particles=200, selfcal_init_particles=5000, heading_split_std=0.0)
+    config = TeamConfig.load(
+        Path(__file__).resolve().parents[1] / "configs" / "mrclam" / "dataset6.toml"
+    )
+    config = config.with_filter(
+        selfcal_particles=200, selfcal_init_particles=5000, heading_split_std=0.0
+    )
     source = MrclamSource(folder, config)
     truth = GroundTruth(config.reference)
     pipeline = build_pipeline("pf", config, seed=0)
     events = itertools.takewhile(lambda e: e.t < source.start_time + 300.0, source)
-    report = evaluate(Engine([pipeline], truth_sinks=[truth.add]).run(events), truth, "dataset6", 30.0)
+    report = evaluate(
+        Engine([pipeline], truth_sinks=[truth.add]).run(events), truth, "dataset6", 30.0
+    )
     body = report.methods["pf"].body_frame
     assert set(body) == {"robot1", "robot3", "robot4", "robot5"}
-    assert all(s.n > 900 and s.median < 0.21 for s in body.values()), {r: (s.n, s.median) for r, s in body.items()}
+    assert all(s.n > 900 and s.median < 0.21 for s in body.values()), {
+        r: (s.n, s.median) for r, s in body.items()
+    }
     scales = [v[0] for v in pipeline.estimates[-1].scales.values()]
     assert float(np.mean(scales)) < 1.0
 
@@ -277,12 +311,16 @@ def test_simulated_aoa_sightings_leave_the_other_draws_alone() -> None:
     from relloc.simulator import multi_scenario
     from relloc.simulator.error_models import UWB_AOA
 
-    plain = [e for e in multi_scenario(0, duration=10.0).events() if not isinstance(e, SightingEvent)]
+    plain = [
+        e for e in multi_scenario(0, duration=10.0).events() if not isinstance(e, SightingEvent)
+    ]
     sim = multi_scenario(0, duration=10.0, sightings=(UWB_AOA,))
     events = list(sim.events())
     assert [e for e in events if not isinstance(e, SightingEvent)] == plain
     sightings = [e for e in events if isinstance(e, SightingEvent)]
-    assert len(sightings) > 500 and all(e.range is None and e.sensor == "uwb_aoa" for e in sightings)
+    assert len(sightings) > 500 and all(
+        e.range is None and e.sensor == "uwb_aoa" for e in sightings
+    )
     assert any(isinstance(e, RangeEvent) for e in events)
     errors = []
     for e in sightings:
@@ -290,7 +328,9 @@ def test_simulated_aoa_sightings_leave_the_other_draws_alone() -> None:
         xt, yt, _ = sim.true_pose(e.target, e.t)
         errors.append(float(wrap_angle(e.bearing - (math.atan2(yt - yo, xt - xo) - yaw))))
     errors_deg = np.degrees(np.abs(errors))
-    assert np.all(np.abs([e.bearing for e in sightings]) <= math.radians(60.0 + 4 * 5.0))  # field of view + noise
+    assert np.all(
+        np.abs([e.bearing for e in sightings]) <= math.radians(60.0 + 4 * 5.0)
+    )  # field of view + noise
     assert np.median(errors_deg) == pytest.approx(5.0 * 0.674, rel=0.15)  # median |N(0, 5 deg)|
 
 
@@ -313,7 +353,9 @@ def test_the_oracle_ekf_tracks_a_team_from_camera_sightings() -> None:
     estimates += loc.flush()
     assert loc.stats["sighting"] > 200
     paired = associate(estimates, gt, loc.layout.others)
-    body = body_frame_paired(estimates, gt, loc.layout.others, loc.odometry_yaws[sim.config.reference])
+    body = body_frame_paired(
+        estimates, gt, loc.layout.others, loc.odometry_yaws[sim.config.reference]
+    )
     for robot in loc.layout.others:
         assert np.median(paired[robot].errors) < 0.15
         assert np.median(body[robot].errors) < 0.15
@@ -330,9 +372,16 @@ def test_the_self_calibrating_filter_tracks_drifting_headings_with_sightings() -
     from relloc.simulator import multi_scenario
     from relloc.simulator.error_models import TEAMMATE_CAMERA, OdometryErrorModel
 
-    sim = multi_scenario(0, duration=90.0, odometry=OdometryErrorModel(gyro_bias_max=0.01), sightings=(TEAMMATE_CAMERA,))
+    sim = multi_scenario(
+        0,
+        duration=90.0,
+        odometry=OdometryErrorModel(gyro_bias_max=0.01),
+        sightings=(TEAMMATE_CAMERA,),
+    )
     assert max(abs(b) for b in sim.true_gyro_biases.values()) * 90.0 > math.radians(45.0)
-    config = sim.config.with_modes(heading="estimate").with_filter(selfcal_particles=200, selfcal_init_particles=5000)
+    config = sim.config.with_modes(heading="estimate").with_filter(
+        selfcal_particles=200, selfcal_init_particles=5000
+    )
     truth = GroundTruth(config.reference)
     pipeline = build_pipeline("pf", config, seed=0)
     engine = Engine([pipeline], truth_sinks=[truth.add]).run(sim.events())
@@ -354,7 +403,9 @@ def test_sightings_arrive_as_point_stamped_in_the_observers_body_frame() -> None
 
     config = TeamConfig(
         (
-            RobotConfig("tb1", sighting_topic="/tb1/teammates/{target}", sighting_sigma_bearing_deg=2.0),
+            RobotConfig(
+                "tb1", sighting_topic="/tb1/teammates/{target}", sighting_sigma_bearing_deg=2.0
+            ),
             RobotConfig("tb2"),
             RobotConfig("tb3"),
         ),

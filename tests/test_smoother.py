@@ -104,15 +104,27 @@ def test_the_graph_stays_the_same_size_over_a_long_run() -> None:
     ia, ib = np.array([0, 0, 0, 1, 1, 2]), np.array([1, 2, 3, 2, 3, 3])
     graph = GraphSmoother(4, 0, lag=10.0)
     none = np.zeros(0, np.intp)
-    graph.start(0.0, points + 0.2, np.tile(0.3**2 * np.eye(2), (4, 1, 1)), none, none, np.zeros(0), np.zeros(0))
+    graph.start(
+        0.0,
+        points + 0.2,
+        np.tile(0.3**2 * np.eye(2), (4, 1, 1)),
+        none,
+        none,
+        np.zeros(0),
+        np.zeros(0),
+    )
     sizes = {}
     for step in range(1, 241):
         d = np.linalg.norm(points[ia] - points[ib], axis=1) + rng.normal(0.0, 0.1, ia.size)
-        graph.advance(0.5 * step, np.zeros((4, 2)), np.full(4, 0.25), ia, ib, d, np.full(ia.size, 0.15))
+        graph.advance(
+            0.5 * step, np.zeros((4, 2)), np.full(4, 0.25), ia, ib, d, np.full(ia.size, 0.15)
+        )
         sizes[step] = graph.size()
     assert sizes[60] == sizes[120] == sizes[240]
     assert graph.factors_added > 4 * sizes[240]
-    shape_error = np.abs(np.linalg.norm(graph.estimate, axis=1) - np.linalg.norm(points[1:], axis=1))
+    shape_error = np.abs(
+        np.linalg.norm(graph.estimate, axis=1) - np.linalg.norm(points[1:], axis=1)
+    )
     assert shape_error.max() < 0.2
 
 
@@ -130,7 +142,9 @@ def test_the_smoothed_run_is_its_own_row_and_no_worse_than_the_causal_one(odomet
     localizer = pipelines[0].localizer
     assert isinstance(localizer, SmootherLocalizer)
     causal, smoothed = reports["pf"], reports["pf_smoothed"]
-    assert smoothed.n_estimates == len(pipelines[0].estimates) == len(localizer.smoothed_estimates())
+    assert (
+        smoothed.n_estimates == len(pipelines[0].estimates) == len(localizer.smoothed_estimates())
+    )
     assert localizer.smoother is not None and localizer.stats["smoother_restarts"] == 0
     assert smoothed.n_estimates == localizer.smoother.step + 1  # one per smoother step
 
@@ -144,21 +158,40 @@ def test_the_smoothed_run_is_its_own_row_and_no_worse_than_the_causal_one(odomet
     # own frame a little, which the one alignment for the run charges to the far robots)
     assert mean_median(smoothed) <= mean_median(causal) + (0.0 if odometry else 0.01)
     last = localizer.smoothed_estimates()[-1]
-    assert last.orientation_observable == odometry and set(last.covariances) == {"r1", "r2", "r3", "r4"}
-    assert localizer.smoothed_estimates() is not localizer.smoothed_estimates()  # a copy of the cache
+    assert last.orientation_observable == odometry and set(last.covariances) == {
+        "r1",
+        "r2",
+        "r3",
+        "r4",
+    }
+    assert (
+        localizer.smoothed_estimates() is not localizer.smoothed_estimates()
+    )  # a copy of the cache
     assert SmootherLocalizer(pipelines[0].localizer.config).smoothed_estimates() == []
 
 
 def test_relloc_run_writes_the_smoothed_row(tmp_path: Path) -> None:
     path = tmp_path / "run.json"
-    argv = ["run", "multi", "--methods", "pf", "--filter-kind", "smoother", "--span", ":12", "--no-progress"]
+    argv = [
+        "run",
+        "multi",
+        "--methods",
+        "pf",
+        "--filter-kind",
+        "smoother",
+        "--span",
+        ":12",
+        "--no-progress",
+    ]
     assert main([*argv, "--json", str(path), "--out", str(tmp_path / "out")]) == 0
     methods = json.loads(path.read_text())["scenarios"]["multi"]["methods"]
     assert {"pf", "pf_smoothed"} <= set(methods)
     assert methods["pf_smoothed"]["n_estimates"] == methods["pf"]["n_estimates"] > 0
 
 
-def _bias_run(odometry: bool, online: bool) -> tuple[float, dict[str, tuple[float, float]], dict[str, float]]:
+def _bias_run(
+    odometry: bool, online: bool
+) -> tuple[float, dict[str, tuple[float, float]], dict[str, float]]:
     """The smoother on 30 s of the multi scenario with the config's pair biases removed (as
     ``relloc demo --bias online``): online, the uncalibrated prior ``default_bias`` +-
     ``default_bias_sigma``; else calibrated with every bias left at 0. Returns the mean over
@@ -177,7 +210,10 @@ def _bias_run(odometry: bool, online: bool) -> tuple[float, dict[str, tuple[floa
     gt = GroundTruth(config.reference)
     engine = Engine([pipeline], truth_sinks=[gt.add])
     engine.run(events)
-    assert isinstance(pipeline.localizer, SmootherLocalizer) and pipeline.localizer.stats["smoother_restarts"] == 0
+    assert (
+        isinstance(pipeline.localizer, SmootherLocalizer)
+        and pipeline.localizer.stats["smoother_restarts"] == 0
+    )
     report = evaluate(engine, gt, "multi", 5.0).methods["pf"]
     stats = report.robots if odometry else report.shape_robots
     assert set(stats) == {"r1", "r2", "r3", "r4"}
@@ -207,7 +243,9 @@ def test_sightings_alone_start_and_hold_the_smoother() -> None:
     start the smoother and fix the orientation; bearing-only sightings are counted unused."""
     from relloc.simulator.error_models import UWB_AOA, SightingSensorModel
 
-    camera = SightingSensorModel(sensor="camera", rate_hz=5.0, fov_deg=360.0, ranges=True, sigma_bearing=math.radians(2.0))
+    camera = SightingSensorModel(
+        sensor="camera", rate_hz=5.0, fov_deg=360.0, ranges=True, sigma_bearing=math.radians(2.0)
+    )
     sim = multi_scenario(seed=0, duration=30.0, sightings=[camera, UWB_AOA])
     config = sim.config.with_filter(kind="smoother")
     pipeline = build_pipeline("pf", config)

@@ -26,7 +26,9 @@ def _describe(source: Source) -> tuple[str, float, int, bool]:
     return source.name, round(source.duration, 3), len(events), source.initial_poses() is not None
 
 
-def test_each_kind_of_path_opens_its_source(tmp_path: Path, bag_writer: Callable[..., Path]) -> None:
+def test_each_kind_of_path_opens_its_source(
+    tmp_path: Path, bag_writer: Callable[..., Path]
+) -> None:
     bag = bag_writer(tmp_path / "synthetic", synthetic_messages())
     mcap = bag_writer(tmp_path / "as_mcap", synthetic_messages(), storage="mcap")
     folder = tmp_path / "MRCLAM_Test"
@@ -34,7 +36,10 @@ def test_each_kind_of_path_opens_its_source(tmp_path: Path, bag_writer: Callable
     team = synthetic_team()
     mrclam_team = TeamConfig((RobotConfig("robot1"), RobotConfig("robot2")), "robot1")
     assert [source_kind(p).name for p in (bag, next(mcap.glob("*.mcap")), folder, "single")] == [
-        "rosbag2", "rosbag2", "mrclam", "scenario",
+        "rosbag2",
+        "rosbag2",
+        "mrclam",
+        "scenario",
     ]
     name, _, n, oracle = _describe(open_source(bag, team))
     assert (name, oracle) == ("synthetic", False) and n > 0
@@ -45,8 +50,13 @@ def test_each_kind_of_path_opens_its_source(tmp_path: Path, bag_writer: Callable
 
 def test_what_is_no_source_is_one_clear_line(tmp_path: Path) -> None:
     (tmp_path / "notes.txt").write_text("")
-    for path, problem in ((tmp_path / "absent", "not found"), (tmp_path / "notes.txt", "not a source")):
-        with pytest.raises(SourceError, match=f"{problem}; give a rosbag2 recording .* or a simulated scenario") as info:
+    for path, problem in (
+        (tmp_path / "absent", "not found"),
+        (tmp_path / "notes.txt", "not a source"),
+    ):
+        with pytest.raises(
+            SourceError, match=f"{problem}; give a rosbag2 recording .* or a simulated scenario"
+        ) as info:
             source_kind(path)
         assert "\n" not in str(info.value)
     folder = tmp_path / "MRCLAM_Test"
@@ -58,30 +68,72 @@ def test_what_is_no_source_is_one_clear_line(tmp_path: Path) -> None:
         source_kind(tmp_path / "multi")
 
 
-def test_commands_refuse_a_source_they_cannot_use(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_commands_refuse_a_source_they_cannot_use(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     folder = tmp_path / "MRCLAM_Test"
     _write_dataset(folder)
     config = tmp_path / "team.toml"
     synthetic_team().save(config)
     assert main(["replay", str(folder), "--config", str(config)]) == 2
-    assert "is an MRCLAM data set: relloc replay publishes the ROS 2 messages of a rosbag2" in capsys.readouterr().err
+    assert (
+        "is an MRCLAM data set: relloc replay publishes the ROS 2 messages of a rosbag2"
+        in capsys.readouterr().err
+    )
     assert main(["calibrate", "single", "--config", str(config)]) == 2
-    assert "single is a simulated scenario: calibration needs UWB ranges with motion capture" in capsys.readouterr().err
-    assert main(["run", str(tmp_path / "absent"), "--config", str(config), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    assert (
+        "single is a simulated scenario: calibration needs UWB ranges with motion capture"
+        in capsys.readouterr().err
+    )
+    assert (
+        main(
+            [
+                "run",
+                str(tmp_path / "absent"),
+                "--config",
+                str(config),
+                "--out",
+                str(tmp_path / "o"),
+                "--no-progress",
+            ]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "relloc run: error: " in err and "absent: not found; give a rosbag2 recording" in err
-    assert main(["run", "single", "--config", str(config), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    assert (
+        main(
+            [
+                "run",
+                "single",
+                "--config",
+                str(config),
+                "--out",
+                str(tmp_path / "o"),
+                "--no-progress",
+            ]
+        )
+        == 2
+    )
     assert "brings its own team config: leave out --config" in capsys.readouterr().err
 
 
 def test_a_scenario_run_gives_the_demos_figures(tmp_path: Path) -> None:
     """``relloc run single`` is the demo's ``single`` scenario: same simulation, same config."""
     console = make_console()
-    demo = run_scenario("single", DemoOptions(particles=500, methods=("pf",), progress=False), console)
+    demo = run_scenario(
+        "single", DemoOptions(particles=500, methods=("pf",), progress=False), console
+    )
     run = run_recording(
         Path("single"),
         None,
-        RunOptions(methods=("pf",), particles=500, warmup=10.0, progress=False, json_path=tmp_path / "run.json"),
+        RunOptions(
+            methods=("pf",),
+            particles=500,
+            warmup=10.0,
+            progress=False,
+            json_path=tmp_path / "run.json",
+        ),
         console,
     )
     assert run.truth_name == "ground truth"

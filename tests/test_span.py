@@ -20,7 +20,12 @@ def test_spans_parse_with_either_end_left_out() -> None:
     assert parse_span("3:7.5") == (3.0, 7.5)
     assert parse_span(":10") == (0.0, 10.0)
     assert parse_span("17:") == (17.0, math.inf)
-    for bad, why in (("5", "START:END"), ("a:b", "numbers"), ("7:3", "0 <= START < END"), ("-1:3", "START < END")):
+    for bad, why in (
+        ("5", "START:END"),
+        ("a:b", "numbers"),
+        ("7:3", "0 <= START < END"),
+        ("-1:3", "START < END"),
+    ):
         with pytest.raises(ValueError, match=why):
             parse_span(bad)
     with pytest.raises(Exception, match="START < END"):
@@ -36,7 +41,9 @@ def test_a_span_keeps_the_events_of_its_window_only() -> None:
     assert part.start_time == t0 + 10.0 and part.duration == 10.0
     assert times and min(times) >= t0 + 10.0 and max(times) < t0 + 20.0
     assert len(times) == sum(1 for t in every if t0 + 10.0 <= t < t0 + 20.0)
-    assert part.initial_poses() is None and SpanSource(source, (0.0, 5.0)).initial_poses() is not None
+    assert (
+        part.initial_poses() is None and SpanSource(source, (0.0, 5.0)).initial_poses() is not None
+    )
     assert SpanSource(source, (30.0, math.inf)).duration == pytest.approx(source.duration - 30.0)
     with pytest.raises(ValueError, match="after the end"):
         SpanSource(source, (source.duration + 1.0, math.inf))
@@ -52,23 +59,55 @@ def test_calibrated_on_the_first_half_run_on_the_second(shared_data: Path, tmp_p
     team = tmp_path / "team.toml"
     cli = [sys.executable, "-m", "relloc.cli"]
     done = subprocess.run(
-        [*cli, "calibrate", str(bag), "--config", "configs/tiers_uwb_rel/case4.toml", "--span", ":17", "--write", str(team)],
-        cwd=REPO, capture_output=True, text=True, timeout=300,
+        [
+            *cli,
+            "calibrate",
+            str(bag),
+            "--config",
+            "configs/tiers_uwb_rel/case4.toml",
+            "--span",
+            ":17",
+            "--write",
+            str(team),
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert done.returncode == 0, done.stderr
     text = team.read_text()
     assert text.count("[uwb.pairs.") == 21 and "case4_test1_static" in text
     out = tmp_path / "run.json"
     done = subprocess.run(
-        [*cli, "run", str(bag), "--config", str(team), "--span", "17:", "--methods", "multilateration",
-         "--no-progress", "--json", str(out), "--out", str(tmp_path / "out")],
-        cwd=REPO, capture_output=True, text=True, timeout=300,
+        [
+            *cli,
+            "run",
+            str(bag),
+            "--config",
+            str(team),
+            "--span",
+            "17:",
+            "--methods",
+            "multilateration",
+            "--no-progress",
+            "--json",
+            str(out),
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        cwd=REPO,
+        capture_output=True,
+        text=True,
+        timeout=300,
     )
     assert done.returncode == 0, done.stderr
     assert "(17.2 s run)" in done.stdout
     import json
 
-    robots = json.loads(out.read_text())["scenarios"]["case4_test1_static"]["methods"]["multilateration"]["robots"]
+    robots = json.loads(out.read_text())["scenarios"]["case4_test1_static"]["methods"][
+        "multilateration"
+    ]["robots"]
     # Calibrated biases take every robot's multilateration error under 0.08 m (0.11-0.30 m
     # for four robots with the config's zero biases).
     assert max(r["ape_median"] for r in robots.values()) < 0.08

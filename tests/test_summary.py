@@ -91,7 +91,9 @@ def _run_pf(sim, particles: int):  # type: ignore[no-untyped-def]
 
     config = sim.config.with_filter(particles=particles)
     gt = GroundTruth(config.reference)
-    engine = Engine([build_pipeline(m, config, seed=0) for m in ("pf", "multilateration")], truth_sinks=[gt.add])
+    engine = Engine(
+        [build_pipeline(m, config, seed=0) for m in ("pf", "multilateration")], truth_sinks=[gt.add]
+    )
     engine.run(sim.events())
     return engine, gt
 
@@ -134,7 +136,11 @@ def test_motion_resolves_the_orientation_at_few_particles() -> None:
     counts = np.array([e.particles for e in estimates])
     assert (counts[t < STATIC_THEN_MOVE_PARK_S] == counts[0]).all() and counts[-1] < counts[0]
     late = [e for e in estimates if e.t > STATIC_THEN_MOVE_PARK_S + 5.0]
-    errors = [np.hypot(*np.subtract(e.positions[r], gt.relative_at(r, e.t))) for e in late for r in e.positions]
+    errors = [
+        np.hypot(*np.subtract(e.positions[r], gt.relative_at(r, e.t)))
+        for e in late
+        for r in e.positions
+    ]
     assert np.median(errors) < 0.2
 
 

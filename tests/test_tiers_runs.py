@@ -22,10 +22,14 @@ from relloc.evaluation.report import ScenarioReport
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "tiers"
 
 
-def _run(shared_data: Path, name: str, seed: int, warmup: float, methods=("pf", "multilateration")) -> ScenarioReport:
+def _run(
+    shared_data: Path, name: str, seed: int, warmup: float, methods=("pf", "multilateration")
+) -> ScenarioReport:
     bag = shared_data / "tiers" / name
     config = TeamConfig.load(CONFIGS / f"{name}.toml")
-    return run_recording(bag, config, RunOptions(methods=methods, seed=seed, warmup=warmup, progress=False))
+    return run_recording(
+        bag, config, RunOptions(methods=methods, seed=seed, warmup=warmup, progress=False)
+    )
 
 
 def test_shortbag_default_seed_meets_bounds(shared_data: Path) -> None:
@@ -52,7 +56,9 @@ def test_shortbag_median_over_seeds_meets_bound(shared_data: Path) -> None:
     fair = None
     for seed in range(5):
         methods = ("pf", "multilateration") if seed == 0 else ("pf",)
-        report = _run(shared_data, "multi4_shortbag_20221011", seed=seed, warmup=5.0, methods=methods)
+        report = _run(
+            shared_data, "multi4_shortbag_20221011", seed=seed, warmup=5.0, methods=methods
+        )
         if seed == 0:
             fair = report.methods["multilateration"].mean_ape_median
         pf = report.methods["pf"]
@@ -63,7 +69,9 @@ def test_shortbag_median_over_seeds_meets_bound(shared_data: Path) -> None:
     assert fair is not None and np.median(means) <= fair, (means, fair)
 
 
-def test_single_range_bag_meets_bound_and_multilateration_has_no_estimate(shared_data: Path) -> None:
+def test_single_range_bag_meets_bound_and_multilateration_has_no_estimate(
+    shared_data: Path,
+) -> None:
     report = _run(shared_data, "pair_range_20220907_1725", seed=0, warmup=10.0)
     stats = report.methods["pf"].robots["turtle01"]
     assert stats.n > 200
@@ -87,11 +95,23 @@ def test_static_pair_covariance_covers_the_unobservable_bearing(shared_data: Pat
 def test_run_cli_writes_json_with_demo_schema(shared_data: Path, tmp_path: Path) -> None:
     out = tmp_path / "run.json"
     bag = shared_data / "tiers" / "pair_range_20220907_1725"
-    rc = main([
-        "run", str(bag), "--config", str(CONFIGS / "pair_range_20220907_1725.toml"),
-        "--particles", "5000", "--warmup", "10", "--json", str(out), "--out", str(tmp_path / "plots"),
-        "--no-progress",
-    ])
+    rc = main(
+        [
+            "run",
+            str(bag),
+            "--config",
+            str(CONFIGS / "pair_range_20220907_1725.toml"),
+            "--particles",
+            "5000",
+            "--warmup",
+            "10",
+            "--json",
+            str(out),
+            "--out",
+            str(tmp_path / "plots"),
+            "--no-progress",
+        ]
+    )
     assert rc == 0
     data = json.loads(out.read_text())
     methods = data["scenarios"]["pair_range_20220907_1725"]["methods"]
@@ -107,7 +127,15 @@ def test_run_cli_reports_a_corrupted_bag_clearly(shared_data: Path, tmp_path: Pa
     shutil.copytree(src, bag)
     db = next(bag.glob("*.db3"))
     db.write_bytes(db.read_bytes()[:4096] + b"\x00garbage" * 100)
-    rc = main(["run", str(bag), "--config", str(CONFIGS / "pair_range_20220907_1725.toml"), "--no-progress"])
+    rc = main(
+        [
+            "run",
+            str(bag),
+            "--config",
+            str(CONFIGS / "pair_range_20220907_1725.toml"),
+            "--no-progress",
+        ]
+    )
     assert rc == 2
     err = capsys.readouterr().err
     assert "error" in err and "Traceback" not in err
@@ -118,7 +146,15 @@ def test_run_cli_reports_a_missing_topic_clearly(shared_data: Path, tmp_path: Pa
     config = config.with_robot("turtle01", odom_topic="/turtle01/no_such_odom")
     path = tmp_path / "team.toml"
     config.save(path)
-    rc = main(["run", str(shared_data / "tiers" / "pair_range_20220907_1725"), "--config", str(path), "--no-progress"])
+    rc = main(
+        [
+            "run",
+            str(shared_data / "tiers" / "pair_range_20220907_1725"),
+            "--config",
+            str(path),
+            "--no-progress",
+        ]
+    )
     assert rc == 2
     err = capsys.readouterr().err
     assert "/turtle01/no_such_odom" in err

@@ -26,7 +26,9 @@ def _run(unseen_speed: float | None = None):
     config = sim.config.with_filter(particles=3000)
     if unseen_speed is not None:
         odo = dataclasses.replace(config.filter.odometry, unseen_speed=unseen_speed)
-        config = dataclasses.replace(config, filter=dataclasses.replace(config.filter, odometry=odo))
+        config = dataclasses.replace(
+            config, filter=dataclasses.replace(config.filter, odometry=odo)
+        )
     loc = ParticleFilterLocalizer(config, seed=0)
     gt = GroundTruth(config.reference)
     ests: list[Estimate] = []
@@ -57,18 +59,24 @@ def test_a_silent_robot_is_unseen_and_its_covariance_covers_where_it_drove() -> 
         assert set(e.unseen) == {SILENT}
         assert e.status.startswith("unseen: r2 for")
     flagged = [e.t for e in ests if e.unseen]
-    assert WINDOW[0] + 1.9 <= min(flagged) <= WINDOW[0] + 2.3 and max(flagged) <= WINDOW[1] + 0.3, flagged
+    assert WINDOW[0] + 1.9 <= min(flagged) <= WINDOW[0] + 2.3 and max(flagged) <= WINDOW[1] + 0.3, (
+        flagged
+    )
     widened = [_squared_mahalanobis(e, gt, SILENT) for e in during]
     assert np.mean(np.array(widened) <= 5.99) >= 0.95, widened
 
     raw, _ = _run(unseen_speed=0.0)
     assert not any(e.unseen for e in raw)
     late = [e for e in raw if WINDOW[1] - 3.0 <= e.t <= WINDOW[1]]
-    assert np.mean([_squared_mahalanobis(e, gt, SILENT) > 5.99 for e in late]) >= 0.5, "the test shows nothing"
+    assert np.mean([_squared_mahalanobis(e, gt, SILENT) > 5.99 for e in late]) >= 0.5, (
+        "the test shows nothing"
+    )
 
 
 def test_the_navigation_gate_holds_an_unseen_robot() -> None:
-    est = Estimate(0.0, "pf", "r0", {"r1": (1.0, 0.0)}, {"r1": ((0.01, 0.0), (0.0, 0.01))}, unseen={"r1": 3.0})
+    est = Estimate(
+        0.0, "pf", "r0", {"r1": (1.0, 0.0)}, {"r1": ((0.01, 0.0), (0.0, 0.01))}, unseen={"r1": 3.0}
+    )
     assert SafetyGate(robot="r1").check(0.0, est, 0.0) == ("unseen", "r1 unheard for 3.0 s")
     ref_unseen = dataclasses.replace(est, unseen={"r0": 2.5})
     assert SafetyGate(robot="r1").check(0.0, ref_unseen, 0.0) == ("unseen", "r0 unheard for 2.5 s")
@@ -100,4 +108,6 @@ def test_the_report_and_the_live_status_show_the_unseen_robot() -> None:
     server = LiveServer(team(), _Nothing(), ServeOptions())
     server.sink.last["pf"] = Estimate(5.0, "pf", "a", {"b": (1.0, 0.0)}, unseen={"b": 4.2})
     status = server.status()["methods"]["pf"]
-    assert status["unseen"] == {"b": 4.2} and status["estimate_status"].startswith("unseen: b for 4.2 s")
+    assert status["unseen"] == {"b": 4.2} and status["estimate_status"].startswith(
+        "unseen: b for 4.2 s"
+    )

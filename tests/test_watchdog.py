@@ -28,7 +28,9 @@ TEAM = TeamConfig((RobotConfig("r0"), RobotConfig("r1"), RobotConfig("r2")), "r0
 TRUTH = {"r0": (0.0, 0.0), "r1": (3.0, 0.0), "r2": (0.0, 4.0)}
 
 
-def _ranges(t: float, where: dict[str, tuple[float, float]], rng: np.random.Generator) -> list[RangeEvent]:
+def _ranges(
+    t: float, where: dict[str, tuple[float, float]], rng: np.random.Generator
+) -> list[RangeEvent]:
     """The three pairs' ranges of the formation ``where``, with the config's noise."""
     sigma = TEAM.uwb.sigma
     out = []
@@ -43,7 +45,9 @@ def _estimate(where: dict[str, tuple[float, float]], std: float) -> FilterEstima
     return FilterEstimate(mean, np.tile(np.eye(2) * std**2, (2, 1, 1)), 100.0)
 
 
-def _feed(dog: ConsistencyWatchdog, seconds: tuple[float, float], ranges_from: dict, fe: FilterEstimate) -> list[float]:
+def _feed(
+    dog: ConsistencyWatchdog, seconds: tuple[float, float], ranges_from: dict, fe: FilterEstimate
+) -> list[float]:
     """Ten batches a second of ranges from ``ranges_from``; the times the dog asked for a restart."""
     rng = np.random.default_rng(0)
     restarts = []
@@ -85,8 +89,13 @@ def test_a_sightings_range_and_bearing_count_where_the_frame_is_known() -> None:
     right = [SightingEvent(0.1 * k, "r1", "r2", 5.0, direction - 0.5, 0.1, 0.01) for k in range(12)]
     assert not dog.observe(1.2, right, fe, {"r1": 0.5}) and not dog.inconsistent
     # the bearing 0.2 rad off: flagged with the frame known, not judged without one
-    turned = [SightingEvent(10.0 + 0.1 * k, "r1", "r2", None, direction - 0.3, 0.1, 0.01) for k in range(12)]
-    assert not ConsistencyWatchdog(TEAM, StateLayout(TEAM.robot_names, "r0")).observe(11.2, turned, fe)
+    turned = [
+        SightingEvent(10.0 + 0.1 * k, "r1", "r2", None, direction - 0.3, 0.1, 0.01)
+        for k in range(12)
+    ]
+    assert not ConsistencyWatchdog(TEAM, StateLayout(TEAM.robot_names, "r0")).observe(
+        11.2, turned, fe
+    )
     assert dog.observe(11.2, turned, fe, {"r1": 0.5}) and dog.inconsistent
     # a published heading of r1 turns its yaw and its spread widens the bound
     dog = ConsistencyWatchdog(TEAM, StateLayout(TEAM.robot_names, "r0"))
@@ -102,7 +111,15 @@ def _raw_ranges(t: float, offset: float, rng: np.random.Generator) -> list[Range
     ``offset`` longer than that bias says, with line-of-sight noise."""
     uwb = TEAM.uwb
     return [
-        RangeEvent(t, a, b, math.dist(TRUTH[a], TRUTH[b]) + uwb.default_bias + offset + float(rng.normal(0.0, uwb.los_sigma)))
+        RangeEvent(
+            t,
+            a,
+            b,
+            math.dist(TRUTH[a], TRUTH[b])
+            + uwb.default_bias
+            + offset
+            + float(rng.normal(0.0, uwb.los_sigma)),
+        )
         for a, b in (("r0", "r1"), ("r0", "r2"), ("r1", "r2"))
     ]
 
@@ -115,7 +132,11 @@ def test_a_range_is_judged_by_the_error_the_filter_assumes(offset: float, flagge
     dog = ConsistencyWatchdog(TEAM, StateLayout(TEAM.robot_names, "r0"))
     fe = _estimate(TRUTH, 0.02)
     rng = np.random.default_rng(0)
-    restarts = [t for t in np.arange(0.0, 60.0, 0.1) if dog.observe(float(t), _raw_ranges(float(t), offset, rng), fe)]
+    restarts = [
+        t
+        for t in np.arange(0.0, 60.0, 0.1)
+        if dog.observe(float(t), _raw_ranges(float(t), offset, rng), fe)
+    ]
     assert bool(restarts) is flagged and dog.episodes == int(flagged)
 
 
@@ -134,15 +155,20 @@ def test_a_range_is_judged_against_the_pairs_distance_over_the_dominant_mode() -
     assert _feed(dog, (0.0, 30.0), TRUTH, fe) == []
     shorter = distances.copy()
     shorter[..., 0] -= 1.0
-    far = FilterEstimate(mean, fe.cov, 100.0, summary=cast(ModeSummary, SimpleNamespace(distances=shorter)))
+    far = FilterEstimate(
+        mean, fe.cov, 100.0, summary=cast(ModeSummary, SimpleNamespace(distances=shorter))
+    )
     assert _feed(dog, (30.0, 40.0), TRUTH, far)
 
 
 def test_the_estimate_says_it_and_the_navigation_gate_holds() -> None:
-    est = Estimate(1.0, "pf", "r0", {"r1": (3.0, 0.0)}, {"r1": ((0.01, 0.0), (0.0, 0.01))}, inconsistent=True)
+    est = Estimate(
+        1.0, "pf", "r0", {"r1": (3.0, 0.0)}, {"r1": ((0.01, 0.0), (0.0, 0.01))}, inconsistent=True
+    )
     assert est.status.startswith("inconsistent: ")
     assert SafetyGate(robot="r1").check(1.0, est, 1.0) == (
-        "inconsistent", "the estimate's covariance no longer covers its innovations"
+        "inconsistent",
+        "the estimate's covariance no longer covers its innovations",
     )
 
 
@@ -161,7 +187,9 @@ def test_a_scale_driven_out_of_its_interval_is_restarted() -> None:
     ests = [est for ev in events[len(events) // 2 :] for est in loc.process(ev)]
     counters = loc.fault_counters()
     assert counters["calibration_restarts"] == 1
-    assert counters["calibration_restart_reason"] == "odometry scale of r2 at 0.299, outside 0.5..1.5"  # after one update
+    assert (
+        counters["calibration_restart_reason"] == "odometry scale of r2 at 0.299, outside 0.5..1.5"
+    )  # after one update
     assert all(0.5 < s < 1.5 for e in ests for s, _ in e.scales.values())
     prior = CalibrationNoise().scale_prior_sigma
     assert ests[0].scales["r2"][1] == pytest.approx(prior, rel=0.2)  # its prior again

@@ -27,7 +27,9 @@ def _drift(robot: str, speed: float, start: float, end: float) -> Faults:
     return Faults(kidnap=tuple((robot, start + 0.1 * k, 0.1 * speed, 0.0) for k in range(steps)))
 
 
-def _flags(kind: str, seed: int, duration: float, faults: Faults = CLEAN) -> tuple[list[float], int]:
+def _flags(
+    kind: str, seed: int, duration: float, faults: Faults = CLEAN
+) -> tuple[list[float], int]:
     """The stamps of the estimates marked inconsistent, and the watchdog's episodes."""
     sim = multi_scenario(seed=seed, duration=duration)
     pipeline = build_pipeline("pf", sim.config.with_filter(kind=kind, **SMALL), seed=seed)

@@ -88,7 +88,9 @@ def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
     server = LiveServer(
         config,
         srv_session,
-        ServeOptions(particles=1000, clock_rate=rate, trace=True, status_period=0.25, reorder_window=0.4),
+        ServeOptions(
+            particles=1000, clock_rate=rate, trace=True, status_period=0.25, reorder_window=0.4
+        ),
     )
     base = 1_700_000_000.0
     with Running(server) as live:
@@ -100,7 +102,9 @@ def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
     # server ends: everything it published is waited for before anything is undeclared (a
     # loaded machine is slow), so that the counts below do not depend on timing.
     assert wait_until(lambda: len(collector.estimates()) >= len(own), timeout=20.0)
-    assert wait_until(lambda: len(shapes) == len(own) and len(collector.traces()) == len(own), timeout=20.0)
+    assert wait_until(
+        lambda: len(shapes) == len(own) and len(collector.traces()) == len(own), timeout=20.0
+    )
     assert wait_until(
         lambda: bool(status) and status[-1]["methods"]["pf"]["estimates"] == len(own), timeout=20.0
     )
@@ -134,7 +138,10 @@ def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
     assert server.summary()["source"]["rejected"] == {}
     assert status and status[-1]["methods"]["pf"]["estimates"] > 0
     assert status[-1]["methods"]["pf"]["orientation_observable"] is own[-1].orientation_observable
-    assert status[-1]["particles"] == 1000 and status[-1]["methods"]["pf"]["particles"] == own[-1].particles == 1000
+    assert (
+        status[-1]["particles"] == 1000
+        and status[-1]["methods"]["pf"]["particles"] == own[-1].particles == 1000
+    )
     assert status[-1]["source"]["messages"] > 0 and "robots" in status[-1]
     timed = [r for r in traces if r["trigger_sent"] is not None]
     assert len(timed) >= len(own) - 2
@@ -250,7 +257,13 @@ def _offline_shortbag(bag: Path, particles: int, seed: int) -> Any:
 
 
 def serve_replayed(
-    bag: Path, config: TeamConfig, serve: Any, client: Any, particles: int, seed: int, rate: float,
+    bag: Path,
+    config: TeamConfig,
+    serve: Any,
+    client: Any,
+    particles: int,
+    seed: int,
+    rate: float,
     interface: RosInterface | None = None,
 ) -> tuple[list[Any], Any, LiveServer]:
     """Replay ``bag`` at ``rate`` from ``client`` into a live server on ``serve``: every estimate
@@ -261,13 +274,19 @@ def serve_replayed(
     server = LiveServer(
         config,
         serve,
-        ServeOptions(particles=particles, seed=seed, reorder_window=1.0, clock_rate=rate, interface=interface),
+        ServeOptions(
+            particles=particles, seed=seed, reorder_window=1.0, clock_rate=rate, interface=interface
+        ),
     )
     with Running(server) as live:
-        stats = replay_bag(bag, config, client, ReplayOptions(rate=rate, wait=5.0, interface=interface))
+        stats = replay_bag(
+            bag, config, client, ReplayOptions(rate=rate, wait=5.0, interface=interface)
+        )
         assert stats.unmatched == []
         expected = sum(n for k, n in stats.per_key.items() if k in live.source.routes)
-        assert wait_until(lambda: sum(live.source.stats.messages.values()) >= expected, timeout=20.0)
+        assert wait_until(
+            lambda: sum(live.source.stats.messages.values()) >= expected, timeout=20.0
+        )
     # What the server held is fused and published as it ends: let all of it arrive.
     published = len(server.pipelines[0].estimates)
     assert wait_until(lambda: len(collector.estimates()) >= published, timeout=20.0)
@@ -300,7 +319,9 @@ def test_replayed_shortbag_matches_relloc_run(
     offline = report.methods["pf"]
 
     srv_session, client = sessions
-    estimates, stats, server = serve_replayed(bag, config, srv_session, client, particles, seed, rate, interface)
+    estimates, stats, server = serve_replayed(
+        bag, config, srv_session, client, particles, seed, rate, interface
+    )
 
     served = ape_against_bag(estimates, bag, config, warmup=report.warmup, t0=report.t0)
     print(
@@ -318,4 +339,6 @@ def test_replayed_shortbag_matches_relloc_run(
     assert transport["lost"] == {} and transport["unknown_type_hash"] == {}
     assert transport["attachment_missing"] == transport["attachment_malformed"] == 0
     if kind == RMW_ZENOH:
-        assert transport["publishers"] == len([k for k in stats.per_key if k in server.source.routes])
+        assert transport["publishers"] == len(
+            [k for k in stats.per_key if k in server.source.routes]
+        )

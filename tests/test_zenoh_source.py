@@ -301,11 +301,19 @@ def test_the_server_injects_faults_and_reports_them_in_the_status() -> None:
     server.engine.finish()
     status = server.status()
     injected = status["injected_faults"]
-    assert injected["silenced"] + injected["dropped"] + server.pipelines[0].localizer.stats["odometry"] == 40
+    assert (
+        injected["silenced"] + injected["dropped"] + server.pipelines[0].localizer.stats["odometry"]
+        == 40
+    )
     assert injected["silenced"] >= 5 and injected["dropped"] >= 5
     faults = status["methods"]["pf"]["faults"]
     assert faults["recovering"] is False and faults["odometry_reanchored"] == 0
-    assert set(faults) >= {"divergence_detected", "clock_jumps_followed", "time_jump", "time_jump_backward"}
+    assert set(faults) >= {
+        "divergence_detected",
+        "clock_jumps_followed",
+        "time_jump",
+        "time_jump_backward",
+    }
 
 
 def test_one_future_stamp_does_not_disable_the_reorder_window() -> None:
@@ -324,6 +332,8 @@ def test_one_future_stamp_does_not_disable_the_reorder_window() -> None:
         out += src.release(T0 + 0.1 * k + 0.02)
     out += src.flush()
     stamps = [a.event.t for a in out]
-    assert len(stamps) == 41 and T0 + 3600.0 in stamps  # let out after its hold (the localizer rejects it)
+    assert (
+        len(stamps) == 41 and T0 + 3600.0 in stamps
+    )  # let out after its hold (the localizer rejects it)
     normal = [t for t in stamps if t < T0 + 10.0]
     assert normal == sorted(normal) and src.stats.out_of_order == 0

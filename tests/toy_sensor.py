@@ -109,7 +109,12 @@ class ToyFixBatch(MeasurementModel):
         j, axis = divmod(k, 2)
         col = 2 * self.layout.slot_of(int(self.index[j])) + axis
         n = mean.shape[0]
-        return LinearRow(np.array([col]), np.ones((n, 1)), float(self.fix[j, axis]) - mean[:, col], float(self.sigma[j]) ** 2)
+        return LinearRow(
+            np.array([col]),
+            np.ones((n, 1)),
+            float(self.fix[j, axis]) - mean[:, col],
+            float(self.sigma[j]) ** 2,
+        )
 
     def condition(self, positions: FloatArray, particles: FloatArray) -> None:
         """No sufficient statistics in the state."""
@@ -141,12 +146,22 @@ class ToyFixSensor(Sensor):
             return None
         unknown = sorted(set(table) - {"topic", "robots", "sigma"})
         if unknown:
-            raise ConfigError(f"sensors.{self.kind}: unknown key(s) {unknown}; known: ['robots', 'sigma', 'topic']")
-        topic, robots, sigma = table.get("topic", ""), table.get("robots", []), table.get("sigma", 0.1)
+            raise ConfigError(
+                f"sensors.{self.kind}: unknown key(s) {unknown}; known: ['robots', 'sigma', 'topic']"
+            )
+        topic, robots, sigma = (
+            table.get("topic", ""),
+            table.get("robots", []),
+            table.get("sigma", 0.1),
+        )
         if not isinstance(topic, str) or "{robot}" not in topic:
-            raise ConfigError(f"sensors.{self.kind}.topic must be a string with {{robot}}, got {topic!r}")
+            raise ConfigError(
+                f"sensors.{self.kind}.topic must be a string with {{robot}}, got {topic!r}"
+            )
         if not isinstance(robots, list) or not set(robots) <= set(config.robot_names):
-            raise ConfigError(f"sensors.{self.kind}.robots must name robots of {list(config.robot_names)}, got {robots!r}")
+            raise ConfigError(
+                f"sensors.{self.kind}.robots must name robots of {list(config.robot_names)}, got {robots!r}"
+            )
         if isinstance(sigma, bool) or not isinstance(sigma, int | float) or not sigma > 0:
             raise ConfigError(f"sensors.{self.kind}.sigma must be a positive number, got {sigma!r}")
         return ToySettings(topic, tuple(robots), float(sigma))
@@ -155,10 +170,25 @@ class ToyFixSensor(Sensor):
         s = self.settings(config)
         if s is None or robot.name not in s.robots:
             return []
-        return [Route(s.topic.format(robot=robot.name), self.kind, self.msgtypes, robot.name, f"toy fixes of {robot.name}", params=s.sigma)]
+        return [
+            Route(
+                s.topic.format(robot=robot.name),
+                self.kind,
+                self.msgtypes,
+                robot.name,
+                f"toy fixes of {robot.name}",
+                params=s.sigma,
+            )
+        ]
 
     def convert(
-        self, route: Route, stream: str, msg: Any, fast: tuple[float, ...] | None, stamp: float, ingest: Conversion
+        self,
+        route: Route,
+        stream: str,
+        msg: Any,
+        fast: tuple[float, ...] | None,
+        stamp: float,
+        ingest: Conversion,
     ) -> ToyFixEvent:
         return ToyFixEvent(stamp, route.robot, float(msg.x), float(msg.y), route.params)
 

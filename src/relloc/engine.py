@@ -111,7 +111,9 @@ class Engine:
         for p in self.pipelines:
             self._emit(p, p.finish())
 
-    def run(self, events: Iterable[Event], progress: Callable[[float], None] | None = None) -> Engine:
+    def run(
+        self, events: Iterable[Event], progress: Callable[[float], None] | None = None
+    ) -> Engine:
         """Feed a whole source; ``progress`` is called with each event's time."""
         for ev in events:
             self.feed(ev)

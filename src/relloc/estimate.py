@@ -109,7 +109,9 @@ class Estimate:
         if self.recovering:
             return "recovering: the measurements stopped fitting the estimate; hypotheses are being re-injected"
         if self.inconsistent:
-            return "inconsistent: the innovations exceed the published covariance; widened, restarting"
+            return (
+                "inconsistent: the innovations exceed the published covariance; widened, restarting"
+            )
         if self.unseen:
             who = ", ".join(f"{r} for {s:.1f} s" for r, s in sorted(self.unseen.items()))
             return f"unseen: {who} (no odometry, no range): positions are where last seen, covariances widened"

@@ -138,7 +138,14 @@ class SightingEvent:
     sensor: str = "camera"
 
 
-Event = OdometryEvent | RangeEvent | DetectionEvent | GroundTruthEvent | RelativeObservation | SightingEvent
+Event = (
+    OdometryEvent
+    | RangeEvent
+    | DetectionEvent
+    | GroundTruthEvent
+    | RelativeObservation
+    | SightingEvent
+)
 
 
 class WakeRule(NamedTuple):
@@ -155,7 +162,9 @@ class WakeRule(NamedTuple):
     hi: float
 
     def urgent(self, t: float, odometry: bool) -> bool:
-        return not self.lo <= t <= self.hi or t >= (self.odometry_from if odometry else self.measurement_from)
+        return not self.lo <= t <= self.hi or t >= (
+            self.odometry_from if odometry else self.measurement_from
+        )
 
     @staticmethod
     def combine(rules: Iterable[WakeRule]) -> WakeRule:

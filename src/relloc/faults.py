@@ -246,9 +246,15 @@ def parse(
         t, dt = (num(p, "stream-jump") for p in fields_of(text, 2, "stream-jump"))
         jumps.append((t, dt))
     return Faults(
-        drop=drop, silence=tuple(sil), range_burst=tuple(bursts), odom_reset=tuple(resets),
-        odom_jump=moves(odom_jump, "odom-jump"), kidnap=moves(kidnap, "kidnap"), stamp_shift=tuple(shifts),
-        stream_jump=tuple(jumps), seed=seed,
+        drop=drop,
+        silence=tuple(sil),
+        range_burst=tuple(bursts),
+        odom_reset=tuple(resets),
+        odom_jump=moves(odom_jump, "odom-jump"),
+        kidnap=moves(kidnap, "kidnap"),
+        stamp_shift=tuple(shifts),
+        stream_jump=tuple(jumps),
+        seed=seed,
     )
 
 
@@ -257,14 +263,62 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     ``relloc run``, ``relloc serve``) or publish one (``relloc replay``: the messages are
     faulted before they go out); times are the stream's (s: header stamps)."""
     g = parser.add_argument_group("fault injection (for testing robustness)")
-    g.add_argument("--drop", type=float, default=0.0, metavar="P", help="lose each measurement with probability P")
-    g.add_argument("--silence", action="append", default=[], metavar="ROBOT:START:END", help="a robot sends nothing then")
-    g.add_argument("--range-burst", action="append", default=[], metavar="START:END:OFFSET", help="every range reads OFFSET m long then")
-    g.add_argument("--odom-reset", action="append", default=[], metavar="ROBOT:T", help="the robot's odometry restarts at the origin at T")
-    g.add_argument("--odom-jump", action="append", default=[], metavar="ROBOT:T:DX:DY", help="the robot's odometry steps by (DX, DY) at T")
-    g.add_argument("--kidnap", action="append", default=[], metavar="ROBOT:T:DX:DY", help="the robot is moved by (DX, DY) at T, unseen by its odometry")
-    g.add_argument("--stamp-shift", action="append", default=[], metavar="INDEX:DT", help="the INDEX-th event's stamp is shifted by DT s")
-    g.add_argument("--stream-jump", action="append", default=[], metavar="T:DT", help="every stamp from T on is shifted by DT s (a clock step)")
+    g.add_argument(
+        "--drop",
+        type=float,
+        default=0.0,
+        metavar="P",
+        help="lose each measurement with probability P",
+    )
+    g.add_argument(
+        "--silence",
+        action="append",
+        default=[],
+        metavar="ROBOT:START:END",
+        help="a robot sends nothing then",
+    )
+    g.add_argument(
+        "--range-burst",
+        action="append",
+        default=[],
+        metavar="START:END:OFFSET",
+        help="every range reads OFFSET m long then",
+    )
+    g.add_argument(
+        "--odom-reset",
+        action="append",
+        default=[],
+        metavar="ROBOT:T",
+        help="the robot's odometry restarts at the origin at T",
+    )
+    g.add_argument(
+        "--odom-jump",
+        action="append",
+        default=[],
+        metavar="ROBOT:T:DX:DY",
+        help="the robot's odometry steps by (DX, DY) at T",
+    )
+    g.add_argument(
+        "--kidnap",
+        action="append",
+        default=[],
+        metavar="ROBOT:T:DX:DY",
+        help="the robot is moved by (DX, DY) at T, unseen by its odometry",
+    )
+    g.add_argument(
+        "--stamp-shift",
+        action="append",
+        default=[],
+        metavar="INDEX:DT",
+        help="the INDEX-th event's stamp is shifted by DT s",
+    )
+    g.add_argument(
+        "--stream-jump",
+        action="append",
+        default=[],
+        metavar="T:DT",
+        help="every stamp from T on is shifted by DT s (a clock step)",
+    )
     g.add_argument("--fault-seed", type=int, default=0, metavar="N", help="seed of --drop")
 
 
@@ -272,7 +326,13 @@ def from_args(args: argparse.Namespace) -> Faults:
     """The :class:`Faults` of :func:`add_arguments`' options (a :class:`ValueError` names a
     malformed one)."""
     return parse(
-        drop=args.drop, silence=args.silence, range_burst=args.range_burst, odom_reset=args.odom_reset,
-        odom_jump=args.odom_jump, kidnap=args.kidnap, stamp_shift=args.stamp_shift, stream_jump=args.stream_jump,
+        drop=args.drop,
+        silence=args.silence,
+        range_burst=args.range_burst,
+        odom_reset=args.odom_reset,
+        odom_jump=args.odom_jump,
+        kidnap=args.kidnap,
+        stamp_shift=args.stamp_shift,
+        stream_jump=args.stream_jump,
         seed=args.fault_seed,
     )

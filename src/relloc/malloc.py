@@ -53,7 +53,11 @@ def tune_malloc() -> bool:
     mallopt.restype = ctypes.c_int
     ok = all(
         mallopt(param, value) == 1
-        for param, value in ((_M_TOP_PAD, TOP_PAD), (_M_TRIM_THRESHOLD, TRIM_THRESHOLD), (_M_MMAP_THRESHOLD, MMAP_THRESHOLD))
+        for param, value in (
+            (_M_TOP_PAD, TOP_PAD),
+            (_M_TRIM_THRESHOLD, TRIM_THRESHOLD),
+            (_M_MMAP_THRESHOLD, MMAP_THRESHOLD),
+        )
     )
     _done = ok
     return ok

@@ -39,7 +39,9 @@ def parse_methods(text: str) -> list[str]:
     names = [m.strip() for m in text.split(",") if m.strip()]
     unknown = [m for m in names if m not in METHODS]
     if unknown or not names:
-        raise MethodError(f"unknown method(s) {unknown or text!r}; choose from {', '.join(METHODS)}")
+        raise MethodError(
+            f"unknown method(s) {unknown or text!r}; choose from {', '.join(METHODS)}"
+        )
     return names
 
 
@@ -55,7 +57,9 @@ def build_pipeline(
     true start pose (world frame), which only ``ekf_oracle`` takes."""
     if method == "ekf_oracle":
         if oracle_start is None:
-            raise MethodError("method ekf_oracle starts at the ground truth: the source has none to give it")
+            raise MethodError(
+                "method ekf_oracle starts at the ground truth: the source has none to give it"
+            )
         from relloc.localizers.ekf import EkfOracleLocalizer
 
         compass = config.with_modes(heading="compass", odom_scale="fixed")

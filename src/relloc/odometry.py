@@ -102,7 +102,11 @@ class OdometryTrack:
     def _frame(self, ev: OdometryEvent) -> tuple[float, float, float]:
         """``ev``'s pose in the shared frame, before any re-anchoring."""
         c, s = math.cos(self.heading_offset), math.sin(self.heading_offset)
-        return self.scale * (c * ev.x - s * ev.y), self.scale * (s * ev.x + c * ev.y), ev.yaw + self.heading_offset
+        return (
+            self.scale * (c * ev.x - s * ev.y),
+            self.scale * (s * ev.x + c * ev.y),
+            ev.yaw + self.heading_offset,
+        )
 
     @property
     def empty(self) -> bool:

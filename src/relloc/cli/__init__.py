@@ -26,7 +26,11 @@ from relloc.faults import add_arguments as add_fault_arguments
 from relloc.malloc import tune_malloc
 
 _COMMAND_MODULES = (
-    "relloc.cli.ranging", "relloc.cli.live", "relloc.cli.navigation", "relloc.cli.secure", "relloc.cli.init",
+    "relloc.cli.ranging",
+    "relloc.cli.live",
+    "relloc.cli.navigation",
+    "relloc.cli.secure",
+    "relloc.cli.init",
 )
 """Command families with a ``register(subparsers)`` of their own. None imports an optional
 dependency at module level (training imports torch only when it runs), so every command is
@@ -62,7 +66,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     if "grid" in args.scenarios.split(",") and args.robots < 2:
         raise UserError(f"--robots: the grid needs at least 2 robots, got {args.robots}")
     opts = options_from_args(
-        DemoOptions, args, methods=tuple(parse_methods(args.methods)), scenarios=tuple(args.scenarios.split(",")),
+        DemoOptions,
+        args,
+        methods=tuple(parse_methods(args.methods)),
+        scenarios=tuple(args.scenarios.split(",")),
         faults=_faults(args),
     )
     _check_outputs(args)
@@ -88,7 +95,9 @@ def _cmd_run(args: argparse.Namespace) -> int:
     config = TeamConfig.load(args.config) if args.config else None
     if args.out is None:
         args.out = Path("out") / recording_name(args.bag)
-    opts = options_from_args(RunOptions, args, methods=tuple(parse_methods(args.methods)), faults=_faults(args))
+    opts = options_from_args(
+        RunOptions, args, methods=tuple(parse_methods(args.methods)), faults=_faults(args)
+    )
     _check_outputs(args)
     run_recording(Path(args.bag), config, opts)
     return 0
@@ -105,14 +114,23 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     node_map = None
     if args.node_map:
         try:
-            node_map = {int(k): v for k, v in (item.split("=") for item in args.node_map.split(","))}
+            node_map = {
+                int(k): v for k, v in (item.split("=") for item in args.node_map.split(","))
+            }
         except ValueError:
-            raise UserError(f"--node-map must look like 1=n_7,3=n_3, got {args.node_map!r}") from None
+            raise UserError(
+                f"--node-map must look like 1=n_7,3=n_3, got {args.node_map!r}"
+            ) from None
     out = Path(args.config) if args.in_place else (Path(args.write) if args.write else None)
     if out is not None:
         check_writable(out.parent, "--write" if args.write else "--in-place")
     cal = calibrate(
-        Path(args.source), config, node_map=node_map, headings=args.headings, fit_scale=args.scale, span=args.span
+        Path(args.source),
+        config,
+        node_map=node_map,
+        headings=args.headings,
+        fit_scale=args.scale,
+        span=args.span,
     )
     if out is None:
         sys.stdout.write(calibration_section(cal, text))
@@ -174,15 +192,39 @@ def build_parser() -> argparse.ArgumentParser:
         "robots, one range; nav: closed-loop navigation on the estimate) through the engine, print "
         "APE per method and robot, and write plots and JSON. Needs no data and no PyTorch.",
     )
-    demo.add_argument("--seed", type=argtypes.seed, default=0, help="seed of the simulation and the filters")
-    demo.add_argument("--warmup", type=argtypes.non_negative, default=10.0, help="seconds excluded from APE")
-    demo.add_argument("--particles", type=argtypes.count, default=None, help="override the particle count")
+    demo.add_argument(
+        "--seed", type=argtypes.seed, default=0, help="seed of the simulation and the filters"
+    )
+    demo.add_argument(
+        "--warmup", type=argtypes.non_negative, default=10.0, help="seconds excluded from APE"
+    )
+    demo.add_argument(
+        "--particles", type=argtypes.count, default=None, help="override the particle count"
+    )
     demo.add_argument("--methods", default="pf,multilateration", help=METHODS_HELP)
-    demo.add_argument("--scenarios", default="multi,single,nav", help="comma-separated: multi, single, nav, static, static_then_move, grid (the scaling scenario: --robots N on a grid, all pairs ranging)")
-    demo.add_argument("--robots", type=argtypes.count, default=5, help="team size of the grid scenario (at least 2)")
+    demo.add_argument(
+        "--scenarios",
+        default="multi,single,nav",
+        help="comma-separated: multi, single, nav, static, static_then_move, grid (the scaling scenario: --robots N on a grid, all pairs ranging)",
+    )
+    demo.add_argument(
+        "--robots",
+        type=argtypes.count,
+        default=5,
+        help="team size of the grid scenario (at least 2)",
+    )
     demo.add_argument("--out", type=Path, default=Path("out/demo"), help="folder for plots")
-    demo.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE", help="write the figures as JSON")
-    demo.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
+    demo.add_argument(
+        "--json",
+        dest="json_path",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write the figures as JSON",
+    )
+    demo.add_argument(
+        "--no-progress", dest="progress", action="store_false", help="no progress bar"
+    )
     add_fault_arguments(demo)
     _add_mode_flags(demo)
     _add_filter_kind(demo)
@@ -197,37 +239,70 @@ def build_parser() -> argparse.ArgumentParser:
         "the motion capture.",
     )
     run.add_argument(
-        "bag", help="bag folder (metadata.yaml) or .db3/.mcap file, an MRCLAM data set folder, or a scenario name (multi, single, ...)"
+        "bag",
+        help="bag folder (metadata.yaml) or .db3/.mcap file, an MRCLAM data set folder, or a scenario name (multi, single, ...)",
     )
     run.add_argument(
-        "--config", default=None,
+        "--config",
+        default=None,
         help="team config (TOML), e.g. configs/tiers/...; required but for a simulated scenario, which brings its own",
     )
     run.add_argument("--methods", default="pf,multilateration", help=METHODS_HELP)
     run.add_argument("--seed", type=argtypes.seed, default=0, help="seed of the filters")
-    run.add_argument("--warmup", type=argtypes.non_negative, default=5.0, help="seconds excluded from APE")
-    run.add_argument("--particles", type=argtypes.count, default=None, help="override the config's particle count")
-    run.add_argument("--models", type=Path, default=None, help="trained range-error models (for pf_ul)")
     run.add_argument(
-        "--out", type=Path, default=None,
+        "--warmup", type=argtypes.non_negative, default=5.0, help="seconds excluded from APE"
+    )
+    run.add_argument(
+        "--particles",
+        type=argtypes.count,
+        default=None,
+        help="override the config's particle count",
+    )
+    run.add_argument(
+        "--models", type=Path, default=None, help="trained range-error models (for pf_ul)"
+    )
+    run.add_argument(
+        "--out",
+        type=Path,
+        default=None,
         help="folder for plots and TUM trajectories (default: out/<recording>/)",
     )
-    run.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE", help="write the figures as JSON")
     run.add_argument(
-        "--mcap", type=Path, default=None, metavar="FILE",
+        "--json",
+        dest="json_path",
+        type=Path,
+        default=None,
+        metavar="FILE",
+        help="write the figures as JSON",
+    )
+    run.add_argument(
+        "--mcap",
+        type=Path,
+        default=None,
+        metavar="FILE",
         help="write the estimates, their flags, the truth and the ranges as ROS 2 messages to an MCAP file (Foxglove, RViz)",
     )
     run.add_argument("--no-progress", dest="progress", action="store_false", help="no progress bar")
     add_fault_arguments(run)
     _add_mode_flags(run)
-    run.add_argument("--reference", default=None, metavar="ROBOT", help="another reference robot (default: the config's reference)")
+    run.add_argument(
+        "--reference",
+        default=None,
+        metavar="ROBOT",
+        help="another reference robot (default: the config's reference)",
+    )
     _add_filter_kind(run)
     run.add_argument(
-        "--span", type=argtypes.span, default=None, metavar="START:END",
+        "--span",
+        type=argtypes.span,
+        default=None,
+        metavar="START:END",
         help="only the events between these seconds from the recording's start (either may be left out)",
     )
     run.add_argument(
-        "--sightings", choices=("both", "range", "bearing"), default="both",
+        "--sightings",
+        choices=("both", "range", "bearing"),
+        default="both",
         help="what of each teammate sighting to fuse (MRCLAM data sets): range and bearing, or one of them",
     )
     run.set_defaults(handler=_cmd_run)
@@ -243,13 +318,26 @@ def build_parser() -> argparse.ArgumentParser:
     cal.add_argument("source", help="a bag with motion capture, or a CSV of UWB errors")
     cal.add_argument("--config", required=True, help="the team config to calibrate (TOML)")
     where = cal.add_mutually_exclusive_group()
-    where.add_argument("--in-place", action="store_true", help="rewrite --config with the calibration")
-    where.add_argument("--write", default=None, metavar="FILE", help="write a calibrated copy of --config to FILE")
-    cal.add_argument("--node-map", default=None, help="CSV robot numbers to nodes, e.g. 1=n_7,3=n_3 (default: the TIERS map)")
-    cal.add_argument("--headings", action="store_true", help="also heading offsets from the first mocap pose")
+    where.add_argument(
+        "--in-place", action="store_true", help="rewrite --config with the calibration"
+    )
+    where.add_argument(
+        "--write", default=None, metavar="FILE", help="write a calibrated copy of --config to FILE"
+    )
+    cal.add_argument(
+        "--node-map",
+        default=None,
+        help="CSV robot numbers to nodes, e.g. 1=n_7,3=n_3 (default: the TIERS map)",
+    )
+    cal.add_argument(
+        "--headings", action="store_true", help="also heading offsets from the first mocap pose"
+    )
     cal.add_argument("--scale", action="store_true", help="also fit a range scale per pair")
     cal.add_argument(
-        "--span", type=argtypes.span, default=None, metavar="START:END",
+        "--span",
+        type=argtypes.span,
+        default=None,
+        metavar="START:END",
         help="only the events between these seconds from the recording's start (either may be left out)",
     )
     cal.set_defaults(handler=_cmd_calibrate)
@@ -267,7 +355,9 @@ def _add_filter_kind(parser: argparse.ArgumentParser) -> None:
     from relloc.config.filter import FilterKind
 
     parser.add_argument(
-        "--filter-kind", default=None, choices=get_args(FilterKind),
+        "--filter-kind",
+        default=None,
+        choices=get_args(FilterKind),
         help="the filter the pf methods run (default: the config's [filter] kind)",
     )
 
@@ -277,15 +367,21 @@ def _add_mode_flags(parser: argparse.ArgumentParser) -> None:
     from relloc.config import FilterConfig
 
     parser.add_argument(
-        "--heading", choices=FilterConfig.choices("heading_mode"), default=None,
+        "--heading",
+        choices=FilterConfig.choices("heading_mode"),
+        default=None,
         help="compass: heading offsets from the config; estimate: estimated online (default: the config's [filter] heading_mode)",
     )
     parser.add_argument(
-        "--bias", choices=FilterConfig.choices("bias_mode"), default=None,
+        "--bias",
+        choices=FilterConfig.choices("bias_mode"),
+        default=None,
         help="UWB pair biases from the config (calibrated) or estimated online (default: the config's bias_mode)",
     )
     parser.add_argument(
-        "--odom-scale", choices=FilterConfig.choices("odom_scale_mode"), default=None,
+        "--odom-scale",
+        choices=FilterConfig.choices("odom_scale_mode"),
+        default=None,
         help="odometry scales from the config (fixed) or estimated online (default: the config's odom_scale_mode)",
     )
 

@@ -41,7 +41,10 @@ class Calibration:
     def summary(self) -> dict[str, Any]:
         out: dict[str, Any] = {
             "source": self.source,
-            "pairs": {k: {"bias": v.bias, "scale": v.scale, "sigma": v.sigma} for k, v in self.pairs.items()},
+            "pairs": {
+                k: {"bias": v.bias, "scale": v.scale, "sigma": v.sigma}
+                for k, v in self.pairs.items()
+            },
         }
         if self.heading_offset_deg:
             out["heading_offset_deg"] = dict(self.heading_offset_deg)
@@ -65,7 +68,9 @@ def calibrate(
 
     if source.suffix.lower() == ".csv":
         if headings:
-            raise ConfigError("heading offsets need a bag with odometry and motion capture, not a CSV")
+            raise ConfigError(
+                "heading offsets need a bag with odometry and motion capture, not a CSV"
+            )
         if span is not None:
             raise ConfigError("--span needs a recording, not a CSV")
         pairs = calibration.pair_biases_from_csv(
@@ -81,7 +86,10 @@ def calibrate(
         pairs = calibration.pair_biases_from_bag(source, config, fit_scale=fit_scale, span=span)
     offsets: dict[str, float] = {}
     if headings:
-        offsets = {r: round(deg, 2) for r, deg in calibration.heading_offsets_from_bag(source, config).items()}
+        offsets = {
+            r: round(deg, 2)
+            for r, deg in calibration.heading_offsets_from_bag(source, config).items()
+        }
     return Calibration(str(source), dict(pairs), offsets, fit_scale)
 
 
@@ -139,7 +147,11 @@ def edit_config_text(text: str, cal: Calibration) -> str:
             pairs[key] = entry
         existing = dict(entry)
         for name, value in _pair_values(pair, existing, cal.fit_scale).items():
-            comment = _sigma_comment(pair, entry.get(name)) if name == "bias" and "sigma" not in existing else None
+            comment = (
+                _sigma_comment(pair, entry.get(name))
+                if name == "bias" and "sigma" not in existing
+                else None
+            )
             _set(entry, name, value, comment)
     robots = doc.get("robots", [])
     for robot, deg in cal.heading_offset_deg.items():

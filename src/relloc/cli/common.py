@@ -71,7 +71,14 @@ def is_user_error(exc: Exception) -> bool:
     from relloc.sources.table import SourceError
 
     known = (
-        UserError, ConfigError, MethodError, BagError, MrclamError, SourceError, CalibrationError, ModelDirError,
+        UserError,
+        ConfigError,
+        MethodError,
+        BagError,
+        MrclamError,
+        SourceError,
+        CalibrationError,
+        ModelDirError,
         FileNotFoundError,
     )
     return isinstance(exc, known)
@@ -150,7 +157,9 @@ def add_zenoh_args(p: argparse.ArgumentParser, role: str) -> None:
     g = p.add_argument_group("zenoh")
     p.set_defaults(zenoh_role=role)
     g.add_argument(
-        "--mode", choices=("peer", "client"), default="peer",
+        "--mode",
+        choices=("peer", "client"),
+        default="peer",
         help="Zenoh mode: peer (talks to every peer) or client (through a router)",
     )
     g.add_argument(

@@ -74,7 +74,9 @@ unobservable, so a moving robot (``r1``: the triangle, the circle, on the grid i
 its place."""
 
 
-def scenario_setup(name: str, opts: DemoOptions) -> tuple[Simulation, TeamConfig, dict[str, float] | None]:
+def scenario_setup(
+    name: str, opts: DemoOptions
+) -> tuple[Simulation, TeamConfig, dict[str, float] | None]:
     """The simulation, the team config the filter gets, and the true pair biases to score
     online bias estimates against (None when biases are not estimated).
 
@@ -89,7 +91,9 @@ def scenario_setup(name: str, opts: DemoOptions) -> tuple[Simulation, TeamConfig
     sim = build_simulation(name, opts, **kwargs)
     config = sim.config
     if estimate:
-        config = replace(config, robots=tuple(replace(r, heading_offset_deg=0.0) for r in config.robots))
+        config = replace(
+            config, robots=tuple(replace(r, heading_offset_deg=0.0) for r in config.robots)
+        )
     if opts.bias == "online":
         config = replace(config, uwb=replace(config.uwb, pairs={}))
     config = config.with_modes(
@@ -119,7 +123,11 @@ def run_scenario(name: str, opts: DemoOptions, console: Console) -> ScenarioRepo
     gt = GroundTruth(config.reference)
     engine = Engine(pipelines, truth_sinks=[gt.add])
     run_with_progress(
-        engine, inject(sim.events(), opts.faults), label=name, duration=sim.duration, console=console,
+        engine,
+        inject(sim.events(), opts.faults),
+        label=name,
+        duration=sim.duration,
+        console=console,
         enabled=opts.progress,
     )
     return evaluate(engine, gt, name, opts.warmup, bias_truth=bias_truth)
@@ -159,7 +167,9 @@ def run_demo(opts: DemoOptions, console: Console | None = None) -> dict[str, Any
     for name in opts.scenarios:
         if name == "nav":
             if opts.heading == "estimate" or opts.odom_scale == "online":
-                console.print("nav: skipped (closed-loop navigation runs with the compass and fixed scales only)")
+                console.print(
+                    "nav: skipped (closed-loop navigation runs with the compass and fixed scales only)"
+                )
                 continue
             results["scenarios"]["nav"] = run_nav(opts, console)
             continue

@@ -106,7 +106,14 @@ def _robots(inv: BagInventory) -> tuple[list[Robot], list[str]]:
     robots = []
     for body in sorted(inv.tracks):
         n = robot_number(body)
-        topic = next((t for t in by_number.get(n if n is not None else -1, []) if _same_kind(body, _odom_robot(t))), "")
+        topic = next(
+            (
+                t
+                for t in by_number.get(n if n is not None else -1, [])
+                if _same_kind(body, _odom_robot(t))
+            ),
+            "",
+        )
         if topic:
             robots.append(Robot(_odom_robot(topic), body, odom=topic))
     if not robots:
@@ -129,9 +136,13 @@ def _parse_nodes(items: list[str], robots: list[Robot], nodes: list[str]) -> dic
         name, _, node = item.partition("=")
         robot = next((r for r in robots if name in (r.name, r.body)), None)
         if robot is None or not node:
-            raise UserError(f"--node {item!r}: expected ROBOT=NODE with ROBOT one of {[r.name for r in robots]}")
+            raise UserError(
+                f"--node {item!r}: expected ROBOT=NODE with ROBOT one of {[r.name for r in robots]}"
+            )
         if node not in nodes:
-            raise UserError(f"--node {item!r}: node {node!r} has no ranges in the bag; nodes: {nodes}")
+            raise UserError(
+                f"--node {item!r}: node {node!r} has no ranges in the bag; nodes: {nodes}"
+            )
         fixed[robot.body] = node
     return fixed
 
@@ -154,18 +165,26 @@ def _reference(robots: list[Robot], counts: dict[str, int], pinned: str | None) 
     ranked = sorted(counts, key=lambda n: (-counts[n], n))
     best, second = ranked[0], ranked[1]
     share = (counts[best] - counts[second]) / max(counts[best], 1)
-    how = "a near tie, so the choice is arbitrary; --reference picks another" if share < REFERENCE_TIE else "clearly"
+    how = (
+        "a near tie, so the choice is arbitrary; --reference picks another"
+        if share < REFERENCE_TIE
+        else "clearly"
+    )
     return best, (
         f"reference: {best}, its node in the most range messages ({counts[best]}; "
         f"{second} {counts[second]}): {how}"
     )
 
 
-def draft(bag: Path, node_args: list[str], reference: str | None = None) -> tuple[BagInventory, Draft]:
+def draft(
+    bag: Path, node_args: list[str], reference: str | None = None
+) -> tuple[BagInventory, Draft]:
     """Inspect the bag and decide robots, node mapping, reference and area."""
     inv = inspect_bag(bag)
     if len(inv.tracks) < 2:
-        raise UserError(f"{bag}: fewer than two motion-capture bodies (/vrpn_client_node/<body>/pose): cannot draft a team")
+        raise UserError(
+            f"{bag}: fewer than two motion-capture bodies (/vrpn_client_node/<body>/pose): cannot draft a team"
+        )
     robots, notes = _robots(inv)
     if len(robots) < 2:
         raise UserError(f"{bag}: fewer than two robots found: {[r.name for r in robots]}")
@@ -180,7 +199,9 @@ def draft(bag: Path, node_args: list[str], reference: str | None = None) -> tupl
             r.node = best.nodes[r.body]
         if len(ranked) == 1:
             decided = True
-            notes.append(f"node mapping: the only assignment with ranges for every pair, residual {best.rms:.3f} m")
+            notes.append(
+                f"node mapping: the only assignment with ranges for every pair, residual {best.rms:.3f} m"
+            )
         else:
             second = ranked[1]
             name = {r.body: r.name for r in robots}
@@ -203,7 +224,9 @@ def draft(bag: Path, node_args: list[str], reference: str | None = None) -> tupl
                     alt = ", ".join(f"{second.nodes[b]} on {name[b]}" for b in differ)
                     notes.append(f"  {alt} fits as well: perhaps a second tag on the same robot")
         if fixed:
-            notes.append(f"  pinned by --node: {', '.join(sorted(f'{r.name}={fixed[r.body]}' for r in robots if r.body in fixed))}")
+            notes.append(
+                f"  pinned by --node: {', '.join(sorted(f'{r.name}={fixed[r.body]}' for r in robots if r.body in fixed))}"
+            )
         extra = sorted(set(inv.nodes) - set(best.nodes.values()))
         if extra:
             notes.append(f"UWB nodes left out (on no robot, or a second tag): {', '.join(extra)}")
@@ -233,24 +256,32 @@ def calibrate_draft(bag: Path, text: str, d: Draft) -> tuple[Calibration | None,
         return None, [f"not calibrated: {exc}"]
     headings = {r: deg + 0.0 for r, deg in cal.heading_offset_deg.items()}  # no -0.0
     cal = Calibration(cal.source, cal.pairs, headings, cal.fit_scale)
-    notes = ["calibrated from this bag's motion capture (in-sample: a run of this bag with it scores "
-             "against the truth it was fitted to; --no-calibrate leaves it out):"]
+    notes = [
+        "calibrated from this bag's motion capture (in-sample: a run of this bag with it scores "
+        "against the truth it was fitted to; --no-calibrate leaves it out):"
+    ]
     if cal.pairs:
         biases = [p.bias for p in cal.pairs.values()]
         sigmas = {k: p.sigma for k, p in cal.pairs.items() if p.sigma is not None}
         line = f"  {len(cal.pairs)} pair biases {min(biases):.3f}..{max(biases):.3f} m"
         if sigmas:
             widest = max(sigmas, key=lambda k: sigmas[k])
-            line += (f", robust sigma of what is left {min(sigmas.values()):.3f}..{max(sigmas.values()):.3f} m "
-                     f"(widest {widest})")
+            line += (
+                f", robust sigma of what is left {min(sigmas.values()):.3f}..{max(sigmas.values()):.3f} m "
+                f"(widest {widest})"
+            )
         notes.append(line)
     if headings:
         shown = ", ".join(f"{r} {deg:+.2f}" for r, deg in headings.items())
-        notes.append(f"  heading offsets (deg, mocap yaw - odometry yaw at the first odometry message, "
-                     f"one pose each: as sure as that mocap yaw): {shown}")
+        notes.append(
+            f"  heading offsets (deg, mocap yaw - odometry yaw at the first odometry message, "
+            f"one pose each: as sure as that mocap yaw): {shown}"
+        )
     missing = [r.name for r in d.robots if r.odom and r.name not in headings]
     if missing:
-        notes.append(f"  no heading offset (no mocap pose near the first odometry): {', '.join(missing)}")
+        notes.append(
+            f"  no heading offset (no mocap pose near the first odometry): {', '.join(missing)}"
+        )
     return cal, notes
 
 
@@ -262,19 +293,29 @@ def to_toml(inv: BagInventory, d: Draft, name: str, calibrated: list[str] | None
     """The drafted config as TOML text with comments; ``calibrated`` (the robots that get a
     heading offset) marks the draft as one that :func:`calibrate_draft` will fill in."""
     doc = tomlkit.document()
-    doc.add(tomlkit.comment(f"Drafted by relloc init from {inv.path}; check every value before trusting it."))
+    doc.add(
+        tomlkit.comment(
+            f"Drafted by relloc init from {inv.path}; check every value before trusting it."
+        )
+    )
     for line in d.notes:
         doc.add(tomlkit.comment(line))
     doc.add("name", name)
     doc.add(tomlkit.comment(d.reference_note))
     doc.add("reference", d.reference)
-    doc.add(tomlkit.comment(
-        "area: the default prior box's size centred on the robots' mocap extent, or that extent "
-        f"plus {MARGIN_M:g} m where larger (the filter uses only its size)"
-    ))
+    doc.add(
+        tomlkit.comment(
+            "area: the default prior box's size centred on the robots' mocap extent, or that extent "
+            f"plus {MARGIN_M:g} m where larger (the filter uses only its size)"
+        )
+    )
     doc.add("area", [float(v) for v in d.area])
     layout = inv.range_layout or "unknown"
-    doc.add(tomlkit.comment(f"ros_distro: the range messages have the {layout} layout of {inv.range_type or 'Range'}"))
+    doc.add(
+        tomlkit.comment(
+            f"ros_distro: the range messages have the {layout} layout of {inv.range_type or 'Range'}"
+        )
+    )
     doc.add("ros_distro", _distro(inv.range_layout))
     quirks = _quirks(inv)
     if quirks:
@@ -303,7 +344,9 @@ def to_toml(inv: BagInventory, d: Draft, name: str, calibrated: list[str] | None
         t.add("mocap_body", r.body)
         if calibrated is not None and r.name in calibrated:
             t.add("heading_offset_deg", 0.0)
-            t["heading_offset_deg"].comment("from this bag's mocap: mocap yaw - odometry yaw at the first odometry")
+            t["heading_offset_deg"].comment(
+                "from this bag's mocap: mocap yaw - odometry yaw at the first odometry"
+            )
         robots.append(t)
     doc.add("robots", robots)
     uwb = tomlkit.table()
@@ -312,12 +355,18 @@ def to_toml(inv: BagInventory, d: Draft, name: str, calibrated: list[str] | None
         uwb.add("range_type", inv.range_type)
     doc.add(tomlkit.nl())
     if calibrated is None:
-        doc.add(tomlkit.comment("Pair biases are not calibrated here: relloc calibrate BAG --config THIS.toml"))
+        doc.add(
+            tomlkit.comment(
+                "Pair biases are not calibrated here: relloc calibrate BAG --config THIS.toml"
+            )
+        )
     else:
-        doc.add(tomlkit.comment(
-            "Pair biases: median of range - mocap distance on this bag (relloc calibrate); the robust "
-            "sigma of what is left is in each comment, left unset so the filter's noise model applies"
-        ))
+        doc.add(
+            tomlkit.comment(
+                "Pair biases: median of range - mocap distance on this bag (relloc calibrate); the robust "
+                "sigma of what is left is in each comment, left unset so the filter's noise model applies"
+            )
+        )
     doc.add("uwb", uwb)
     return tomlkit.dumps(doc)
 
@@ -327,11 +376,15 @@ def _quirks(inv: BagInventory) -> list[str]:
     if inv.far_stamps:
         offsets = sorted({round(v) for v in inv.far_stamps.values()})
         shown = ", ".join(f"{v:.0f}" for v in offsets[:3]) + (" ..." if len(offsets) > 3 else "")
-        out.append(f"{len(inv.far_stamps)} topics stamp far from receive time (stamp - receive: {shown} s)")
+        out.append(
+            f"{len(inv.far_stamps)} topics stamp far from receive time (stamp - receive: {shown} s)"
+        )
     if inv.zero_stamp_topics:
         out.append(f"all-zero header stamps: {', '.join(inv.zero_stamp_topics)}")
     if inv.stale_ranges:
-        out.append(f"{inv.stale_ranges} of {inv.range_messages} range messages repeat their topic's previous value")
+        out.append(
+            f"{inv.stale_ranges} of {inv.range_messages} range messages repeat their topic's previous value"
+        )
     return out
 
 
@@ -349,7 +402,9 @@ def _cmd_init(args: argparse.Namespace) -> int:
         if not args.no_calibrate and inv.ranges:
             cal, cal_notes = calibrate_draft(bag, text, d)
             if cal is not None:
-                text = edit_config_text(to_toml(inv, d, recording_name(bag), list(cal.heading_offset_deg)), cal)
+                text = edit_config_text(
+                    to_toml(inv, d, recording_name(bag), list(cal.heading_offset_deg)), cal
+                )
     except BagError as exc:
         raise UserError(str(exc)) from None
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -364,8 +419,11 @@ def _cmd_init(args: argparse.Namespace) -> int:
         print(f"  {line}")
     print(f"  assignment search: {d.seconds:.2f} s")
     if not d.decided:
-        print(f"relloc init: the node mapping is undecided; {out} is written with a guess. "
-              "Rerun with --node ROBOT=NODE --force", file=sys.stderr)
+        print(
+            f"relloc init: the node mapping is undecided; {out} is written with a guess. "
+            "Rerun with --node ROBOT=NODE --force",
+            file=sys.stderr,
+        )
         return 2
     return 0
 
@@ -378,16 +436,25 @@ def register(sub: Any) -> None:
         description=__doc__.split("\n\n")[0] if __doc__ else None,
     )
     p.add_argument("bag", help="rosbag2 folder (or .db3/.mcap file)")
-    p.add_argument("--out", type=Path, default=None, help="the config to write (default: <recording>.toml)")
+    p.add_argument(
+        "--out", type=Path, default=None, help="the config to write (default: <recording>.toml)"
+    )
     p.add_argument("--force", action="store_true", help="overwrite an existing file")
     p.add_argument(
-        "--node", action="append", metavar="ROBOT=NODE",
+        "--node",
+        action="append",
+        metavar="ROBOT=NODE",
         help="pin a robot's UWB node (repeatable), e.g. turtle01=n_2",
     )
-    p.add_argument("--reference", metavar="ROBOT", default=None,
-                   help="the reference robot (default: the one whose node is in the most range messages)")
-    p.add_argument("--no-calibrate", action="store_true",
-                   help="leave out pair biases and heading offsets (else estimated from the bag's motion capture)")
+    p.add_argument(
+        "--reference",
+        metavar="ROBOT",
+        default=None,
+        help="the reference robot (default: the one whose node is in the most range messages)",
+    )
+    p.add_argument(
+        "--no-calibrate",
+        action="store_true",
+        help="leave out pair biases and heading offsets (else estimated from the bag's motion capture)",
+    )
     p.set_defaults(handler=_cmd_init)
-
-

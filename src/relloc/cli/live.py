@@ -60,7 +60,9 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def _serve(config: TeamConfig, opts: ServeOptions, args: argparse.Namespace, security: str) -> dict[str, Any]:
+def _serve(
+    config: TeamConfig, opts: ServeOptions, args: argparse.Namespace, security: str
+) -> dict[str, Any]:
     session = open_command_session(args)
     try:
         server = LiveServer(config, session, opts)
@@ -122,9 +124,13 @@ def _print_summary(s: dict[str, Any]) -> None:
 def _cmd_replay(args: argparse.Namespace) -> int:
     kind = source_kind(args.bag)
     if not kind.replayable:
-        raise UserError(f"{args.bag} is {kind.what}: relloc replay publishes the ROS 2 messages of a rosbag2 recording")
+        raise UserError(
+            f"{args.bag} is {kind.what}: relloc replay publishes the ROS 2 messages of a rosbag2 recording"
+        )
     config = TeamConfig.load(args.config)
-    opts = options_from_args(ReplayOptions, args, interface=interface_from_args(args, config), faults=_faults(args))
+    opts = options_from_args(
+        ReplayOptions, args, interface=interface_from_args(args, config), faults=_faults(args)
+    )
     session = open_command_session(args)
     try:
         with stop_on_signals() as stop:
@@ -139,7 +145,9 @@ def _cmd_replay(args: argparse.Namespace) -> int:
     if stats.unmatched:
         print(f"  no subscriber when it started: {', '.join(stats.unmatched)}")
     if stats.injected:
-        print("  faults injected: " + ", ".join(f"{k} {v}" for k, v in sorted(stats.injected.items())))
+        print(
+            "  faults injected: " + ", ".join(f"{k} {v}" for k, v in sorted(stats.injected.items()))
+        )
     return 0
 
 
@@ -163,9 +171,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.add_argument("--seed", type=argtypes.seed, default=0, help="random seed of the filter")
     add_fault_arguments(serve)
     serve.add_argument(
-        "--particles", type=argtypes.count, default=None, help="override the config's particle count"
+        "--particles",
+        type=argtypes.count,
+        default=None,
+        help="override the config's particle count",
     )
-    serve.add_argument("--models", type=Path, default=None, help="trained range-error models (for pf_ul)")
+    serve.add_argument(
+        "--models", type=Path, default=None, help="trained range-error models (for pf_ul)"
+    )
     serve.add_argument(
         "--out-prefix", default="relloc", help="key prefix of the estimates and status"
     )
@@ -209,7 +222,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     replay.add_argument(
         "--config", required=True, help="team config (TOML): keys of the team's topics"
     )
-    replay.add_argument("--rate", type=argtypes.positive, default=1.0, help="speed factor (2: twice as fast)")
+    replay.add_argument(
+        "--rate", type=argtypes.positive, default=1.0, help="speed factor (2: twice as fast)"
+    )
     replay.add_argument("--team-only", action="store_true", help="publish only the team's topics")
     replay.add_argument(
         "--ground-truth", action="store_true", help="also publish motion capture (mocap_topic)"
@@ -222,7 +237,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="wait up to S s for the server's subscribers",
     )
     replay.add_argument("--start", type=float, default=0.0, metavar="S", help="skip S s of the bag")
-    replay.add_argument("--duration", type=argtypes.positive, default=None, metavar="S", help="publish only S s")
+    replay.add_argument(
+        "--duration", type=argtypes.positive, default=None, metavar="S", help="publish only S s"
+    )
     add_fault_arguments(replay)
     add_zenoh_args(replay, "team")
     replay.set_defaults(handler=_cmd_replay)

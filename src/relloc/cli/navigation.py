@@ -108,7 +108,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--methods", default="pf", help="with --in-process: the methods (the first drives)"
     )
     e.add_argument(
-        "--particles", type=argtypes.count, default=None, help="with --in-process: override the particle count"
+        "--particles",
+        type=argtypes.count,
+        default=None,
+        help="with --in-process: override the particle count",
     )
     e.add_argument("--seed", type=argtypes.seed, default=0, help="with --in-process")
     e.add_argument(
@@ -132,7 +135,11 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="use the estimate as is, not moved forward by odometry to the control time",
     )
     nav.add_argument(
-        "--duration", type=argtypes.positive, default=None, metavar="S", help="stop (zero velocity) after S s"
+        "--duration",
+        type=argtypes.positive,
+        default=None,
+        metavar="S",
+        help="stop (zero velocity) after S s",
     )
     nav.add_argument("--json", default=None, metavar="FILE", help="write the summary as JSON")
     add_zenoh_args(nav, "navigate")
@@ -164,8 +171,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--robot", default=None, help="the commanded robot (nav: r2; other scenarios: none)"
     )
     sim.add_argument("--seed", type=argtypes.seed, default=0, help="random seed of the simulation")
-    sim.add_argument("--rate", type=argtypes.positive, default=1.0, help="simulated seconds per wall second")
-    sim.add_argument("--duration", type=argtypes.positive, default=600.0, metavar="S", help="simulated seconds")
+    sim.add_argument(
+        "--rate", type=argtypes.positive, default=1.0, help="simulated seconds per wall second"
+    )
+    sim.add_argument(
+        "--duration", type=argtypes.positive, default=600.0, metavar="S", help="simulated seconds"
+    )
     sim.add_argument(
         "--write-config",
         default=None,
@@ -174,7 +185,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     sim.add_argument("--config-only", action="store_true", help="write --write-config and exit")
     sim.add_argument(
-        "--particles", type=argtypes.count, default=None, help="particle count written into the config"
+        "--particles",
+        type=argtypes.count,
+        default=None,
+        help="particle count written into the config",
     )
     sim.add_argument(
         "--cmd-timeout",
@@ -184,7 +198,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="a commanded robot stops after S simulated seconds without cmd_vel",
     )
     sim.add_argument(
-        "--no-ground-truth", dest="ground_truth", action="store_false", help="do not publish motion capture"
+        "--no-ground-truth",
+        dest="ground_truth",
+        action="store_false",
+        help="do not publish motion capture",
     )
     sim.add_argument(
         "--wait",
@@ -248,12 +265,13 @@ def _cmd_navigate(args: argparse.Namespace) -> int:
     safety = SafetyConfig().updated(path.safety, "path.safety")
     safety = safety.updated(
         _overrides(
-            args, {
+            args,
+            {
                 "max_age": "max_age",
                 "max_std": "max_std",
                 "start_std": "start_std",
                 "settle_time": "settle_time",
-            }
+            },
         ),
         "options",
     )

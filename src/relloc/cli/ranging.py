@@ -263,7 +263,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     train.add_argument("csv", help="ranging CSV (columns of train_20221219.csv)")
     train.add_argument(
-        "--variant", choices=VARIANT_CHOICES, default="stacked",
+        "--variant",
+        choices=VARIANT_CHOICES,
+        default="stacked",
         help="network: stacked LSTM, bidirectional LSTM or ConvLSTM (docs/ranging.md)",
     )
     train.add_argument("--out", required=True, help="model directory to write")
@@ -274,7 +276,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=(50, 50),
         help="units (filters) per recurrent layer (default 50,50)",
     )
-    train.add_argument("--dropout", type=float, default=0.3, help="dropout between recurrent layers")
+    train.add_argument(
+        "--dropout", type=float, default=0.3, help="dropout between recurrent layers"
+    )
     train.add_argument(
         "--features",
         choices=FEATURE_CHOICES,
@@ -293,7 +297,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     train.add_argument("--batch-size", type=int, default=32, help="windows per training batch")
     train.add_argument("--lr", type=float, default=1e-3, help="Adam learning rate")
     train.add_argument("--weight-decay", type=float, default=1e-4, help="L2 weight decay")
-    train.add_argument("--seed", type=argtypes.seed, default=0, help="random seed of the weights and batches")
+    train.add_argument(
+        "--seed", type=argtypes.seed, default=0, help="random seed of the weights and batches"
+    )
     train.add_argument(
         "--split",
         type=_floats,
@@ -406,7 +412,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     bag.add_argument("--out", required=True, help="CSV to write")
     bag.add_argument(
-        "--mocap-topic", default="/vrpn_client_node/{body}/pose", help="motion-capture topic template"
+        "--mocap-topic",
+        default="/vrpn_client_node/{body}/pose",
+        help="motion-capture topic template",
     )
     bag.set_defaults(handler=_bag_csv)
 

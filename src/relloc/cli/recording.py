@@ -80,7 +80,9 @@ def run_recording(
     console = console or make_console()
     kind = source_kind(path)
     options = SourceOptions(
-        seed=opts.seed, sightings=opts.sightings, detections=bool(DETECTION_METHODS & set(opts.methods))
+        seed=opts.seed,
+        sightings=opts.sightings,
+        detections=bool(DETECTION_METHODS & set(opts.methods)),
     )
     source = kind.open(path, None if config is None else _with_options(config, opts), options)
     if opts.span is not None:
@@ -89,7 +91,8 @@ def run_recording(
     name = source.name
     oracle = source.initial_poses()
     pipelines = [
-        build_pipeline(m, config, seed=opts.seed, models=opts.models, oracle_start=oracle) for m in opts.methods
+        build_pipeline(m, config, seed=opts.seed, models=opts.models, oracle_start=oracle)
+        for m in opts.methods
     ]
     check_warmup(opts.warmup, source.duration, name)
     if (header := filter_header(opts.methods, config)) is not None:
@@ -111,7 +114,9 @@ def run_recording(
     )
     online = config.filter.self_calibration.bias_mode == "online"
     bias_truth = _bag_bias_truth(path, config) if online and kind.calibrates else None
-    report = evaluate(engine, gt, name, opts.warmup, bias_truth=bias_truth, truth_name=kind.truth_name)
+    report = evaluate(
+        engine, gt, name, opts.warmup, bias_truth=bias_truth, truth_name=kind.truth_name
+    )
     print_table(report, console)
     lines = rejection_lines("the source", source.stats.rejected)
     for p in engine.pipelines:
@@ -127,7 +132,9 @@ def run_recording(
     if opts.json_path is not None:
         payload: dict[str, Any] = {"seed": opts.seed, "scenarios": {name: report.to_json()}}
         payload["scenarios"][name]["source"] = source.stats.as_dict()
-        payload["scenarios"][name]["faults"] = {p.name: p.localizer.fault_counters() for p in engine.pipelines}
+        payload["scenarios"][name]["faults"] = {
+            p.name: p.localizer.fault_counters() for p in engine.pipelines
+        }
         opts.json_path.parent.mkdir(parents=True, exist_ok=True)
         opts.json_path.write_text(json.dumps(payload, indent=2))
         console.print(f"figures written to {opts.json_path}")

@@ -13,17 +13,32 @@ from collections.abc import Mapping
 
 REASONS: dict[str, tuple[str, str]] = {
     # ------------------------------------------------------------------ sources
-    "decode_error": ("messages that could not be decoded", "check the message types; the rest is used"),
-    "unknown_key": ("Zenoh keys that belong to no robot of the team", "harmless with --subscribe-all"),
-    "queue_full": ("messages dropped because the engine fell behind", "matters: lower the particle count"),
+    "decode_error": (
+        "messages that could not be decoded",
+        "check the message types; the rest is used",
+    ),
+    "unknown_key": (
+        "Zenoh keys that belong to no robot of the team",
+        "harmless with --subscribe-all",
+    ),
+    "queue_full": (
+        "messages dropped because the engine fell behind",
+        "matters: lower the particle count",
+    ),
     "late": ("messages older than the reorder buffer could still place", "harmless if few"),
-    "range_nonfinite": ("UWB ranges that were NaN or infinite", "harmless: a driver's invalid reading"),
+    "range_nonfinite": (
+        "UWB ranges that were NaN or infinite",
+        "harmless: a driver's invalid reading",
+    ),
     "range_nonpositive": ("UWB ranges of zero or less", "harmless: a driver's invalid reading"),
     "detection_zero_position": (
         "detections at exactly (0, 0, 0)",
         "harmless: the camera's value for a box without depth",
     ),
-    "bag_damaged": ("times the bag's storage was found damaged (the rest read as far as readable)", "matters: messages lost"),
+    "bag_damaged": (
+        "times the bag's storage was found damaged (the rest read as far as readable)",
+        "matters: messages lost",
+    ),
     "malformed_row": (
         "MRCLAM rows with another column count, text, NaN or infinity (warned by file and line)",
         "harmless if few: the rest of the file is used",
@@ -35,19 +50,34 @@ REASONS: dict[str, tuple[str, str]] = {
         "ranges equal to their pair's previous one",
         "expected on the TIERS recordings: a stale sample re-published is not new evidence",
     ),
-    "late_measurement": ("measurements older than the filter's time", "matters if many: raise --reorder-window"),
+    "late_measurement": (
+        "measurements older than the filter's time",
+        "matters if many: raise --reorder-window",
+    ),
     "time_jump": ("events stamped far ahead of the team's clock", "matters: a clock problem"),
-    "time_jump_backward": ("events stamped far behind the team's clock", "matters: a clock problem"),
+    "time_jump_backward": (
+        "events stamped far behind the team's clock",
+        "matters: a clock problem",
+    ),
     "invalid_time": ("events with a NaN or infinite time stamp", "matters: a driver problem"),
     "invalid_range": ("ranges that are NaN, infinite or negative", "harmless if few"),
     "invalid_odometry": ("odometry with NaN or infinite values", "matters if many"),
-    "out_of_order_odometry": ("odometry not newer than the robot's previous one", "harmless if few"),
+    "out_of_order_odometry": (
+        "odometry not newer than the robot's previous one",
+        "harmless if few",
+    ),
     "unknown_robot": ("events about a robot the team does not have", "check the config"),
     "unknown_event_type": ("events no measurement model fuses", "harmless"),
-    "unknown_node_pair": ("ranges of a node pair without a bias column (online biases)", "check [uwb.pairs]"),
+    "unknown_node_pair": (
+        "ranges of a node pair without a bias column (online biases)",
+        "check [uwb.pairs]",
+    ),
     "self_range": ("ranges from a robot to itself", "check the UWB node ids"),
     "self_observation": ("detections relating a robot to itself", "harmless"),
-    "invalid_relative_observation": ("relative positions that are NaN or infinite", "harmless if few"),
+    "invalid_relative_observation": (
+        "relative positions that are NaN or infinite",
+        "harmless if few",
+    ),
 }
 """Reason -> (what was dropped, whether it matters)."""
 

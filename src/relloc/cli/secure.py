@@ -71,13 +71,19 @@ def register(sub: argparse._SubParsersAction) -> None:
         "127.0.0.1 always)",
     )
     init.add_argument("--force", action="store_true", help="replace an existing DIR's files")
-    init.add_argument("--prefix", default="", help="key prefix of the robots' topics (the bridge namespace)")
     init.add_argument(
-        "--estimate-prefix", default="relloc", help="key prefix of serve's estimates (its --out-prefix)"
+        "--prefix", default="", help="key prefix of the robots' topics (the bridge namespace)"
+    )
+    init.add_argument(
+        "--estimate-prefix",
+        default="relloc",
+        help="key prefix of serve's estimates (its --out-prefix)",
     )
     init.add_argument(
         "--ros-interface", choices=("bridge", "rmw_zenoh"), default=None,
         help="the robots' interface (default: the config's ros_interface)",
     )  # fmt: skip
-    init.add_argument("--domain-id", type=int, default=None, metavar="N", help="ROS domain id with rmw_zenoh")
+    init.add_argument(
+        "--domain-id", type=int, default=None, metavar="N", help="ROS domain id with rmw_zenoh"
+    )
     init.set_defaults(handler=_cmd_init)

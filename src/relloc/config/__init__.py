@@ -88,7 +88,9 @@ class TeamConfig(Checked):
     def __post_init__(self) -> None:
         super().__post_init__()
         if not all(isinstance(v, dict) for v in self.sensors.values()):
-            raise ConfigError(f"sensors: each entry must be a [sensors.<kind>] table, got {self.sensors!r}")
+            raise ConfigError(
+                f"sensors: each entry must be a [sensors.<kind>] table, got {self.sensors!r}"
+            )
         names = [r.name for r in self.robots]
         if len(names) < 2:
             raise ConfigError("a team needs at least two robots")
@@ -158,7 +160,9 @@ class TeamConfig(Checked):
         config = self.with_filter(**changes) if changes else self
         if reference is not None and reference != config.reference:
             if reference not in config.robot_names:
-                raise ConfigError(f"reference {reference!r} is not one of {list(config.robot_names)}")
+                raise ConfigError(
+                    f"reference {reference!r} is not one of {list(config.robot_names)}"
+                )
             config = replace(config, reference=reference)
         return config
 
@@ -201,9 +205,21 @@ class TeamConfig(Checked):
                 isinstance(v, numbers.Real) and not isinstance(v, bool) for v in area
             )
             if not numbers_only or len(area) != 4:
-                raise ConfigError(f"area must be four numbers [xmin, xmax, ymin, ymax], got {area!r}")
+                raise ConfigError(
+                    f"area must be four numbers [xmin, xmax, ymin, ymax], got {area!r}"
+                )
             data["area"] = tuple(float(v) for v in area)
-        return build(cls, {**data, "robots": tuple(robots), "uwb": uwb, "filter": flt, "association": association}, "team")
+        return build(
+            cls,
+            {
+                **data,
+                "robots": tuple(robots),
+                "uwb": uwb,
+                "filter": flt,
+                "association": association,
+            },
+            "team",
+        )
 
     @classmethod
     def load(cls, path: str | Path) -> TeamConfig:
@@ -219,7 +235,9 @@ class TeamConfig(Checked):
             raise ConfigError(f"{path}: not valid TOML: {exc}") from None
         uwb = data.get("uwb")
         if isinstance(uwb, dict) and isinstance(uwb.get("msg_dirs"), list):
-            uwb["msg_dirs"] = [str(path.parent / d) if isinstance(d, str) else d for d in uwb["msg_dirs"]]
+            uwb["msg_dirs"] = [
+                str(path.parent / d) if isinstance(d, str) else d for d in uwb["msg_dirs"]
+            ]
         try:
             return cls.from_dict(data)
         except ConfigError as exc:

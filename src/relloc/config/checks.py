@@ -44,7 +44,9 @@ def check_value(hint: Any, value: Any, where: str) -> None:
     numeric = hint in (float, int) or (
         get_origin(hint) is UnionType and float in get_args(hint) and value is not None
     )
-    if numeric and (isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value)):
+    if numeric and (
+        isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value)
+    ):
         raise FieldError(f"{where}: expected a finite number, got {value!r}")
     if hint is int and not isinstance(value, numbers.Integral):
         raise FieldError(f"{where}: expected an integer, got {value!r}")

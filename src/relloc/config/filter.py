@@ -143,10 +143,16 @@ class SelfCalibrationConfig(Checked):
     def __post_init__(self) -> None:
         super().__post_init__()
         require(
-            self, "filter.self_calibration", at_least_one=("selfcal_particles", "selfcal_init_particles"),
+            self,
+            "filter.self_calibration",
+            at_least_one=("selfcal_particles", "selfcal_init_particles"),
             positive=("selfcal_position_sigma", "scale_min", "scale_max"),
             non_negative=(
-                "bias_walk", "heading_walk", "reference_heading_walk", "heading_split_std", "heading_prior_sigma_deg",
+                "bias_walk",
+                "heading_walk",
+                "reference_heading_walk",
+                "heading_split_std",
+                "heading_prior_sigma_deg",
             ),
         )
 
@@ -170,7 +176,9 @@ class AdaptiveConfig(Checked):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        require(self, "filter.adaptive", at_least_one=("min_particles",), non_negative=("mc_tolerance",))
+        require(
+            self, "filter.adaptive", at_least_one=("min_particles",), non_negative=("mc_tolerance",)
+        )
 
 
 SECTIONS = ("likelihood", "odometry", "resampling", "self_calibration", "adaptive")

@@ -19,7 +19,8 @@ MOVED: dict[str, tuple[str, str]] = {
     "max_time_jump": ("", _constant("relloc.localizers.clock.MAX_TIME_JUMP", "5 s")),
     "mcmc_steps": ("", _constant("relloc.filter.annealing.MCMC_STEPS", "3")),
     "spread_rotations": (
-        "", "is no longer a setting: the annealed start always spreads the particles over the formation's "
+        "",
+        "is no longer a setting: the annealed start always spreads the particles over the formation's "
         "rotations and reflections (relloc.filter.annealing)",
     ),
     # [filter.likelihood]
@@ -32,35 +33,57 @@ MOVED: dict[str, tuple[str, str]] = {
     "max_range": ("likelihood", _constant("relloc.filter.ranges.MAX_RANGE", "15 m")),
     # [filter.odometry]
     "odom_noise_per_m": ("odometry", _constant("relloc.filter.motion.NOISE_PER_M", "0.05 per m")),
-    "odom_noise_per_rad": ("odometry", _constant("relloc.filter.motion.NOISE_PER_RAD", "0.02 m per rad")),
-    "process_noise": ("odometry", _constant("relloc.filter.motion.PROCESS_NOISE", "0.03 m per sqrt(s)")),
+    "odom_noise_per_rad": (
+        "odometry",
+        _constant("relloc.filter.motion.NOISE_PER_RAD", "0.02 m per rad"),
+    ),
+    "process_noise": (
+        "odometry",
+        _constant("relloc.filter.motion.PROCESS_NOISE", "0.03 m per sqrt(s)"),
+    ),
     "max_odom_extrapolation": ("odometry", _constant("relloc.odometry.MAX_EXTRAPOLATION", "0.5 s")),
     "max_speed": ("odometry", _constant("relloc.localizers.tracks.MAX_SPEED", "1.5 m/s")),
     "max_yaw_rate": ("odometry", _constant("relloc.localizers.tracks.MAX_YAW_RATE", "4 rad/s")),
     # [filter.resampling]
     "resample": (
-        "resampling", "is no longer a setting: the sampled filter resamples when the effective sample size "
+        "resampling",
+        "is no longer a setting: the sampled filter resamples when the effective sample size "
         "falls below relloc.filter.base.ESS_THRESHOLD",
     ),
     "ess_threshold": ("resampling", _constant("relloc.filter.base.ESS_THRESHOLD", "0.5")),
     "reinject_fraction": ("resampling", _constant("relloc.filter.base.REINJECT_FRACTION", "0.01")),
-    "rotation_kernel_max_spread": ("resampling", _constant("relloc.filter.pf.ROTATION_KERNEL_MAX_SPREAD", "0.25 rad")),
+    "rotation_kernel_max_spread": (
+        "resampling",
+        _constant("relloc.filter.pf.ROTATION_KERNEL_MAX_SPREAD", "0.25 rad"),
+    ),
     # [filter.self_calibration]
-    "bias_prior_sigma": ("self_calibration", _constant("relloc.localizers.sampled.BIAS_PRIOR_SIGMA", "0.05 m")),
+    "bias_prior_sigma": (
+        "self_calibration",
+        _constant("relloc.localizers.sampled.BIAS_PRIOR_SIGMA", "0.05 m"),
+    ),
     "bias_prior_sigma_uncalibrated": (
-        "self_calibration", _constant("relloc.localizers.sampled.BIAS_PRIOR_SIGMA_UNCALIBRATED", "0.25 m"),
+        "self_calibration",
+        _constant("relloc.localizers.sampled.BIAS_PRIOR_SIGMA_UNCALIBRATED", "0.25 m"),
     ),
     "scale_prior_sigma": (
-        "self_calibration", _constant("relloc.filter.calibration.CalibrationNoise.scale_prior_sigma", "0.15"),
+        "self_calibration",
+        _constant("relloc.filter.calibration.CalibrationNoise.scale_prior_sigma", "0.15"),
     ),
-    "scale_walk": ("self_calibration", _constant("relloc.filter.calibration.CalibrationNoise.scale_walk", "0.001")),
+    "scale_walk": (
+        "self_calibration",
+        _constant("relloc.filter.calibration.CalibrationNoise.scale_walk", "0.001"),
+    ),
     # [filter.adaptive]
-    "min_particles_no_kernel": ("adaptive", _constant("relloc.filter.adaptive.MIN_PARTICLES_NO_KERNEL", "5000")),
+    "min_particles_no_kernel": (
+        "adaptive",
+        _constant("relloc.filter.adaptive.MIN_PARTICLES_NO_KERNEL", "5000"),
+    ),
     "kld_epsilon": ("adaptive", _constant("relloc.filter.adaptive.KLD_EPSILON", "0.05")),
     "kld_quantile": ("adaptive", _constant("relloc.filter.adaptive.KLD_QUANTILE", "0.99")),
     "kld_bin": ("adaptive", _constant("relloc.filter.adaptive.KLD_BIN", "0.2 m")),
     "mc_tolerance_ordered": (
-        "adaptive", "is no longer a setting: the ordered resampling it switched on was removed (mc_tolerance "
+        "adaptive",
+        "is no longer a setting: the ordered resampling it switched on was removed (mc_tolerance "
         "holds along every direction)",
     ),
     # [filter.association] -> [association]
@@ -70,8 +93,14 @@ MOVED: dict[str, tuple[str, str]] = {
     "detection_window": ("association", "moved to [association] detection_window"),
     "d_th": ("association", "moved to [association] d_th"),
     "det_range_gate": ("association", "moved to [association] det_range_gate"),
-    "det_range_max_age": ("association", _constant("relloc.stages.association.RANGE_MAX_AGE", "0.3 s")),
-    "det_converged_std": ("association", _constant("relloc.stages.association.CONVERGED_STD", "0.5 m")),
+    "det_range_max_age": (
+        "association",
+        _constant("relloc.stages.association.RANGE_MAX_AGE", "0.3 s"),
+    ),
+    "det_converged_std": (
+        "association",
+        _constant("relloc.stages.association.CONVERGED_STD", "0.5 m"),
+    ),
     "det_gate_sigmas": ("association", _constant("relloc.stages.association.GATE_SIGMAS", "2")),
 }
 """Old key -> (its section under ``[filter]``, ``""`` for the top; what became of it)."""

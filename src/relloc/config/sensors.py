@@ -181,6 +181,15 @@ class AssociationConfig(Checked):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        require(self, "association", positive=("sigma_det",), non_negative=(
-            "detection_window", "d_th", "det_sigma_per_m", "det_range_gate", "det_heading_drift",
-        ))
+        require(
+            self,
+            "association",
+            positive=("sigma_det",),
+            non_negative=(
+                "detection_window",
+                "d_th",
+                "det_sigma_per_m",
+                "det_range_gate",
+                "det_heading_drift",
+            ),
+        )

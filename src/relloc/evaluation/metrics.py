@@ -151,11 +151,15 @@ def associate(
             e.append(est.positions[robot])
             g.append(truth)
             s.append(est.std(robot))
-        out[robot] = Paired(np.array(t), np.array(e).reshape(-1, 2), np.array(g).reshape(-1, 2), np.array(s))
+        out[robot] = Paired(
+            np.array(t), np.array(e).reshape(-1, 2), np.array(g).reshape(-1, 2), np.array(s)
+        )
     return out
 
 
-def truth_in_frame(est: Estimate, gt: GroundTruth, robot: str, rotation: float = 0.0) -> tuple[float, float] | None:
+def truth_in_frame(
+    est: Estimate, gt: GroundTruth, robot: str, rotation: float = 0.0
+) -> tuple[float, float] | None:
     """``robot``'s true position relative to the reference at ``est.t`` in the frame the
     estimate is in (:attr:`Estimate.frame`): the reference's body frame (turned by its
     motion-capture yaw then), or the heading frame, the world turned by ``rotation`` (rad; the
@@ -281,7 +285,9 @@ def after(p: Paired, t_start: float) -> Paired:
 
 
 # ---------------------------------------------------------------------------- self-calibration
-def nearest_pose(gt: GroundTruth, robot: str, t: float, max_gap: float = 0.5) -> tuple[float, float, float] | None:
+def nearest_pose(
+    gt: GroundTruth, robot: str, t: float, max_gap: float = 0.5
+) -> tuple[float, float, float] | None:
     """The motion-capture pose at ``t`` (interpolated), else the nearest sample within ``max_gap``."""
     pose = gt.pose_at(robot, t)
     if pose is not None:
@@ -295,7 +301,9 @@ def nearest_pose(gt: GroundTruth, robot: str, t: float, max_gap: float = 0.5) ->
     return float(poses[i, 0]), float(poses[i, 1]), float(poses[i, 2])
 
 
-def odometry_frame_rotation(gt: GroundTruth, robot: str, odometry: tuple[float, float]) -> float | None:
+def odometry_frame_rotation(
+    gt: GroundTruth, robot: str, odometry: tuple[float, float]
+) -> float | None:
     """Rotation of ``robot``'s odometry frame in the world (mocap) frame (rad): its mocap yaw
     minus its odometry yaw ``odometry = (t, yaw)``, taken at its first odometry message (the
     odometry frame is fixed; later the odometry yaw drifts, not the frame). Evaluation only."""
@@ -354,7 +362,9 @@ def associate_headings(
     return out
 
 
-def bias_errors(estimates: Sequence[Estimate], truth: dict[str, float], t_start: float) -> dict[str, FloatArray]:
+def bias_errors(
+    estimates: Sequence[Estimate], truth: dict[str, float], t_start: float
+) -> dict[str, FloatArray]:
     """Per node pair with a known true bias: ``|published mean - truth|`` at every estimate
     from ``t_start`` on."""
     out: dict[str, list[float]] = {}
@@ -434,7 +444,11 @@ def associate_shapes(
     """Like :func:`associate`, for the published shapes (the formation in its declared gauge,
     :attr:`Estimate.shape`) instead of the positions: align these once for the run
     (:func:`align` ``"run"``), as multilateration's formation is, for the shape APE."""
-    shaped = [replace(est, positions=dict(est.shape), frame=HEADING_FRAME) for est in estimates if est.shape]
+    shaped = [
+        replace(est, positions=dict(est.shape), frame=HEADING_FRAME)
+        for est in estimates
+        if est.shape
+    ]
     return associate(shaped, gt, robots, rotation)
 
 
@@ -467,12 +481,18 @@ def body_frame_paired(
             pose = gt.pose_at(ref, est.t)
             if truth is None or pose is None:
                 continue
-            heading = 0.0 if body else yaw_at[est.t] + (est.headings[ref][0] if ref in est.headings else 0.0)
+            heading = (
+                0.0
+                if body
+                else yaw_at[est.t] + (est.headings[ref][0] if ref in est.headings else 0.0)
+            )
             t.append(est.t)
             e.append(_to_body(est.positions[robot], heading))
             g.append(_to_body(truth, pose[2]))
             s.append(est.std(robot))
-        out[robot] = Paired(np.array(t), np.array(e).reshape(-1, 2), np.array(g).reshape(-1, 2), np.array(s))
+        out[robot] = Paired(
+            np.array(t), np.array(e).reshape(-1, 2), np.array(g).reshape(-1, 2), np.array(s)
+        )
     return out
 
 

@@ -39,8 +39,15 @@ def robot_colors(robots: list[str]) -> dict[str, tuple[float, ...]]:
 
 def _no_estimate(ax: Axes) -> None:
     ax.text(
-        0.5, 0.75, "no estimate", transform=ax.transAxes, ha="center", va="center", fontsize=14,
-        color="0.35", bbox={"facecolor": "white", "edgecolor": "0.7"},
+        0.5,
+        0.75,
+        "no estimate",
+        transform=ax.transAxes,
+        ha="center",
+        va="center",
+        fontsize=14,
+        color="0.35",
+        bbox={"facecolor": "white", "edgecolor": "0.7"},
     )
 
 
@@ -88,7 +95,9 @@ def _limits(truth: FloatArray, est: FloatArray) -> tuple[FloatArray, FloatArray]
     return (lo + hi) / 2 - half, (lo + hi) / 2 + half
 
 
-def _draw_panel(ax: Axes, pairs: dict[str, Paired], colors: dict[str, tuple[float, ...]], name: str) -> None:
+def _draw_panel(
+    ax: Axes, pairs: dict[str, Paired], colors: dict[str, tuple[float, ...]], name: str
+) -> None:
     """The truth (thick lines), the estimates inside the limits (dots, gid ``estimate``) and
     those outside at the edge (crosses, gid ``estimate_clipped``) with a count per robot."""
     finite = {r: np.all(np.isfinite(p.est), axis=1) for r, p in pairs.items()}
@@ -101,9 +110,18 @@ def _draw_panel(ax: Axes, pairs: dict[str, Paired], colors: dict[str, tuple[floa
         inside = np.all((est >= lo) & (est <= hi), axis=1)
         ax.plot(*est[inside].T, ".", color=c, ms=2, label=robot, gid="estimate")
         if not inside.all():
-            ax.plot(*np.clip(est[~inside], lo, hi).T, "x", color=c, ms=6, clip_on=False, gid="estimate_clipped")
+            ax.plot(
+                *np.clip(est[~inside], lo, hi).T,
+                "x",
+                color=c,
+                ms=6,
+                clip_on=False,
+                gid="estimate_clipped",
+            )
             far = float(np.max(np.linalg.norm(est[~inside] - gt[~inside], axis=1)))
-            off.append(f"{name} {robot}: {int(np.sum(~inside))} points, up to {far:.0f} m from the truth")
+            off.append(
+                f"{name} {robot}: {int(np.sum(~inside))} points, up to {far:.0f} m from the truth"
+            )
     if off:
         ax.plot([], [], "kx", label="off the axes, at the edge")
         ax.text(
@@ -120,7 +138,9 @@ def trajectory_figure(report: ScenarioReport, methods: list[str] | None = None) 
     Every estimate is visible: the axes include the truth and every estimate near it, and an
     estimate far out is drawn at the edge and counted in a note. A method whose orientation is
     mostly unobservable shows its shapes as the evaluation scores them (:func:`_panel_pairs`)."""
-    names = methods or [m for m in report.methods if not m.endswith("_oracle")] or list(report.methods)
+    names = (
+        methods or [m for m in report.methods if not m.endswith("_oracle")] or list(report.methods)
+    )
     fig, axes = plt.subplots(1, len(names), figsize=(5.5 * len(names), 5.6), squeeze=False)
     robots = sorted({r for m in report.methods.values() for r in m.paired})
     colors = robot_colors(robots)
@@ -133,7 +153,9 @@ def trajectory_figure(report: ScenarioReport, methods: list[str] | None = None) 
             _draw_panel(ax, pairs, colors, method)
         ax.plot([0], [0], "k*", ms=12, label=f"{ref} (reference)")
         (full if pairs else empty).append(ax)
-        ax.set_title(f"{report.name}: {method}" + (f": {note}" if note else ""), fontsize=10 if note else 12)
+        ax.set_title(
+            f"{report.name}: {method}" + (f": {note}" if note else ""), fontsize=10 if note else 12
+        )
         ax.set_aspect("equal", adjustable="box")
         ax.set_xlabel(f"x relative to {ref} (m)")
         ax.set_ylabel(f"y relative to {ref} (m)")
@@ -173,14 +195,20 @@ def plot_ape(report: ScenarioReport, path: Path) -> Path:
                     data[(method, robot)] = errs
     with_data = [m for m in methods if any((m, r) in data for r in robots)]
     width = min(0.8 / max(1, len(with_data)), 0.35)
-    fig, ax = plt.subplots(figsize=(max(6.0, 0.8 * len(robots) * max(1, len(with_data))) + 2.5, 4.8))
+    fig, ax = plt.subplots(
+        figsize=(max(6.0, 0.8 * len(robots) * max(1, len(with_data))) + 2.5, 4.8)
+    )
     for i, robot in enumerate(robots):
         here = [m for m in with_data if (m, robot) in data]
         for j, method in enumerate(here):  # centred on the robot's tick, whatever is missing
             pos = i + (j - (len(here) - 1) / 2) * width
             bp = ax.boxplot(
-                [data[(method, robot)]], positions=[pos], widths=width * 0.9, patch_artist=True,
-                showfliers=True, flierprops={"marker": ".", "markersize": 3, "markeredgecolor": colors[method]},
+                [data[(method, robot)]],
+                positions=[pos],
+                widths=width * 0.9,
+                patch_artist=True,
+                showfliers=True,
+                flierprops={"marker": ".", "markersize": 3, "markeredgecolor": colors[method]},
             )
             for box in bp["boxes"]:
                 box.set_facecolor(colors[method])
@@ -208,7 +236,9 @@ def plot_ape_over_time(report: ScenarioReport, path: Path) -> Path:
     methods = list(report.methods)
     robots = sorted({r for m in report.methods.values() for r in m.paired})
     colors = robot_colors(robots)
-    fig, axes = plt.subplots(len(methods), 1, figsize=(8, 2.3 * len(methods) + 0.6), sharex=True, squeeze=False)
+    fig, axes = plt.subplots(
+        len(methods), 1, figsize=(8, 2.3 * len(methods) + 0.6), sharex=True, squeeze=False
+    )
     for ax, method in zip(axes[:, 0], methods, strict=True):
         m = report.methods[method]
         drawn = False
@@ -226,5 +256,8 @@ def plot_ape_over_time(report: ScenarioReport, path: Path) -> Path:
         ax.set_ylabel("APE (m)")
         ax.grid(alpha=0.3)
     axes[-1, 0].set_xlabel("time since the start of the run (s); dashed: end of the warm-up")
-    fig.suptitle(f"{report.name}: APE against {report.truth_name}, relative to {_reference(report)}", fontsize=11)
+    fig.suptitle(
+        f"{report.name}: APE against {report.truth_name}, relative to {_reference(report)}",
+        fontsize=11,
+    )
     return _save(fig, path)

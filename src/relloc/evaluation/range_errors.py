@@ -50,7 +50,9 @@ def _node_team(bodies: Mapping[str, str], mocap_topic: str) -> TeamConfig:
     """A team of one robot per UWB node, named after the node and tracked by its body."""
     if len(bodies) < 2:
         raise RangingDataError(f"bodies {dict(bodies)} name fewer than two UWB nodes")
-    robots = tuple(RobotConfig(name=node, uwb_node=node, mocap_body=b) for node, b in bodies.items())
+    robots = tuple(
+        RobotConfig(name=node, uwb_node=node, mocap_body=b) for node, b in bodies.items()
+    )
     try:
         return TeamConfig(robots=robots, reference=robots[0].name, mocap_topic=mocap_topic)
     except ConfigError as exc:

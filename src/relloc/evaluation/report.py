@@ -246,7 +246,9 @@ def print_table(report: ScenarioReport, console: Console | None = None) -> None:
     title = f"{report.name}: APE after {report.warmup:g} s warm-up ({report.duration:.1f} s run)"
     if report.reference:
         body = any(m.frame == BODY_FRAME for m in report.methods.values())
-        title += f", positions relative to {report.reference}" + (" in its body frame" if body else "")
+        title += f", positions relative to {report.reference}" + (
+            " in its body frame" if body else ""
+        )
     columns = sorted((c for metric in METRICS for c in metric.columns), key=lambda c: c.rank)
     captions = [metric.caption for metric in METRICS if metric.caption]
     table = Table(title=title, caption=captions[0] if captions else None, caption_justify="left")

@@ -68,7 +68,12 @@ class ApeResult(MetricResult):
         s = self.stats.get(robot)
         if s is None or s.n == 0:
             return {"APE median": "no estimate", "n": "0"}
-        return {"APE median": f"{s.median:.3f}", "APE rmse": f"{s.rmse:.3f}", "APE max": f"{s.max:.3f}", "n": str(s.n)}
+        return {
+            "APE median": f"{s.median:.3f}",
+            "APE rmse": f"{s.rmse:.3f}",
+            "APE max": f"{s.max:.3f}",
+            "n": str(s.n),
+        }
 
 
 @register_metric
@@ -76,7 +81,12 @@ class Ape(Metric):
     """APE of each robot's relative position after the warm-up: median, mean, RMSE, std, max."""
 
     name = "ape"
-    columns = (Column("APE median", 10), Column("APE rmse", 11), Column("APE max", 12), Column("n", 40))
+    columns = (
+        Column("APE median", 10),
+        Column("APE rmse", 11),
+        Column("APE max", 12),
+        Column("n", 40),
+    )
 
     def compute(self, run: MethodRun) -> ApeResult:
         return ApeResult({r: ApeStats.of(q.errors) for r, q in run.late.items()})
@@ -106,7 +116,9 @@ class Ate(Metric):
     columns = (Column("ATE", 20),)
 
     def compute(self, run: MethodRun) -> AteResult:
-        return AteResult({r: ate(q) for r, q in run.late.items()}, {r: len(q.t) for r, q in run.late.items()})
+        return AteResult(
+            {r: ate(q) for r, q in run.late.items()}, {r: len(q.t) for r, q in run.late.items()}
+        )
 
 
 # ---------------------------------------------------------------------------- convergence
@@ -127,7 +139,11 @@ class ConvergenceResult(MetricResult):
         return {"convergence_s": num(self.seconds)}
 
     def cells(self, robot: str) -> dict[str, str]:
-        return {"converged after": "never" if not math.isfinite(self.seconds) else f"{self.seconds:.1f} s"}
+        return {
+            "converged after": "never"
+            if not math.isfinite(self.seconds)
+            else f"{self.seconds:.1f} s"
+        }
 
 
 @register_metric
@@ -148,7 +164,10 @@ class BodyFrameResult(MetricResult):
     stats: dict[str, ApeStats]
 
     def robot_json(self) -> dict[str, dict[str, Any]]:
-        return {r: {"body_ape_median": num(b.median), "body_ape_rmse": num(b.rmse)} for r, b in self.stats.items()}
+        return {
+            r: {"body_ape_median": num(b.median), "body_ape_rmse": num(b.rmse)}
+            for r, b in self.stats.items()
+        }
 
     def cells(self, robot: str) -> dict[str, str]:
         b = self.stats.get(robot)
@@ -168,7 +187,9 @@ class BodyFrameApe(Metric):
         if run.aligned or not ref_yaws:
             return BodyFrameResult({})
         pairs = body_frame_paired(run.estimates, run.truth, run.robots, ref_yaws)
-        return BodyFrameResult({r: ApeStats.of(after(q, run.start).errors) for r, q in pairs.items()})
+        return BodyFrameResult(
+            {r: ApeStats.of(after(q, run.start).errors) for r, q in pairs.items()}
+        )
 
 
 # ---------------------------------------------------------------------------- consistency
@@ -185,13 +206,21 @@ class ConsistencyResult(MetricResult):
 
     def robot_json(self) -> dict[str, dict[str, Any]]:
         return {
-            r: {"nees_median": num(c.nees_median), "nees_mean": num(c.nees_mean), "coverage95": num(c.coverage)}
+            r: {
+                "nees_median": num(c.nees_median),
+                "nees_mean": num(c.nees_mean),
+                "coverage95": num(c.coverage),
+            }
             for r, c in self.robots.items()
         }
 
     def cells(self, robot: str) -> dict[str, str]:
         c = self.robots.get(robot)
-        return {} if c is None else {"NEES": f"{c.nees_median:.2f}", "95 % cov.": f"{100 * c.coverage:.0f} %"}
+        return (
+            {}
+            if c is None
+            else {"NEES": f"{c.nees_median:.2f}", "95 % cov.": f"{100 * c.coverage:.0f} %"}
+        )
 
 
 @register_metric
@@ -205,7 +234,9 @@ class Nees(Metric):
     def compute(self, run: MethodRun) -> ConsistencyResult:
         if run.aligned:
             return ConsistencyResult({})
-        return ConsistencyResult(consistency(run.estimates, run.truth, run.robots, run.start, run.rotation))
+        return ConsistencyResult(
+            consistency(run.estimates, run.truth, run.robots, run.start, run.rotation)
+        )
 
 
 # ---------------------------------------------------------------------------- shapes
@@ -224,7 +255,11 @@ class ShapeResult(MetricResult):
 
     def robot_json(self) -> dict[str, dict[str, Any]]:
         return {
-            r: {"shape_ape_median": num(s.median), "shape_ape_rmse": num(s.rmse), "shape_ape_max": num(s.max)}
+            r: {
+                "shape_ape_median": num(s.median),
+                "shape_ape_rmse": num(s.rmse),
+                "shape_ape_max": num(s.max),
+            }
             for r, s in self.stats.items()
         }
 

@@ -46,18 +46,27 @@ class HeadingsResult(MetricResult):
     def robot_json(self) -> dict[str, dict[str, Any]]:
         out: dict[str, dict[str, Any]] = {}
         for r in self.headings:
-            out[r] = {"heading_median_deg": num(self.median_deg(r)), "heading_spread_deg": num(self.spread_deg(r))}
+            out[r] = {
+                "heading_median_deg": num(self.median_deg(r)),
+                "heading_spread_deg": num(self.spread_deg(r)),
+            }
         for r, (mean, std) in self.scales.items():
             out.setdefault(r, {}).update({"odom_scale": num(mean), "odom_scale_std": num(std)})
         return out
 
     def method_json(self) -> dict[str, Any]:
-        return {} if self.frame_rotation_deg is None else {"frame_rotation_deg": num(self.frame_rotation_deg)}
+        return (
+            {}
+            if self.frame_rotation_deg is None
+            else {"frame_rotation_deg": num(self.frame_rotation_deg)}
+        )
 
     def tables(self, scenario: str, method: str) -> list[Table]:
         if not self.headings and not self.scales:
             return []
-        table = Table(title=f"{scenario} / {method}: headings (reference's odometry frame) and odometry scales")
+        table = Table(
+            title=f"{scenario} / {method}: headings (reference's odometry frame) and odometry scales"
+        )
         for col in ("robot", "heading", "spread", "heading error (median)", "scale"):
             table.add_column(col, justify="left" if col == "robot" else "right")
         for robot in sorted(set(self.headings) | set(self.scales)):
@@ -72,7 +81,11 @@ class HeadingsResult(MetricResult):
                     f"{self.median_deg(robot):.2f} deg",
                 ]
             scale = self.scales.get(robot)
-            cells.append("" if scale is None or not math.isfinite(scale[0]) else f"{scale[0]:.3f} +- {scale[1]:.3f}")
+            cells.append(
+                ""
+                if scale is None or not math.isfinite(scale[0])
+                else f"{scale[0]:.3f} +- {scale[1]:.3f}"
+            )
             table.add_row(robot, *cells)
         return [table]
 
@@ -157,5 +170,7 @@ class OnlineBiases(Metric):
         last = run.estimates[-1] if run.estimates else None
         truth = {k: v for k, v in run.bias_truth.items() if last is not None and k in last.biases}
         return BiasResult(
-            dict(last.biases) if last is not None else {}, truth, bias_errors(run.estimates, dict(run.bias_truth), run.start)
+            dict(last.biases) if last is not None else {},
+            truth,
+            bias_errors(run.estimates, dict(run.bias_truth), run.start),
         )

@@ -59,7 +59,9 @@ def occupied_cells(positions: FloatArray, bin_size: float) -> int:
         return 0
     cells = np.floor(positions / bin_size).astype(np.int64).view(np.uint64)
     d = cells.shape[1]
-    mult = _HASH[np.arange(d) % _HASH.size] + np.uint64(2) * (np.arange(d, dtype=np.uint64) // np.uint64(_HASH.size))
+    mult = _HASH[np.arange(d) % _HASH.size] + np.uint64(2) * (
+        np.arange(d, dtype=np.uint64) // np.uint64(_HASH.size)
+    )
     keys = (cells * mult).sum(axis=1, dtype=np.uint64)  # wraps modulo 2^64: a hash
     return int(np.unique(keys).size)
 
@@ -105,5 +107,8 @@ class KldSampling:
         the standard deviation of its widest direction (m)."""
         if wide:
             return self.max_particles
-        n = max(kld_bound(occupied_cells(kept, self.bin_size), self.epsilon, self.z), self.monte_carlo_bound(sigma))
+        n = max(
+            kld_bound(occupied_cells(kept, self.bin_size), self.epsilon, self.z),
+            self.monte_carlo_bound(sigma),
+        )
         return int(min(max(n, self.min_particles), self.max_particles))

@@ -80,7 +80,9 @@ class StartContext(Protocol):
     ) -> list[MeasurementModel]: ...
 
 
-def annealed_start(context: StartContext, pf: Annealable, batch: list[Any], *, shared_heading: bool) -> bool:
+def annealed_start(
+    context: StartContext, pf: Annealable, batch: list[Any], *, shared_heading: bool
+) -> bool:
     """Start ``pf`` from ``batch`` (module docstring); False if the batch gives it nothing to
     anneal on. ``shared_heading``: whether the localizer's filter has the shared heading frame
     (what makes a sighting invariant or not). Counts the tempering stages and any resampling in
@@ -96,7 +98,9 @@ def annealed_start(context: StartContext, pf: Annealable, batch: list[Any], *, s
     context.stats["anneal_stages"] = stages
     if spread:
         pf.spread_symmetries()
-        rest = context.models([m for m in batch if not _invariant(m, shared_heading)], pf, count=False)
+        rest = context.models(
+            [m for m in batch if not _invariant(m, shared_heading)], pf, count=False
+        )
         if rest:
             pf.update(rest)
             if pf.maybe_resample():
@@ -110,7 +114,9 @@ def _invariant(event: object, shared_heading: bool) -> bool:
     model = model_for(event)
     if model is None:
         return False
-    return model.invariant or (not shared_heading and getattr(model, "invariant_without_shared_heading", False))
+    return model.invariant or (
+        not shared_heading and getattr(model, "invariant_without_shared_heading", False)
+    )
 
 
 def orient_by(pf: Annealable, reference: FloatArray, sigma: float = REFERENCE_SIGMA) -> None:
@@ -137,7 +143,9 @@ def orient_by(pf: Annealable, reference: FloatArray, sigma: float = REFERENCE_SI
     pf.rotate(np.where(flip, theta_m, theta))
 
 
-def _procrustes(pts: FloatArray, ref: FloatArray, sigma: float, passes: int = 3) -> tuple[FloatArray, FloatArray]:
+def _procrustes(
+    pts: FloatArray, ref: FloatArray, sigma: float, passes: int = 3
+) -> tuple[FloatArray, FloatArray]:
     """Per particle, the robust rotation (rad) of ``pts`` ``(M, N, 2)`` onto ``ref`` ``(N, 2)``
     about the centroids, and its cost (the sum of ``log(1 + r^2 / sigma^2)``)."""
     w = np.ones(pts.shape[:2])
@@ -151,6 +159,8 @@ def _procrustes(pts: FloatArray, ref: FloatArray, sigma: float, passes: int = 3)
         dot = np.einsum("mn,mn->m", w, a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1])
         theta = np.arctan2(cross, dot)
         c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
-        residual = np.hypot(c * a[..., 0] - s * a[..., 1] - b[..., 0], s * a[..., 0] + c * a[..., 1] - b[..., 1])
+        residual = np.hypot(
+            c * a[..., 0] - s * a[..., 1] - b[..., 0], s * a[..., 0] + c * a[..., 1] - b[..., 1]
+        )
         w = 1.0 / (1.0 + (residual / sigma) ** 2)
     return theta, np.log1p((residual / sigma) ** 2).sum(axis=1)

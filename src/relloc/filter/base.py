@@ -119,7 +119,9 @@ class WeightedFilter:
         return {}
 
     # ---------------------------------------------------------------- recovery hooks
-    def restart(self, recent: list[Any], reference: FloatArray | None, context: StartContext) -> bool:
+    def restart(
+        self, recent: list[Any], reference: FloatArray | None, context: StartContext
+    ) -> bool:
         """Start again from ``recent`` (the measurements since the filter got lost), oriented
         by the ``reference`` formation (relative positions ``(2(N-1),)``; ``None``: none
         trusted), the models built by ``context``; False if the filter cannot (this default:
@@ -171,7 +173,9 @@ class WeightedFilter:
         if n != self.n and len(formations):
             # The count grows back (an adaptive filter): the injected share stays the same,
             # the given formations repeated.
-            formations = np.resize(formations, (round(len(formations) * n / self.n), formations.shape[1]))
+            formations = np.resize(
+                formations, (round(len(formations) * n / self.n), formations.shape[1])
+            )
         self.n = n
         k = min(len(formations), self.n)
         self._select(systematic_resample(self._exp_logw(), self.rng, self.n))

@@ -252,4 +252,3 @@ def to_body_frame(
     jac[:, :, :, 2 * k :] = turn[..., :, None] * d_angle[:, None, None, :]
     body_cov = np.einsum("mjad,mde,mjbe->mjab", jac, sub, jac)
     return body, body_cov
-

@@ -46,6 +46,7 @@ __all__ = ["CalibrationLayout", "CalibrationNoise", "GaussianSumFilter"]
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
+
 class GaussianSumFilter(WeightedFilter):
     """``M`` weighted Gaussians over positions and calibration parameters (see module doc)."""
 
@@ -68,7 +69,11 @@ class GaussianSumFilter(WeightedFilter):
         split_heading_std: float = 0.0,
     ) -> None:
         super().__init__(
-            n_particles, area, rng=rng, resample="ess", ess_threshold=ess_threshold,
+            n_particles,
+            area,
+            rng=rng,
+            resample="ess",
+            ess_threshold=ess_threshold,
             reinject_fraction=reinject_fraction,
         )
         self.layout = layout
@@ -89,7 +94,9 @@ class GaussianSumFilter(WeightedFilter):
         """Heading mode: split a Gaussian whose known heading's angular std exceeds this (rad;
         0: never) (:meth:`split_headings`)."""
         self.split_count = 0
-        self.prior_mean, self.prior_cov = calibration_prior(layout, self.noise, self.heading_prior, self.bias_prior_mean, self.bias_prior_var)
+        self.prior_mean, self.prior_cov = calibration_prior(
+            layout, self.noise, self.heading_prior, self.bias_prior_mean, self.bias_prior_var
+        )
         self._pending: list[tuple[FloatArray, FloatArray]] = []
         self.mean = np.zeros((n_particles, layout.width))
         self.cov = np.zeros((n_particles, layout.width, layout.width))
@@ -156,7 +163,9 @@ class GaussianSumFilter(WeightedFilter):
         self.cov[np.ix_(rows, idx, idx)] = np.eye(lay.dim) * self.position_sigma**2
         self.cov[rows, lay.dim :, lay.dim :] = self.prior_cov
         # a heading prior already holds |u| to its scale prior
-        self.magnitude_done[rows] = np.array([r in self.heading_prior for r in lay.others], dtype=bool)
+        self.magnitude_done[rows] = np.array(
+            [r in self.heading_prior for r in lay.others], dtype=bool
+        )
 
     # ---------------------------------------------------------------- prediction
     def predict(self, disp: FloatArray, sigma: FloatArray, dt: float) -> None:
@@ -220,7 +229,9 @@ class GaussianSumFilter(WeightedFilter):
             gr = g[np.ix_(rows_g, cols_g)]  # (r, k): G is nonzero only there
             self.mean[:, rows_g] += self.mean[:, cols_g] @ gr.T
             # P' = (I + G) P (I + G)^T
-            self.cov[:, rows_g, :] += np.einsum("rk,mke->mre", gr, self.cov[:, cols_g, :])  # (I+G) P
+            self.cov[:, rows_g, :] += np.einsum(
+                "rk,mke->mre", gr, self.cov[:, cols_g, :]
+            )  # (I+G) P
             self.cov[:, :, rows_g] += self.cov[:, :, cols_g] @ gr.T  # + (I+G) P G^T
         if lay.colored_bias and dt > 0.0:
             # first-order Gauss-Markov: c' = rho c + w, stationary variance colored_sigma^2
@@ -251,7 +262,9 @@ class GaussianSumFilter(WeightedFilter):
             known = np.clip(norm, 0.0, 1.0)  # |u| once known, ~1; 0 while unknown
             walk = nz.reference_heading_walk if robot == self.layout.reference else nz.heading_walk
             q_t = walk**2 * dt * np.maximum(norm, 1.0) ** 2
-            q_r = (nz.scale_walk**2 * dt if self.layout.scale else 0.0) * known + q_t * (1.0 - known)
+            q_r = (nz.scale_walk**2 * dt if self.layout.scale else 0.0) * known + q_t * (
+                1.0 - known
+            )
             block = q_t[:, None, None] * t[:, :, None] * t[:, None, :]
             block += q_r[:, None, None] * r[:, :, None] * r[:, None, :]
             self.cov[:, c0 : c1 + 1, c0 : c1 + 1] += block
@@ -262,7 +275,9 @@ class GaussianSumFilter(WeightedFilter):
         over ``|u|``) exceeds ``max_std`` (rad) into three along that heading, then resample the
         enlarged mixture back to ``M`` (systematic; equal weights). Returns how many Gaussians
         were split (:mod:`relloc.filter.heading_split`)."""
-        count, split = split_headings(self.layout, self.mean, self.cov, self.logw, self.magnitude_done, max_std, self.rng)
+        count, split = split_headings(
+            self.layout, self.mean, self.cov, self.logw, self.magnitude_done, max_std, self.rng
+        )
         if split is not None:
             self.mean, self.cov, self.logw, self.magnitude_done = split
         return count
@@ -277,7 +292,9 @@ class GaussianSumFilter(WeightedFilter):
         for model in models:
             for k in range(model.rows):
                 row = model.row(k, self.mean)
-                self._scalar_update(row.columns, row.jacobian, row.residual, row.variance, row.density)
+                self._scalar_update(
+                    row.columns, row.jacobian, row.residual, row.variance, row.density
+                )
         if self.layout.heading:
             self.magnitude_count += self.apply_magnitude_priors(np.ones(self.layout.n_others))
         logw = renormalized(self.logw)
@@ -308,8 +325,12 @@ class GaussianSumFilter(WeightedFilter):
             rows = np.flatnonzero(ready)
             h = mu[rows] / norm[rows, None]
             self._scalar_update(
-                np.array([c0, c1]), h, nominal[k] - norm[rows], sigma**2,
-                lambda r, s: robust_gaussian(r, s, 0.0, 1.0), rows=rows,
+                np.array([c0, c1]),
+                h,
+                nominal[k] - norm[rows],
+                sigma**2,
+                lambda r, s: robust_gaussian(r, s, 0.0, 1.0),
+                rows=rows,
             )
             self.magnitude_done[rows, k] = True
             applied += rows.size
@@ -374,12 +395,24 @@ class GaussianSumFilter(WeightedFilter):
         k = lay.n_others
         rel = self.mean[:, : 2 * k].reshape(self.n, k, 2)
         idx = 2 * np.arange(k)
-        covs = self.cov[:, idx[:, None, None] + np.arange(2)[None, :, None], idx[:, None, None] + np.arange(2)[None, None, :]]
-        summary = summarize(rel, self.weights(), covs, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor)
+        covs = self.cov[
+            :,
+            idx[:, None, None] + np.arange(2)[None, :, None],
+            idx[:, None, None] + np.arange(2)[None, None, :],
+        ]
+        summary = summarize(
+            rel,
+            self.weights(),
+            covs,
+            can_resolve=self.evidence.can_resolve,
+            floor=self.covariance_floor,
+        )
         headings = {robot: self.heading(robot) for robot in lay.robots} if lay.heading else {}
         biases = {pair: self.bias(pair) for pair in lay.bias_pairs}
         scales = {robot: self.scale(robot) for robot in lay.robots} if lay.scale else {}
-        return FilterEstimate(summary.mean, summary.cov, self.ess(), headings, biases, scales, summary)
+        return FilterEstimate(
+            summary.mean, summary.cov, self.ess(), headings, biases, scales, summary
+        )
 
     def body_estimate(self, reference_yaw: float) -> FilterEstimate | None:
         """:meth:`estimate` with the positions in the reference robot's body frame
@@ -390,8 +423,16 @@ class GaussianSumFilter(WeightedFilter):
         lay = self.layout
         if not lay.heading:
             return None
-        rel, covs = to_body_frame(self.mean, self.cov, lay.n_others, lay.u_columns(lay.reference), reference_yaw)
-        summary = summarize(rel, self.weights(), covs, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor)
+        rel, covs = to_body_frame(
+            self.mean, self.cov, lay.n_others, lay.u_columns(lay.reference), reference_yaw
+        )
+        summary = summarize(
+            rel,
+            self.weights(),
+            covs,
+            can_resolve=self.evidence.can_resolve,
+            floor=self.covariance_floor,
+        )
         ref_mean, ref_std = self.heading(lay.reference)
         headings = {}
         for robot in lay.robots:
@@ -400,7 +441,9 @@ class GaussianSumFilter(WeightedFilter):
             headings[robot] = (turn, 0.0 if robot == lay.reference else math.hypot(std, ref_std))
         biases = {pair: self.bias(pair) for pair in lay.bias_pairs}
         scales = {robot: self.scale(robot) for robot in lay.robots} if lay.scale else {}
-        return FilterEstimate(summary.mean, summary.cov, self.ess(), headings, biases, scales, summary)
+        return FilterEstimate(
+            summary.mean, summary.cov, self.ess(), headings, biases, scales, summary
+        )
 
     def weights(self) -> FloatArray:
         """Normalised weights (the log-weights are normalised by :meth:`update`; weights set
@@ -415,7 +458,9 @@ class GaussianSumFilter(WeightedFilter):
         """Circular mean and circular standard deviation (rad) of ``robot``'s relative heading
         (:func:`relloc.filter.calibration.circular_heading`)."""
         c0, c1 = self.layout.u_columns(robot)
-        return circular_heading(self.mean[:, c0 : c1 + 1], self.cov[:, c0 : c1 + 1, c0 : c1 + 1], self.weights())
+        return circular_heading(
+            self.mean[:, c0 : c1 + 1], self.cov[:, c0 : c1 + 1, c0 : c1 + 1], self.weights()
+        )
 
     def scale(self, robot: str) -> tuple[float, float]:
         """Mean and std of ``robot``'s odometry scale (``|u|`` in heading mode)."""

@@ -70,7 +70,9 @@ class RangeGraphFilter(WeightedFilter):
         self.merged = 0
 
     # ---------------------------------------------------------------- start
-    def initialize(self, formations: FloatArray, cov: FloatArray, logw: FloatArray | None = None) -> None:
+    def initialize(
+        self, formations: FloatArray, cov: FloatArray, logw: FloatArray | None = None
+    ) -> None:
         """Start one Gaussian per formation (``(M, N-1, 2)`` or ``(M, 2(N-1))``) with
         covariances ``cov`` ``(M, D, D)`` and log-weights ``logw`` (default equal); the motion
         evidence starts again."""
@@ -78,7 +80,9 @@ class RangeGraphFilter(WeightedFilter):
         self.mean = np.asarray(formations, float).reshape(m, -1).copy()
         self.cov = np.asarray(cov, float).copy()
         self.n = m
-        self.logw = np.full(m, -math.log(m)) if logw is None else log_normalize(np.asarray(logw, float))
+        self.logw = (
+            np.full(m, -math.log(m)) if logw is None else log_normalize(np.asarray(logw, float))
+        )
         self.evidence.reset()
 
     # ---------------------------------------------------------------- cycle
@@ -139,14 +143,22 @@ class RangeGraphFilter(WeightedFilter):
         both = has_a & has_b
         ca, cb = np.maximum(sa, 0), np.maximum(sb, 0)
         blocks = self.cov.reshape(m, k, 2, k, 2).transpose(0, 1, 3, 2, 4)  # (M, k, k, 2, 2) view
-        blk = blocks[:, ca, ca] * has_a[None, :, None, None] + blocks[:, cb, cb] * has_b[None, :, None, None]
+        blk = (
+            blocks[:, ca, ca] * has_a[None, :, None, None]
+            + blocks[:, cb, cb] * has_b[None, :, None, None]
+        )
         cross = blocks[:, ca, cb] * both[None, :, None, None]
         blk -= cross + cross.transpose(0, 1, 3, 2)
         hph = np.einsum("mki,mkij,mkj->mk", e, blk, e)
         var = model.sigma[None, :] ** 2
         s = var + np.maximum(hph, 0.0)
         los, total = range_mixture(
-            r, np.sqrt(s), model.outlier_fraction, model.max_range, model.nlos_fraction, model.nlos_sigma
+            r,
+            np.sqrt(s),
+            model.outlier_fraction,
+            model.max_range,
+            model.nlos_fraction,
+            model.nlos_sigma,
         )
         inlier = np.maximum(los / total, MIN_INLIER)
         w = inlier / var  # (M, K)
@@ -218,20 +230,35 @@ class RangeGraphFilter(WeightedFilter):
         k = d // 2
         w = self.weights()
         idx = 2 * np.arange(k)
-        covs = self.cov[:, idx[:, None, None] + np.arange(2)[None, :, None], idx[:, None, None] + np.arange(2)[None, None, :]]
+        covs = self.cov[
+            :,
+            idx[:, None, None] + np.arange(2)[None, :, None],
+            idx[:, None, None] + np.arange(2)[None, None, :],
+        ]
         summary = summarize(
-            self.mean.reshape(m, k, 2), w, covs, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor
+            self.mean.reshape(m, k, 2),
+            w,
+            covs,
+            can_resolve=self.evidence.can_resolve,
+            floor=self.covariance_floor,
         )
         if summary.orientation_observable:
             members = summary.members
-            own = float(np.sum(w[members] * self.rotation_std()[members]) / max(float(np.sum(w[members])), 1e-300))
+            own = float(
+                np.sum(w[members] * self.rotation_std()[members])
+                / max(float(np.sum(w[members])), 1e-300)
+            )
             if own >= ORIENTATION_MAX_STD:
                 summary = replace(summary, orientation_observable=False)
         if self.rotation_floor > 0.0 and summary.orientation_observable:
             x, y = summary.mean[:, 0], summary.mean[:, 1]
-            turn = np.stack([np.stack([y * y, -x * y], axis=1), np.stack([-x * y, x * x], axis=1)], axis=1)
+            turn = np.stack(
+                [np.stack([y * y, -x * y], axis=1), np.stack([-x * y, x * x], axis=1)], axis=1
+            )
             summary = replace(summary, cov=summary.cov + self.rotation_floor**2 * turn)
-        return FilterEstimate(summary.mean, summary.cov, float(1.0 / np.sum(w * w)), summary=summary)
+        return FilterEstimate(
+            summary.mean, summary.cov, float(1.0 / np.sum(w * w)), summary=summary
+        )
 
     # ---------------------------------------------------------------- hypotheses
     def maybe_resample(self) -> bool:
@@ -278,7 +305,9 @@ class RangeGraphFilter(WeightedFilter):
         resp = onehot / wg[:, None]
         mean = resp @ self.mean
         dev = self.mean[None, :, :] - mean[:, None, :]  # (g, m, D)
-        cov = np.einsum("gm,mde->gde", resp, self.cov) + np.einsum("gm,gmd,gme->gde", resp, dev, dev)
+        cov = np.einsum("gm,mde->gde", resp, self.cov) + np.einsum(
+            "gm,gmd,gme->gde", resp, dev, dev
+        )
         self.merged += m - g
         self.mean, self.cov, self.n = mean, cov, g
         self.logw = np.log(wg)
@@ -294,4 +323,8 @@ class RangeGraphFilter(WeightedFilter):
         self.cov[slots] = np.eye(self.mean.shape[1]) * self.reinject_sigma**2
 
     def counters(self) -> dict[str, int]:
-        return {"hypotheses": self.n, "hypotheses_pruned": self.pruned, "hypotheses_merged": self.merged}
+        return {
+            "hypotheses": self.n,
+            "hypotheses_pruned": self.pruned,
+            "hypotheses_merged": self.merged,
+        }

@@ -82,4 +82,3 @@ def split_headings(
     w = np.exp(logw_all - logw_all.max())
     idx = systematic_resample(w / w.sum(), rng, n)
     return int(sel.size), (mean_all[idx], cov_all[idx], np.full(n, -math.log(n)), done_all[idx])
-

@@ -86,7 +86,9 @@ class LinearRow:
         return robust_gaussian(residual, s, self.outlier_fraction, self.support)
 
 
-def robust_gaussian(residual: FloatArray, s: FloatArray, eps: float, support: float) -> tuple[FloatArray, FloatArray]:
+def robust_gaussian(
+    residual: FloatArray, s: FloatArray, eps: float, support: float
+) -> tuple[FloatArray, FloatArray]:
     """``log((1 - eps) N(residual; 0, s) + eps / support)`` and the probability that the
     measurement is an inlier (1 where ``eps`` is 0), elementwise."""
     z2 = residual * residual / s

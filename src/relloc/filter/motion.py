@@ -41,7 +41,9 @@ class OdometryMotion:
         """Per-axis standard deviation of one robot's displacement over one step."""
         return self.noise_per_m * distance + self.noise_per_rad * turn
 
-    def own_variance(self, sigma: FloatArray, others: IntArray | list[int], dt: float) -> FloatArray:
+    def own_variance(
+        self, sigma: FloatArray, others: IntArray | list[int], dt: float
+    ) -> FloatArray:
         """Per non-reference robot, the variance of its own motion noise over ``dt``: its
         odometry's and the random walk's (the reference's adds to every one, in common)."""
         return sigma[others] ** 2 + self.process_noise**2 * max(dt, 0.0)

@@ -89,7 +89,9 @@ def solve(
 
     ends = [(pairs[:, k], sign, column[pairs[:, k]] >= 0) for k, sign in ((0, 1.0), (1, -1.0))]
     jac_rows = np.concatenate([np.repeat(rows[ok], 2) for _, _, ok in ends])
-    jac_cols = np.concatenate([(2 * column[end[ok]][:, None] + np.arange(2)).ravel() for end, _, ok in ends])
+    jac_cols = np.concatenate(
+        [(2 * column[end[ok]][:, None] + np.arange(2)).ravel() for end, _, ok in ends]
+    )
 
     def jacobian(v: FloatArray) -> csr_matrix:
         """``d|p_a - p_b| / dp_a = u``, ``/ dp_b = -u`` (``u`` the unit vector from b to a;
@@ -98,7 +100,9 @@ def solve(
         p = unpack(v)
         d = p[pairs[:, 0]] - p[pairs[:, 1]]
         norm = np.linalg.norm(d, axis=1)
-        u = np.where(norm[:, None] > 1e-12, d / np.maximum(norm, 1e-12)[:, None], np.array([1.0, 0.0]))
+        u = np.where(
+            norm[:, None] > 1e-12, d / np.maximum(norm, 1e-12)[:, None], np.array([1.0, 0.0])
+        )
         vals = np.concatenate([(sign * u[ok]).ravel() for _, sign, ok in ends])
         return csr_matrix((vals, (jac_rows, jac_cols)), shape=(len(pairs), 2 * free.size))
 
@@ -120,7 +124,9 @@ def solve(
     best_cost = np.inf
     for start in starts:
         s = start - start[reference]
-        result = least_squares(residuals, s[free].ravel(), jac=jacobian, method="trf", tr_solver="lsmr")
+        result = least_squares(
+            residuals, s[free].ravel(), jac=jacobian, method="trf", tr_solver="lsmr"
+        )
         if result.cost < best_cost:
             best, best_cost = unpack(result.x), result.cost
     if best is None or rigidity_rank(best, pairs) < 2 * n_robots - 3:

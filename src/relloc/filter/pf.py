@@ -65,13 +65,21 @@ class ParticleFilter(WeightedFilter):
         count_rule: KldSampling | None = None,
     ) -> None:
         super().__init__(
-            n_particles, area, rng=rng, resample=resample, ess_threshold=ess_threshold,
+            n_particles,
+            area,
+            rng=rng,
+            resample=resample,
+            ess_threshold=ess_threshold,
             reinject_fraction=reinject_fraction,
         )
         if not 0.0 <= rotation_kernel < 1.0:
             raise ValueError("rotation_kernel must be in [0, 1)")
         self.layout = layout
-        self.extra_prior = np.zeros(layout.width - layout.dim) if extra_prior is None else np.asarray(extra_prior, float)
+        self.extra_prior = (
+            np.zeros(layout.width - layout.dim)
+            if extra_prior is None
+            else np.asarray(extra_prior, float)
+        )
         if self.extra_prior.shape != (layout.width - layout.dim,):
             raise ValueError(f"extra_prior needs {layout.width - layout.dim} values")
         self.motion = motion or OdometryMotion()
@@ -131,7 +139,9 @@ class ParticleFilter(WeightedFilter):
         m, k = self.particles.shape[0], self.layout.n_others
         if self._noise.shape != (m, k, 2):
             self._noise = np.empty((m, k, 2))
-        self.motion.propagate(self.particles, self._others, self._reference, disp, sigma, dt, self.rng, self._noise)
+        self.motion.propagate(
+            self.particles, self._others, self._reference, disp, sigma, dt, self.rng, self._noise
+        )
         self.evidence.moved(disp)
         if self.rotation_noise > 0.0 and dt > 0.0:
             self.rotate(self.rng.normal(0.0, self.rotation_noise * np.sqrt(dt), self.n))
@@ -197,13 +207,19 @@ class ParticleFilter(WeightedFilter):
         uniform at any particle count."""
         if self.evidence.symmetric:
             self.spread_symmetries()
-        elif self.rotation_kernel > 0.0 and not self.kernel_paused and self.rejuvenate_rotation(self.rotation_kernel):
+        elif (
+            self.rotation_kernel > 0.0
+            and not self.kernel_paused
+            and self.rejuvenate_rotation(self.rotation_kernel)
+        ):
             self.rotation_kernel_count += 1
 
     def counters(self) -> dict[str, int]:
         return {"rotation_kernel": self.rotation_kernel_count}
 
-    def restart(self, recent: list[Any], reference: FloatArray | None, context: StartContext) -> bool:
+    def restart(
+        self, recent: list[Any], reference: FloatArray | None, context: StartContext
+    ) -> bool:
         """Recovery: the annealed start from ``recent`` (:mod:`relloc.filter.annealing`), each
         formation then turned to ``reference``'s orientation and handedness (``orient_by``)."""
         if not annealed_start(context, self, recent, shared_heading=self.shared_heading):
@@ -234,7 +250,9 @@ class ParticleFilter(WeightedFilter):
         if self.posterior_wide:
             return self.count_rule.max_particles
         kept = np.flatnonzero(np.bincount(idx, minlength=self.n))
-        return self.count_rule.size(self.particles[kept, : self.layout.dim], wide=False, sigma=self.widest_std())
+        return self.count_rule.size(
+            self.particles[kept, : self.layout.dim], wide=False, sigma=self.widest_std()
+        )
 
     def widest_std(self) -> float:
         """Standard deviation (m) of the last summary's widest direction: the largest
@@ -293,15 +311,25 @@ class ParticleFilter(WeightedFilter):
         w = self._exp_logw()
         m = self.particles.shape[0]
         rel = self.particles[:, : self.layout.dim].reshape(m, -1, 2)
-        summary = summarize(rel, w, can_resolve=self.evidence.can_resolve, floor=self.covariance_floor, deferred=True)
+        summary = summarize(
+            rel,
+            w,
+            can_resolve=self.evidence.can_resolve,
+            floor=self.covariance_floor,
+            deferred=True,
+        )
         self.last_summary = summary
         biases = {}
         for pair in self.layout.bias_pairs:
             c, _ = self.layout.bias_columns(pair)
             biases[pair] = mixture_moments(w, self.particles[:, c], self.particles[:, c + 1])
         return FilterEstimate(
-            mean=summary.mean, cov=summary.cov, ess=float(1.0 / np.einsum("m,m->", w, w)), biases=biases,
-            summary=summary, particles=m,
+            mean=summary.mean,
+            cov=summary.cov,
+            ess=float(1.0 / np.einsum("m,m->", w, w)),
+            biases=biases,
+            summary=summary,
+            particles=m,
         )
 
     # ---------------------------------------------------------------- initialisation
@@ -370,13 +398,17 @@ class ParticleFilter(WeightedFilter):
                 hi = mid
         return max(lo, beta + 1e-6)
 
-    def _metropolis(self, loglik: LogLikelihood, ll: FloatArray, beta: float, steps: int) -> FloatArray:
+    def _metropolis(
+        self, loglik: LogLikelihood, ll: FloatArray, beta: float, steps: int
+    ) -> FloatArray:
         """Random-walk Metropolis on ``prior * L^beta``; the step adapts to the acceptance rate."""
         spread = np.std(self.particles, axis=0) + 1e-3
         for _ in range(steps):
             proposal = self.particles.copy()
             d = self.layout.dim  # only the positions are sampled; other blocks ride along
-            proposal[:, :d] += self.rng.standard_normal((self.n, d)) * (self._mcmc_scale * spread[:d])
+            proposal[:, :d] += self.rng.standard_normal((self.n, d)) * (
+                self._mcmc_scale * spread[:d]
+            )
             ll_prop = self.log_likelihood(loglik, proposal)
             log_ratio = beta * (ll_prop - ll)
             accept = self.in_prior(proposal) & (np.log(self.rng.random(self.n)) < log_ratio)

@@ -41,7 +41,9 @@ class GraphShape:
     measured: int  # measured pairs
 
 
-def distance_matrix(n: int, index_a: IntArray, index_b: IntArray, distance: FloatArray) -> tuple[FloatArray, BoolArray]:
+def distance_matrix(
+    n: int, index_a: IntArray, index_b: IntArray, distance: FloatArray
+) -> tuple[FloatArray, BoolArray]:
     """Symmetric distances ``(n, n)`` (median where a pair appears more than once) and which
     pairs were measured."""
     d = np.zeros((n, n))
@@ -86,7 +88,9 @@ def stress(x: FloatArray, d: FloatArray, w: FloatArray) -> float:
     return 0.5 * float(np.sum(w * (dist - d) ** 2))
 
 
-def smacof(d: FloatArray, w: FloatArray, x0: FloatArray, iterations: int = SMACOF_ITERATIONS) -> FloatArray:
+def smacof(
+    d: FloatArray, w: FloatArray, x0: FloatArray, iterations: int = SMACOF_ITERATIONS
+) -> FloatArray:
     """Weighted SMACOF from ``x0`` (module docstring, step 3): Guttman transforms until the
     stress decreases by less than ``SMACOF_TOLERANCE`` of itself."""
     w = np.where(np.eye(d.shape[0], dtype=bool), 0.0, w)
@@ -137,10 +141,14 @@ def shape_from_ranges(
     dist = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(axis=2))
     iu = np.triu_indices(idx.size, 1)
     res = (dist - sub_d)[iu][sub_known[iu]]
-    return GraphShape(rel, placed, float(np.sqrt(np.mean(res * res))) if res.size else 0.0, int(res.size))
+    return GraphShape(
+        rel, placed, float(np.sqrt(np.mean(res * res))) if res.size else 0.0, int(res.size)
+    )
 
 
-def orientation_hypotheses(relative: FloatArray, rotations: int, reflections: bool = True) -> FloatArray:
+def orientation_hypotheses(
+    relative: FloatArray, rotations: int, reflections: bool = True
+) -> FloatArray:
     """``relative`` ``(K, 2)`` turned about the origin (the reference) to ``rotations`` evenly
     spaced angles, and mirrored (``y -> -y`` before turning) if ``reflections``: shape
     ``(rotations * (1 + reflections), K, 2)``, the unmirrored ones first."""
@@ -154,7 +162,9 @@ def orientation_hypotheses(relative: FloatArray, rotations: int, reflections: bo
     return np.concatenate(out, axis=0)
 
 
-def start_covariance(formations: FloatArray, shape_sigma: float, rotation_sigma: float) -> FloatArray:
+def start_covariance(
+    formations: FloatArray, shape_sigma: float, rotation_sigma: float
+) -> FloatArray:
     """Covariance ``(M, 2K, 2K)`` of each hypothesis: ``shape_sigma^2`` per coordinate and,
     fully correlated across the robots, a rotation of the whole formation about the reference
     with std ``rotation_sigma`` (rad): ``shape_sigma^2 I + rotation_sigma^2 J J^T`` with

@@ -54,7 +54,9 @@ MAX_RANGE = 15.0
 indoors)."""
 
 
-def _robust_gaussian_loglik(residual: FloatArray, sigma: FloatArray, eps: float, support: float) -> FloatArray:
+def _robust_gaussian_loglik(
+    residual: FloatArray, sigma: FloatArray, eps: float, support: float
+) -> FloatArray:
     """Elementwise log of ``(1-eps) N(residual; 0, sigma^2) + eps / support``.
 
     Computed in linear space (one ``exp`` and one ``log``, in place): exact, because the
@@ -74,7 +76,12 @@ def _robust_gaussian_loglik(residual: FloatArray, sigma: FloatArray, eps: float,
 
 
 def range_mixture(
-    residual: FloatArray, sigma: FloatArray, eps: float, support: float, nlos_fraction: float, nlos_sigma: float
+    residual: FloatArray,
+    sigma: FloatArray,
+    eps: float,
+    support: float,
+    nlos_fraction: float,
+    nlos_sigma: float,
 ) -> tuple[FloatArray, FloatArray]:
     """Line-of-sight density and total density of the range mixture (module docstring),
     elementwise; ``sigma`` broadcasts against ``residual``. ``nlos_fraction`` 0 is the
@@ -113,7 +120,9 @@ def _model_sigma(group: Sequence[RangeEvent]) -> float:
     (docs/ranging.md), so a model that is unsure makes its ranges weigh less, while a confident
     one never makes them weigh more than an uncorrected range of the same pair would.
     """
-    sigmas = [ev.sigma for ev in group if ev.sigma is not None and finite(ev.sigma) and ev.sigma > 0.0]
+    sigmas = [
+        ev.sigma for ev in group if ev.sigma is not None and finite(ev.sigma) and ev.sigma > 0.0
+    ]
     return float(statistics.median(sigmas)) if sigmas else 0.0
 
 
@@ -204,10 +213,23 @@ class RangeBatch:
         idx = np.array(pairs, dtype=np.intp)
         dist_a, bias_a, sigma_a = np.array(dist), np.array(bias), np.array(sigma)
         online = [k in layout.bias_pairs for k in keys]
-        belief = np.array([layout.bias_belief_column(k) if on else -1 for k, on in zip(keys, online, strict=True)], dtype=np.intp)
-        state = tuple(layout.bias_state_columns(k) if on else () for k, on in zip(keys, online, strict=True))
+        belief = np.array(
+            [
+                layout.bias_belief_column(k) if on else -1
+                for k, on in zip(keys, online, strict=True)
+            ],
+            dtype=np.intp,
+        )
+        state = tuple(
+            layout.bias_state_columns(k) if on else () for k, on in zip(keys, online, strict=True)
+        )
         if context.range_model == "nlos":
-            raw = np.array([bool(k) and (not on or separable(uwb, k, bool(st))) for k, on, st in zip(keys, online, state, strict=True)])
+            raw = np.array(
+                [
+                    bool(k) and (not on or separable(uwb, k, bool(st)))
+                    for k, on, st in zip(keys, online, state, strict=True)
+                ]
+            )
         else:
             raw = np.zeros(len(keys), bool)
         out: list[MeasurementModel] = []
@@ -215,7 +237,12 @@ class RangeBatch:
             if not np.any(sel):
                 continue
             if nlos:  # an online bias's uncertainty is in the state, not widened here
-                s = np.array([uwb.los_sigma if on else pair_sigma(config, k, uwb.los_sigma) for k, on in zip(keys, online, strict=True)])[sel]
+                s = np.array(
+                    [
+                        uwb.los_sigma if on else pair_sigma(config, k, uwb.los_sigma)
+                        for k, on in zip(keys, online, strict=True)
+                    ]
+                )[sel]
                 eps = GROSS_FRACTION if context.robust else 0.0
             else:
                 s = sigma_a[sel]
@@ -224,7 +251,13 @@ class RangeBatch:
             rows = np.flatnonzero(sel)
             out.append(
                 cls(
-                    idx[sel, 0], idx[sel, 1], dist_a[sel], bias_a[sel], s, eps, MAX_RANGE,
+                    idx[sel, 0],
+                    idx[sel, 1],
+                    dist_a[sel],
+                    bias_a[sel],
+                    s,
+                    eps,
+                    MAX_RANGE,
                     belief[sel] if np.any(belief >= 0) else None,
                     nlos_fraction=NLOS_FRACTION if nlos and context.robust else 0.0,
                     nlos_sigma=NLOS_SIGMA,
@@ -259,10 +292,18 @@ class RangeBatch:
         if context.is_late(event.t):
             return "late_measurement"
         bias_pairs = context.layout.bias_pairs
-        if bias_pairs and not event.corrected and pair_key(*context.config.range_nodes(event)) not in bias_pairs:
+        if (
+            bias_pairs
+            and not event.corrected
+            and pair_key(*context.config.range_nodes(event)) not in bias_pairs
+        ):
             return "unknown_node_pair"  # online biases: the state has a column per configured pair only
         last = context.memory(cls)
-        key = (event.robot_a, event.robot_b) if event.robot_a < event.robot_b else (event.robot_b, event.robot_a)
+        key = (
+            (event.robot_a, event.robot_b)
+            if event.robot_a < event.robot_b
+            else (event.robot_b, event.robot_a)
+        )
         if last.get(key) == d:
             # Equal to the pair's previous range: a driver re-publishing a stale sample, or a
             # new one that the 1 cm resolution made equal. Dropped either way: the likelihood
@@ -278,7 +319,9 @@ class RangeBatch:
         d *= d
         return np.sqrt(d[0] + d[1])
 
-    def _residual_and_sigma(self, positions: FloatArray, particles: FloatArray | None) -> tuple[FloatArray, FloatArray]:
+    def _residual_and_sigma(
+        self, positions: FloatArray, particles: FloatArray | None
+    ) -> tuple[FloatArray, FloatArray]:
         d = self.predicted(positions)
         residual = (self.distance - self.bias)[:, None] - d
         sigma = self.sigma[:, None]  # (K, 1): broadcasts against (K, M)
@@ -296,11 +339,18 @@ class RangeBatch:
                 residual[k] -= particles[:, c]
         return residual, sigma
 
-    def log_likelihood(self, positions: FloatArray, particles: FloatArray | None = None) -> FloatArray:
+    def log_likelihood(
+        self, positions: FloatArray, particles: FloatArray | None = None
+    ) -> FloatArray:
         residual, sigma = self._residual_and_sigma(positions, particles)
         if self.nlos_fraction > 0.0:
             _, total = range_mixture(
-                residual, sigma, self.outlier_fraction, self.max_range, self.nlos_fraction, self.nlos_sigma
+                residual,
+                sigma,
+                self.outlier_fraction,
+                self.max_range,
+                self.nlos_fraction,
+                self.nlos_sigma,
             )
             return np.log(total).sum(axis=0)
         ll = _robust_gaussian_loglik(residual, sigma, self.outlier_fraction, self.max_range)
@@ -324,7 +374,9 @@ class RangeBatch:
         r, s = residual[online], sigma[online]
         cols = self.bias_columns[online]
         var = particles[:, cols + 1].T  # (K', M)
-        los, total = range_mixture(r, s, self.outlier_fraction, self.max_range, self.nlos_fraction, self.nlos_sigma)
+        los, total = range_mixture(
+            r, s, self.outlier_fraction, self.max_range, self.nlos_fraction, self.nlos_sigma
+        )
         inlier = los / total
         gain = inlier * var / (s * s)
         particles[:, cols] += (gain * r).T
@@ -339,7 +391,9 @@ class RangeBatch:
         """Range ``k`` linearised at every Gaussian's mean: ``d(|p_a - p_b|)/dp = +-e`` (the
         unit vector from b to a) and 1 for every online bias column it sees."""
         if self.nlos_fraction > 0.0 or self.bias_columns is not None:
-            raise ValueError("only the symmetric range model with state-column biases has a linear row")
+            raise ValueError(
+                "only the symmetric range model with state-column biases has a linear row"
+            )
         if self.layout is None:
             raise ValueError("a range model needs its layout to be linearised")
         n = mean.shape[0]
@@ -364,6 +418,10 @@ class RangeBatch:
             coefs.append(np.ones(n))
             predicted = predicted + mean[:, c]
         return LinearRow(
-            np.array(cols), np.stack(coefs, axis=1), float(self.distance[k]) - predicted,
-            float(self.sigma[k]) ** 2, self.outlier_fraction, self.max_range,
+            np.array(cols),
+            np.stack(coefs, axis=1),
+            float(self.distance[k]) - predicted,
+            float(self.sigma[k]) ** 2,
+            self.outlier_fraction,
+            self.max_range,
         )

@@ -38,7 +38,9 @@ def ess(logw: FloatArray) -> float:
     return float(1.0 / np.sum(w * w))
 
 
-def reinjection_slots(n: int, reinject_fraction: float, rng: np.random.Generator) -> NDArray[np.intp]:
+def reinjection_slots(
+    n: int, reinject_fraction: float, rng: np.random.Generator
+) -> NDArray[np.intp]:
     """A ``reinject_fraction`` of the slots of ``n`` particles, drawn without replacement: the
     ones a filter re-draws from its prior after a resampling."""
     k = round(reinject_fraction * n)
@@ -52,7 +54,9 @@ def mixture_moments(w: FloatArray, mu: FloatArray, var: FloatArray) -> tuple[flo
     return mean, math.sqrt(max(float(w @ (var + (mu - mean) ** 2)), 0.0))
 
 
-def systematic_resample(weights: FloatArray, rng: np.random.Generator, n: int | None = None) -> NDArray[np.intp]:
+def systematic_resample(
+    weights: FloatArray, rng: np.random.Generator, n: int | None = None
+) -> NDArray[np.intp]:
     """Indices of ``n`` (default ``len(weights)``) particles drawn by systematic resampling;
     ``weights`` must be normalised (non-negative, summing to one)."""
     m = len(weights) if n is None else n

@@ -94,7 +94,9 @@ class SightingBatch:
 
     # ---------------------------------------------------------------- building, validation
     @classmethod
-    def build(cls, events: Sequence[SightingEvent], context: ModelContext) -> list[MeasurementModel]:
+    def build(
+        cls, events: Sequence[SightingEvent], context: ModelContext
+    ) -> list[MeasurementModel]:
         """The rows of ``events`` for ``context``'s filter: heading mode where the layout
         estimates headings, compass where the filter has a shared frame and the observers'
         yaws are known, ranges only otherwise."""
@@ -122,8 +124,17 @@ class SightingBatch:
             if has_r:
                 rows.append(_Row("range", i, j, float(ev.range), ev.sigma_range**2))  # type: ignore[arg-type]
             if has_b:
-                rows.append(_Row("bearing", i, j, float(ev.bearing), ev.sigma_bearing**2, psi=yaw,  # type: ignore[arg-type]
-                                 support=2.0 * math.pi))
+                rows.append(
+                    _Row(
+                        "bearing",
+                        i,
+                        j,
+                        float(ev.bearing),
+                        ev.sigma_bearing**2,
+                        psi=yaw,  # type: ignore[arg-type]
+                        support=2.0 * math.pi,
+                    )
+                )
         if not rows:
             return []
         eps = OUTLIER_FRACTION if context.robust else 0.0
@@ -212,7 +223,10 @@ class SightingBatch:
                     v2 = norm * norm
                     angle = wrap(np.arctan2(vy, vx) - np.arctan2(dy, dx))
                     h = np.where(known, angle, h)
-                    grad_v = (np.where(known, -vy / v2, grad_v[0]), np.where(known, vx / v2, grad_v[1]))
+                    grad_v = (
+                        np.where(known, -vy / v2, grad_v[0]),
+                        np.where(known, vx / v2, grad_v[1]),
+                    )
                     # d angle(v) - angle(d) / dd = -(-dy, dx) / |d|^2
                     ax, ay = np.where(known, dy / d2, ax), np.where(known, -dx / d2, ay)
             # d = A(w) u: dd/du = A(w), so dh/du = A(w)^T dh/dd
@@ -235,7 +249,9 @@ class SightingBatch:
         total = np.zeros(particles.shape[0])
         for row in self.items:
             residual, _ = self._evaluate(particles, row)
-            ll, _ = robust_gaussian(residual, np.full_like(residual, row.variance), self.outlier_fraction, row.support)
+            ll, _ = robust_gaussian(
+                residual, np.full_like(residual, row.variance), self.outlier_fraction, row.support
+            )
             total += ll
         return total
 

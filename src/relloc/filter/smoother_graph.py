@@ -69,12 +69,16 @@ BIAS_CHR = ord("b")
 """The symbol character of the bias keys (``gtsam.symbol("b", j)``, ``j`` counting them)."""
 
 
-def _biased_range(distance: float) -> Callable[[gtsam.CustomFactor, gtsam.Values, list[FloatArray] | None], FloatArray]:
+def _biased_range(
+    distance: float,
+) -> Callable[[gtsam.CustomFactor, gtsam.Values, list[FloatArray] | None], FloatArray]:
     """The error of a range ``distance`` between keys ``(p_a, p_b, b)``: ``|p_a - p_b| + b - z``
     with Jacobians ``u^T``, ``-u^T``, ``1`` (``u`` the unit vector from ``p_b`` to ``p_a``, an
     arbitrary unit vector where they coincide)."""
 
-    def error(factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None) -> FloatArray:
+    def error(
+        factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None
+    ) -> FloatArray:
         ka, kb, kbias = factor.keys()
         diff = values.atPoint2(ka) - values.atPoint2(kb)
         dist = math.hypot(diff[0], diff[1])
@@ -93,7 +97,11 @@ class GraphSmoother:
     docstring)."""
 
     def __init__(
-        self, n: int, reference: int, lag: float, bias_mean: FloatArray | None = None,
+        self,
+        n: int,
+        reference: int,
+        lag: float,
+        bias_mean: FloatArray | None = None,
         bias_sigma: FloatArray | None = None,
     ) -> None:
         """``bias_mean``/``bias_sigma``: the prior of each online bias (none by default)."""
@@ -130,8 +138,16 @@ class GraphSmoother:
         return [robot_key(s, i, self.n) for i in range(self.n)]
 
     def start(
-        self, t: float, mean: FloatArray, cov: FloatArray, index_a: IntArray, index_b: IntArray, distance: FloatArray,
-        range_sigma: FloatArray, bias_index: IntArray | None = None, relative: Relative | None = None,
+        self,
+        t: float,
+        mean: FloatArray,
+        cov: FloatArray,
+        index_a: IntArray,
+        index_b: IntArray,
+        distance: FloatArray,
+        range_sigma: FloatArray,
+        bias_index: IntArray | None = None,
+        relative: Relative | None = None,
     ) -> None:
         """The first step at ``t``: the reference at the origin, each robot ``i`` with a prior at
         ``mean[i]`` (``(N, 2)``, relative to the reference) of covariance ``cov[i]``
@@ -149,11 +165,19 @@ class GraphSmoother:
                 graph.add(gtsam.PriorFactorPoint2(key, np.zeros(2), noise))
                 values.insert(key, np.zeros(2))
             else:
-                graph.add(gtsam.PriorFactorPoint2(key, mean[i], gtsam.noiseModel.Gaussian.Covariance(cov[i])))
+                graph.add(
+                    gtsam.PriorFactorPoint2(
+                        key, mean[i], gtsam.noiseModel.Gaussian.Covariance(cov[i])
+                    )
+                )
                 values.insert(key, np.asarray(mean[i], float))
             stamps.insert((key, t))
-        for key, m, sd in zip(self.bias_keys, self.bias_mean.tolist(), self.bias_sigma.tolist(), strict=True):
-            graph.add(gtsam.PriorFactorVector(key, np.array([m]), gtsam.noiseModel.Isotropic.Sigma(1, sd)))
+        for key, m, sd in zip(
+            self.bias_keys, self.bias_mean.tolist(), self.bias_sigma.tolist(), strict=True
+        ):
+            graph.add(
+                gtsam.PriorFactorVector(key, np.array([m]), gtsam.noiseModel.Isotropic.Sigma(1, sd))
+            )
             values.insert(key, np.array([m]))
             stamps.insert((key, t))
         self._ranges(graph, keys, index_a, index_b, distance, range_sigma, bias_index)
@@ -198,29 +222,59 @@ class GraphSmoother:
         self._update(graph, values, stamps)
 
     def _ranges(
-        self, graph: gtsam.NonlinearFactorGraph, keys: list[int], index_a: IntArray, index_b: IntArray,
-        distance: FloatArray, range_sigma: FloatArray, bias_index: IntArray | None,
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        keys: list[int],
+        index_a: IntArray,
+        index_b: IntArray,
+        distance: FloatArray,
+        range_sigma: FloatArray,
+        bias_index: IntArray | None,
     ) -> None:
         huber = gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K)
         biases = [-1] * index_a.size if bias_index is None else bias_index.tolist()
-        rows = zip(index_a.tolist(), index_b.tolist(), distance.tolist(), range_sigma.tolist(), biases, strict=True)
+        rows = zip(
+            index_a.tolist(),
+            index_b.tolist(),
+            distance.tolist(),
+            range_sigma.tolist(),
+            biases,
+            strict=True,
+        )
         for a, b, d, s, j in rows:
             noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Isotropic.Sigma(1, s))
             if j >= 0:
-                graph.add(gtsam.CustomFactor(noise, [keys[a], keys[b], self.bias_keys[j]], _biased_range(d)))
+                graph.add(
+                    gtsam.CustomFactor(
+                        noise, [keys[a], keys[b], self.bias_keys[j]], _biased_range(d)
+                    )
+                )
             else:
                 graph.add(gtsam.RangeFactor2(keys[a], keys[b], d, noise))
 
-    def _relatives(self, graph: gtsam.NonlinearFactorGraph, keys: list[int], relative: Relative | None) -> None:
+    def _relatives(
+        self, graph: gtsam.NonlinearFactorGraph, keys: list[int], relative: Relative | None
+    ) -> None:
         """One Huber-robust between factor per measured ``p_target - p_observer``."""
         if relative is None:
             return
         huber = gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K)
-        for a, b, v, c in zip(relative.observer.tolist(), relative.target.tolist(), relative.vector, relative.cov, strict=True):
+        for a, b, v, c in zip(
+            relative.observer.tolist(),
+            relative.target.tolist(),
+            relative.vector,
+            relative.cov,
+            strict=True,
+        ):
             noise = gtsam.noiseModel.Robust.Create(huber, gtsam.noiseModel.Gaussian.Covariance(c))
             graph.add(gtsam.BetweenFactorPoint2(keys[a], keys[b], np.asarray(v, float), noise))
 
-    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values, stamps: gtsam.FixedLagSmootherKeyTimestampMap) -> None:
+    def _update(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        stamps: gtsam.FixedLagSmootherKeyTimestampMap,
+    ) -> None:
         self.smoother.update(graph, values, stamps)
         self.factors_added += graph.size()
         self.graphs.append(graph)
@@ -229,7 +283,9 @@ class GraphSmoother:
         for key in list(est.keys()):  # a gtsam.Values, not a dict
             bias = gtsam.Symbol(key).chr() == BIAS_CHR
             self.values[key] = est.atVector(key) if bias else est.atPoint2(key)
-        self.positions = np.array([est.atPoint2(key) for key in self.keys()], float).reshape(self.n, 2)
+        self.positions = np.array([est.atPoint2(key) for key in self.keys()], float).reshape(
+            self.n, 2
+        )
         self.biases = np.array([est.atVector(key)[0] for key in self.bias_keys], float)
 
     def _window_joint(self) -> FloatArray:
@@ -259,7 +315,9 @@ class GraphSmoother:
         tail = np.diag(self._window_joint())[2 * self.n :]
         return np.sqrt(np.maximum(tail, 0.0))
 
-    def batch(self, steps: list[int], covariances: bool = True) -> tuple[FloatArray, FloatArray | None]:
+    def batch(
+        self, steps: list[int], covariances: bool = True
+    ) -> tuple[FloatArray, FloatArray | None]:
         """The smoothed trajectory: every factor since the start optimised at once
         (Levenberg-Marquardt from the fixed-lag estimates), each robot's position relative to
         the reference at each of ``steps`` ``(S, N-1, 2)``, and with ``covariances`` their
@@ -271,10 +329,14 @@ class GraphSmoother:
         initial = gtsam.Values()
         for key, value in self.values.items():
             initial.insert(key, np.asarray(value, float))  # a bias's Vector1 stays a Vector
-        result = gtsam.LevenbergMarquardtOptimizer(graph, initial, gtsam.LevenbergMarquardtParams()).optimize()
+        result = gtsam.LevenbergMarquardtOptimizer(
+            graph, initial, gtsam.LevenbergMarquardtParams()
+        ).optimize()
         mean = np.empty((len(steps), self.others.size, 2))
         for j, step in enumerate(steps):
-            pos = np.array([result.atPoint2(key) for key in self.keys(step)], float).reshape(self.n, 2)
+            pos = np.array([result.atPoint2(key) for key in self.keys(step)], float).reshape(
+                self.n, 2
+            )
             mean[j] = pos[self.others] - pos[self.reference]
         if not covariances:
             return mean, None
@@ -283,7 +345,9 @@ class GraphSmoother:
         for j, step in enumerate(steps):
             keys = self.keys(step)
             order = [keys[self.reference], *(keys[i] for i in self.others)]
-            cov[j] = _difference_covariances(marginals.jointMarginalCovariance(order).fullMatrix(), self.others.size)
+            cov[j] = _difference_covariances(
+                marginals.jointMarginalCovariance(order).fullMatrix(), self.others.size
+            )
         return mean, cov
 
     def cost(self) -> float:

@@ -27,7 +27,9 @@ FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
 
-def flatten(pending: dict[tuple[int, int], list[tuple[float, float]]]) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
+def flatten(
+    pending: dict[tuple[int, int], list[tuple[float, float]]],
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
     """``pair -> [(distance, sigma), ...]`` as four arrays, a row per range."""
     rows = [(a, b, z, w) for (a, b), vals in pending.items() for z, w in vals]
     if not rows:
@@ -37,7 +39,9 @@ def flatten(pending: dict[tuple[int, int], list[tuple[float, float]]]) -> tuple[
     return np.array(a, np.intp), np.array(b, np.intp), np.array(z, float), np.array(w, float)
 
 
-def per_pair(ia: IntArray, ib: IntArray, z: FloatArray, s: FloatArray) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
+def per_pair(
+    ia: IntArray, ib: IntArray, z: FloatArray, s: FloatArray
+) -> tuple[IntArray, IntArray, FloatArray, FloatArray]:
     """One range per pair (team indices, ``a < b``): the median distance, the largest noise."""
     lo, hi = np.minimum(ia, ib), np.maximum(ia, ib)
     pairs, inverse = np.unique(np.stack([lo, hi], axis=1), axis=0, return_inverse=True)
@@ -59,7 +63,9 @@ def moments(
     relative positions ``mean`` with marginal covariances ``cov`` (module docstring)."""
     if observable:
         x, y = mean[:, 0], mean[:, 1]
-        turn = np.stack([np.stack([y * y, -x * y], axis=1), np.stack([-x * y, x * x], axis=1)], axis=1)
+        turn = np.stack(
+            [np.stack([y * y, -x * y], axis=1), np.stack([-x * y, x * x], axis=1)], axis=1
+        )
         cov = cov + rotation_floor**2 * turn
     summary = _summary(mean, cov, observable)
     if observable:
@@ -91,6 +97,15 @@ def _summary(mean: FloatArray, cov: FloatArray, observable: bool) -> ModeSummary
     var = np.einsum("ijk,ijkl,ijl->ij", unit, both, unit)
     distances = np.stack([dist, np.sqrt(np.maximum(var, 0.0))], axis=-1)
     return ModeSummary(
-        mean, cov, mean.copy(), 1.0, 1, 0.0 if observable else math.pi, observable, shape, shape_cov, distances,
+        mean,
+        cov,
+        mean.copy(),
+        1.0,
+        1,
+        0.0 if observable else math.pi,
+        observable,
+        shape,
+        shape_cov,
+        distances,
         np.ones(1, dtype=bool),
     )

@@ -85,7 +85,9 @@ class TeamLayout:
 
     @cached_property
     def _other_rows(self) -> NDArray[np.intp]:
-        return np.array([i for i, r in enumerate(self.robots) if r != self.reference], dtype=np.intp)
+        return np.array(
+            [i for i, r in enumerate(self.robots) if r != self.reference], dtype=np.intp
+        )
 
     def bias_belief_column(self, pair: str) -> int:
         """Column of the mean of a per-particle Gaussian belief about ``pair``'s bias (its

@@ -62,7 +62,9 @@ class Evidence:
         d = np.nan_to_num(disp)
         self.offset += d
         self.path += np.hypot(d[:, 0], d[:, 1])
-        self.max_offset = max(self.max_offset, float(np.max(np.hypot(self.offset[:, 0], self.offset[:, 1]))))
+        self.max_offset = max(
+            self.max_offset, float(np.max(np.hypot(self.offset[:, 0], self.offset[:, 1])))
+        )
 
     def fused(self, models: Sequence[MeasurementModel]) -> None:
         self.non_invariant += sum(1 for m in models if not getattr(m, "invariant", True))
@@ -125,7 +127,10 @@ def estimate_fields(
     out["shape"] = {r: (g[k][0], g[k][1]) for k, r in enumerate(others)}
     out["shape_gauge"] = others[0]
     out["distances"] = {
-        pair_key(a, b): (d[i][j][0], d[i][j][1]) for i, a in enumerate(names) for j, b in enumerate(names) if j > i
+        pair_key(a, b): (d[i][j][0], d[i][j][1])
+        for i, a in enumerate(names)
+        for j, b in enumerate(names)
+        if j > i
     }
     return out
 
@@ -151,7 +156,9 @@ def _rotate(rel: FloatArray, theta: FloatArray) -> FloatArray:
     return out
 
 
-def procrustes_fit(planes: FloatArray, template: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+def procrustes_fit(
+    planes: FloatArray, template: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
     """Rotation and handedness of each formation (coordinate planes ``planes`` ``(2K, M)``: the
     ``x`` rows, then the ``y`` rows) relative to ``template`` ``(K, 2)``: formation ``m`` is best
     explained as ``template`` mirrored (if the handedness is -1: ``y -> -y``) and then turned
@@ -262,14 +269,22 @@ def _products(planes: FloatArray) -> FloatArray:
     return planes
 
 
-def _moments(sums: FloatArray, w: FloatArray, covs: FloatArray | None) -> tuple[FloatArray, FloatArray]:
+def _moments(
+    sums: FloatArray, w: FloatArray, covs: FloatArray | None
+) -> tuple[FloatArray, FloatArray]:
     """Weighted mean ``(K, 2)`` and per-robot covariance ``(K, 2, 2)`` from the weighted sums
     ``(5K,)`` of the planes ``x``, ``y``, ``x * x``, ``y * y``, ``x * y`` (:func:`_planes`)
     under normalised weights ``w`` (plus the weighted member covariances ``covs``
     ``(M, K, 2, 2)``, if any). Second moments minus the squared mean: no centred copy;
     positions are metres, far above float64 cancellation."""
     k = sums.shape[0] // 5
-    mx, my, sxx, syy, sxy = sums[:k], sums[k : 2 * k], sums[2 * k : 3 * k], sums[3 * k : 4 * k], sums[4 * k :]
+    mx, my, sxx, syy, sxy = (
+        sums[:k],
+        sums[k : 2 * k],
+        sums[2 * k : 3 * k],
+        sums[3 * k : 4 * k],
+        sums[4 * k :],
+    )
     mean = np.empty((k, 2))
     mean[:, 0], mean[:, 1] = mx, my
     cov = np.empty((k, 2, 2))
@@ -330,11 +345,19 @@ def summarize(
 
     # The dominant mode's circular spread of orientation (about the template: an offset
     # does not change it).
-    rbar = min(math.hypot(float(np.einsum("m,m->", wm, c)), float(np.einsum("m,m->", wm, s))), 1.0)  # round-off
-    orientation_std = math.pi if rbar <= math.exp(-0.5 * math.pi**2) else min(math.sqrt(-2.0 * math.log(rbar)), math.pi)
+    rbar = min(
+        math.hypot(float(np.einsum("m,m->", wm, c)), float(np.einsum("m,m->", wm, s))), 1.0
+    )  # round-off
+    orientation_std = (
+        math.pi
+        if rbar <= math.exp(-0.5 * math.pi**2)
+        else min(math.sqrt(-2.0 * math.log(rbar)), math.pi)
+    )
 
     if can_resolve:
-        mean, cov = (weighted_mean, all_cov) if everything else _moments(_wsum(planes, wm), wm, covs)
+        mean, cov = (
+            (weighted_mean, all_cov) if everything else _moments(_wsum(planes, wm), wm, covs)
+        )
     else:
         # The exact posterior is invariant under rotations about the reference: its moments.
         r2 = np.diagonal(all_cov, axis1=1, axis2=2).sum(axis=1) + np.sum(weighted_mean**2, axis=1)
@@ -343,10 +366,23 @@ def summarize(
     cov = cov + floor * np.eye(2)[None]
 
     fields = (
-        mean, cov, weighted_mean, mode_weight, n_modes, orientation_std,
+        mean,
+        cov,
+        weighted_mean,
+        mode_weight,
+        n_modes,
+        orientation_std,
         bool(can_resolve and orientation_std < ORIENTATION_MAX_STD),
     )
-    tail = _Tail(planes[:k], planes[k : 2 * k], (c, s, hand) if step == 1 else (c[sub], s[sub], hand[sub]), sub, ws, covs, floor)
+    tail = _Tail(
+        planes[:k],
+        planes[k : 2 * k],
+        (c, s, hand) if step == 1 else (c[sub], s[sub], hand[sub]),
+        sub,
+        ws,
+        covs,
+        floor,
+    )
     if deferred:
         return DeferredSummary.of(fields, members, tail)
     shape, shape_cov = tail.shape()
@@ -380,7 +416,13 @@ class _Tail:
         sums = np.concatenate([_wsum(a, ws) for a in (ax, ay, ax * ax, ay * ay, ax * ay)])
         shape_mean, shape_cov = _moments(sums, ws, None)
         if covs is not None:  # a member's own covariance turns with it; its trace is what survives
-            shape_cov += 0.5 * np.einsum("m,mk->k", ws, np.trace(covs[self.sub], axis1=2, axis2=3))[:, None, None] * np.eye(2)
+            shape_cov += (
+                0.5
+                * np.einsum("m,mk->k", ws, np.trace(covs[self.sub], axis1=2, axis2=3))[
+                    :, None, None
+                ]
+                * np.eye(2)
+            )
         g = gauge(shape_mean[None])[0]
         a0 = math.atan2(shape_mean[0, 1], shape_mean[0, 0])  # the same map for the covariance
         rot = np.array([[math.cos(a0), math.sin(a0)], [-math.sin(a0), math.cos(a0)]])
@@ -438,7 +480,9 @@ class DeferredSummary(ModeSummary):
     distances = _OnRead()
 
     @classmethod
-    def of(cls, fields: tuple[Any, ...], members: NDArray[np.bool_], tail: _Tail) -> DeferredSummary:
+    def of(
+        cls, fields: tuple[Any, ...], members: NDArray[np.bool_], tail: _Tail
+    ) -> DeferredSummary:
         out = cls(*fields, None, None, None, members)
         out.__dict__["_tail"] = tail
         return out
@@ -454,4 +498,8 @@ class DeferredSummary(ModeSummary):
     def computed(self) -> frozenset[str]:
         """Which deferred parts have been computed so far (``shape``, ``distances``)."""
         d = self.__dict__
-        return frozenset(n for n, slot in (("shape", "_shape"), ("distances", "_distances")) if d.get(slot) is not None)
+        return frozenset(
+            n
+            for n, slot in (("shape", "_shape"), ("distances", "_distances"))
+            if d.get(slot) is not None
+        )

@@ -62,7 +62,9 @@ class RelativePositionBatch:
         return len(self.sigma)
 
     @classmethod
-    def build(cls, events: Sequence[RelativeObservation], context: ModelContext) -> list[MeasurementModel]:
+    def build(
+        cls, events: Sequence[RelativeObservation], context: ModelContext
+    ) -> list[MeasurementModel]:
         if not events:
             return []
         layout = context.layout
@@ -94,9 +96,19 @@ class RelativePositionBatch:
             return "late_measurement"
         return None
 
-    def log_likelihood(self, positions: FloatArray, particles: FloatArray | None = None) -> FloatArray:
-        ex = positions[0, self.index_target] - positions[0, self.index_observer] - self.vector[:, 0:1]
-        ey = positions[1, self.index_target] - positions[1, self.index_observer] - self.vector[:, 1:2]
+    def log_likelihood(
+        self, positions: FloatArray, particles: FloatArray | None = None
+    ) -> FloatArray:
+        ex = (
+            positions[0, self.index_target]
+            - positions[0, self.index_observer]
+            - self.vector[:, 0:1]
+        )
+        ey = (
+            positions[1, self.index_target]
+            - positions[1, self.index_observer]
+            - self.vector[:, 1:2]
+        )
         s2 = (self.sigma**2)[:, None]
         r2 = ex * ex + ey * ey  # (K, M)
         eps = self.outlier_fraction
@@ -134,6 +146,10 @@ class RelativePositionBatch:
             coefs.append(-np.ones(n))
             pred = pred - mean[:, 2 * so + axis]
         return LinearRow(
-            np.array(cols), np.stack(coefs, axis=1), float(self.vector[j, axis]) - pred,
-            float(self.sigma[j]) ** 2, self.outlier_fraction, math.sqrt(self.support),
+            np.array(cols),
+            np.stack(coefs, axis=1),
+            float(self.vector[j, axis]) - pred,
+            float(self.sigma[j]) ** 2,
+            self.outlier_fraction,
+            math.sqrt(self.support),
         )

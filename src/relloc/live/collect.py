@@ -27,6 +27,7 @@ __all__ = ["EstimateCollector", "ape_against_bag"]
 
 log = logging.getLogger(__name__)
 
+
 class EstimateCollector:
     """Subscribes to a server's pose (and trace) topics and rebuilds the estimates it published.
 
@@ -101,7 +102,9 @@ class EstimateCollector:
                     covariances={
                         r: ((v[2][0], v[2][1]), (v[2][2], v[2][3])) for r, v in robots.items()
                     },
-                    frame=BODY_FRAME if any(v[3].endswith("/base_link") for v in robots.values()) else HEADING_FRAME,
+                    frame=BODY_FRAME
+                    if any(v[3].endswith("/base_link") for v in robots.values())
+                    else HEADING_FRAME,
                 )
             )
         return out

@@ -86,5 +86,7 @@ def _written_back(own: Sensor, msg: Any, before: Event, after: Event, zero_stamp
     """``msg`` with the fields the fault changed (``before`` -> ``after``) set to their new
     values: the stamp here, the rest by the sensor (:meth:`~relloc.sensors.Sensor.write_back`)."""
     if after.t != before.t and not zero_stamp:
-        msg = dataclasses.replace(msg, header=dataclasses.replace(msg.header, stamp=time_msg(after.t)))
+        msg = dataclasses.replace(
+            msg, header=dataclasses.replace(msg.header, stamp=time_msg(after.t))
+        )
     return own.write_back(msg, before, after)

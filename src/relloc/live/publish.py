@@ -251,7 +251,9 @@ def replay_bag(
             raise BagError(f"nothing to replay in {bag} (team topics: {sorted(team_topics)})")
         # A kidnapping moves ranges by the robots' true positions: the faults read motion
         # capture even where it is not published.
-        read = {c.topic for c in published} | (faulted.topics() if faulted and opts.faults.kidnap else set())
+        read = {c.topic for c in published} | (
+            faulted.topics() if faulted and opts.faults.kidnap else set()
+        )
         conns = [c for c in reader.connections if c.msgcount and c.topic in read]
         if not 0.0 <= opts.start < (reader.end_time - reader.start_time) * 1e-9:
             raise BagError(
@@ -283,7 +285,11 @@ def replay_bag(
                         log.warning("%s: not faulted (%s)", conn.topic, exc)
                 if payload is not None and conn.topic in channels:
                     channel = channels[conn.topic]
-                    yield recv_ns * 1e-9, channel, in_distro(payload, channel.msgtype, channel.distro)
+                    yield (
+                        recv_ns * 1e-9,
+                        channel,
+                        in_distro(payload, channel.msgtype, channel.distro),
+                    )
 
         _run_schedule(items(), pubs, opts.rate, stop, stats, on_start)
         if faulted is not None:
@@ -315,7 +321,9 @@ def cmd_vel_channel(
     """The channel of a robot's velocity commands: ``geometry_msgs/Twist`` on ``cmd_vel_topic``
     (default ``/<robot>/cmd_vel``) below its scope, e.g. the key ``r2/cmd_vel`` on the bridge."""
     topic = robot.cmd_vel_topic or f"/{robot.name}/cmd_vel"
-    return (interface or RosInterface()).channel(topic, TWIST, prefix=prefix, scope=robot.zenoh_scope)
+    return (interface or RosInterface()).channel(
+        topic, TWIST, prefix=prefix, scope=robot.zenoh_scope
+    )
 
 
 def odom_channel(
@@ -323,7 +331,9 @@ def odom_channel(
 ) -> Channel:
     """The channel of a robot's odometry (``odom_topic``, default ``/<robot>/odom``)."""
     topic = robot.odom_topic or f"/{robot.name}/odom"
-    return (interface or RosInterface()).channel(topic, ODOMETRY, prefix=prefix, scope=robot.zenoh_scope)
+    return (interface or RosInterface()).channel(
+        topic, ODOMETRY, prefix=prefix, scope=robot.zenoh_scope
+    )
 
 
 class EventEncoder:
@@ -355,7 +365,8 @@ class EventEncoder:
             if not own.writes(route):
                 continue
             self._channels.setdefault(route.kind, {}).setdefault(
-                own.channel_key(route), iface.channel(route.topic, route.msgtypes[0], prefix=prefix, scope=scope)
+                own.channel_key(route),
+                iface.channel(route.topic, route.msgtypes[0], prefix=prefix, scope=scope),
             )
         self._channels[GROUND_TRUTH.kind] = {
             r.name: iface.channel(
@@ -371,7 +382,12 @@ class EventEncoder:
     @property
     def channels(self) -> list[Channel]:
         """The channels of the ``essential`` sensors (odometry, ranges: what a server subscribes to)."""
-        return [c for kind, of_kind in self._channels.items() if sensor(kind).essential for c in of_kind.values()]
+        return [
+            c
+            for kind, of_kind in self._channels.items()
+            if sensor(kind).essential
+            for c in of_kind.values()
+        ]
 
     def encode(self, ev: Event, time_base: float = 0.0) -> tuple[Channel, bytes] | None:
         """``(channel, CDR payload)`` of one event, ``None`` if it has no message. ``time_base``
@@ -427,7 +443,9 @@ def publish_events(
         t_wait = time.time()
         stats.unmatched = pubs.wait_matching(encoder.channels, wait, stop)
         stats.waited_s = time.time() - t_wait
-        items = event_messages(events, config, interface=interface, prefix=prefix, time_base=time_base)
+        items = event_messages(
+            events, config, interface=interface, prefix=prefix, time_base=time_base
+        )
         _run_schedule(items, pubs, rate, stop, stats, on_start)
     finally:
         pubs.close()

@@ -111,7 +111,9 @@ class LiveServer:
         self.faults = FaultInjector(opts.faults) if opts.faults.active else None
         """What the server injects into its events (``None``: nothing)."""
         self.wake_by_rule = (
-            opts.reorder_window == 0.0 and self.faults is None and not any(p.stages for p in self.pipelines)
+            opts.reorder_window == 0.0
+            and self.faults is None
+            and not any(p.stages for p in self.pipelines)
         )
         """Whether the engine thread is woken only for the messages that could make an
         estimate (:meth:`ZenohSource.rearm <relloc.sources.zenoh_source.ZenohSource.rearm>`):
@@ -266,7 +268,9 @@ class LiveServer:
                 "last_estimate_t": None if last_est is None else last_est.t,
                 "ess": None if last_est is None or last_est.ess is None else round(last_est.ess, 1),
                 "frame": None if last_est is None else last_est.frame,
-                "orientation_observable": None if last_est is None else last_est.orientation_observable,
+                "orientation_observable": None
+                if last_est is None
+                else last_est.orientation_observable,
                 "mode_weight": None if last_est is None else round(last_est.mode_weight, 3),
                 "n_modes": None if last_est is None else last_est.n_modes,
                 "particles": None if last_est is None else last_est.particles,
@@ -284,9 +288,9 @@ class LiveServer:
             "reference": self.config.reference,
             "ros_interface": self.options.interface.kind,
             "particles": self.config.filter.particles,
-            "min_particles": None if self.config.filter.adaptive.particle_count == "fixed" else min(
-                self.config.filter.adaptive.min_particles, self.config.filter.particles
-            ),
+            "min_particles": None
+            if self.config.filter.adaptive.particle_count == "fixed"
+            else min(self.config.filter.adaptive.min_particles, self.config.filter.particles),
             "methods": methods,
             "source": {
                 "messages": counts["messages"],

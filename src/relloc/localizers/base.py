@@ -261,8 +261,15 @@ class Localizer:
         """What the faults did (for the status and ``--json``): whether the filter is
         recovering now, how often it was found lost and re-started, clock steps followed and
         stamps rejected as outliers, odometry resets or jumps per robot, batches forced."""
-        keys = ("divergence_detected", "recovery_injections", "clock_jumps_followed", "batches_forced",
-                "odometry_reanchored", "rejected_time_jump", "rejected_time_jump_backward")
+        keys = (
+            "divergence_detected",
+            "recovery_injections",
+            "clock_jumps_followed",
+            "batches_forced",
+            "odometry_reanchored",
+            "rejected_time_jump",
+            "rejected_time_jump_backward",
+        )
         out: dict[str, Any] = {k.removeprefix("rejected_"): self.stats.get(k, 0) for k in keys}
         out["recovering"] = self.recovering
         out["odometry_faults"] = dict(self.odometry_faults)
@@ -270,4 +277,8 @@ class Localizer:
 
     @property
     def rejected(self) -> dict[str, int]:
-        return {k.removeprefix("rejected_"): v for k, v in self.stats.items() if k.startswith("rejected_")}
+        return {
+            k.removeprefix("rejected_"): v
+            for k, v in self.stats.items()
+            if k.startswith("rejected_")
+        }

@@ -78,7 +78,9 @@ class CalibrationBounds:
             if t - t0 < HEADING_WINDOW:
                 continue
             walk = self.walks[1] if robot == self.reference else self.walks[0]
-            allowed = BIAS_BOUND_SIGMAS * math.sqrt(walk * walk * (t - t0) + spread * spread + spread0 * spread0)
+            allowed = BIAS_BOUND_SIGMAS * math.sqrt(
+                walk * walk * (t - t0) + spread * spread + spread0 * spread0
+            )
             turn = abs(math.remainder(mean - mean0, math.tau))
             if turn > allowed:
                 history.clear()

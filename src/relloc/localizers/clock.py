@@ -65,7 +65,9 @@ class TeamClock:
         checked (an outlier among them is rejected). Empty while the warm-up lasts."""
         self._warmup.append(event)
         n = len(self._warmup)
-        if n >= _WARMUP_EVENTS and (len({stream(e) for e in self._warmup}) >= 2 or n >= 2 * _WARMUP_EVENTS):
+        if n >= _WARMUP_EVENTS and (
+            len({stream(e) for e in self._warmup}) >= 2 or n >= 2 * _WARMUP_EVENTS
+        ):
             return self.end_warmup()
         return []
 
@@ -94,7 +96,9 @@ class TeamClock:
             self._ahead = ahead
         self._candidate = t
         self._vote_streams.add(stream(event))
-        if self._votes >= _JUMP_VOTES and len(self._vote_streams) >= min(2, max(len(self._streams), 1)):
+        if self._votes >= _JUMP_VOTES and len(self._vote_streams) >= min(
+            2, max(len(self._streams), 1)
+        ):
             return "follow"
         return "time_jump" if ahead else "time_jump_backward"
 

@@ -60,7 +60,10 @@ class DivergenceMonitor:
         """The outliers among each robot's recorded ranges (kept with ``_seen``)."""
         self._restarted = -math.inf
         self._config = config
-        self._pairs: dict[tuple[str, str, str | None, str | None, bool], tuple[int, int, float, float, float, str | None]] = {}
+        self._pairs: dict[
+            tuple[str, str, str | None, str | None, bool],
+            tuple[int, int, float, float, float, str | None],
+        ] = {}
         self._rows = {r: k for k, r in enumerate(layout.others)}
 
     def restart(self, t: float) -> None:
@@ -76,7 +79,9 @@ class DivergenceMonitor:
                 q[i] = (t + dt, out)
         self._restarted += dt
 
-    def observe(self, t: float, batch: list[Any], fe: FilterEstimate, floor: float = 0.0) -> set[str]:
+    def observe(
+        self, t: float, batch: list[Any], fe: FilterEstimate, floor: float = 0.0
+    ) -> set[str]:
         """Record ``batch``'s ranges against ``fe`` (published with the covariance ``floor``,
         taken back out); the robots judged lost (empty if none). A new loss counts an
         ``episode``."""
@@ -105,7 +110,11 @@ class DivergenceMonitor:
         if lost and not self.lost:
             self.lost = True
             self.episodes += 1
-            log.warning("filter lost at t=%.2f (ranges of %s disagree with the estimate): recovering", t, sorted(lost))
+            log.warning(
+                "filter lost at t=%.2f (ranges of %s disagree with the estimate): recovering",
+                t,
+                sorted(lost),
+            )
         elif self.lost and not lost and worst < self.clear_fraction:
             self.lost = False
             log.info("filter recovered at t=%.2f", t)
@@ -156,7 +165,9 @@ class DivergenceMonitor:
             seen.setdefault(r, deque()).append((stamps[k >> 1], o))
             counts[r] += o
 
-    def _pair(self, m: RangeEvent, config: TeamConfig) -> tuple[int, int, float, float, float, str | None]:
+    def _pair(
+        self, m: RangeEvent, config: TeamConfig
+    ) -> tuple[int, int, float, float, float, str | None]:
         """What the monitor needs of a range's pair that its values do not change: its robots'
         rows (the reference's is the last), the calibration's bias and scale, the range
         variance, and the key of the pair's bias in the estimate (``None`` when corrected)."""

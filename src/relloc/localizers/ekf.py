@@ -53,7 +53,9 @@ class EkfOracleLocalizer(Localizer):
 
     method = "ekf_oracle"
 
-    def __init__(self, config: TeamConfig, initial_poses: dict[str, tuple[float, float, float]]) -> None:
+    def __init__(
+        self, config: TeamConfig, initial_poses: dict[str, tuple[float, float, float]]
+    ) -> None:
         super().__init__(config)
         missing = [r for r in config.robot_names if r not in initial_poses]
         if missing:
@@ -109,7 +111,9 @@ class EkfOracleLocalizer(Localizer):
         self.P = F @ self.P @ F.T + Q
 
     # ---------------------------------------------------------------- update
-    def _fuse(self, z: FloatArray, h: FloatArray, H: FloatArray, R: FloatArray, angle: list[bool]) -> None:
+    def _fuse(
+        self, z: FloatArray, h: FloatArray, H: FloatArray, R: FloatArray, angle: list[bool]
+    ) -> None:
         nu = z - h
         for k, is_angle in enumerate(angle):
             if is_angle:
@@ -163,7 +167,13 @@ class EkfOracleLocalizer(Localizer):
         row[3 * j : 3 * j + 2] = (dx / r, dy / r)
         row[3 * i : 3 * i + 2] = (-dx / r, -dy / r)
         sigma = self.config.uwb.sigma
-        self._fuse(np.array([ev.distance]), np.array([scale * r + bias]), scale * row[None, :], np.array([[sigma**2]]), [False])
+        self._fuse(
+            np.array([ev.distance]),
+            np.array([scale * r + bias]),
+            scale * row[None, :],
+            np.array([[sigma**2]]),
+            [False],
+        )
 
     # ---------------------------------------------------------------- one batch
     def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:

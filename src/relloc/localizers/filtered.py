@@ -56,7 +56,9 @@ class FilterLocalizer(Localizer):
     range_model = "nlos"
     """Which range likelihood (:class:`relloc.filter.measurement.ModelContext`) the filter uses."""
 
-    def __init__(self, config: TeamConfig, layout: StateLayout | None = None, *, seed: int = 0) -> None:
+    def __init__(
+        self, config: TeamConfig, layout: StateLayout | None = None, *, seed: int = 0
+    ) -> None:
         super().__init__(config, layout)
         self.rng = np.random.default_rng(seed)
         self.motion = OdometryMotion()
@@ -121,7 +123,9 @@ class FilterLocalizer(Localizer):
         if not self.filter.update(models):
             self.stats["update_no_support"] += 1
         fe = self.filter.estimate()
-        lost = self.recovery.observe(t, batch, fe, float(getattr(self.filter, "covariance_floor", 0.0)))
+        lost = self.recovery.observe(
+            t, batch, fe, float(getattr(self.filter, "covariance_floor", 0.0))
+        )
         self.recovery.remember(t, batch, fe)
         self.heard.note(batch)
         framed = self.filter.shared_heading or bool(fe.headings)
@@ -173,7 +177,12 @@ class FilterLocalizer(Localizer):
 
     # ---------------------------------------------------------------- models
     def models(
-        self, batch: list[Measurement], target: WeightedFilter, *, robust: bool = True, count: bool = True
+        self,
+        batch: list[Measurement],
+        target: WeightedFilter,
+        *,
+        robust: bool = True,
+        count: bool = True,
     ) -> list[MeasurementModel]:
         """The measurement models of ``batch`` for ``target``'s state layout, in registry
         order. Measurements in the shared heading frame are left out (and counted, with
@@ -183,7 +192,11 @@ class FilterLocalizer(Localizer):
             cls = model_for(m)
             if cls is not None:
                 groups.setdefault(cls, []).append(m)
-        yaws = {r: self.odometry.pose(r, max(m.t for m in batch))[2] for r in self.layout.robots} if batch else None
+        yaws = (
+            {r: self.odometry.pose(r, max(m.t for m in batch))[2] for r in self.layout.robots}
+            if batch
+            else None
+        )
         context = ModelContext(
             self.config, target.layout, robust, self.range_model, yaws, self.filter.shared_heading
         )
@@ -244,23 +257,43 @@ class FilterLocalizer(Localizer):
             positions[robot] = (float(shown.mean[k, 0]), float(shown.mean[k, 1]))
             c = shown.cov[k]
             covs[robot] = ((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1])))
-        for robot in {*fe.headings, self.layout.reference}:  # the reference's: body-frame evaluation
+        for robot in {
+            *fe.headings,
+            self.layout.reference,
+        }:  # the reference's: body-frame evaluation
             self.odometry.log_yaw(robot, t)
         # The shape and distances a published estimate carries (a step whose estimate is not
         # emitted leaves them uncomputed, :class:`~relloc.filter.summary.DeferredSummary`).
-        honest = {} if shown.summary is None or not self.publishes(t) else estimate_fields(
-            shown.summary, self.layout.reference, self.layout.others, shape=self.shape_wanted
+        honest = (
+            {}
+            if shown.summary is None or not self.publishes(t)
+            else estimate_fields(
+                shown.summary, self.layout.reference, self.layout.others, shape=self.shape_wanted
+            )
         )
         widening = self.watchdog.widening
         if widening > 1.0:
-            covs = {r: tuple(tuple(widening * v for v in row) for row in c) for r, c in covs.items()}  # type: ignore[misc]
+            covs = {
+                r: tuple(tuple(widening * v for v in row) for row in c) for r, c in covs.items()
+            }  # type: ignore[misc]
         unseen = self.heard.unseen(t, self.tracks)
         if unseen:
             covs = self.heard.widen(covs, unseen)
         est = Estimate(
-            t, self.method, self.layout.reference, positions, covs, fe.ess, fe.headings, fe.biases, fe.scales,
+            t,
+            self.method,
+            self.layout.reference,
+            positions,
+            covs,
+            fe.ess,
+            fe.headings,
+            fe.biases,
+            fe.scales,
             **honest,
-            recovering=self.recovering, inconsistent=self.inconsistent, particles=fe.particles, unseen=unseen,
+            recovering=self.recovering,
+            inconsistent=self.inconsistent,
+            particles=fe.particles,
+            unseen=unseen,
             frame=HEADING_FRAME if body is None else BODY_FRAME,
         )
         self.last_estimate = est

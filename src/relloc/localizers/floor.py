@@ -39,7 +39,11 @@ class SightingFloor:
             return current
         added = False
         for m in batch:
-            r, sr, sb = getattr(m, "range", None), getattr(m, "sigma_range", None), getattr(m, "sigma_bearing", None)
+            r, sr, sb = (
+                getattr(m, "range", None),
+                getattr(m, "sigma_range", None),
+                getattr(m, "sigma_bearing", None),
+            )
             if r is None or sr is None or sb is None or not hasattr(m, "observer"):
                 continue
             self._noise.append(0.5 * (sr * sr + (r * sb) ** 2))

@@ -97,4 +97,6 @@ class BatchGrid:
         if len(self.pending) >= _MAX_PENDING // 2:
             return WakeRule(-math.inf, -math.inf, lo, hi)
         measurement_from = (self.cell(self.start) + 1) * self.period
-        return WakeRule(measurement_from - _WAKE_MARGIN, self._odometry_from() - _WAKE_MARGIN, lo, hi)
+        return WakeRule(
+            measurement_from - _WAKE_MARGIN, self._odometry_from() - _WAKE_MARGIN, lo, hi
+        )

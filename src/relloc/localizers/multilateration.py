@@ -39,7 +39,9 @@ class MultilaterationLocalizer(Localizer):
         ranges = [m for m in batch if isinstance(m, RangeEvent)]
         for model in RangeBatch.build(ranges, self._context):
             assert isinstance(model, RangeBatch)
-            for a, b, d, bias in zip(model.index_a, model.index_b, model.distance, model.bias, strict=True):
+            for a, b, d, bias in zip(
+                model.index_a, model.index_b, model.distance, model.bias, strict=True
+            ):
                 self._latest[(int(a), int(b))] = (t, max(float(d - bias), 0.0))
         fresh = {k: d for k, (tk, d) in self._latest.items() if t - tk <= self.max_age}
         n = len(self.layout.robots)
@@ -48,10 +50,15 @@ class MultilaterationLocalizer(Localizer):
             self.stats["no_estimate"] += 1
             return None
         keys = np.array(list(fresh), dtype=np.intp)
-        sol = multilateration.solve(n, ref, keys, np.array(list(fresh.values())), self._previous, self.rng)
+        sol = multilateration.solve(
+            n, ref, keys, np.array(list(fresh.values())), self._previous, self.rng
+        )
         if sol is None:
             self.stats["no_estimate"] += 1
             return None
         self._previous = sol
-        positions = {r: (float(sol[self.layout.index(r), 0]), float(sol[self.layout.index(r), 1])) for r in self.layout.others}
+        positions = {
+            r: (float(sol[self.layout.index(r), 0]), float(sol[self.layout.index(r), 1]))
+            for r in self.layout.others
+        }
         return Estimate(t, self.method, self.layout.reference, positions)

@@ -84,7 +84,11 @@ class RangeGraphLocalizer(FilterLocalizer):
         fc = config.filter
         self.range_model = fc.likelihood.range_model
         self.filter = RangeGraphFilter(
-            layout, config.area, rng=self.rng, motion=self.motion, rotation_noise=fc.odometry.rotation_noise,
+            layout,
+            config.area,
+            rng=self.rng,
+            motion=self.motion,
+            rotation_noise=fc.odometry.rotation_noise,
             rotation_floor=ROTATION_FLOOR,
         )
         self.filter.covariance_floor = covariance_floor(config, self.range_model)
@@ -111,7 +115,9 @@ class RangeGraphLocalizer(FilterLocalizer):
         if the batch has no range that places a robot."""
         lay = self.layout
         ranges = [m for m in batch if isinstance(m, RangeEvent)]
-        models = [b for b in self.models(ranges, self.filter, count=False) if isinstance(b, RangeBatch)]
+        models = [
+            b for b in self.models(ranges, self.filter, count=False) if isinstance(b, RangeBatch)
+        ]
         if not models:
             return False
         ia = np.concatenate([b.index_a for b in models])
@@ -134,7 +140,9 @@ class RangeGraphLocalizer(FilterLocalizer):
             d2 = ((formations.reshape(formations.shape[0], -1) - reference) ** 2).sum(axis=1)
             logw = -0.5 * d2 / REFERENCE_SIGMA**2
         self.filter.initialize(formations, cov, logw)
-        rest = self.models([m for m in batch if not isinstance(m, RangeEvent)], self.filter, count=False)
+        rest = self.models(
+            [m for m in batch if not isinstance(m, RangeEvent)], self.filter, count=False
+        )
         if rest:
             self.filter.update(rest)
         self.stats["graph_start_rms_mm"] = round(1000.0 * shape.rms)

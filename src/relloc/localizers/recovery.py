@@ -42,7 +42,9 @@ _RECOVERY_SIGMA = 1.5
 class Recovery:
     """The divergence monitor, the recent measurements, the trusted formations, the restart."""
 
-    def __init__(self, config: TeamConfig, layout: TeamLayout, rng: np.random.Generator, stats: Counter[str]) -> None:
+    def __init__(
+        self, config: TeamConfig, layout: TeamLayout, rng: np.random.Generator, stats: Counter[str]
+    ) -> None:
         self.layout, self.rng, self.stats = layout, rng, stats
         self.horizon = max(config.filter.init_window, UPDATE_PERIOD)
         """Seconds of measurements kept for a restart."""
@@ -89,7 +91,9 @@ class Recovery:
             while len(self.formations) > 1 and self.formations[1][0] < keep:
                 self.formations.popleft()
 
-    def recover(self, t: float, fe: FilterEstimate, lost: set[str], target: WeightedFilter, restart: Restart) -> None:
+    def recover(
+        self, t: float, fe: FilterEstimate, lost: set[str], target: WeightedFilter, restart: Restart
+    ) -> None:
         """``target`` is lost: ``restart`` it from the recent measurements since the
         disagreement began (:meth:`DivergenceMonitor.onset`: a burst's ranges are not fused
         with the clean ones after it), oriented by the last trusted formation. Nothing
@@ -109,7 +113,9 @@ class Recovery:
             others = self.layout.others
             cols = [k for k, r in enumerate(others) if r in lost or self.layout.reference in lost]
             k = max(1, int(_RECOVERY_FRACTION * target.n))
-            formations = np.repeat((fe.mean if reference is None else reference).reshape(1, -1), k, axis=0)
+            formations = np.repeat(
+                (fe.mean if reference is None else reference).reshape(1, -1), k, axis=0
+            )
             for c in cols:
                 formations[:, 2 * c : 2 * c + 2] += self.rng.normal(0.0, _RECOVERY_SIGMA, (k, 2))
             target.inject(formations)

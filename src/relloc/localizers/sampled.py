@@ -39,7 +39,9 @@ wider prior let the bias run, on a new session, along what one range cannot tell
 longer bias, a nearer robot) (docs/self-calibration.md, "Online bias on a new session")."""
 
 
-def bias_layout(config: TeamConfig, *, uncalibrated_sigma: float | None = None) -> tuple[StateLayout, list[float]]:
+def bias_layout(
+    config: TeamConfig, *, uncalibrated_sigma: float | None = None
+) -> tuple[StateLayout, list[float]]:
     """The sampled state's layout and the prior of its non-position columns: with online
     biases a (mean, variance) belief per UWB node pair of the team, none otherwise. An
     uncalibrated pair's prior is ``uwb.default_bias`` +- ``uncalibrated_sigma`` (default:
@@ -48,14 +50,18 @@ def bias_layout(config: TeamConfig, *, uncalibrated_sigma: float | None = None) 
     names = config.robot_names
     if fc.self_calibration.bias_mode != "online":
         return StateLayout(names, config.reference), []
-    node_pairs = sorted({_node_pair(config, a, b) for i, a in enumerate(names) for b in names[i + 1 :]})
+    node_pairs = sorted(
+        {_node_pair(config, a, b) for i, a in enumerate(names) for b in names[i + 1 :]}
+    )
     prior: list[float] = []
     for pair in node_pairs:
         cal = config.uwb.pairs.get(pair)
         if cal is not None:
             prior += [cal.bias, BIAS_PRIOR_SIGMA**2]
         else:
-            sigma = BIAS_PRIOR_SIGMA_UNCALIBRATED if uncalibrated_sigma is None else uncalibrated_sigma
+            sigma = (
+                BIAS_PRIOR_SIGMA_UNCALIBRATED if uncalibrated_sigma is None else uncalibrated_sigma
+            )
             prior += [config.uwb.default_bias, sigma**2]
     return StateLayout(names, config.reference, tuple(node_pairs)), prior
 
@@ -126,9 +132,13 @@ class ParticleFilterLocalizer(FilterLocalizer):
         layout, prior = bias_layout(config, uncalibrated_sigma=config.uwb.default_bias_sigma)
         super().__init__(config, layout, seed=seed)
         self.method = method
-        self.range_model = config.filter.likelihood.range_model  # online pairs too (RangeBatch.build)
+        self.range_model = (
+            config.filter.likelihood.range_model
+        )  # online pairs too (RangeBatch.build)
         self.watchdog.particle_biases = True
-        self.filter = particle_filter(config, layout, prior, config.filter.particles, self.rng, count_rule(config, layout))
+        self.filter = particle_filter(
+            config, layout, prior, config.filter.particles, self.rng, count_rule(config, layout)
+        )
         self.filter.covariance_floor = covariance_floor(config, self.range_model)
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:

@@ -60,19 +60,34 @@ class SelfCalibratingLocalizer(FilterLocalizer):
         self.filter = self._gaussian_sum(np.array(prior))
         self.filter.covariance_floor = covariance_floor(config, self.range_model)
         gsf = self.filter
-        self.bounds = CalibrationBounds(config, {
-            pair: (float(m), math.sqrt(float(v)))
-            for pair, m, v in zip(self.calibration.bias_pairs, gsf.bias_prior_mean, gsf.bias_prior_var, strict=True)
-        })
+        self.bounds = CalibrationBounds(
+            config,
+            {
+                pair: (float(m), math.sqrt(float(v)))
+                for pair, m, v in zip(
+                    self.calibration.bias_pairs,
+                    gsf.bias_prior_mean,
+                    gsf.bias_prior_var,
+                    strict=True,
+                )
+            },
+        )
         # the annealed start: a sampled filter over positions (and bias beliefs)
-        n_start = max(fc.self_calibration.selfcal_init_particles, fc.self_calibration.selfcal_particles)
-        self.start_filter: ParticleFilter | None = particle_filter(config, layout, prior, n_start, self.rng)
+        n_start = max(
+            fc.self_calibration.selfcal_init_particles, fc.self_calibration.selfcal_particles
+        )
+        self.start_filter: ParticleFilter | None = particle_filter(
+            config, layout, prior, n_start, self.rng
+        )
 
     def _track_frame(self, robot: str) -> tuple[float, float]:
         """The config's heading offset and scale, unless the filter estimates them: then the
         track keeps the robot's own frame (offset 0) or its raw length (scale 1)."""
         offset, scale = super()._track_frame(robot)
-        return (0.0 if self.calibration.heading else offset, 1.0 if self.calibration.scale else scale)
+        return (
+            0.0 if self.calibration.heading else offset,
+            1.0 if self.calibration.scale else scale,
+        )
 
     def _gaussian_sum(self, bias_prior: np.ndarray) -> GaussianSumFilter:
         fc, layout = self.config.filter, self.calibration
@@ -82,7 +97,10 @@ class SelfCalibratingLocalizer(FilterLocalizer):
             ref = self.config.robot(layout.reference).heading_offset
             for robot in layout.others:
                 angle = math.remainder(self.config.robot(robot).heading_offset - ref, math.tau)
-                heading_prior[robot] = (angle, math.radians(fc.self_calibration.heading_prior_sigma_deg))
+                heading_prior[robot] = (
+                    angle,
+                    math.radians(fc.self_calibration.heading_prior_sigma_deg),
+                )
         noise = CalibrationNoise(
             heading_walk=fc.self_calibration.heading_walk,
             reference_heading_walk=fc.self_calibration.reference_heading_walk,

@@ -105,7 +105,9 @@ class SmootherLocalizer(FilterLocalizer):
         super().__init__(config, layout, seed=seed)
         self._bias_mean = np.array(prior[0::2], float)
         self._bias_sigma = np.sqrt(np.array(prior[1::2], float))
-        self._bias_of_column = {layout.bias_belief_column(p): j for j, p in enumerate(layout.bias_pairs)}
+        self._bias_of_column = {
+            layout.bias_belief_column(p): j for j, p in enumerate(layout.bias_pairs)
+        }
         self._pair_bias: dict[tuple[int, int], int] = {}
         """Team index pair -> its online bias (pairs with a fixed bias are not in it)."""
         self.method = method
@@ -143,7 +145,9 @@ class SmootherLocalizer(FilterLocalizer):
         self._t_start += dt
 
     # ---------------------------------------------------------------- ranges
-    def _ranges(self, events: list[RangeEvent]) -> tuple[NDArray[np.intp], NDArray[np.intp], FloatArray, FloatArray]:
+    def _ranges(
+        self, events: list[RangeEvent]
+    ) -> tuple[NDArray[np.intp], NDArray[np.intp], FloatArray, FloatArray]:
         """Team indices, bias-corrected distances and noise of ``events`` (per 0.1 s batch: the
         median per pair, :meth:`RangeBatch.build`; an online bias is the graph's, noted in
         ``_pair_bias``)."""
@@ -155,14 +159,18 @@ class SmootherLocalizer(FilterLocalizer):
         ib = np.concatenate([b.index_b for b in models])
         for b in models:
             if b.bias_columns is not None:
-                for a, c, col in zip(b.index_a.tolist(), b.index_b.tolist(), b.bias_columns.tolist(), strict=True):
+                for a, c, col in zip(
+                    b.index_a.tolist(), b.index_b.tolist(), b.bias_columns.tolist(), strict=True
+                ):
                     if col >= 0:
                         self._pair_bias[(min(a, c), max(a, c))] = self._bias_of_column[col]
         z = np.maximum(np.concatenate([b.distance - b.bias for b in models]), 0.0)
         s = np.concatenate([b.sigma for b in models])
         return ia, ib, z, s
 
-    def _observations(self, batch: list[Measurement]) -> list[tuple[int, int, FloatArray, FloatArray]]:
+    def _observations(
+        self, batch: list[Measurement]
+    ) -> list[tuple[int, int, FloatArray, FloatArray]]:
         """``(observer, target, p_target - p_observer, its covariance)`` of ``batch``'s
         detections' relative observations and its sightings with a range and a bearing whose
         observer's yaw in the shared frame is known (``r (cos a, sin a)``, ``a`` the yaw plus
@@ -183,8 +191,12 @@ class SmootherLocalizer(FilterLocalizer):
                 a = yaw + m.bearing  # type: ignore[operator]
                 u = np.array([math.cos(a), math.sin(a)])
                 w = np.array([-u[1], u[0]])
-                cov = m.sigma_range**2 * np.outer(u, u) + (m.range * m.sigma_bearing) ** 2 * np.outer(w, w)
-                out.append((index(m.observer), index(m.target), m.range * u, cov + 1e-8 * np.eye(2)))
+                cov = m.sigma_range**2 * np.outer(u, u) + (
+                    m.range * m.sigma_bearing
+                ) ** 2 * np.outer(w, w)
+                out.append(
+                    (index(m.observer), index(m.target), m.range * u, cov + 1e-8 * np.eye(2))
+                )
         return out
 
     def _remember(self, t: float, batch: list[Measurement]) -> list[RangeEvent]:
@@ -226,7 +238,10 @@ class SmootherLocalizer(FilterLocalizer):
         return self._emit(t, self._estimate())
 
     def _start_from(
-        self, t: float, ranges: list[RangeEvent], observed: list[tuple[int, int, FloatArray, FloatArray]]
+        self,
+        t: float,
+        ranges: list[RangeEvent],
+        observed: list[tuple[int, int, FloatArray, FloatArray]],
     ) -> bool:
         """Start the hypotheses at ``t`` from ``ranges``' graph, or where they place no robot
         from the ``observed`` relative positions alone (module docstring); False where
@@ -283,7 +298,9 @@ class SmootherLocalizer(FilterLocalizer):
         step = 2.0 * math.pi / rotations if odometry else 0.0
         cov = start_covariance(formations, max(SHAPE_SIGMA, 2.0 * shape.rms), step)
         k = self._others.size
-        blocks = np.stack([cov[:, 2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(k)], axis=1)  # (M, K, 2, 2)
+        blocks = np.stack(
+            [cov[:, 2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(k)], axis=1
+        )  # (M, K, 2, 2)
         blocks[:, ~placed] = WIDE_SIGMA**2 * np.eye(2)
         means = np.zeros((formations.shape[0], n, 2))
         means[:, self._others] = formations
@@ -306,7 +323,9 @@ class SmootherLocalizer(FilterLocalizer):
         for smoother in self.hypotheses:
             guess = self._placement(smoother, newly, ia, ib, z)
             try:
-                smoother.advance(t, disp, sigma, ia, ib, z, s, guess, self._bias_index(ia, ib), relative)
+                smoother.advance(
+                    t, disp, sigma, ia, ib, z, s, guess, self._bias_index(ia, ib), relative
+                )
             except RuntimeError:
                 self.stats["smoother_indeterminate"] += 1
                 continue
@@ -341,7 +360,9 @@ class SmootherLocalizer(FilterLocalizer):
     def _own_motion(self, t: float) -> tuple[FloatArray, FloatArray]:
         """Each robot's displacement since the last step ``(N, 2)`` and its per-axis std
         ``(N,)``: its odometry's (module docstring), or none with ``UNKNOWN_SPEED``."""
-        known = np.array([not math.isnan(self._anchor.get(r, (math.nan,))[0]) for r in self.layout.robots])
+        known = np.array(
+            [not math.isnan(self._anchor.get(r, (math.nan,))[0]) for r in self.layout.robots]
+        )
         disp, own, dt = self._motion_to(t)
         known &= np.array([math.isfinite(self.odometry.pose(r, t)[0]) for r in self.layout.robots])
         walk = np.where(known, PROCESS_NOISE**2 * dt + ODOMETRY_FLOOR**2, (UNKNOWN_SPEED * dt) ** 2)
@@ -358,7 +379,12 @@ class SmootherLocalizer(FilterLocalizer):
         return np.array([self._pair_bias.get(p, -1) for p in pairs], dtype=np.intp)
 
     def _placement(
-        self, smoother: GraphSmoother, newly: NDArray[np.bool_], ia: NDArray[np.intp], ib: NDArray[np.intp], z: FloatArray
+        self,
+        smoother: GraphSmoother,
+        newly: NDArray[np.bool_],
+        ia: NDArray[np.intp],
+        ib: NDArray[np.intp],
+        z: FloatArray,
     ) -> FloatArray | None:
         """Initial guesses for robots a range reaches for the first time: at the range's
         distance from the robot it connects to (a range factor cannot start from coinciding
@@ -394,13 +420,22 @@ class SmootherLocalizer(FilterLocalizer):
         """The best hypothesis's latest positions, covariances and summary as published
         (:func:`relloc.filter.smoother_moments.moments`), with the online biases."""
         best = self.hypotheses[0]
-        mean, cov, summary = moments(best.estimate.copy(), best.covariances(), self._observable, ROTATION_FLOOR)
+        mean, cov, summary = moments(
+            best.estimate.copy(), best.covariances(), self._observable, ROTATION_FLOOR
+        )
         biases = {
             pair: (float(m), float(sd))
-            for pair, m, sd in zip(self.layout.bias_pairs, best.biases.tolist(), best.bias_std().tolist(), strict=True)
+            for pair, m, sd in zip(
+                self.layout.bias_pairs, best.biases.tolist(), best.bias_std().tolist(), strict=True
+            )
         }
         return FilterEstimate(
-            mean, cov, float(len(self.hypotheses)), biases=biases, summary=summary, particles=len(self.hypotheses)
+            mean,
+            cov,
+            float(len(self.hypotheses)),
+            biases=biases,
+            summary=summary,
+            particles=len(self.hypotheses),
         )
 
     def _emit(self, t: float, fe: FilterEstimate, body: FilterEstimate | None = None) -> Estimate:
@@ -448,16 +483,23 @@ class SmootherLocalizer(FilterLocalizer):
         others = self.layout.others
         out = []
         for causal, mean, cov in zip(segment.estimates, means, covs, strict=True):
-            mean, cov, summary = moments(mean, cov, observable or causal.orientation_observable, ROTATION_FLOOR)
+            mean, cov, summary = moments(
+                mean, cov, observable or causal.orientation_observable, ROTATION_FLOOR
+            )
             fields = estimate_fields(summary, self.layout.reference, others)
             if not summary.orientation_observable:
                 fields["shape_gauge"] = OWN_FRAME
             positions = {r: (float(mean[k, 0]), float(mean[k, 1])) for k, r in enumerate(others)}
             covariances = {
-                r: ((float(cov[k, 0, 0]), float(cov[k, 0, 1])), (float(cov[k, 1, 0]), float(cov[k, 1, 1])))
+                r: (
+                    (float(cov[k, 0, 0]), float(cov[k, 0, 1])),
+                    (float(cov[k, 1, 0]), float(cov[k, 1, 1])),
+                )
                 for k, r in enumerate(others)
             }
-            out.append(dataclasses.replace(causal, positions=positions, covariances=covariances, **fields))
+            out.append(
+                dataclasses.replace(causal, positions=positions, covariances=covariances, **fields)
+            )
         return out
 
 

@@ -60,7 +60,11 @@ class OdometryTracks:
         if jumped:
             track.reanchor(event)
             self.faults[event.robot] = self.faults.get(event.robot, 0) + 1
-            log.warning("odometry of %s jumped at t=%.3f (reset or step): track re-anchored", event.robot, event.t)
+            log.warning(
+                "odometry of %s jumped at t=%.3f (reset or step): track re-anchored",
+                event.robot,
+                event.t,
+            )
         first = track.empty
         track.add(event)
         if first:

@@ -107,7 +107,11 @@ class ConsistencyWatchdog:
         self._since += dt
 
     def observe(
-        self, t: float, batch: list[Any], fe: FilterEstimate, yaws: dict[str, float] | None = None,
+        self,
+        t: float,
+        batch: list[Any],
+        fe: FilterEstimate,
+        yaws: dict[str, float] | None = None,
         prior: FilterEstimate | None = None,
     ) -> bool:
         """Record ``batch``'s innovations against the published ``fe``, or against ``prior``
@@ -140,13 +144,17 @@ class ConsistencyWatchdog:
                 return True
             return t - self._since >= WINDOW
         if (
-            self.inconsistent and shares and not any(self._cusum.values())
+            self.inconsistent
+            and shares
+            and not any(self._cusum.values())
             and max(shares.values()) < CLEAR_SHARE
         ):
             self.inconsistent = False
         return False
 
-    def _nis_of(self, m: Any, fe: FilterEstimate, yaws: dict[str, float] | None) -> list[tuple[str, str, float]]:
+    def _nis_of(
+        self, m: Any, fe: FilterEstimate, yaws: dict[str, float] | None
+    ) -> list[tuple[str, str, float]]:
         """The robots and NIS of a range, or of a sighting's range and bearing, one per row
         (none for anything else)."""
         if isinstance(m, RangeEvent):
@@ -154,7 +162,11 @@ class ConsistencyWatchdog:
             return self._judged(m.robot_a, m.robot_b, fe, r, var, None)
         if isinstance(m, SightingEvent):
             bearing = None
-            if m.bearing is not None and yaws is not None and math.isfinite(yaws.get(m.observer, math.nan)):
+            if (
+                m.bearing is not None
+                and yaws is not None
+                and math.isfinite(yaws.get(m.observer, math.nan))
+            ):
                 yaw, yaw_var = yaws[m.observer], 0.0
                 heading = fe.headings.get(m.observer)
                 if heading is not None:
@@ -173,7 +185,9 @@ class ConsistencyWatchdog:
         estimated online. The uniform floor (gross errors) is left to the clip of :func:`evidence`."""
         uwb = self.config.uwb
         if m.corrected:
-            sigma = max(uwb.sigma, m.sigma if m.sigma is not None and math.isfinite(m.sigma) else 0.0)
+            sigma = max(
+                uwb.sigma, m.sigma if m.sigma is not None and math.isfinite(m.sigma) else 0.0
+            )
             return m.distance, sigma**2
         model = self.range_model
         known = self._pairs.get((m.robot_a, m.robot_b, m.node_a, m.node_b, model))
@@ -181,7 +195,12 @@ class ConsistencyWatchdog:
             nodes = self.config.range_nodes(m)
             key = pair_key(*nodes)
             bias, scale, _ = uwb.calibration(*nodes)
-            known = (key, bias, scale, pair_sigma(self.config, key, uwb.los_sigma if model == "nlos" else uwb.sigma))
+            known = (
+                key,
+                bias,
+                scale,
+                pair_sigma(self.config, key, uwb.los_sigma if model == "nlos" else uwb.sigma),
+            )
             self._pairs[(m.robot_a, m.robot_b, m.node_a, m.node_b, model)] = known
         key, bias, scale, sigma = known
         online = fe.biases.get(key)
@@ -200,7 +219,12 @@ class ConsistencyWatchdog:
         return r - mean, sigma**2 + share * NLOS_SIGMA**2 - mean**2 + extra
 
     def _judged(
-        self, a: str, b: str, fe: FilterEstimate, r: float | None, r_var: float | None,
+        self,
+        a: str,
+        b: str,
+        fe: FilterEstimate,
+        r: float | None,
+        r_var: float | None,
         bearing: tuple[float, float] | None,
     ) -> list[tuple[str, str, float]]:
         """The NIS of a distance ``r`` (variance ``r_var``) between ``a`` and ``b`` and of the
@@ -224,7 +248,9 @@ class ConsistencyWatchdog:
             out.append((a, b, residual**2 / (bearing[1] + float(n @ c @ n) / dist**2)))
         return out
 
-    def _distance(self, a: str, b: str, fe: FilterEstimate, dist: float, along: float) -> tuple[float, float]:
+    def _distance(
+        self, a: str, b: str, fe: FilterEstimate, dist: float, along: float
+    ) -> tuple[float, float]:
         """The mean and variance of the distance between ``a`` and ``b``: over the filter's
         dominant mode where it says (the pair's own, which the common rotation and translation
         of the formation do not widen, and whose mean is not pulled in by a spread of

@@ -94,7 +94,9 @@ class SafetyGate:
             return "stale_estimate", f"estimate is {age:.2f} s old (max {cfg.max_age:g} s)"
         unseen = {r: s for r, s in estimate.unseen.items() if r in (robot, estimate.reference)}
         if unseen:
-            return "unseen", ", ".join(f"{r} unheard for {s:.1f} s" for r, s in sorted(unseen.items()))
+            return "unseen", ", ".join(
+                f"{r} unheard for {s:.1f} s" for r, s in sorted(unseen.items())
+            )
         if not estimate.orientation_observable:
             return "unobservable", estimate.status
         if estimate.mode_weight < cfg.min_mode_weight:

@@ -31,7 +31,9 @@ ONLINE_PRIOR_WEIGHT = 20.0
 """Weight, in samples, of the training constant in :func:`online_offset` (about 3 s of ranges)."""
 
 
-def online_offset(values: np.ndarray, prior: float, weight: float = ONLINE_PRIOR_WEIGHT) -> np.ndarray:
+def online_offset(
+    values: np.ndarray, prior: float, weight: float = ONLINE_PRIOR_WEIGHT
+) -> np.ndarray:
     """Causal running estimate of a session offset: before sample ``k``,
     ``(weight * prior + sum(values[:k])) / (weight + k)``.
 

@@ -92,8 +92,15 @@ class PairModel:
         inputs = self.session.get_inputs()
         shape = list(inputs[0].shape) if len(inputs) == 1 else []
         fixed = [d if isinstance(d, int) else None for d in shape]
-        if len(shape) != 3 or fixed[1:] not in ([n_steps, 3], [None, 3], [n_steps, None], [None, None]):
-            raise ValueError(f"{pair}: the model takes {[i.shape for i in inputs]}, not (B, {n_steps}, 3)")
+        if len(shape) != 3 or fixed[1:] not in (
+            [n_steps, 3],
+            [None, 3],
+            [n_steps, None],
+            [None, None],
+        ):
+            raise ValueError(
+                f"{pair}: the model takes {[i.shape for i in inputs]}, not (B, {n_steps}, 3)"
+            )
         if inputs[0].type != "tensor(float)":
             raise ValueError(f"{pair}: the model takes {inputs[0].type}, not float32 windows")
         outputs = [o.name for o in self.session.get_outputs()]
@@ -103,7 +110,9 @@ class PairModel:
         try:  # one window in, one residual and one sigma out: otherwise it is not ours
             probe = self.session.run(None, {self._input: np.zeros((1, n_steps, 3), np.float32)})
         except Exception as exc:
-            raise ValueError(f"{pair}: the model cannot run on a (1, {n_steps}, 3) window: {exc}") from None
+            raise ValueError(
+                f"{pair}: the model cannot run on a (1, {n_steps}, 3) window: {exc}"
+            ) from None
         if any(np.size(p) != 1 for p in probe):
             raise ValueError(
                 f"{pair}: the model answers {[np.shape(p) for p in probe]} for one window, "
@@ -162,7 +171,9 @@ class ModelSet(Mapping[str, PairModel]):
             n_steps = int(manifest["n_steps"])
             entries = dict(manifest["pairs"].items())
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
-            raise ModelDirError(f"{path}: malformed manifest ({type(exc).__name__}: {exc})") from None
+            raise ModelDirError(
+                f"{path}: malformed manifest ({type(exc).__name__}: {exc})"
+            ) from None
         if not entries:
             raise ModelDirError(f"{path}: the manifest lists no pair")
         if manifest.get("offset", "manifest") not in OFFSET_MODES:
@@ -181,7 +192,9 @@ class ModelSet(Mapping[str, PairModel]):
                 fallback_sigma = None if fb_sigma is None else float(fb_sigma)
                 support = InputSupport.from_json(entry["support"]) if "support" in entry else None
             except (KeyError, TypeError, ValueError, AttributeError) as exc:
-                raise ModelDirError(f"{path}: pair {pair!r}: malformed entry ({type(exc).__name__}: {exc})") from None
+                raise ModelDirError(
+                    f"{path}: pair {pair!r}: malformed entry ({type(exc).__name__}: {exc})"
+                ) from None
             if len(nodes) != 2:
                 raise ModelDirError(f"{path}: pair {pair!r} must name two nodes, got {nodes}")
             try:

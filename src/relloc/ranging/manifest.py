@@ -44,7 +44,9 @@ def read_manifest(path: str | Path) -> dict[str, Any]:
     for key in ("variant", "n_steps", "pairs"):
         if key not in data:
             raise ModelDirError(f"{file}: missing key {key!r}")
-    if not isinstance(data["pairs"], dict) or not all(isinstance(e, dict) for e in data["pairs"].values()):
+    if not isinstance(data["pairs"], dict) or not all(
+        isinstance(e, dict) for e in data["pairs"].values()
+    ):
         raise ModelDirError(f"{file}: 'pairs' must map each node pair to an object")
     for pair, entry in data["pairs"].items():
         for key in ("nodes", "onnx"):

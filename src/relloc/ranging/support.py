@@ -31,7 +31,9 @@ def _features(windows: NDArray[np.floating[Any]]) -> tuple[NDArray[np.float64], 
     w = np.asarray(windows, dtype=float)
     steps = max(w.shape[1] - 1, 1)
     yaws = np.unwrap(w[:, :, 1:], axis=1)
-    rates = np.column_stack([(w[:, -1, 0] - w[:, 0, 0]) / steps, (yaws[:, -1] - yaws[:, 0]) / steps])
+    rates = np.column_stack(
+        [(w[:, -1, 0] - w[:, 0, 0]) / steps, (yaws[:, -1] - yaws[:, 0]) / steps]
+    )
     last = np.mod(w[:, -1, 1:] + math.pi, 2 * math.pi)
     cell = np.minimum((last * YAW_CELLS / (2 * math.pi)).astype(np.intp), YAW_CELLS - 1)
     return np.column_stack([w[:, -1, 0], rates]), cell[:, 0] * YAW_CELLS + cell[:, 1]
@@ -53,7 +55,9 @@ class InputSupport:
         feats, cells = _features(windows)
         lo, hi = feats.min(axis=0), feats.max(axis=0)
         pad = MARGIN * (hi - lo)
-        return cls(tuple((lo - pad).tolist()), tuple((hi + pad).tolist()), frozenset(cells.tolist()))  # type: ignore[arg-type]
+        return cls(
+            tuple((lo - pad).tolist()), tuple((hi + pad).tolist()), frozenset(cells.tolist())
+        )  # type: ignore[arg-type]
 
     def contains(self, windows: NDArray[np.floating[Any]]) -> NDArray[np.bool_]:
         """Per window ``(N, n_steps, 3)``: inside every interval and in an occupied cell."""
@@ -62,12 +66,21 @@ class InputSupport:
         return inside & np.isin(cells, list(self.cells))
 
     def to_json(self) -> dict[str, Any]:
-        return {"low": list(self.low), "high": list(self.high), "yaw_cells": YAW_CELLS, "cells": sorted(self.cells)}
+        return {
+            "low": list(self.low),
+            "high": list(self.high),
+            "yaw_cells": YAW_CELLS,
+            "cells": sorted(self.cells),
+        }
 
     @classmethod
     def from_json(cls, data: dict[str, Any]) -> InputSupport:
         """Read :meth:`to_json`'s output; raises ``ValueError`` on another grid or shape."""
-        if int(data.get("yaw_cells", -1)) != YAW_CELLS or len(data["low"]) != 4 or len(data["high"]) != 4:
+        if (
+            int(data.get("yaw_cells", -1)) != YAW_CELLS
+            or len(data["low"]) != 4
+            or len(data["high"]) != 4
+        ):
             raise ValueError(f"input support of another layout: {data}")
         return cls(
             tuple(float(v) for v in data["low"]),  # type: ignore[arg-type]

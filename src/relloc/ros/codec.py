@@ -46,7 +46,9 @@ def decode(raw: bytes | memoryview, msgtype: str, layout: Layout | None = None) 
         except Exception as exc:  # the deserialiser raises many types on garbage; normalise them
             error = exc
     assert error is not None
-    which = f" in layout {tried[0].name}" if len(tried) == 1 else f" in any of its {len(tried)} layouts"
+    which = (
+        f" in layout {tried[0].name}" if len(tried) == 1 else f" in any of its {len(tried)} layouts"
+    )
     raise MessageDecodeError(
         f"malformed {msgtype} payload ({len(raw)} bytes){which}: {type(error).__name__}: {error}"
     ) from error

@@ -96,7 +96,9 @@ class RmwAttachment:
     def decode(cls, raw: bytes) -> RmwAttachment:
         """Raises ``ValueError`` unless ``raw`` is exactly a well-formed attachment."""
         if len(raw) != _ATTACHMENT.size:
-            raise ValueError(f"an rmw_zenoh attachment has {_ATTACHMENT.size} bytes, not {len(raw)}")
+            raise ValueError(
+                f"an rmw_zenoh attachment has {_ATTACHMENT.size} bytes, not {len(raw)}"
+            )
         sequence, stamp, n, gid = _ATTACHMENT.unpack(raw)
         if n != 16:
             raise ValueError(f"GID length {n}, expected 16")
@@ -181,8 +183,14 @@ class RosInterface:
         object.__setattr__(self, "distro", check_distro(self.distro))
         if self.kind not in ROS_INTERFACES:
             raise ConfigError(f"ros_interface must be one of {ROS_INTERFACES}, got {self.kind!r}")
-        if isinstance(self.domain_id, bool) or not isinstance(self.domain_id, int) or self.domain_id < 0:
-            raise ConfigError(f"the ROS domain id must be a non-negative integer, got {self.domain_id!r}")
+        if (
+            isinstance(self.domain_id, bool)
+            or not isinstance(self.domain_id, int)
+            or self.domain_id < 0
+        ):
+            raise ConfigError(
+                f"the ROS domain id must be a non-negative integer, got {self.domain_id!r}"
+            )
 
     @property
     def rmw(self) -> bool:

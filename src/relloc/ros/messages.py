@@ -104,6 +104,7 @@ POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 TWIST = "geometry_msgs/msg/Twist"
 SPATIAL_DETECTION_ARRAY = "depthai_ros_msgs/msg/SpatialDetectionArray"
 
+
 def header_stamp_from_cdr(raw: bytes | memoryview) -> float:
     """Header stamp (s) of a CDR message whose first field is a ``std_msgs/Header``.
 
@@ -399,17 +400,32 @@ def range_msg(event: RangeEvent, *, frame_id: str = "", distro: str = DEFAULT_DI
 def pose_stamped_msg(event: GroundTruthEvent, *, frame_id: str = "world") -> Any:
     """A :class:`GroundTruthEvent` as ``geometry_msgs/PoseStamped`` (what a motion-capture
     bridge publishes; the inverse of :func:`pose_to_ground_truth`)."""
-    return typestore().types[POSE_STAMPED](header=_header(event.t, frame_id), pose=_pose(event.x, event.y, event.yaw))
+    return typestore().types[POSE_STAMPED](
+        header=_header(event.t, frame_id), pose=_pose(event.x, event.y, event.yaw)
+    )
 
 
 def point_to_sighting(
-    msg: Any, observer: str, target: str, sigma_range: float, sigma_bearing: float, *, t: float | None = None
+    msg: Any,
+    observer: str,
+    target: str,
+    sigma_range: float,
+    sigma_bearing: float,
+    *,
+    t: float | None = None,
 ) -> SightingEvent:
     """A ``geometry_msgs/PointStamped`` of ``target`` in ``observer``'s body frame (REP 103:
     x forward, y left, the point's z ignored) as a range-and-bearing sighting."""
     x, y = float(msg.point.x), float(msg.point.y)
     return SightingEvent(
-        _msg_time(msg, t), observer, target, math.hypot(x, y), math.atan2(y, x), sigma_range, sigma_bearing, "ros"
+        _msg_time(msg, t),
+        observer,
+        target,
+        math.hypot(x, y),
+        math.atan2(y, x),
+        sigma_range,
+        sigma_bearing,
+        "ros",
     )
 
 

@@ -105,7 +105,9 @@ def _missing_dependencies(built: Typestore, types: Mapping[str, Any]) -> dict[st
         _, fields = pending.pop()
         for _, (nodetype, detail) in fields:
             name = _nested_name(int(nodetype), detail)
-            missing = name and name not in built.fielddefs and name not in types and name not in found
+            missing = (
+                name and name not in built.fielddefs and name not in types and name not in found
+            )
             if missing and name in fallback.fielddefs:
                 found[name] = fallback.fielddefs[name]
                 pending.append(found[name])

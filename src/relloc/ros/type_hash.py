@@ -110,7 +110,10 @@ def _individual(msgtype: str, distro: str) -> dict[str, Any]:
     described = [{"name": name, "type": _field_type(int(nt), d)} for name, (nt, d) in fields]
     if not described:  # rosidl gives an empty message one dummy member
         described = [
-            {"name": "structure_needs_at_least_one_member", "type": _field_type(_BASE, ("uint8", 0))}
+            {
+                "name": "structure_needs_at_least_one_member",
+                "type": _field_type(_BASE, ("uint8", 0)),
+            }
         ]
     return {"type_name": msgtype, "fields": described}
 

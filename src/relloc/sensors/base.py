@@ -156,7 +156,13 @@ class Sensor:
         return None
 
     def convert(
-        self, route: Route, stream: str, msg: Any, fast: tuple[float, ...] | None, stamp: float, ingest: Conversion
+        self,
+        route: Route,
+        stream: str,
+        msg: Any,
+        fast: tuple[float, ...] | None,
+        stamp: float,
+        ingest: Conversion,
     ) -> Event | list[Event] | None:
         """The event of one message (decoded ``msg``, or the :meth:`fast` fields) stamped
         ``stamp`` (or its events, for a message holding several); ``None`` if unusable
@@ -208,4 +214,3 @@ class Sensor:
         """After its routes were resolved against a bag (``resolved``: those the bag has):
         ``(its topics the bag has but the team does not read, warnings)``."""
         return [], []
-

@@ -82,13 +82,28 @@ class Odometry(Sensor):
         if not robot.odom_topic:
             return []
         what = f"odometry of {robot.name}"
-        return [Route(robot.odom_topic, self.kind, (ODOMETRY,), robot.name, what, zero_stamps=robot.odom_zero_stamps)]
+        return [
+            Route(
+                robot.odom_topic,
+                self.kind,
+                (ODOMETRY,),
+                robot.name,
+                what,
+                zero_stamps=robot.odom_zero_stamps,
+            )
+        ]
 
     def fast(self, payload: bytes, layout: Layout) -> tuple[float, ...] | None:
         return decode_odometry(payload)
 
     def convert(
-        self, route: Route, stream: str, msg: Any, fast: tuple[float, ...] | None, stamp: float, ingest: Conversion
+        self,
+        route: Route,
+        stream: str,
+        msg: Any,
+        fast: tuple[float, ...] | None,
+        stamp: float,
+        ingest: Conversion,
     ) -> Event | None:
         if fast is not None:
             _, x, y, yaw, v, w = fast
@@ -129,17 +144,35 @@ class Sighting(Sensor):
             if not robot.sighting_topic:
                 continue
             if "{target}" not in robot.sighting_topic:
-                raise ConfigError(f"{robot.name}: sighting_topic {robot.sighting_topic!r} must contain {{target}}")
+                raise ConfigError(
+                    f"{robot.name}: sighting_topic {robot.sighting_topic!r} must contain {{target}}"
+                )
             sigma = (robot.sighting_sigma_range, math.radians(robot.sighting_sigma_bearing_deg))
             for other in config.robots:
                 if other.name != robot.name:
                     topic = robot.sighting_topic.format(target=other.name)
                     what = f"sightings of {other.name} by {robot.name}"
-                    routes.append(Route(topic, self.kind, (POINT_STAMPED,), robot.name, what, robot_b=other.name, sigma=sigma))
+                    routes.append(
+                        Route(
+                            topic,
+                            self.kind,
+                            (POINT_STAMPED,),
+                            robot.name,
+                            what,
+                            robot_b=other.name,
+                            sigma=sigma,
+                        )
+                    )
         return routes
 
     def convert(
-        self, route: Route, stream: str, msg: Any, fast: tuple[float, ...] | None, stamp: float, ingest: Conversion
+        self,
+        route: Route,
+        stream: str,
+        msg: Any,
+        fast: tuple[float, ...] | None,
+        stamp: float,
+        ingest: Conversion,
     ) -> Event | None:
         return point_to_sighting(msg, route.robot, route.robot_b, *route.sigma, t=stamp)
 
@@ -158,16 +191,30 @@ class GroundTruth(Sensor):
         if not robot.mocap_body:
             return []
         topic = config.mocap_topic.format(body=robot.mocap_body)
-        return [Route(topic, self.kind, (POSE_STAMPED,), robot.name, f"motion capture of {robot.name}")]
+        return [
+            Route(topic, self.kind, (POSE_STAMPED,), robot.name, f"motion capture of {robot.name}")
+        ]
 
     def object_routes(self, config: TeamConfig, objects: Sequence[str]) -> list[Route]:
         return [
-            Route(config.mocap_topic.format(body=body), self.kind, (POSE_STAMPED,), body, f"motion capture of object {body}")
+            Route(
+                config.mocap_topic.format(body=body),
+                self.kind,
+                (POSE_STAMPED,),
+                body,
+                f"motion capture of object {body}",
+            )
             for body in objects
         ]
 
     def convert(
-        self, route: Route, stream: str, msg: Any, fast: tuple[float, ...] | None, stamp: float, ingest: Conversion
+        self,
+        route: Route,
+        stream: str,
+        msg: Any,
+        fast: tuple[float, ...] | None,
+        stamp: float,
+        ingest: Conversion,
     ) -> Event | None:
         return pose_to_ground_truth(msg, route.robot, t=stamp)
 
@@ -200,10 +247,25 @@ class Detection(Sensor):
             return []
         fmt = robot.detection_format
         what = f"detections of {robot.name} ({fmt or 'any'})"
-        return [Route(robot.detection_topic, self.kind, DETECTION_TYPES[fmt], robot.name, what, camera=robot.camera)]
+        return [
+            Route(
+                robot.detection_topic,
+                self.kind,
+                DETECTION_TYPES[fmt],
+                robot.name,
+                what,
+                camera=robot.camera,
+            )
+        ]
 
     def convert(
-        self, route: Route, stream: str, msg: Any, fast: tuple[float, ...] | None, stamp: float, ingest: Conversion
+        self,
+        route: Route,
+        stream: str,
+        msg: Any,
+        fast: tuple[float, ...] | None,
+        stamp: float,
+        ingest: Conversion,
     ) -> Event | None:
         assert route.camera is not None
         det, rejected = detections_to_event(msg, route.robot, route.camera, t=stamp)
@@ -243,12 +305,25 @@ class Range(Sensor):
         _check_range_template(uwb.range_topic, peers=bool(fields.peer))
         with_nodes = [r for r in config.robots if r.uwb_node]
         nodes = {r.uwb_node: r.name for r in with_nodes}
-        base = {"kind": self.kind, "msgtypes": (uwb.range_type,), "stamped": fields.header, "params": (fields, nodes)}
+        base = {
+            "kind": self.kind,
+            "msgtypes": (uwb.range_type,),
+            "stamped": fields.header,
+            "params": (fields, nodes),
+        }
         if fields.peer:
-            topics = {r.name: uwb.range_topic.format(a=r.uwb_node, robot=r.name) for r in with_nodes}
+            topics = {
+                r.name: uwb.range_topic.format(a=r.uwb_node, robot=r.name) for r in with_nodes
+            }
             what = "UWB ranges of {}"
             return [
-                Route(topics[r.name], robot=r.name, what=what.format(r.uwb_node), node_a=r.uwb_node, **base)
+                Route(
+                    topics[r.name],
+                    robot=r.name,
+                    what=what.format(r.uwb_node),
+                    node_a=r.uwb_node,
+                    **base,
+                )
                 for r in with_nodes
             ]
         routes = []
@@ -275,7 +350,13 @@ class Range(Sensor):
         return decode_range(payload, "variance" in layout.fields)
 
     def convert(
-        self, route: Route, stream: str, msg: Any, fast: tuple[float, ...] | None, stamp: float, ingest: Conversion
+        self,
+        route: Route,
+        stream: str,
+        msg: Any,
+        fast: tuple[float, ...] | None,
+        stamp: float,
+        ingest: Conversion,
     ) -> Event | list[Event] | None:
         if fast is not None:
             return self._event(route, stream, "", fast[1], stamp, ingest)
@@ -284,7 +365,11 @@ class Range(Sensor):
         for peer, distance in fields.ranges(msg):
             robot_b = nodes.get(peer) if peer else route.robot_b
             if robot_b is None or robot_b == route.robot:
-                ingest.reject("range_unknown_peer" if robot_b is None else "range_self", stream, f"node {peer!r}")
+                ingest.reject(
+                    "range_unknown_peer" if robot_b is None else "range_self",
+                    stream,
+                    f"node {peer!r}",
+                )
                 continue
             event = self._event(route, stream, peer, distance, stamp, ingest, robot_b)
             if event is not None:
@@ -292,7 +377,14 @@ class Range(Sensor):
         return events
 
     def _event(
-        self, route: Route, stream: str, peer: str, distance: float, stamp: float, ingest: Conversion, robot_b: str = ""
+        self,
+        route: Route,
+        stream: str,
+        peer: str,
+        distance: float,
+        stamp: float,
+        ingest: Conversion,
+        robot_b: str = "",
     ) -> RangeEvent | None:
         reason = range_rejection(distance)
         if reason is not None:
@@ -317,10 +409,16 @@ class Range(Sensor):
         return (event.node_a, event.node_b)
 
     def fault_event(self, route: Route, msg: Any, t: float) -> Event:
-        return range_to_event(msg, route.robot, route.robot_b, node_a=route.node_a, node_b=route.node_b, t=t)
+        return range_to_event(
+            msg, route.robot, route.robot_b, node_a=route.node_a, node_b=route.node_b, t=t
+        )
 
     def write_back(self, msg: Any, before: Any, after: Any) -> Any:
-        return dataclasses.replace(msg, range=after.distance) if after.distance != before.distance else msg
+        return (
+            dataclasses.replace(msg, range=after.distance)
+            if after.distance != before.distance
+            else msg
+        )
 
     def bag_check(
         self, config: TeamConfig, bag_topics: Iterable[str], resolved: Iterable[Route]
@@ -334,7 +432,9 @@ class Range(Sensor):
         nodes = [r.uwb_node for r in config.robots if r.uwb_node]
         warnings = []
         if len(nodes) >= 2 and not read:
-            warnings.append(f"no UWB range topic between the team's nodes {nodes} (template {template!r}): no ranges")
+            warnings.append(
+                f"no UWB range topic between the team's nodes {nodes} (template {template!r}): no ranges"
+            )
         return ignored, warnings
 
 

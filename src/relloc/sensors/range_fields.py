@@ -73,9 +73,13 @@ class RangeFields:
                     "name fields of the same sequence of peers (e.g. nodes[].id and nodes[].dis)"
                 )
         elif array:
-            raise ConfigError(f"uwb.distance_field {uwb.distance_field!r} names a sequence: give peer_field too")
+            raise ConfigError(
+                f"uwb.distance_field {uwb.distance_field!r} names a sequence: give peer_field too"
+            )
         fielddefs = store().fielddefs
-        inner = _walk(fielddefs, msgtype, array, "sequence", uwb.distance_field) if array else msgtype
+        inner = (
+            _walk(fielddefs, msgtype, array, "sequence", uwb.distance_field) if array else msgtype
+        )
         _walk(fielddefs, inner, distance, "number", uwb.distance_field)
         if peer:
             _walk(fielddefs, inner, peer, "id", uwb.peer_field)
@@ -107,7 +111,9 @@ def _split(spec: str, key: str) -> tuple[tuple[str, ...], tuple[str, ...]]:
     return tuple(p.removesuffix("[]") for p in parts[:cut]), tuple(parts[cut:])
 
 
-def _walk(fielddefs: dict[str, Any], msgtype: str, path: tuple[str, ...], want: str, spec: str) -> str:
+def _walk(
+    fielddefs: dict[str, Any], msgtype: str, path: tuple[str, ...], want: str, spec: str
+) -> str:
     """Follow ``path`` in ``msgtype``'s definition: the element type of a ``sequence``, or
     checks that a ``number`` / ``id`` is a base type; raises a :class:`ConfigError` naming
     ``spec`` otherwise."""
@@ -115,15 +121,21 @@ def _walk(fielddefs: dict[str, Any], msgtype: str, path: tuple[str, ...], want: 
     for i, name in enumerate(path):
         fields = dict(fielddefs[current][1])
         if name not in fields:
-            raise ConfigError(f"uwb field {spec!r}: {current} has no field {name!r} (it has {sorted(fields)})")
+            raise ConfigError(
+                f"uwb field {spec!r}: {current} has no field {name!r} (it has {sorted(fields)})"
+            )
         nodetype, detail = int(fields[name][0]), fields[name][1]
         last = i == len(path) - 1
         if last and want == "sequence":
             if nodetype not in (_ARRAY, _SEQUENCE) or int(detail[0][0]) != _NAME:
-                raise ConfigError(f"uwb field {spec!r}: {current}.{name} is not a sequence of messages")
+                raise ConfigError(
+                    f"uwb field {spec!r}: {current}.{name} is not a sequence of messages"
+                )
             return str(detail[0][1])
         if last:
-            ok = nodetype == _BASE and (want == "id" or detail[0] not in ("string", "wstring", "bool"))
+            ok = nodetype == _BASE and (
+                want == "id" or detail[0] not in ("string", "wstring", "bool")
+            )
             if not ok:
                 raise ConfigError(f"uwb field {spec!r}: {current}.{name} is not a {want}")
             return current

@@ -28,7 +28,9 @@ def register(descriptor: Sensor) -> None:
     kind = descriptor.kind
     taken = _SENSORS.get(kind) or _OF_EVENT.get(descriptor.event)
     if taken is not None and taken is not descriptor:
-        raise ValueError(f"sensor {kind!r}: kind or event type {descriptor.event.__name__} already registered by {taken.kind!r}")
+        raise ValueError(
+            f"sensor {kind!r}: kind or event type {descriptor.event.__name__} already registered by {taken.kind!r}"
+        )
     if descriptor.msg_types:
         register_types(descriptor.msg_types)
     _SENSORS[kind] = descriptor

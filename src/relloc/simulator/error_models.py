@@ -164,7 +164,6 @@ def antenna_gain(alpha: FloatArray) -> FloatArray:
     return -np.cos(alpha) + 0.3 * np.cos(2.0 * alpha)
 
 
-
 def camera_view(
     x: FloatArray, y: FloatArray, yaw: FloatArray, cam: CameraConfig, obj_xyz: FloatArray
 ) -> tuple[FloatArray, FloatArray]:
@@ -218,7 +217,14 @@ UWB_AOA = SightingSensorModel()
 a 120 deg field of view in front of the antenna pair, at the UWB rate."""
 
 TEAMMATE_CAMERA = SightingSensorModel(
-    "camera", rate_hz=5.0, fov_deg=70.0, max_range=6.0, ranges=True, sigma_range=0.08,
-    sigma_bearing=math.radians(1.0), outlier_probability=0.01, miss_probability=0.1,
+    "camera",
+    rate_hz=5.0,
+    fov_deg=70.0,
+    max_range=6.0,
+    ranges=True,
+    sigma_range=0.08,
+    sigma_bearing=math.radians(1.0),
+    outlier_probability=0.01,
+    miss_probability=0.1,
 )
 """A forward camera reading teammates' markers: range and bearing, 70 deg field of view."""

@@ -55,7 +55,6 @@ class RobotMotion:
     """Name of the pattern, for display only."""
 
 
-
 class Trajectory:
     """Piecewise constant-twist motion of a unicycle, integrated in closed form.
 
@@ -132,7 +131,6 @@ def accumulate(start: float, steps: FloatArray) -> FloatArray:
     return np.cumsum(np.concatenate(([start], steps)))[1:]
 
 
-
 def polygon_loop(
     vertices: Sequence[tuple[float, float]], speed: float, turn_rate: float
 ) -> tuple[tuple[float, float, float], list[tuple[float, float, float]]]:
@@ -207,4 +205,3 @@ def looped_motion(
         commanded=commanded,
         pattern=pattern,
     )
-

@@ -158,9 +158,13 @@ class Simulation:
         self.true_odom_scales, self.true_gyro_biases, self._odom = draw_odometry(
             self.seed, self.motions, self.odometry_model, self.duration
         )
-        self.true_biases, self._uwb = draw_uwb(self.seed, self.motions, self.uwb_model, self.duration)
+        self.true_biases, self._uwb = draw_uwb(
+            self.seed, self.motions, self.uwb_model, self.duration
+        )
         self._cam = (
-            draw_camera(self.seed, self.motions, self.detection_model, len(self.sim_objects), self.duration)
+            draw_camera(
+                self.seed, self.motions, self.detection_model, len(self.sim_objects), self.duration
+            )
             if self.detections_enabled
             else {}
         )
@@ -454,14 +458,24 @@ class _Runner:
             bearing = wrap_angle(np.arctan2(yt - yo, xt - xo) - yaw)
             half = math.radians(sm.fov_deg) / 2.0
             seen = (np.abs(bearing) <= half) & (dist <= sm.max_range) & ~d["miss"][i0:i1]
-            b_m = np.where(d["outlier"][i0:i1], 2.0 * half * d["wild"][i0:i1], bearing + sm.sigma_bearing * d["nb"][i0:i1])
+            b_m = np.where(
+                d["outlier"][i0:i1],
+                2.0 * half * d["wild"][i0:i1],
+                bearing + sm.sigma_bearing * d["nb"][i0:i1],
+            )
             b_m = wrap_angle(b_m)
             r_m = np.maximum(dist + sm.sigma_range * d["nr"][i0:i1], 0.01)
             for k in np.flatnonzero(seen):
                 out.append(
                     SightingEvent(
-                        float(times[k]), obs, tgt, float(r_m[k]) if sm.ranges else None, float(b_m[k]),
-                        sm.sigma_range, sm.sigma_bearing, sm.sensor,
+                        float(times[k]),
+                        obs,
+                        tgt,
+                        float(r_m[k]) if sm.ranges else None,
+                        float(b_m[k]),
+                        sm.sigma_range,
+                        sm.sigma_bearing,
+                        sm.sensor,
                     )
                 )
 
@@ -498,4 +512,3 @@ def covisibility(sim: Simulation, dt: float = 0.2) -> dict[str, float]:
     result["any"] = float((count > 0).mean())
     result["mean_pairs"] = float(count.mean())
     return result
-

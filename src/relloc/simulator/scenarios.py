@@ -261,14 +261,21 @@ def nav_scenario(
     )
 
 
-
 def _parked_multi(
-    seed: int, park: float, duration: float, name: str, detections: bool, heading_offsets: Literal["start", "random"],
-    uwb: UwbErrorModel | None, odometry: OdometryErrorModel | None,
+    seed: int,
+    park: float,
+    duration: float,
+    name: str,
+    detections: bool,
+    heading_offsets: Literal["start", "random"],
+    uwb: UwbErrorModel | None,
+    odometry: OdometryErrorModel | None,
 ) -> Simulation:
     """The multi team, each robot at its seeded start pose, parked for ``park`` s (the whole run
     if ``park >= duration``) and then driving its pattern as in :func:`multi_scenario`."""
-    base = multi_scenario(seed, duration=duration + park, detections=detections, heading_offsets=heading_offsets)
+    base = multi_scenario(
+        seed, duration=duration + park, detections=detections, heading_offsets=heading_offsets
+    )
     motions = [
         replace(m, segments=(), pattern="parked")
         if park >= duration or not m.segments
@@ -300,7 +307,9 @@ def static_scenario(
     """The multi team's five robots parked for the whole run (each at the seeded start of its
     pattern), ranges between all of them: the shape is known, the orientation of the formation
     about the reference (and its mirror image) is not."""
-    return _parked_multi(seed, duration, duration, "sim_static", detections, heading_offsets, uwb, odometry)
+    return _parked_multi(
+        seed, duration, duration, "sim_static", detections, heading_offsets, uwb, odometry
+    )
 
 
 STATIC_THEN_MOVE_PARK_S = 20.0
@@ -319,7 +328,14 @@ def static_then_move_scenario(
     """The multi team parked for ``STATIC_THEN_MOVE_PARK_S`` (20 s), then every robot but the
     reference drives its pattern: the motion resolves the orientation."""
     return _parked_multi(
-        seed, STATIC_THEN_MOVE_PARK_S, duration, "sim_static_then_move", detections, heading_offsets, uwb, odometry
+        seed,
+        STATIC_THEN_MOVE_PARK_S,
+        duration,
+        "sim_static_then_move",
+        detections,
+        heading_offsets,
+        uwb,
+        odometry,
     )
 
 
@@ -366,7 +382,9 @@ def grid_scenario(
     ]
     for i in range(1, robots):
         name = f"r{i}"
-        radius, speed = (float(v) for v in stream(seed, "grid-circle", name).uniform((0.7, 0.2), (1.1, 0.3)))
+        radius, speed = (
+            float(v) for v in stream(seed, "grid-circle", name).uniform((0.7, 0.2), (1.1, 0.3))
+        )
         motions.append(
             looped_motion(
                 name,
@@ -383,7 +401,10 @@ def grid_scenario(
     xs, ys = np.asarray(cells).T
     margin = 2.0
     area = (
-        float(xs.min()) - margin, float(xs.max()) + margin, float(ys.min()) - margin, float(ys.max()) + margin,
+        float(xs.min()) - margin,
+        float(xs.max()) + margin,
+        float(ys.min()) - margin,
+        float(ys.max()) + margin,
     )
     return Simulation(
         motions,

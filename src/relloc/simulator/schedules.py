@@ -97,14 +97,20 @@ def draw_uwb(
                 t=times[mask],
                 noise=(stream(seed, "uwb-noise", key).standard_normal(n) * model.sigma)[mask],
                 spike=np.where(nlos, lo + spikes[:, 1] * (hi - lo), 0.0)[mask],
-                keep=(stream(seed, "uwb-dropout", key).uniform(size=n) >= model.dropout_probability)[mask],
+                keep=(
+                    stream(seed, "uwb-dropout", key).uniform(size=n) >= model.dropout_probability
+                )[mask],
             )
         )
     return biases, pairs
 
 
 def draw_camera(
-    seed: int, motions: Sequence[RobotMotion], model: DetectionErrorModel, n_objects: int, duration: float
+    seed: int,
+    motions: Sequence[RobotMotion],
+    model: DetectionErrorModel,
+    n_objects: int,
+    duration: float,
 ) -> dict[str, Schedule]:
     """Per robot, its camera's frame times and, per frame and object, miss, depth, bearing and
     height noise and the detector's score."""

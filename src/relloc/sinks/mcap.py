@@ -161,7 +161,9 @@ class McapWriter:
             raise ValueError(f"{self.path} is closed")
         conn = self._conns.get(topic)
         if conn is None:
-            conn = self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self._store)
+            conn = self._conns[topic] = self._writer.add_connection(
+                topic, msgtype, typestore=self._store
+            )
         self._writer.write(conn, max(0, round(t * 1e9)), encode(msg, msgtype, self.distro))
         self.messages += 1
 

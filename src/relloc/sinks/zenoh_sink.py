@@ -85,7 +85,9 @@ class ZenohSink:
         """The channel of ``robot``'s estimates by ``method``."""
         channel = self._channels.get((robot, method))
         if channel is None:
-            topic = pose_topic(self.prefix, robot, None if method == self.primary_method else method)
+            topic = pose_topic(
+                self.prefix, robot, None if method == self.primary_method else method
+            )
             channel = self.interface.channel(topic, POSE_WITH_COVARIANCE_STAMPED)
             self._channels[(robot, method)] = channel
         return channel

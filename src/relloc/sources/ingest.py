@@ -66,7 +66,9 @@ def team_routes(
     template without ``{a}`` and ``{b}``, a ``sensors`` table of no registered sensor).
     """
     check_config(config)
-    chosen = switched_on(odometry=odometry, ranges=ranges, detections=detections, ground_truth=ground_truth)
+    chosen = switched_on(
+        odometry=odometry, ranges=ranges, detections=detections, ground_truth=ground_truth
+    )
     routes: list[Route] = []
     for robot in config.robots:
         for s in chosen:
@@ -78,9 +80,16 @@ def team_routes(
     return routes
 
 
-def switched_on(*, odometry: bool, ranges: bool, detections: bool, ground_truth: bool) -> list[Sensor]:
+def switched_on(
+    *, odometry: bool, ranges: bool, detections: bool, ground_truth: bool
+) -> list[Sensor]:
     """The registered sensors the source switches leave in, in registration order."""
-    on = {"odometry": odometry, "ranges": ranges, "detections": detections, "ground_truth": ground_truth}
+    on = {
+        "odometry": odometry,
+        "ranges": ranges,
+        "detections": detections,
+        "ground_truth": ground_truth,
+    }
     return [s for s in registered() if s.switch is None or on[s.switch]]
 
 
@@ -177,7 +186,9 @@ class Converter:
         or ``None``; a message that made several is a ``ValueError``."""
         events = self.events(route, stream, payload, received, layout)
         if len(events) > 1:
-            raise ValueError(f"a message on {stream!r} made {len(events)} events: use Converter.events")
+            raise ValueError(
+                f"a message on {stream!r} made {len(events)} events: use Converter.events"
+            )
         return events[0] if events else None
 
     def events(
@@ -212,7 +223,9 @@ class Converter:
             msg = self._decode(tried, stream, payload)
             if msg is None:
                 return []
-            stamp = 0.0 if route.restamped else stamp_to_sec(msg.header.stamp)  # a type may have no header
+            stamp = (
+                0.0 if route.restamped else stamp_to_sec(msg.header.stamp)
+            )  # a type may have no header
         else:
             stamp = fast[0]
         if route.restamped or stamp == 0.0:

@@ -124,9 +124,15 @@ def inspect_bag(path: str | Path) -> BagInventory:
                 range_type = c.msgtype
                 lay = layout_of_definition(c.msgtype, c.msgdef.data)
                 layout = lay.name if lay is not None else ""
-        mocap = {t: m["body"] for t in topics if (m := MOCAP_RE.match(t)) and topics[t].endswith("PoseStamped")}
+        mocap = {
+            t: m["body"]
+            for t in topics
+            if (m := MOCAP_RE.match(t)) and topics[t].endswith("PoseStamped")
+        }
         odom_topics = [t for t, ty in topics.items() if ty == "nav_msgs/msg/Odometry"]
-        wanted = [c for c in conns if c.topic in range_nodes or c.topic in mocap or c.topic in odom_topics]
+        wanted = [
+            c for c in conns if c.topic in range_nodes or c.topic in mocap or c.topic in odom_topics
+        ]
         rows: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
         stamp_minus_recv: dict[str, list[float]] = defaultdict(list)
         zero: dict[str, bool] = defaultdict(lambda: True)
@@ -153,7 +159,14 @@ def inspect_bag(path: str | Path) -> BagInventory:
                 rows[topic].append((t, p.x, p.y))
             elif topic in range_nodes:
                 if not layout:  # no stored definition: the layout the payload fits
-                    layout = next((lay.name for lay in layouts(conn.msgtype) if _fits(raw, conn.msgtype, lay)), "")
+                    layout = next(
+                        (
+                            lay.name
+                            for lay in layouts(conn.msgtype)
+                            if _fits(raw, conn.msgtype, lay)
+                        ),
+                        "",
+                    )
                 value = float(msg.range)
                 if last_value.get(topic) == value:
                     stale += 1
@@ -171,7 +184,8 @@ def inspect_bag(path: str | Path) -> BagInventory:
         arr = np.array(rows[topic], dtype=float).reshape(-1, 3)
         tracks[body] = arr[np.argsort(arr[:, 0], kind="stable")]
     odometry = {
-        t: OdomInfo(t, len(rows[t]), zero[t], len(rows[t]) > 1 and len(quats[t]) == 1) for t in odom_topics
+        t: OdomInfo(t, len(rows[t]), zero[t], len(rows[t]) > 1 and len(quats[t]) == 1)
+        for t in odom_topics
     }
     ranges: dict[str, list[tuple[float, float]]] = defaultdict(list)
     counts: dict[str, int] = defaultdict(int)
@@ -186,7 +200,9 @@ def inspect_bag(path: str | Path) -> BagInventory:
         arr = np.array(v, dtype=float).reshape(-1, 2)
         range_arrays[key] = arr[np.argsort(arr[:, 0], kind="stable")]
     far = {
-        t: round(float(np.median(v)), 3) for t, v in stamp_minus_recv.items() if v and abs(float(np.median(v))) > FAR_STAMP_S
+        t: round(float(np.median(v)), 3)
+        for t, v in stamp_minus_recv.items()
+        if v and abs(float(np.median(v))) > FAR_STAMP_S
     }
     return BagInventory(
         path=path,
@@ -223,7 +239,9 @@ class Assignment:
     """Node pair key -> median(range - mocap distance) (m)."""
 
 
-def _pair_cost(rng: np.ndarray, a: np.ndarray, b: np.ndarray, max_gap: float) -> tuple[float, float] | None:
+def _pair_cost(
+    rng: np.ndarray, a: np.ndarray, b: np.ndarray, max_gap: float
+) -> tuple[float, float] | None:
     """(cost, median bias) of one node pair on one body pair, or ``None`` without matched times."""
     if rng.shape[0] > MAX_SAMPLES:
         rng = rng[np.linspace(0, rng.shape[0] - 1, MAX_SAMPLES).astype(int)]
@@ -284,7 +302,9 @@ def assign_nodes(
                 continue
             add = 0.0
             for other, onode in chosen.items():
-                ba, bb = (other, body) if bodies.index(other) < bodies.index(body) else (body, other)
+                ba, bb = (
+                    (other, body) if bodies.index(other) < bodies.index(body) else (body, other)
+                )
                 c = cost.get((ba, bb, pair_key(node, onode)))
                 if c is None:
                     break
@@ -301,5 +321,9 @@ def assign_nodes(
         for ba, bb in combinations(bodies, 2):
             key = pair_key(mapping[ba], mapping[bb])
             biases[key] = round(cost[(ba, bb, key)][1], 3)
-        out.append(Assignment({b: mapping[b] for b in bodies}, round(math.sqrt(total / max(npairs, 1)), 4), biases))
+        out.append(
+            Assignment(
+                {b: mapping[b] for b in bodies}, round(math.sqrt(total / max(npairs, 1)), 4), biases
+            )
+        )
     return out

@@ -95,7 +95,9 @@ def read_table(path: Path, columns: int, malformed: list[MalformedRow] | None = 
         raise MrclamError(f"{path} is missing")
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter("ignore")  # numpy's "no data" warning: an empty file is an error below
+            warnings.simplefilter(
+                "ignore"
+            )  # numpy's "no data" warning: an empty file is an error below
             rows = np.loadtxt(path, comments="#", ndmin=2)
     except ValueError:
         rows = None
@@ -104,7 +106,10 @@ def read_table(path: Path, columns: int, malformed: list[MalformedRow] | None = 
     skipped: list[MalformedRow] = []
     good = _read_rows(path, columns, skipped)
     if not len(good):
-        raise MrclamError(f"{path} holds no valid {columns}-column rows" + (f" ({len(skipped)} malformed)" if skipped else ""))
+        raise MrclamError(
+            f"{path} holds no valid {columns}-column rows"
+            + (f" ({len(skipped)} malformed)" if skipped else "")
+        )
     if skipped and malformed is None:
         first = skipped[0]
         raise MrclamError(f"{path}: line {first.line} is malformed ({first.reason})")
@@ -170,7 +175,11 @@ class MrclamStats:
 
     @property
     def rejected(self) -> dict[str, int]:
-        return {k.removeprefix("rejected_"): v for k, v in self.counts.items() if k.startswith("rejected_")}
+        return {
+            k.removeprefix("rejected_"): v
+            for k, v in self.counts.items()
+            if k.startswith("rejected_")
+        }
 
     def as_dict(self) -> dict[str, int]:
         return dict(self.counts)
@@ -180,7 +189,12 @@ class MrclamSource:
     """An MRCLAM data set folder as time-ordered events for ``config``'s robots."""
 
     def __init__(
-        self, folder: str | Path, config: TeamConfig, *, ground_truth: bool = True, sightings: str = "both"
+        self,
+        folder: str | Path,
+        config: TeamConfig,
+        *,
+        ground_truth: bool = True,
+        sightings: str = "both",
     ) -> None:
         if sightings not in ("both", "range", "bearing"):
             raise ValueError(f"sightings must be both, range or bearing, not {sightings!r}")
@@ -189,7 +203,9 @@ class MrclamSource:
         self.use = sightings
         """What of each sighting to pass on: ``both``, ``range`` (bearing left out) or ``bearing``."""
         if not is_mrclam(self.folder):
-            raise MrclamError(f"{self.folder} is not an MRCLAM data set (no Barcodes.dat / Robot1_Odometry.dat)")
+            raise MrclamError(
+                f"{self.folder} is not an MRCLAM data set (no Barcodes.dat / Robot1_Odometry.dat)"
+            )
         self.config = config
         self.ground_truth = ground_truth
         self.warnings: list[str] = []
@@ -220,7 +236,11 @@ class MrclamSource:
         if skipped:
             self.stats.counts["rejected_malformed_row"] += len(skipped)
             shown = ", ".join(f"line {m.line} ({m.reason})" for m in skipped[:MALFORMED_SHOWN])
-            more = f" and {len(skipped) - MALFORMED_SHOWN} more" if len(skipped) > MALFORMED_SHOWN else ""
+            more = (
+                f" and {len(skipped) - MALFORMED_SHOWN} more"
+                if len(skipped) > MALFORMED_SHOWN
+                else ""
+            )
             self.warnings.append(f"{name}: {len(skipped)} malformed rows skipped: {shown}{more}")
         return rows
 
@@ -238,7 +258,9 @@ class MrclamSource:
     def _subject(name: str) -> int:
         digits = name.removeprefix("robot")
         if not digits.isdigit() or int(digits) not in ROBOT_SUBJECTS:
-            raise MrclamError(f"MRCLAM robots are named robot1 .. robot5 (subject numbers), not {name!r}")
+            raise MrclamError(
+                f"MRCLAM robots are named robot1 .. robot5 (subject numbers), not {name!r}"
+            )
         return int(digits)
 
     @property
@@ -274,8 +296,14 @@ class MrclamSource:
                 continue
             self.stats.counts["sightings"] += 1
             yield SightingEvent(
-                t, name, self.robots[target], None if self.use == "bearing" else r,
-                None if self.use == "range" else b, RANGE_SIGMA + RANGE_SIGMA_PER_M * r, BEARING_SIGMA, "camera",
+                t,
+                name,
+                self.robots[target],
+                None if self.use == "bearing" else r,
+                None if self.use == "range" else b,
+                RANGE_SIGMA + RANGE_SIGMA_PER_M * r,
+                BEARING_SIGMA,
+                "camera",
             )
 
     def _truth(self, subject: int) -> Iterator[GroundTruthEvent]:
@@ -305,7 +333,9 @@ class ReferenceCandidate:
     """Robot-to-robot sightings the robot takes part in, as observer or as the one seen."""
 
 
-def ground_truth_coverage(truth: FloatArray, start: float, end: float, gap: float = GROUND_TRUTH_GAP) -> float:
+def ground_truth_coverage(
+    truth: FloatArray, start: float, end: float, gap: float = GROUND_TRUTH_GAP
+) -> float:
     """Seconds of ``[start, end]`` covered by the ground truth's time stamps ``truth[:, 0]``:
     the overlap of every step between two samples no longer than ``gap`` with the run."""
     t = np.sort(np.asarray(truth, dtype=float)[:, 0])
@@ -316,12 +346,16 @@ def ground_truth_coverage(truth: FloatArray, start: float, end: float, gap: floa
     return float(np.sum(np.clip(hi - lo, 0.0, None)[steps]))
 
 
-def reference_candidates(folder: str | Path, robots: tuple[str, ...] | None = None) -> list[ReferenceCandidate]:
+def reference_candidates(
+    folder: str | Path, robots: tuple[str, ...] | None = None
+) -> list[ReferenceCandidate]:
     """Every robot of the session ``folder`` (``robots``, else those with an odometry file),
     best reference first by :func:`choose_reference`'s rule."""
     folder = Path(folder)
     if not is_mrclam(folder):
-        raise MrclamError(f"{folder} is not an MRCLAM data set (no Barcodes.dat / Robot1_Odometry.dat)")
+        raise MrclamError(
+            f"{folder} is not an MRCLAM data set (no Barcodes.dat / Robot1_Odometry.dat)"
+        )
     if robots is None:
         subjects = [i for i in ROBOT_SUBJECTS if (folder / f"Robot{i}_Odometry.dat").is_file()]
     else:
@@ -341,7 +375,10 @@ def reference_candidates(folder: str | Path, robots: tuple[str, ...] | None = No
                 sightings[target] += 1
     found = [
         ReferenceCandidate(
-            f"robot{i}", ground_truth_coverage(read_table(folder / f"Robot{i}_Groundtruth.dat", 4, skipped), start, end),
+            f"robot{i}",
+            ground_truth_coverage(
+                read_table(folder / f"Robot{i}_Groundtruth.dat", 4, skipped), start, end
+            ),
             sightings[i],
         )
         for i in subjects
@@ -349,7 +386,11 @@ def reference_candidates(folder: str | Path, robots: tuple[str, ...] | None = No
     longest = max(c.ground_truth_s for c in found)
     return sorted(
         found,
-        key=lambda c: (c.ground_truth_s < longest - COVERAGE_TOLERANCE, -c.sightings, MrclamSource._subject(c.robot)),
+        key=lambda c: (
+            c.ground_truth_s < longest - COVERAGE_TOLERANCE,
+            -c.sightings,
+            MrclamSource._subject(c.robot),
+        ),
     )
 
 
@@ -381,8 +422,12 @@ def main(argv: list[str] | None = None) -> int:
         description="Print the reference robot of an MRCLAM session by the rule of "
         "relloc.sources.mrclam.choose_reference: the longest ground truth, then the most sightings.",
     )
-    parser.add_argument("--reference", required=True, metavar="FOLDER", help="an MRCLAM data set folder")
-    parser.add_argument("--explain", action="store_true", help="list every robot's coverage and sightings")
+    parser.add_argument(
+        "--reference", required=True, metavar="FOLDER", help="an MRCLAM data set folder"
+    )
+    parser.add_argument(
+        "--explain", action="store_true", help="list every robot's coverage and sightings"
+    )
     args = parser.parse_args(argv)
     try:
         candidates = reference_candidates(args.reference)
@@ -391,7 +436,10 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     if args.explain:
         for c in candidates:
-            print(f"# {c.robot}: ground truth {c.ground_truth_s:.1f} s of the run, {c.sightings} sightings", file=sys.stderr)
+            print(
+                f"# {c.robot}: ground truth {c.ground_truth_s:.1f} s of the run, {c.sightings} sightings",
+                file=sys.stderr,
+            )
     print(candidates[0].robot)
     return 0
 

@@ -72,7 +72,11 @@ def _open_reader(path: Path, on_damage: Callable[[str], None] | None = None) -> 
     try:
         reader = _opened(path)
     except BagError as exc:
-        salvage = salvaged_copy(path) if on_damage is not None and "corrupted or truncated" in str(exc) else None
+        salvage = (
+            salvaged_copy(path)
+            if on_damage is not None and "corrupted or truncated" in str(exc)
+            else None
+        )
         if salvage is None:
             raise
         folder, line = salvage
@@ -125,7 +129,13 @@ def _metadata_problem(exc: BaseException) -> bool:
     if "database" in text:
         return False
     name = type(exc).__name__.lower()
-    return isinstance(exc, UnicodeDecodeError | KeyError) or "metadata" in text or "yaml" in name or "scanner" in name or "parser" in name
+    return (
+        isinstance(exc, UnicodeDecodeError | KeyError)
+        or "metadata" in text
+        or "yaml" in name
+        or "scanner" in name
+        or "parser" in name
+    )
 
 
 def _reason(exc: BaseException) -> str:
@@ -137,7 +147,10 @@ def _reason(exc: BaseException) -> str:
 
 
 def _messages(
-    reader: Reader, path: Path, topics: Collection[str], on_damage: Callable[[str], None] | None = None
+    reader: Reader,
+    path: Path,
+    topics: Collection[str],
+    on_damage: Callable[[str], None] | None = None,
 ) -> Iterator[tuple[Any, int, bytes]]:
     """``(connection, receive time in ns, raw CDR)`` of some topics in receive order. A
     storage error is a :class:`BagError`, or, with ``on_damage``, the end of what is readable:
@@ -260,7 +273,9 @@ class RosbagSource:
                 )
             except ConfigError as exc:
                 raise BagError(str(exc)) from None
-            on = switched_on(odometry=odometry, ranges=ranges, detections=detections, ground_truth=ground_truth)
+            on = switched_on(
+                odometry=odometry, ranges=ranges, detections=detections, ground_truth=ground_truth
+            )
             self._routes = self._resolve(routes, on)
             if reader.message_count:
                 self._bag_start_ns, self._bag_end_ns = reader.start_time, reader.end_time
@@ -426,6 +441,7 @@ class RosbagSource:
             return events
 
         typestore(self.config.ros_distro)  # build the type store before the first message
+
         def damaged(line: str) -> None:
             self._damaged(line)
             stats.rejected["bag_damaged"] += 1
@@ -433,7 +449,9 @@ class RosbagSource:
         with _open_reader(self.path, damaged) as reader:
             for conn, recv_ns, raw in _messages(reader, self.path, self._routes, damaged):
                 recv = recv_ns * 1e-9
-                for event in converter.events(self._routes[conn.topic], conn.topic, raw, recv, layouts.get(conn.topic)):
+                for event in converter.events(
+                    self._routes[conn.topic], conn.topic, raw, recv, layouts.get(conn.topic)
+                ):
                     buffer.push(event.t, event)
                 buffer.advance(recv + self.clock_offset)
                 yield from released(buffer.pop_ready())

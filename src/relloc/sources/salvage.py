@@ -32,7 +32,9 @@ def salvaged_copy(path: Path) -> tuple[Path, str] | None:
         try:
             src = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
             dst = sqlite3.connect(folder / db.name)
-            tables = src.execute("SELECT name, sql FROM sqlite_master WHERE type = 'table'").fetchall()
+            tables = src.execute(
+                "SELECT name, sql FROM sqlite_master WHERE type = 'table'"
+            ).fetchall()
         except sqlite3.Error:
             continue
         for name, sql in tables:
@@ -51,7 +53,10 @@ def salvaged_copy(path: Path) -> tuple[Path, str] | None:
         return None
     listed = listed_messages(path / "metadata.yaml")
     lost = max(listed - kept, 0)
-    return folder, f"{kept} of its {listed} messages readable, {lost} ({100.0 * lost / max(listed, 1):.0f} %) lost"
+    return (
+        folder,
+        f"{kept} of its {listed} messages readable, {lost} ({100.0 * lost / max(listed, 1):.0f} %) lost",
+    )
 
 
 def listed_messages(metadata: Path) -> int:
@@ -78,8 +83,14 @@ def readable_rows(path: Path, conns: list[Any], after: int) -> list[tuple[Any, i
         except sqlite3.Error:
             continue
         try:
-            topics = {i: by_topic[n] for i, n in con.execute("SELECT id, name FROM topics") if n in by_topic}
-            for topic_id, stamp, data in con.execute("SELECT topic_id, timestamp, data FROM messages"):
+            topics = {
+                i: by_topic[n]
+                for i, n in con.execute("SELECT id, name FROM topics")
+                if n in by_topic
+            }
+            for topic_id, stamp, data in con.execute(
+                "SELECT topic_id, timestamp, data FROM messages"
+            ):
                 if topic_id in topics:
                     rows.append((topics[topic_id], int(stamp), bytes(data)))
         except sqlite3.Error:

@@ -66,7 +66,9 @@ class SourceKind:
     """UWB ranges with motion capture: ``relloc calibrate`` estimates the pair biases from
     it, and a run with online biases scores them against the same measurement."""
 
-    def open(self, path: str | Path, config: TeamConfig | None, options: SourceOptions | None = None) -> Source:
+    def open(
+        self, path: str | Path, config: TeamConfig | None, options: SourceOptions | None = None
+    ) -> Source:
         """The source at ``path`` for ``config`` (``None`` where the kind brings its own)."""
         if config is None and self.needs_config:
             raise SourceError(f"{path} is {self.what}: it needs a team config (--config)")
@@ -97,17 +99,32 @@ def _open_mrclam(path: Path, config: TeamConfig | None, options: SourceOptions) 
 
 def _open_scenario(path: Path, config: TeamConfig | None, options: SourceOptions) -> Source:
     if config is not None:
-        raise SourceError(f"the simulated scenario {path} brings its own team config: leave out --config")
+        raise SourceError(
+            f"the simulated scenario {path} brings its own team config: leave out --config"
+        )
     name = str(path)
     return SimulationSource(SCENARIOS[name](options.seed, detections=options.detections), name)
 
 
 KINDS: tuple[SourceKind, ...] = (
     SourceKind(
-        "rosbag2", "a rosbag2 recording", _is_bag, _open_bag, "motion capture", replayable=True, calibrates=True
+        "rosbag2",
+        "a rosbag2 recording",
+        _is_bag,
+        _open_bag,
+        "motion capture",
+        replayable=True,
+        calibrates=True,
     ),
     SourceKind("mrclam", "an MRCLAM data set", is_mrclam, _open_mrclam, "motion capture"),
-    SourceKind("scenario", "a simulated scenario", _is_scenario, _open_scenario, "ground truth", needs_config=False),
+    SourceKind(
+        "scenario",
+        "a simulated scenario",
+        _is_scenario,
+        _open_scenario,
+        "ground truth",
+        needs_config=False,
+    ),
 )
 """The table, in lookup order."""
 
@@ -126,6 +143,8 @@ def source_kind(path: str | Path) -> SourceKind:
     )
 
 
-def open_source(path: str | Path, config: TeamConfig | None, options: SourceOptions | None = None) -> Source:
+def open_source(
+    path: str | Path, config: TeamConfig | None, options: SourceOptions | None = None
+) -> Source:
     """The source ``path`` names (:func:`source_kind`), opened for ``config``."""
     return source_kind(path).open(path, config, options)

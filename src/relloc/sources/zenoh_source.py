@@ -351,14 +351,19 @@ class ZenohSource:
         if route is None:
             own = self.options.own_prefix.strip("/").split("/")
             parts = topic_key.strip("/").split("/")
-            if own != [""] and own in (parts[: len(own)], parts[1 : 1 + len(own)]):  # rmw: after the domain
+            if own != [""] and own in (
+                parts[: len(own)],
+                parts[1 : 1 + len(own)],
+            ):  # rmw: after the domain
                 self.own_outputs += 1
                 return
             self._converter.reject("unknown_key", key)
             return
         layout = None
         if self.interface.rmw:
-            opened = self._envelope.open(topic_key, dds_type, type_hash_, attachment, self._converter.reject)
+            opened = self._envelope.open(
+                topic_key, dds_type, type_hash_, attachment, self._converter.reject
+            )
             if opened is None:
                 return
             sent, layout = opened
@@ -371,7 +376,9 @@ class ZenohSource:
             # held, and make every later message late, for the rest of the run.
             t = event.t
             if self.buffer.window > 0.0:
-                t = min(t, self.clock.offset(route.kind) + self.clock.rate * received + _FUTURE_SLACK)
+                t = min(
+                    t, self.clock.offset(route.kind) + self.clock.rate * received + _FUTURE_SLACK
+                )
             self.buffer.advance(t)
 
     def release(self, now: float) -> list[Arrival]:

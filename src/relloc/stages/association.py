@@ -112,9 +112,13 @@ class DetectionAssociator:
                 "(filter.self_calibration.heading_mode = 'compass'); with heading_mode = "
                 f"{fc.self_calibration.heading_mode!r} the headings are only known inside the filter"
             )
-        online_scale = fc.self_calibration.odom_scale_mode == "online"  # then the config's scale is not read
+        online_scale = (
+            fc.self_calibration.odom_scale_mode == "online"
+        )  # then the config's scale is not read
         self.tracks: dict[str, OdometryTrack] = {
-            r.name: OdometryTrack(r.heading_offset, 1.0 if online_scale else r.odom_scale, r.odom_mode)
+            r.name: OdometryTrack(
+                r.heading_offset, 1.0 if online_scale else r.odom_scale, r.odom_mode
+            )
             for r in config.robots
         }
         self.stats: Counter[str] = Counter({"proposed": 0, "accepted": 0, "rejected": 0})

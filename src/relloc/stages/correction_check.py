@@ -86,7 +86,9 @@ class CorrectionCheck:
         """The filter was given ``distance`` between the robots at ``t`` (any pair)."""
         self._ranges[frozenset((robot_a, robot_b))] = (t, distance)
 
-    def note(self, pair: str, t: float, robot_a: str, robot_b: str, corrected: float, constant: float) -> bool:
+    def note(
+        self, pair: str, t: float, robot_a: str, robot_b: str, corrected: float, constant: float
+    ) -> bool:
         """A range of ``pair`` at ``t``: its two candidate distances scored against the
         distance the other robots imply, then the pair judged; whether it was switched."""
         d = self._predicted(t, robot_a, robot_b)
@@ -121,7 +123,13 @@ class CorrectionCheck:
                     ranges.append(got[1])
             if len(anchors) < MIN_ANCHORS:
                 return None
-            placed.append(_trilaterate(np.array(positions[robot], float), np.array(anchors, float), np.array(ranges, float)))
+            placed.append(
+                _trilaterate(
+                    np.array(positions[robot], float),
+                    np.array(anchors, float),
+                    np.array(ranges, float),
+                )
+            )
         return float(np.hypot(*(placed[0] - placed[1])))
 
     def _decide(self, pair: str, state: _Pair) -> bool:
@@ -134,7 +142,9 @@ class CorrectionCheck:
             self.switched_off += 1
             log.warning(
                 "range correction of %s switched off: RMS innovation %.3f m corrected, %.3f m with the constant",
-                pair, math.sqrt(corrected), math.sqrt(constant),
+                pair,
+                math.sqrt(corrected),
+                math.sqrt(constant),
             )
             return True
         if state.off and corrected < ON_RATIO * constant:

@@ -222,19 +222,25 @@ class RangeCorrector:
         """The noise of a range corrected by the pair's constant alone: its validation RMSE."""
         return float(model.fallback_sigma) if model.fallback_sigma else sigma
 
-    def _checked(self, event: RangeEvent, model: PairModel, residual: float, sigma: float, reason: str) -> RangeEvent:
+    def _checked(
+        self, event: RangeEvent, model: PairModel, residual: float, sigma: float, reason: str
+    ) -> RangeEvent:
         """The self-check's view: both candidates noted (less the pair's constant in either
         offset mode), the constant alone where the pair's correction is switched off."""
         if not self.self_check:
             return self._corrected(event, model, residual, sigma, reason)
         key = event.node_pair
         constant = event.distance - model.offset
-        if self.check.note(key, event.t, event.robot_a, event.robot_b, constant - residual, constant):
+        if self.check.note(
+            key, event.t, event.robot_a, event.robot_b, constant - residual, constant
+        ):
             self.stats[f"correction_off.{key}"] = int(not self.check.enabled(key))
             self.stats["self_check_switched_off"] = self.check.switched_off
             self.stats["self_check_switched_on"] = self.check.switched_on
         if not self.check.enabled(key):
-            return self._corrected(event, model, 0.0, self._constant_sigma(model, sigma), "checked_off")
+            return self._corrected(
+                event, model, 0.0, self._constant_sigma(model, sigma), "checked_off"
+            )
         return self._corrected(event, model, residual, sigma, reason)
 
     def _pass(self, event: RangeEvent, reason: str) -> RangeEvent:

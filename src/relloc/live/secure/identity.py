@@ -49,7 +49,9 @@ def _file_tls(path: Path | None) -> dict[str, Any]:
     if path is None:
         return {}
     try:
-        text = "\n".join(ln for ln in path.read_text().splitlines() if not ln.lstrip().startswith("//"))
+        text = "\n".join(
+            ln for ln in path.read_text().splitlines() if not ln.lstrip().startswith("//")
+        )
         return dict(json.loads(text)["transport"]["link"]["tls"])
     except (OSError, ValueError, KeyError, TypeError):
         return {}
@@ -75,7 +77,10 @@ def _common_name(name: Any) -> str:
 def security_of(config: Any, file: Path | None = None) -> Security:
     """The :class:`Security` of a ``zenoh.Config`` (after the command's options are applied)
     loaded from ``file``."""
-    endpoints = [*(_get(config, "listen/endpoints") or []), *(_get(config, "connect/endpoints") or [])]
+    endpoints = [
+        *(_get(config, "listen/endpoints") or []),
+        *(_get(config, "connect/endpoints") or []),
+    ]
     if isinstance(endpoints, dict):  # per-mode endpoints: judge them all
         endpoints = [e for v in endpoints.values() for e in v]
     acl = _get(config, "access_control") or {}

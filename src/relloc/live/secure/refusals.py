@@ -136,4 +136,6 @@ class AccessRefusals:
             f"{cached} (sender, message, key) refused in advance (cached: their messages are "
             "dropped unreported)"
         )
-        return [head] + [f"  {who} may not {msg} {key} ({flow}): {n}" for (who, msg, flow, key), n in items]
+        return [head] + [
+            f"  {who} may not {msg} {key} ({flow}): {n}" for (who, msg, flow, key), n in items
+        ]
