@@ -11,22 +11,58 @@ import json
 import math
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pytest
 
 from relloc.cli import main
 from relloc.config import TeamConfig
 from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent
-from relloc.ros.messages import odometry_msg, pose_stamped_msg, range_msg
-from relloc.sources.inspect_bag import assign_nodes, inspect_bag
+from relloc.ros.messages import (
+    ODOMETRY,
+    POSE_STAMPED,
+    TRANSFORM_STAMPED,
+    odometry_msg,
+    pose_stamped_msg,
+    quaternion_from_yaw,
+    range_msg,
+    typestore,
+)
+from relloc.sources.inspect_bag import assign_nodes, inspect_bag, mocap_patterns
 
 NODES = {"tb1": "n_5", "tb2": "n_9", "tb3": "n_2"}
 """The synthetic team's node mapping (deliberately not n_k on robot k)."""
+VRPN = "/vrpn_client_node/{body}/pose"
 
 
-def _synthetic_bag(path: Path, bag_writer: Callable[..., Path]) -> Path:
+def _mocap_msg(msgtype: str, t: float, name: str, x: float, y: float) -> Any:
+    """A motion-capture pose of one of the types ``relloc init`` finds motion capture by."""
+    if msgtype == ODOMETRY:
+        return odometry_msg(OdometryEvent(t, name, x, y, 0.2), frame_id="world")
+    if msgtype == TRANSFORM_STAMPED:
+        types = typestore().types
+        ts = pose_stamped_msg(GroundTruthEvent(t, name, x, y, 0.2))
+        transform = types["geometry_msgs/msg/Transform"](
+            translation=types["geometry_msgs/msg/Vector3"](x=x, y=y, z=0.0),
+            rotation=quaternion_from_yaw(0.2),
+        )
+        return types[TRANSFORM_STAMPED](header=ts.header, child_frame_id=name, transform=transform)
+    return pose_stamped_msg(GroundTruthEvent(t, name, x, y, 0.2))
+
+
+def _synthetic_bag(
+    path: Path,
+    bag_writer: Callable[..., Path],
+    mocap: str = VRPN,
+    mocap_type: str = POSE_STAMPED,
+    body: str = "{name}_cap",
+    decoy: str = "",
+) -> Path:
     """Three robots driving circles for 20 s; ranges = distance + 0.3 m (+ noise); tb2's odometry
-    has zero stamps, tb3's a frozen orientation; an extra node n_7 ranges only to n_5."""
+    has zero stamps, tb3's a frozen orientation; an extra node n_7 ranges only to n_5. Motion
+    capture (none if empty) on ``mocap`` (with ``{body}``: ``body`` of the robot's name) as ``mocap_type``;
+    ``decoy`` (with ``{body}``) adds a PoseStamped topic per robot that is not motion capture."""
     rng = np.random.default_rng(1)
     centres = {"tb1": (0.0, 0.0), "tb2": (4.0, 1.0), "tb3": (1.0, 4.0)}
     msgs = []
@@ -40,14 +76,18 @@ def _synthetic_bag(path: Path, bag_writer: Callable[..., Path]) -> Path:
         t = 100.0 + 0.05 * i
         for name in NODES:
             x, y = pos(name, t)
-            msgs.append(
-                (
-                    f"/vrpn_client_node/{name}_cap/pose",
-                    "geometry_msgs/msg/PoseStamped",
-                    t,
-                    pose_stamped_msg(GroundTruthEvent(t, name, x, y)),
+            if mocap:
+                topic = mocap.format(body=body.format(name=name))
+                msgs.append((topic, mocap_type, t, _mocap_msg(mocap_type, t, name, x, y)))
+            if decoy and i % 100 == 0:
+                msgs.append(
+                    (
+                        decoy.format(body=name),
+                        POSE_STAMPED,
+                        t,
+                        pose_stamped_msg(GroundTruthEvent(t, name, 1.0, 1.0)),
+                    )
                 )
-            )
             if i % 2 == 0:
                 yaw = 0.0 if name == "tb3" else 0.1 * i
                 stamp = 0.0 if name == "tb2" else t
@@ -110,6 +150,7 @@ def test_init_writes_a_loadable_config(tmp_path: Path, bag_writer: Callable[...,
     assert cfg.robot("tb2").odom_zero_stamps and cfg.robot("tb3").odom_mode == "twist"
     assert cfg.robot("tb1").odom_mode == "pose" and cfg.robot("tb1").mocap_body == "tb1_cap"
     assert cfg.ros_distro == "jazzy" and cfg.uwb.range_topic == "/uwb/tof/{a}/{b}/distance"
+    assert cfg.mocap_topic == VRPN  # the vrpn naming, found by type like any other
     text = out.read_text()
     assert "n_7" in text and "reference:" in text  # the left-out node and the rule, as comments
     # never overwritten without --force
@@ -118,6 +159,87 @@ def test_init_writes_a_loadable_config(tmp_path: Path, bag_writer: Callable[...,
     assert out.read_text() == "# mine\n"
     assert main(["init", str(bag), "--out", str(out), "--force"]) == 0
     assert TeamConfig.load(out).robot_names == ("tb1", "tb2", "tb3")
+
+
+def test_init_finds_mocap_by_type_on_world_topics(
+    tmp_path: Path, bag_writer: Callable[..., Path]
+) -> None:
+    """Mocap as PoseStamped on ``/<body>/world`` beside the robots' own ``/<robot>/odom``: a
+    team of three, the right nodes, ``mocap_topic`` in the draft, calibrated from that mocap."""
+    bag = _synthetic_bag(tmp_path / "bag", bag_writer, "/{body}/world", body="{name}")
+    out = tmp_path / "team.toml"
+    assert main(["init", str(bag), "--out", str(out)]) == 0
+    cfg = TeamConfig.load(out)
+    assert cfg.mocap_topic == "/{body}/world"
+    assert {r.name: r.uwb_node for r in cfg.robots} == NODES
+    assert {r.name: (r.mocap_body, r.odom_topic) for r in cfg.robots} == {
+        n: (n, f"/{n}/odom") for n in NODES
+    }
+    assert len(cfg.uwb.pairs) == 3  # biases calibrated from the /<body>/world mocap
+    assert all(0.25 < p.bias < 0.35 for p in cfg.uwb.pairs.values())
+    assert cfg.robot("tb1").heading_offset_deg != 0.0
+
+
+@pytest.mark.parametrize(
+    ("mocap", "msgtype"),
+    [("/mocap/{body}", TRANSFORM_STAMPED), ("/vicon/{body}/odom", ODOMETRY)],
+)
+def test_inspect_finds_mocap_of_other_types(
+    tmp_path: Path, bag_writer: Callable[..., Path], mocap: str, msgtype: str
+) -> None:
+    bag = _synthetic_bag(tmp_path / "bag", bag_writer, mocap, msgtype, body="{name}")
+    inv = inspect_bag(bag)
+    assert (inv.mocap_pattern, inv.mocap_type) == (mocap, msgtype)
+    assert set(inv.tracks) == set(NODES) and set(inv.odometry) == {f"/{n}/odom" for n in NODES}
+    best = assign_nodes(inv, list(NODES))
+    assert best[0].nodes == NODES
+
+
+def test_mocap_patterns_rule() -> None:
+    odom, pose = ODOMETRY, POSE_STAMPED
+    topics = {
+        "/tb1/odom": odom,
+        "/tb2/odom": odom,
+        "/cali/tb1/odom": odom,
+        "/cali/tb2/odom": odom,
+        "/tb1/goal_pose": pose,
+        "/tb2/goal_pose": pose,
+        "/mocap/tb1/pose": pose,
+        "/mocap/tb2/pose": pose,
+    }
+    found = mocap_patterns(topics)
+    assert [p.pattern for p in found] == ["/mocap/{body}/pose", "/{body}/goal_pose"]
+    assert found[0].topics == {"/mocap/tb1/pose": "tb1", "/mocap/tb2/pose": "tb2"}
+    (given,) = mocap_patterns(topics, "/{body}/goal_pose")
+    assert set(given.topics.values()) == {"tb1", "tb2"}
+    assert mocap_patterns(topics, "/{body}/world") == []
+
+
+def test_init_mocap_topic_option(tmp_path: Path, bag_writer: Callable[..., Path]) -> None:
+    """Two PoseStamped patterns with no motion-capture word: the draft names the runner-up, and
+    --mocap-topic picks the right one."""
+    bag = _synthetic_bag(
+        tmp_path / "bag", bag_writer, "/{body}/truth", body="{name}", decoy="/{body}/goal"
+    )
+    out = tmp_path / "team.toml"
+    main(["init", str(bag), "--out", str(out), "--no-calibrate"])
+    assert "/{body}/truth" in out.read_text()  # named as the other pattern
+    args = ["init", str(bag), "--out", str(out), "--force", "--mocap-topic", "/{body}/truth"]
+    assert main(args) == 0
+    cfg = TeamConfig.load(out)
+    assert cfg.mocap_topic == "/{body}/truth"
+    assert {r.name: r.uwb_node for r in cfg.robots} == NODES
+    assert main([*args, "--mocap-topic", "/{body}/nothing"]) == 2
+
+
+def test_init_without_mocap_names_types_and_option(
+    tmp_path: Path, bag_writer: Callable[..., Path], capsys: pytest.CaptureFixture[str]
+) -> None:
+    bag = _synthetic_bag(tmp_path / "bag", bag_writer, mocap="")
+    assert main(["init", str(bag), "--out", str(tmp_path / "x.toml")]) == 2
+    err = capsys.readouterr().err
+    assert "fewer than two motion-capture bodies" in err
+    assert "PoseStamped" in err and "TransformStamped" in err and "--mocap-topic" in err
 
 
 def _draft(shared: Path, bag: str, tmp_path: Path, *extra: str) -> tuple[int, TeamConfig, str]:

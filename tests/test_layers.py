@@ -19,7 +19,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("localizers", "stages", "ranging", "ros", "simulator", "faults", "sensors"),
     ("sources",),
     ("engine", "methods"),
-    ("sinks", "evaluation"),
+    ("sinks", "evaluation", "drafting"),
     ("live",),
     ("navigation",),
     ("cli",),

@@ -106,8 +106,8 @@ def _cmd_run(args: argparse.Namespace) -> int:
 def _cmd_calibrate(args: argparse.Namespace) -> int:
     import json
 
-    from relloc.cli.calibrate import calibrate, calibration_section, edit_config_text
     from relloc.config import TeamConfig
+    from relloc.drafting.calibrate import calibrate, calibration_section, edit_config_text
 
     config = TeamConfig.load(args.config)
     text = Path(args.config).read_text()

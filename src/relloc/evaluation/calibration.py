@@ -18,7 +18,7 @@ import numpy as np
 from relloc.config import PairCalibration, TeamConfig
 from relloc.events import Event, GroundTruthEvent, OdometryEvent, RangeEvent, pair_key
 from relloc.ranging.dataset import CSV_COLUMNS
-from relloc.ros.messages import stamp_to_sec
+from relloc.ros.messages import pose_to_ground_truth, stamp_to_sec
 from relloc.sources.rosbag import RosbagSource, recording_name
 from relloc.sources.span import SpanSource
 from relloc.sources.tracks import interpolate_track
@@ -372,7 +372,8 @@ def rank_node_assignments(
     for topic, _, msg in read_messages(path, [*range_topics, *mocap_topic]):
         t = stamp_to_sec(msg.header.stamp)
         if topic in mocap_topic:
-            tracks[mocap_topic[topic]].append((t, msg.pose.position.x, msg.pose.position.y))
+            gt = pose_to_ground_truth(msg, "", t=t)  # any of MOCAP_TYPES
+            tracks[mocap_topic[topic]].append((t, gt.x, gt.y))
         elif math.isfinite(msg.range) and msg.range > 0.0:
             ranges[pair_key(*range_topics[topic])].append((t, float(msg.range)))
     arrays = {r: np.array(v).reshape(-1, 3) for r, v in tracks.items()}

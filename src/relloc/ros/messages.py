@@ -56,6 +56,7 @@ from relloc.ros.stores import (
 )
 
 __all__ = [
+    "MOCAP_TYPES",
     "MSG_DIR",
     "ODOMETRY",
     "POINT_STAMPED",
@@ -64,6 +65,7 @@ __all__ = [
     "POSE_WITH_COVARIANCE_STAMPED",
     "RANGE",
     "SPATIAL_DETECTION_ARRAY",
+    "TRANSFORM_STAMPED",
     "TWIST",
     "MessageDecodeError",
     "camera_to_body",
@@ -101,8 +103,11 @@ POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
 POINT_STAMPED = "geometry_msgs/msg/PointStamped"
 POSE_ARRAY = "geometry_msgs/msg/PoseArray"
 POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
+TRANSFORM_STAMPED = "geometry_msgs/msg/TransformStamped"
 TWIST = "geometry_msgs/msg/Twist"
 SPATIAL_DETECTION_ARRAY = "depthai_ros_msgs/msg/SpatialDetectionArray"
+MOCAP_TYPES = (POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED, TRANSFORM_STAMPED, ODOMETRY)
+"""The message types motion capture comes in (:func:`pose_to_ground_truth` reads each)."""
 
 
 def header_stamp_from_cdr(raw: bytes | memoryview) -> float:
@@ -208,14 +213,18 @@ def range_rejection(distance: float) -> str | None:
 
 
 def pose_to_ground_truth(msg: Any, robot: str, *, t: float | None = None) -> GroundTruthEvent:
-    """``geometry_msgs/PoseStamped`` (motion capture, z up) -> :class:`GroundTruthEvent`."""
-    pose = msg.pose
+    """Motion capture (z up) in one of :data:`MOCAP_TYPES` -> :class:`GroundTruthEvent`."""
+    if hasattr(msg, "transform"):  # TransformStamped
+        position, orientation = msg.transform.translation, msg.transform.rotation
+    else:  # PoseStamped; PoseWithCovarianceStamped and Odometry nest a PoseWithCovariance
+        pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
+        position, orientation = pose.position, pose.orientation
     return GroundTruthEvent(
         t=_msg_time(msg, t),
         robot=robot,
-        x=float(pose.position.x),
-        y=float(pose.position.y),
-        yaw=yaw_from_quaternion(pose.orientation),
+        x=float(position.x),
+        y=float(position.y),
+        yaw=yaw_from_quaternion(orientation),
     )
 
 

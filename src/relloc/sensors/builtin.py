@@ -29,6 +29,7 @@ from relloc.filter.sightings import SightingBatch
 from relloc.ros.cdr import decode_odometry, decode_range
 from relloc.ros.distros import Layout
 from relloc.ros.messages import (
+    MOCAP_TYPES,
     ODOMETRY,
     POINT_STAMPED,
     POSE_ARRAY,
@@ -179,7 +180,9 @@ class Sighting(Sensor):
 
 class GroundTruth(Sensor):
     """Motion capture (``mocap_topic`` with ``{body}``) of each robot's ``mocap_body`` and of
-    extra objects: ``geometry_msgs/PoseStamped`` -> :class:`GroundTruthEvent` (evaluation only)."""
+    extra objects: ``geometry_msgs/PoseStamped`` (or another of
+    :data:`~relloc.ros.messages.MOCAP_TYPES`, read only: replay and faults write PoseStamped)
+    -> :class:`GroundTruthEvent` (evaluation only)."""
 
     kind: ClassVar[str] = "ground_truth"
     event: ClassVar[type] = GroundTruthEvent
@@ -191,16 +194,14 @@ class GroundTruth(Sensor):
         if not robot.mocap_body:
             return []
         topic = config.mocap_topic.format(body=robot.mocap_body)
-        return [
-            Route(topic, self.kind, (POSE_STAMPED,), robot.name, f"motion capture of {robot.name}")
-        ]
+        return [Route(topic, self.kind, MOCAP_TYPES, robot.name, f"motion capture of {robot.name}")]
 
     def object_routes(self, config: TeamConfig, objects: Sequence[str]) -> list[Route]:
         return [
             Route(
                 config.mocap_topic.format(body=body),
                 self.kind,
-                (POSE_STAMPED,),
+                MOCAP_TYPES,
                 body,
                 f"motion capture of object {body}",
             )

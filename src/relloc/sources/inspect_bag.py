@@ -1,7 +1,7 @@
 """What a rosbag2 bag holds, for drafting a team config (``relloc init``).
 
 :func:`inspect_bag` reads a bag once: topics and types, motion-capture bodies
-(``/vrpn_client_node/<body>/pose``), odometry topics with messages, the UWB range topic pattern
+(:func:`mocap_patterns`), odometry topics with messages, the UWB range topic pattern
 and its node ids, the range type's layout (Humble or later) and clock quirks (header stamps far
 from receive time, zero stamps, stale repeated ranges). :func:`assign_nodes` finds which UWB node
 is on which body: for every assignment (a depth-first search with pruning on a non-negative
@@ -10,6 +10,20 @@ A pair's cost is the mean clipped squared residual around its own bias, the bias
 ``[BIAS_MIN, BIAS_MAX]`` (UWB ranges read long by up to about 1 m, never metres): a wrong node
 pair of a moving team leaves a spread of metres, and one of a static team a bias outside that
 window. Pure functions of the bag; nothing here knows about the command line.
+
+Motion capture is found by message type, whatever the naming. A topic of one of
+:data:`~relloc.ros.messages.MOCAP_TYPES` (``PoseStamped``, ``PoseWithCovarianceStamped``,
+``TransformStamped``, ``Odometry``) may carry a body's pose, except a robot's own odometry: an
+``Odometry`` topic with ``odom`` in a name part and no motion-capture word (:data:`MOCAP_WORDS`)
+in any (``/tb1/odom``, ``/cali/turtle01/odom``). Each other such topic gives one pattern per name
+part, that part replaced by ``{body}`` (``/tb1/world`` -> ``/{body}/world``, ``/tb1/{body}``).
+The pattern chosen is, among those matching at least two topics of one type, the one with a
+motion-capture word outside ``{body}`` (``/vrpn_client_node/{body}/pose``, ``/mocap/{body}/pose``,
+``/{body}/world``), then the most bodies, then the shortest and first by name; the runners-up
+(each sharing no topic with a better one: ``/tb1/{body}`` is another reading of ``/tb1/world``)
+are kept (:attr:`BagInventory.mocap_others`) so that a caller can say the choice was close. A
+given pattern (``relloc init --mocap-topic``) replaces the search: every topic of a motion-capture
+type it matches is a body, an ``Odometry`` one included.
 """
 
 from __future__ import annotations
@@ -27,13 +41,41 @@ import numpy as np
 
 from relloc.events import pair_key
 from relloc.ros.distros import layout_of_definition, layouts
-from relloc.ros.messages import MessageDecodeError, decode, stamp_to_sec
+from relloc.ros.messages import (
+    MOCAP_TYPES,
+    ODOMETRY,
+    MessageDecodeError,
+    decode,
+    pose_to_ground_truth,
+    stamp_to_sec,
+)
 from relloc.sources.rosbag import _open_reader
 from relloc.sources.tracks import interpolate_track
 
-__all__ = ["Assignment", "BagInventory", "assign_nodes", "inspect_bag", "robot_number"]
+__all__ = [
+    "Assignment",
+    "BagInventory",
+    "MocapPattern",
+    "assign_nodes",
+    "inspect_bag",
+    "mocap_patterns",
+    "mocap_regex",
+    "robot_number",
+    "robot_odometry",
+]
 
-MOCAP_RE = re.compile(r"^/vrpn_client_node/(?P<body>[^/]+)/pose$")
+MOCAP_WORDS = (
+    "vrpn",
+    "mocap",
+    "motion_capture",
+    "optitrack",
+    "vicon",
+    "qualisys",
+    "natnet",
+    "world",
+)
+"""Name parts holding one of these mark a motion-capture topic (and an ``Odometry`` one as not a
+robot's own odometry)."""
 RANGE_RE = re.compile(r"^(?P<pre>/.*?)(?P<a>n_?\w+)/(?P<b>n_?\w+)(?P<post>/distance)$")
 BIAS_MIN = -0.2
 """Lowest plausible pair bias (m): a range shorter than the true distance by more is wrong."""
@@ -55,6 +97,73 @@ class OdomInfo:
     count: int
     zero_stamps: bool
     frozen_orientation: bool
+
+
+@dataclass(frozen=True)
+class MocapPattern:
+    """A motion-capture topic pattern (with ``{body}``), its message type and its topics."""
+
+    pattern: str
+    msgtype: str
+    topics: dict[str, str]
+    """Topic -> body."""
+
+    @property
+    def hinted(self) -> bool:
+        """Whether a name part outside ``{body}`` holds a :data:`MOCAP_WORDS` word."""
+        return _has_mocap_word(self.pattern.replace("{body}", ""))
+
+
+def _has_mocap_word(topic: str) -> bool:
+    return any(w in part.lower() for part in topic.split("/") for w in MOCAP_WORDS)
+
+
+def robot_odometry(topic: str, msgtype: str) -> bool:
+    """Whether ``topic`` is a robot's own odometry, never motion capture (module docstring)."""
+    parts = [p.lower() for p in topic.split("/") if p]
+    return msgtype == ODOMETRY and any("odom" in p for p in parts) and not _has_mocap_word(topic)
+
+
+def mocap_regex(pattern: str) -> re.Pattern[str]:
+    """The regular expression of a pattern with ``{body}`` (one name part or a piece of one)."""
+    if "{body}" not in pattern:
+        raise ValueError(f"motion-capture pattern {pattern!r} has no {{body}}")
+    head, _, tail = pattern.partition("{body}")
+    return re.compile(f"^{re.escape(head)}(?P<body>[^/]+){re.escape(tail)}$")
+
+
+def mocap_patterns(topics: Mapping[str, str], pattern: str | None = None) -> list[MocapPattern]:
+    """The motion-capture patterns of ``topics`` (topic -> type), best first (module
+    docstring); with ``pattern`` given, just that one (empty when it matches no topic of a
+    motion-capture type)."""
+    if pattern is not None:
+        regex = mocap_regex(pattern)
+        by_type: dict[str, dict[str, str]] = defaultdict(dict)
+        for topic, msgtype in sorted(topics.items()):
+            if msgtype in MOCAP_TYPES and (m := regex.match(topic)):
+                by_type[msgtype][topic] = m["body"]
+        return sorted(
+            (MocapPattern(pattern, t, found) for t, found in by_type.items()),
+            key=lambda p: (-len(p.topics), p.msgtype),
+        )[:1]
+    found: dict[tuple[str, str], dict[str, str]] = defaultdict(dict)
+    for topic, msgtype in sorted(topics.items()):
+        if msgtype not in MOCAP_TYPES or robot_odometry(topic, msgtype):
+            continue
+        parts = topic.split("/")
+        for i, part in enumerate(parts):
+            if part:
+                key = ("/".join([*parts[:i], "{body}", *parts[i + 1 :]]), msgtype)
+                found[key][topic] = part
+    ranked = sorted(
+        (MocapPattern(p, t, bodies) for (p, t), bodies in found.items() if len(bodies) >= 2),
+        key=lambda p: (not p.hinted, -len(p.topics), len(p.pattern), p.pattern),
+    )
+    out: list[MocapPattern] = []
+    for candidate in ranked:  # another reading of a better pattern's topics is none
+        if not any(set(candidate.topics) & set(better.topics) for better in out):
+            out.append(candidate)
+    return out
 
 
 @dataclass
@@ -81,6 +190,11 @@ class BagInventory:
     stale_ranges: int = 0
     """Range messages repeating their topic's previous value."""
     range_messages: int = 0
+    mocap_pattern: str = ""
+    """The motion-capture topic pattern (with ``{body}``) the tracks come from; empty: none."""
+    mocap_type: str = ""
+    mocap_others: list[str] = field(default_factory=list)
+    """Runner-up motion-capture patterns as ``pattern (type, n bodies)`` (:func:`mocap_patterns`)."""
 
     @property
     def nodes(self) -> list[str]:
@@ -108,8 +222,9 @@ def _range_topics(topics: Mapping[str, str]) -> tuple[str, dict[str, tuple[str, 
     return pattern, found
 
 
-def inspect_bag(path: str | Path) -> BagInventory:
-    """Read a bag once and list what a team config needs (see the module docstring).
+def inspect_bag(path: str | Path, mocap_topic: str | None = None) -> BagInventory:
+    """Read a bag once and list what a team config needs (see the module docstring);
+    ``mocap_topic`` (a pattern with ``{body}``) says where motion capture is, else it is found.
 
     Raises :class:`~relloc.sources.rosbag.BagError` when the bag cannot be opened.
     """
@@ -124,12 +239,9 @@ def inspect_bag(path: str | Path) -> BagInventory:
                 range_type = c.msgtype
                 lay = layout_of_definition(c.msgtype, c.msgdef.data)
                 layout = lay.name if lay is not None else ""
-        mocap = {
-            t: m["body"]
-            for t in topics
-            if (m := MOCAP_RE.match(t)) and topics[t].endswith("PoseStamped")
-        }
-        odom_topics = [t for t, ty in topics.items() if ty == "nav_msgs/msg/Odometry"]
+        patterns = mocap_patterns(topics, mocap_topic)
+        mocap = dict(patterns[0].topics) if patterns else {}
+        odom_topics = [t for t, ty in topics.items() if ty == ODOMETRY and t not in mocap]
         wanted = [
             c for c in conns if c.topic in range_nodes or c.topic in mocap or c.topic in odom_topics
         ]
@@ -155,8 +267,8 @@ def inspect_bag(path: str | Path) -> BagInventory:
                 zero[topic] &= True  # stays True only while every stamp is zero
             t = stamp if stamp != 0.0 else recv
             if topic in mocap:
-                p = msg.pose.position
-                rows[topic].append((t, p.x, p.y))
+                gt = pose_to_ground_truth(msg, "", t=t)
+                rows[topic].append((t, gt.x, gt.y))
             elif topic in range_nodes:
                 if not layout:  # no stored definition: the layout the payload fits
                     layout = next(
@@ -218,6 +330,9 @@ def inspect_bag(path: str | Path) -> BagInventory:
         zero_stamp_topics=sorted(t for t in rows if zero[t]),
         stale_ranges=stale,
         range_messages=sum(len(rows[t]) for t in range_nodes),
+        mocap_pattern=patterns[0].pattern if patterns else "",
+        mocap_type=patterns[0].msgtype if patterns else "",
+        mocap_others=[f"{p.pattern} ({p.msgtype}, {len(p.topics)} bodies)" for p in patterns[1:]],
     )
 
 

@@ -1,4 +1,5 @@
-"""``relloc calibrate``: what a team config needs, estimated from a recording with motion capture.
+"""What a team config needs, estimated from a recording with motion capture (``relloc calibrate``,
+``relloc init``).
 
 :func:`calibrate` estimates UWB node-pair biases (from a bag or the UWB error CSV) and,
 optionally, heading offsets (from each robot's first motion-capture pose). It never decides
