@@ -222,8 +222,8 @@ def parse(
         sil.append(Window(num(a, "silence"), num(b, "silence"), r))
     bursts = []
     for text in range_burst:
-        a, b, off = (num(p, "range-burst") for p in fields_of(text, 3, "range-burst"))
-        bursts.append((Window(a, b), off))
+        start, end, off = (num(p, "range-burst") for p in fields_of(text, 3, "range-burst"))
+        bursts.append((Window(start, end), off))
     resets = []
     for text in odom_reset:
         r, t = fields_of(text, 2, "odom-reset")
@@ -243,8 +243,8 @@ def parse(
         shifts.append((int(num(i, "stamp-shift")), num(dt, "stamp-shift")))
     jumps = []
     for text in stream_jump:
-        t, dt = (num(p, "stream-jump") for p in fields_of(text, 2, "stream-jump"))
-        jumps.append((t, dt))
+        at, by = (num(p, "stream-jump") for p in fields_of(text, 2, "stream-jump"))
+        jumps.append((at, by))
     return Faults(
         drop=drop,
         silence=tuple(sil),

@@ -118,7 +118,7 @@ def run_scenario(name: str, opts: DemoOptions, console: Console) -> ScenarioRepo
             "estimates are in its odometry frame, which a static reference would leave unobservable)"
         )
     pipelines = [build_pipeline(m, config, seed=opts.seed) for m in opts.methods]
-    if (header := filter_header(opts.methods, config)) is not None:
+    if (header := filter_header(list(opts.methods), config)) is not None:
         console.print(f"{name}: {header}", soft_wrap=True, highlight=False, markup=False)
     gt = GroundTruth(config.reference)
     engine = Engine(pipelines, truth_sinks=[gt.add])

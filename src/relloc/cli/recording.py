@@ -11,7 +11,7 @@ Everything that would make the run useless is checked before it starts, once the
 open: a warm-up as long as the recording, and for a bag a robot whose ``uwb_node`` matches no
 range topic (a warning) or no range at all between the team's robots (an error: every method
 fuses ranges, :meth:`~relloc.sources.rosbag.RosbagSource.check_ranges`).
-``relloc calibrate`` is in :mod:`relloc.cli` (its library part: :mod:`relloc.drafting.calibrate`).
+``relloc calibrate`` lives in :mod:`relloc.cli.calibrate`.
 """
 
 from __future__ import annotations
@@ -95,7 +95,7 @@ def run_recording(
         for m in opts.methods
     ]
     check_warmup(opts.warmup, source.duration, name)
-    if (header := filter_header(opts.methods, config)) is not None:
+    if (header := filter_header(list(opts.methods), config)) is not None:
         console.print(f"{name}: {header}", soft_wrap=True, highlight=False, markup=False)
     for warning in source.warnings:
         console.print(f"[yellow]warning:[/] {escape(warning)}", soft_wrap=True)

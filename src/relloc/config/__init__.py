@@ -46,6 +46,7 @@ __all__ = [
     "ResamplingConfig",
     "RobotConfig",
     "RosDistro",
+    "RosInterfaceKind",
     "SelfCalibrationConfig",
     "TeamConfig",
     "UwbConfig",
@@ -56,6 +57,9 @@ __all__ = [
 RosDistro = Literal["humble", "iron", "jazzy", "kilted", "lyrical", "rolling"]
 """The ROS 2 distributions relloc knows, oldest first (``rolling``: the newest ``rosbags`` ships;
 their type stores: ``relloc.ros.distros``)."""
+
+RosInterfaceKind = Literal["bridge", "rmw_zenoh"]
+"""How the robots are on Zenoh live (``relloc.ros.interfaces``)."""
 
 
 @dataclass(frozen=True)
@@ -74,7 +78,7 @@ class TeamConfig(Checked):
     mocap_topic: str = "/vrpn_client_node/{body}/pose"
     clock_offset: float | None = None
     """Header stamp minus receive time (s) for topics with zero stamps; ``None``: estimate it."""
-    ros_interface: Literal["bridge", "rmw_zenoh"] = "bridge"
+    ros_interface: RosInterfaceKind = "bridge"
     """How the robots are on Zenoh live: zenoh-bridge-ros2dds or rmw_zenoh (``--ros-interface``
     overrides it; see ``relloc.ros.interfaces``)."""
     ros_distro: RosDistro = "jazzy"

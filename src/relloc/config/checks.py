@@ -26,7 +26,8 @@ class Checked:
     one is made (:func:`check_value`)."""
 
     def __post_init__(self) -> None:
-        hints = type_hints(type(self))
+        cls: type = type(self)
+        hints = type_hints(cls)
         for f in fields(self):  # type: ignore[arg-type]
             check_value(hints[f.name], getattr(self, f.name), f.name)
 

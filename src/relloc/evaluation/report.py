@@ -269,9 +269,9 @@ def print_table(report: ScenarioReport, console: Console | None = None) -> None:
     for group in sorted({metric.table_group for metric in METRICS}):
         for method, m in report.methods.items():
             for metric in METRICS:
-                result = m.results.get(metric.name)
-                if metric.table_group == group and result is not None:
-                    for extra in result.tables(report.name, method):
+                found = m.results.get(metric.name)
+                if metric.table_group == group and found is not None:
+                    for extra in found.tables(report.name, method):
                         console.print(extra)
 
 

@@ -57,7 +57,11 @@ class EstimateCollector:
         for robot in config.others:
             topic = pose_topic(prefix, robot, None if primary else method)
             channel = iface.channel(topic, POSE_WITH_COVARIANCE_STAMPED)
-            self.node.subscribe(channel, lambda s, robot=robot: self._on_pose(robot, s))
+
+            def on_pose(sample: Any, robot: str = robot) -> None:
+                self._on_pose(robot, sample)
+
+            self.node.subscribe(channel, on_pose)
         self.node.subscribe(iface.channel(f"{prefix.strip('/')}/trace", STRING), self._on_trace)
 
     def _on_pose(self, robot: str, sample: Any) -> None:

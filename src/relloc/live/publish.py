@@ -277,10 +277,11 @@ def replay_bag(
                     continue
                 if recv_ns > last_ns:
                     return
-                payload: bytes | None = bytes(raw)
+                data = bytes(raw)
+                payload: bytes | None = data
                 if faulted is not None:
                     try:
-                        payload = faulted(conn.topic, conn.msgtype, payload, recv_ns * 1e-9)
+                        payload = faulted(conn.topic, conn.msgtype, data, recv_ns * 1e-9)
                     except MessageDecodeError as exc:  # a damaged message goes out as it is
                         log.warning("%s: not faulted (%s)", conn.topic, exc)
                 if payload is not None and conn.topic in channels:

@@ -136,7 +136,11 @@ class SimRobots:
     def start(self) -> None:
         """Subscribe to the commanded robots' ``cmd_vel`` topics."""
         for robot, channel in self.cmd_channels.items():
-            self._pubs.node.subscribe(channel, lambda s, robot=robot: self._on_cmd(robot, s))
+
+            def on_cmd(sample: Any, robot: str = robot) -> None:
+                self._on_cmd(robot, sample)
+
+            self._pubs.node.subscribe(channel, on_cmd)
 
     def close(self) -> None:
         """Undeclare subscribers, publishers and tokens."""

@@ -41,7 +41,7 @@ def onnx_bytes(model: Exportable) -> bytes:
         torch.onnx.export(
             model,
             (example,),
-            buf,
+            buf,  # type: ignore[arg-type]  # annotated as a path, takes a file too
             dynamo=False,
             input_names=[INPUT_NAME],
             output_names=list(OUTPUT_NAMES),

@@ -126,6 +126,9 @@ class FeatureTransform(nn.Module):
     robot parked facing elsewhere) into a huge input.
     """
 
+    mean: torch.Tensor
+    scale: torch.Tensor
+
     def __init__(self, features: str, n_features: int) -> None:
         super().__init__()
         self.features = features
@@ -161,8 +164,10 @@ class ConvLSTMCell1d(nn.Module):
         self.hidden = hidden
         self.conv_x = nn.Conv1d(in_channels, 4 * hidden, kernel, padding=kernel // 2)
         self.conv_h = nn.Conv1d(hidden, 4 * hidden, kernel, padding=kernel // 2, bias=False)
+        bias = self.conv_x.bias
+        assert bias is not None  # Conv1d's default bias=True
         with torch.no_grad():  # forget-gate bias 1: remember by default, as Keras does
-            self.conv_x.bias[hidden : 2 * hidden].fill_(1.0)
+            bias[hidden : 2 * hidden].fill_(1.0)
 
     def forward(
         self, x: torch.Tensor, state: tuple[torch.Tensor, torch.Tensor] | None
@@ -197,6 +202,10 @@ class ConvLSTM1d(nn.Module):
 
 class RangeErrorModel(nn.Module):
     """Raw window ``(B, n_steps, 3)`` -> predicted residual and its sigma, ``(B, 1)`` each, m."""
+
+    target_mean: torch.Tensor
+    target_std: torch.Tensor
+    sigma_scale: torch.Tensor
 
     def __init__(self, arch: Architecture, n_steps: int) -> None:
         super().__init__()
@@ -286,6 +295,8 @@ class EnsembleModel(nn.Module):
     what a new session brings. :attr:`sigma_scale` calibrates it on the validation blocks. One
     member is a plain model (its spread is zero).
     """
+
+    sigma_scale: torch.Tensor
 
     def __init__(self, members: list[RangeErrorModel]) -> None:
         super().__init__()

@@ -57,7 +57,7 @@ class InputSupport:
         pad = MARGIN * (hi - lo)
         return cls(
             tuple((lo - pad).tolist()), tuple((hi + pad).tolist()), frozenset(cells.tolist())
-        )  # type: ignore[arg-type]
+        )
 
     def contains(self, windows: NDArray[np.floating[Any]]) -> NDArray[np.bool_]:
         """Per window ``(N, n_steps, 3)``: inside every interval and in an occupied cell."""

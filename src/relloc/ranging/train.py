@@ -19,7 +19,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -380,7 +380,8 @@ def train_directory(
         )
         reports.append(report)
         dev_errors.append(data.clean.error[: data.split.end_dev])
-        norm = model.members[0].transform
+        first = cast(RangeErrorModel, model.members[0])  # members: list[RangeErrorModel]
+        norm = first.transform
         train_resid = win["train"][1]
         entries[key] = {
             "nodes": [data.clean.node_a, data.clean.node_b],
@@ -389,8 +390,8 @@ def train_directory(
             "normalisation": {
                 "feature_mean": [float(v) for v in norm.mean],
                 "feature_scale": [float(v) for v in norm.scale],
-                "target_mean": float(model.members[0].target_mean),
-                "target_std": float(model.members[0].target_std),
+                "target_mean": float(first.target_mean),
+                "target_std": float(first.target_std),
             },
             "residual_min": float(np.min(train_resid)),
             "residual_max": float(np.max(train_resid)),

@@ -40,7 +40,7 @@ _ODOM_BODY = {e: struct.Struct(e + "85d") for e in "<>"}
 # sensor_msgs/Range after the header: radiation_type (uint8), then, aligned to 4,
 # field_of_view, min_range, max_range, range (float32), and since Iron variance (float32).
 _RANGE_FLOATS = {e: struct.Struct(e + "4f") for e in "<>"}
-_RANGE_SIZES = {False: 16, True: 20}
+_RANGE_SIZES: dict[bool | None, int] = {False: 16, True: 20}
 
 
 def split_stamp(t: float) -> tuple[int, int]:
@@ -95,8 +95,8 @@ def decode_odometry(raw: bytes) -> tuple[float, float, float, float, float, floa
     head = _header(raw)
     if head is None:
         return None
-    endian, stamp, pos = head
-    pos = _string_end(raw, pos, endian)  # child_frame_id
+    endian, stamp, start = head
+    pos = _string_end(raw, start, endian)  # child_frame_id
     if pos is None:
         return None
     pos += -(pos - 4) % 8

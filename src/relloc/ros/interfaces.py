@@ -26,7 +26,7 @@ import struct
 from dataclasses import dataclass
 from typing import Final
 
-from relloc.config import ConfigError
+from relloc.config import ConfigError, RosDistro, RosInterfaceKind
 from relloc.ros.distros import key_hash
 from relloc.ros.stores import DEFAULT_DISTRO, check_distro
 
@@ -172,10 +172,10 @@ class RosInterface:
     """Key formats, attachments and liveliness tokens of one interface (``bridge`` or
     ``rmw_zenoh``) on one ROS domain, for robots of one ROS 2 distribution."""
 
-    kind: str = BRIDGE
+    kind: RosInterfaceKind = BRIDGE
     domain_id: int = 0
     """``ROS_DOMAIN_ID`` (rmw_zenoh only: the first chunk of every key)."""
-    distro: str = DEFAULT_DISTRO
+    distro: RosDistro = DEFAULT_DISTRO
     """The robots' ROS 2 distribution: the layouts relloc publishes and, with rmw_zenoh, the
     type hashes of its keys and tokens (:mod:`relloc.ros.distros`)."""
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from itertools import combinations
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -30,8 +31,9 @@ from relloc.simulator.streams import stream
 
 FloatArray = NDArray[np.float64]
 
-Schedule = dict[str, FloatArray]
-"""Sample times ``"t"`` and, per sample, the draws a sensor's model reads (by name)."""
+Schedule = dict[str, NDArray[Any]]
+"""Sample times ``"t"`` and, per sample, the draws a sensor's model reads (by name): floats,
+or booleans for the events drawn as such (a miss, an outlier)."""
 Sightings = list[tuple[SightingSensorModel, str, str, Schedule]]
 """Per sighting sensor and ordered (observer, target) pair: its schedule."""
 

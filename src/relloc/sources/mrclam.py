@@ -268,7 +268,7 @@ class MrclamSource:
         return self.end_time - self.start_time
 
     def __iter__(self) -> Iterator[Event]:
-        streams = [self._odometry(i) for i in self.robots]
+        streams: list[Iterator[Event]] = [self._odometry(i) for i in self.robots]
         streams += [self._sightings(i) for i in self.robots]
         if self.ground_truth:
             streams += [self._truth(i) for i in self.robots]

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import logging
 import shutil
-from collections.abc import Callable, Collection, Iterator
+from collections.abc import Callable, Collection, Iterator, Mapping
 from contextlib import contextmanager, suppress
 from dataclasses import replace
 from pathlib import Path
@@ -329,7 +329,9 @@ class RosbagSource:
         template = self.config.uwb.range_topic
         if self.config.uwb.peer_field:  # one topic per node, listing any of its peers
             every = tuple(r.uwb_node for r in self.config.robots if r.uwb_node)
-            found = {t: every for t, r in self._routes.items() if r.kind == "range"}
+            found: Mapping[str, tuple[str, ...]] = {
+                t: every for t, r in self._routes.items() if r.kind == "range"
+            }
         else:
             found = match_range_topics(self.topics, template)
         ranged = {node for pair in found.values() for node in pair}
