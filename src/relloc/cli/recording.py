@@ -11,7 +11,7 @@ Everything that would make the run useless is checked before it starts, once the
 open: a warm-up as long as the recording, and for a bag a robot whose ``uwb_node`` matches no
 range topic (a warning) or no range at all between the team's robots (an error: every method
 fuses ranges, :meth:`~relloc.sources.rosbag.RosbagSource.check_ranges`).
-``relloc calibrate`` lives in :mod:`relloc.cli.calibrate`.
+``relloc calibrate`` is in :mod:`relloc.cli` (its library part: :mod:`relloc.drafting.calibrate`).
 """
 
 from __future__ import annotations
