@@ -381,7 +381,8 @@ def rank_node_assignments(
     errors: dict[tuple[str, str, str], np.ndarray] = {}  # (node pair, robot a, robot b)
 
     def pair_errors(nodes: str, a: str, b: str) -> np.ndarray:
-        key = (nodes, *sorted((a, b)))
+        lo, hi = sorted((a, b))
+        key = (nodes, lo, hi)
         if key not in errors:
             rows = np.array(ranges[nodes]).reshape(-1, 2)
             ta, tb = arrays[key[1]], arrays[key[2]]

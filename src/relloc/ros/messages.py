@@ -394,7 +394,7 @@ def range_msg(event: RangeEvent, *, frame_id: str = "", distro: str = DEFAULT_DI
     UWB driver's messages (radiation type 0, field of view and limits 0; ``range`` in metres;
     since Iron a ``variance`` of 0, "unknown")."""
     msg = typestore(distro).types[RANGE]
-    extra = {"variance": 0.0} if "variance" in msg.__dataclass_fields__ else {}
+    extra = {"variance": 0.0} if "variance" in getattr(msg, "__dataclass_fields__", {}) else {}
     return msg(
         header=_header(event.t, frame_id),
         radiation_type=0,

@@ -306,7 +306,7 @@ class Range(Sensor):
         _check_range_template(uwb.range_topic, peers=bool(fields.peer))
         with_nodes = [r for r in config.robots if r.uwb_node]
         nodes = {r.uwb_node: r.name for r in with_nodes}
-        base = {
+        base: dict[str, Any] = {
             "kind": self.kind,
             "msgtypes": (uwb.range_type,),
             "stamped": fields.header,
@@ -362,7 +362,7 @@ class Range(Sensor):
         if fast is not None:
             return self._event(route, stream, "", fast[1], stamp, ingest)
         fields, nodes = route.params
-        events = []
+        events: list[Event] = []
         for peer, distance in fields.ranges(msg):
             robot_b = nodes.get(peer) if peer else route.robot_b
             if robot_b is None or robot_b == route.robot:
