@@ -120,8 +120,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from figures import markers, write_between
 
+from relloc.estimators.particle.filter import ParticleFilter
 from relloc.filter.motion import OdometryMotion
-from relloc.filter.pf import ParticleFilter
 from relloc.filter.ranges import GROSS_FRACTION, NLOS_FRACTION, NLOS_SIGMA, RangeBatch
 from relloc.filter.state import StateLayout
 from relloc.malloc import tune_malloc

@@ -33,7 +33,7 @@ The references, measured in the same run, at every point:
 The ratios ``update / pass`` and ``update / floor`` say how far the update is from what the
 memory allows; they mean something on any machine, where the absolute times do not.
 
-A third sweep times the large-team representation, :class:`relloc.filter.graph_filter.RangeGraphFilter`
+A third sweep times the large-team representation, :class:`relloc.estimators.range_graph.filter.RangeGraphFilter`
 (what ``pf`` is for teams of ``LARGE_TEAM_ROBOTS`` and more, docs/scaling.md), over the same
 team sizes: the same predict + update + estimate + ``maybe_resample`` (pruning) cycle with
 ``--hypotheses`` Gaussians (1: converged; 72: the start's orientation hypotheses), each started
@@ -72,10 +72,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from figures import missing_section, write_between
 
+from relloc.estimators.particle.filter import ParticleFilter
+from relloc.estimators.range_graph.filter import RangeGraphFilter
 from relloc.filter.base import WeightedFilter
-from relloc.filter.graph_filter import RangeGraphFilter
 from relloc.filter.motion import OdometryMotion
-from relloc.filter.pf import ParticleFilter
 from relloc.filter.ranges import RangeBatch
 from relloc.filter.state import StateLayout
 

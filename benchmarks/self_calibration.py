@@ -1,6 +1,6 @@
 """Self-calibration: particles needed and time per update, for 2 and 5 robots.
 
-The self-calibrating filter (``relloc.filter.gaussian_sum``) carries a Kalman filter over
+The self-calibrating filter (``relloc.estimators.gaussian_sum.filter``) carries a Kalman filter over
 positions, headings, scales and biases in every particle, so its cost per particle grows with
 the square of the state (5 robots, online biases: 28 columns) while the number of particles it
 needs stays small. This script measures both, on the simulator:
@@ -45,7 +45,7 @@ from typing import Any
 
 import numpy as np
 
-import relloc.localizers.self_calibrating
+import relloc.estimators.gaussian_sum.localizer
 from relloc.cli.demo import DemoOptions, scenario_setup
 from relloc.config import TeamConfig
 from relloc.engine import Engine
@@ -157,8 +157,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--json", default=None, metavar="FILE")
     args = parser.parse_args(argv)
     if args.range_error == "white":  # not a config key: the layout the localizer builds
-        relloc.localizers.self_calibrating.CalibrationLayout = functools.partial(  # type: ignore[misc]
-            relloc.localizers.self_calibrating.CalibrationLayout, colored_bias=False
+        relloc.estimators.gaussian_sum.localizer.CalibrationLayout = functools.partial(  # type: ignore[misc]
+            relloc.estimators.gaussian_sum.localizer.CalibrationLayout, colored_bias=False
         )
     teams = ("two", "single", "five") if args.team == "all" else (args.team,)
     rows = []

@@ -26,11 +26,11 @@ import numpy as np
 
 from relloc.config import TeamConfig
 from relloc.engine import Engine, Pipeline
+from relloc.estimators.particle.localizer import ParticleFilterLocalizer
+from relloc.estimators.range_graph.localizer import RangeGraphLocalizer
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
 from relloc.localizers.multilateration import MultilaterationLocalizer
-from relloc.localizers.range_graph import RangeGraphLocalizer
-from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.simulator import scenarios
 from relloc.simulator.error_models import UwbErrorModel
 from relloc.simulator.kinematics import circle_loop

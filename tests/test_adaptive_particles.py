@@ -12,14 +12,14 @@ import pytest
 
 from relloc.config import ConfigError, FilterConfig
 from relloc.engine import Engine
+from relloc.estimators.particle.filter import ParticleFilter
+from relloc.estimators.particle.localizer import ParticleFilterLocalizer, count_rule
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
 from relloc.events import GroundTruthEvent
 from relloc.faults import Faults, inject
 from relloc.filter.adaptive import KldSampling, kld_bound, occupied_cells
-from relloc.filter.pf import ParticleFilter
 from relloc.filter.state import StateLayout
-from relloc.localizers.sampled import ParticleFilterLocalizer, count_rule
 from relloc.methods import build_pipeline
 from relloc.simulator import multi_scenario
 from relloc.simulator.scenarios import static_scenario

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from relloc.engine import Engine, Pipeline
+from relloc.estimators.particle.localizer import ParticleFilterLocalizer
 from relloc.events import RangeEvent
-from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.ranging.support import InputSupport
 from relloc.simulator import multi_scenario
 from relloc.stages.range_correction import RangeCorrector

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 from waiting import wait_until
 
+from relloc.estimators.particle.localizer import ParticleFilterLocalizer
 from relloc.evaluation.metrics import GroundTruth
 from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent
 from relloc.faults import Faults, Window, inject, parse
-from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.navigation.safety import SafetyGate
 from relloc.simulator import multi_scenario
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from relloc.estimators.particle.filter import ParticleFilter
 from relloc.filter.motion import OdometryMotion
-from relloc.filter.pf import ParticleFilter
 from relloc.filter.ranges import RangeBatch
 from relloc.filter.resampling import ess, log_normalize, normalize, systematic_resample
 from relloc.filter.state import StateLayout

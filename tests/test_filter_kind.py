@@ -12,14 +12,16 @@ import numpy as np
 import pytest
 from test_rosbag_source import synthetic_messages, synthetic_team
 
+from relloc import estimators
 from relloc.cli import main
 from relloc.config import ConfigError, TeamConfig
 from relloc.engine import Engine
+from relloc.estimators.gaussian_sum.localizer import SelfCalibratingLocalizer
+from relloc.estimators.particle.localizer import ParticleFilterLocalizer
+from relloc.estimators.range_graph.localizer import RangeGraphLocalizer
+from relloc.estimators.smoother import LARGE_TEAM_ROBOTS
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
-from relloc.localizers.range_graph import LARGE_TEAM_ROBOTS, RangeGraphLocalizer
-from relloc.localizers.sampled import ParticleFilterLocalizer
-from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
 from relloc.methods import build_pipeline, filter_choice, filter_header, filter_kind
 from relloc.simulator import multi_scenario
 from relloc.simulator.scenarios import grid_scenario
@@ -119,9 +121,9 @@ def test_a_kind_that_cannot_do_what_the_modes_ask_is_a_config_error(
 ) -> None:
     config = multi_scenario(seed=0, duration=1.0).config
     with pytest.raises(ConfigError, match=message):
-        config.with_filter(kind=kind).with_modes(**modes)
+        estimators.check(config.with_filter(kind=kind).with_modes(**modes))
     with pytest.raises(ConfigError, match=message):
-        config.with_modes(**modes).with_filter(kind=kind)
+        build_pipeline("pf", config.with_modes(**modes).with_filter(kind=kind))
     raw = {
         **config.to_dict(),
         "filter": {
@@ -135,7 +137,7 @@ def test_a_kind_that_cannot_do_what_the_modes_ask_is_a_config_error(
         },
     }
     with pytest.raises(ConfigError, match=message):
-        TeamConfig.from_dict(raw)
+        filter_kind(TeamConfig.from_dict(raw))
     # the Gaussian sum does all of it
     assert (
         filter_kind(config.with_filter(kind="gaussian_sum").with_modes(**modes)) == "gaussian_sum"
@@ -213,3 +215,14 @@ def test_the_run_header_of_a_recording_names_the_filter(
     ]
     assert main([*demo, "--out", str(tmp_path / "demo"), "--filter-kind", "gaussian_sum"]) == 0
     assert 'single: filter: gaussian_sum (kind "gaussian_sum")' in capsys.readouterr().out
+
+
+def test_an_unknown_kind_is_a_config_error_naming_the_registered_ones() -> None:
+    config = multi_scenario(seed=0, duration=1.0).config.with_filter(kind="kalman")
+    message = "filter.kind = 'kalman': expected one of auto, "
+    with pytest.raises(ConfigError, match=message) as raised:
+        estimators.check(config)
+    for name in ("particle", "gaussian_sum", "range_graph", "smoother"):
+        assert name in str(raised.value)
+    with pytest.raises(ConfigError, match=message):
+        build_pipeline("pf", config)

@@ -17,6 +17,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("events", "config", "estimate", "odometry", "malloc"),
     ("filter",),
     ("localizers", "stages", "ranging", "ros", "simulator", "faults", "sensors"),
+    ("estimators",),
     ("sources",),
     ("engine", "methods"),
     ("sinks", "evaluation", "drafting"),

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from relloc.engine import Engine
+from relloc.estimators.particle.localizer import ParticleFilterLocalizer
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
 from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent, RelativeObservation
@@ -15,7 +16,6 @@ from relloc.filter.measurement import ModelContext
 from relloc.filter.ranges import NLOS_FRACTION, RangeBatch
 from relloc.filter.state import StateLayout
 from relloc.localizers.multilateration import MultilaterationLocalizer
-from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.methods import build_pipeline
 from relloc.simulator import multi_scenario, single_scenario
 

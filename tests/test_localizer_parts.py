@@ -8,10 +8,10 @@ import math
 import numpy as np
 import pytest
 
+from relloc.estimators.particle.filter import ParticleFilter
+from relloc.estimators.range_graph.filter import RangeGraphFilter
 from relloc.events import WAKE_ALWAYS, OdometryEvent, RangeEvent, RelativeObservation, SightingEvent
-from relloc.filter.graph_filter import RangeGraphFilter
 from relloc.filter.measurement import MeasurementModel, hook
-from relloc.filter.pf import ParticleFilter
 from relloc.filter.ranges import RangeBatch
 from relloc.filter.registry import model_for
 from relloc.filter.sightings import SightingBatch

@@ -13,8 +13,10 @@ import pytest
 from model_checks import assert_rows_are_the_log_likelihood_and_its_gradient
 
 from relloc.config import TeamConfig
+from relloc.estimators.gaussian_sum.filter import CalibrationLayout, GaussianSumFilter
+from relloc.estimators.particle.filter import ParticleFilter
+from relloc.estimators.particle.localizer import ParticleFilterLocalizer
 from relloc.events import GroundTruthEvent, RangeEvent, RelativeObservation, SightingEvent
-from relloc.filter.gaussian_sum import CalibrationLayout, GaussianSumFilter
 from relloc.filter.measurement import (
     LinearRow,
     MeasurementModel,
@@ -22,10 +24,8 @@ from relloc.filter.measurement import (
     ValidationContext,
     finite,
 )
-from relloc.filter.pf import ParticleFilter
 from relloc.filter.registry import MODELS, register, unregister
 from relloc.filter.state import StateLayout
-from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.simulator import single_scenario
 
 

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from relloc.config import FilterConfig
-from relloc.filter.pf import ParticleFilter
+from relloc.estimators.particle.filter import ParticleFilter
 from relloc.filter.ranges import RangeBatch, range_mixture
 from relloc.filter.state import StateLayout
 
@@ -170,7 +170,7 @@ def test_an_online_bias_keeps_the_nlos_model_only_where_its_prior_is_a_calibrati
     model; an uncalibrated one is confounded with the one-sided excess: the symmetric model."""
     from relloc.events import RangeEvent
     from relloc.filter.measurement import ModelContext
-    from relloc.localizers.sampled import bias_layout
+    from relloc.localizers.priors import bias_layout
     from relloc.simulator import multi_scenario
 
     config = multi_scenario(seed=0, duration=1.0).config

@@ -20,9 +20,10 @@ import pytest
 
 from relloc.config import TeamConfig
 from relloc.engine import Engine
+from relloc.estimators.particle.localizer import ParticleFilterLocalizer
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
-from relloc.localizers.sampled import ParticleFilterLocalizer, bias_layout
+from relloc.localizers.priors import bias_layout
 from relloc.methods import build_pipeline
 from relloc.simulator import Simulation, UwbErrorModel, single_scenario
 from relloc.simulator.error_models import OdometryErrorModel

@@ -8,10 +8,10 @@ from typing import Any
 import numpy as np
 import pytest
 
-import relloc.filter.pf as pf_module
+import relloc.estimators.particle.filter as pf_module
+from relloc.estimators.particle.localizer import ParticleFilterLocalizer
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.summary import DeferredSummary, summarize
-from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.simulator import multi_scenario
 
 

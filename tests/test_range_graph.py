@@ -12,15 +12,16 @@ import pytest
 
 from relloc.engine import Engine, Pipeline
 from relloc.estimate import Estimate
+from relloc.estimators.gaussian_sum.localizer import SelfCalibratingLocalizer
+from relloc.estimators.particle.localizer import ParticleFilterLocalizer
+from relloc.estimators.range_graph.filter import RangeGraphFilter
+from relloc.estimators.range_graph.localizer import RangeGraphLocalizer
+from relloc.estimators.smoother import LARGE_TEAM_ROBOTS
+from relloc.estimators.smoother.localizer import SmootherLocalizer
 from relloc.events import Event, RangeEvent
-from relloc.filter.graph_filter import RangeGraphFilter
-from relloc.filter.range_graph import orientation_hypotheses, shape_from_ranges, start_covariance
+from relloc.filter.range_shape import orientation_hypotheses, shape_from_ranges, start_covariance
 from relloc.filter.ranges import RangeBatch
 from relloc.filter.state import StateLayout
-from relloc.localizers.range_graph import LARGE_TEAM_ROBOTS, RangeGraphLocalizer
-from relloc.localizers.sampled import ParticleFilterLocalizer
-from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
-from relloc.localizers.smoother import SmootherLocalizer
 from relloc.methods import filter_localizer
 from relloc.simulator.scenarios import grid_scenario
 

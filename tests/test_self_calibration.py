@@ -1,6 +1,6 @@
 """Self-calibration: relative headings, range biases and odometry scales online.
 
-Fast simulated runs of the Gaussian-sum filter (relloc.filter.gaussian_sum), its pieces, the
+Fast simulated runs of the Gaussian-sum filter (relloc.estimators.gaussian_sum.filter), its pieces, the
 evaluation of headings (wrapping at +-180 deg), and the acceptance runs on the TIERS bags (skipped
 without ``../shared/data``). Figures of the full acceptance runs: docs/self-calibration.md.
 """
@@ -19,13 +19,17 @@ from relloc.cli.demo import DemoOptions, scenario_setup
 from relloc.cli.recording import RunOptions, run_recording
 from relloc.config import ConfigError, TeamConfig
 from relloc.engine import Engine
+from relloc.estimators.gaussian_sum.filter import (
+    CalibrationLayout,
+    CalibrationNoise,
+    GaussianSumFilter,
+)
+from relloc.estimators.gaussian_sum.localizer import SelfCalibratingLocalizer
 from relloc.evaluation.metrics import GroundTruth, HeadingPaired, wrap_angle
 from relloc.evaluation.report import evaluate
 from relloc.events import OdometryEvent
-from relloc.filter.gaussian_sum import CalibrationLayout, CalibrationNoise, GaussianSumFilter
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.ranges import RangeBatch
-from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
 from relloc.methods import build_pipeline
 from relloc.simulator import (
     RobotMotion,

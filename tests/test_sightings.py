@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 
 from relloc.config import RobotConfig, TeamConfig
+from relloc.estimators.gaussian_sum.filter import CalibrationLayout, GaussianSumFilter
+from relloc.estimators.particle.filter import ParticleFilter
 from relloc.events import GroundTruthEvent, OdometryEvent, SightingEvent
-from relloc.filter.gaussian_sum import CalibrationLayout, GaussianSumFilter
 from relloc.filter.measurement import ModelContext
-from relloc.filter.pf import ParticleFilter
 from relloc.filter.registry import model_for
 from relloc.filter.sightings import SightingBatch, wrap
 from relloc.filter.state import StateLayout

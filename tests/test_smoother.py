@@ -16,11 +16,11 @@ from relloc.cli import main
 from relloc.config import ConfigError, TeamConfig
 from relloc.engine import Engine, Pipeline
 from relloc.estimate import OWN_FRAME, Estimate
+from relloc.estimators.smoother.graph import GraphSmoother
+from relloc.estimators.smoother.localizer import SmootherLocalizer
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import MethodReport, evaluate
 from relloc.events import Event, OdometryEvent, RangeEvent
-from relloc.filter.smoother_graph import GraphSmoother
-from relloc.localizers.smoother import SmootherLocalizer
 from relloc.methods import build_pipeline, filter_kind
 from relloc.simulator import multi_scenario
 
@@ -133,7 +133,7 @@ def test_what_the_smoother_cannot_do_is_a_config_error(modes: dict[str, str]) ->
     config = multi_scenario(seed=0, duration=1.0).config
     assert filter_kind(config.with_filter(kind="smoother")) == "smoother"
     with pytest.raises(ConfigError, match="smoother"):
-        config.with_filter(kind="smoother", **modes)
+        filter_kind(config.with_filter(kind="smoother", **modes))
 
 
 @pytest.mark.parametrize("odometry", [True, False])

@@ -10,10 +10,10 @@ import numpy as np
 
 from relloc.config import ConfigError
 from relloc.estimate import Estimate
+from relloc.estimators.particle.localizer import ParticleFilterLocalizer
 from relloc.evaluation.metrics import GroundTruth
 from relloc.events import GroundTruthEvent
 from relloc.faults import Faults, Window, inject
-from relloc.localizers.sampled import ParticleFilterLocalizer
 from relloc.navigation.safety import SafetyGate
 from relloc.simulator import multi_scenario
 

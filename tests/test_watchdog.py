@@ -13,13 +13,13 @@ import pytest
 
 from relloc.config import RobotConfig, TeamConfig
 from relloc.estimate import Estimate
+from relloc.estimators.gaussian_sum.localizer import SelfCalibratingLocalizer
 from relloc.events import GroundTruthEvent, RangeEvent, SightingEvent
 from relloc.filter.base import FilterEstimate
 from relloc.filter.calibration import CalibrationNoise
 from relloc.filter.state import StateLayout
 from relloc.filter.summary import ModeSummary
 from relloc.localizers.bounds import CalibrationBounds
-from relloc.localizers.self_calibrating import SelfCalibratingLocalizer
 from relloc.localizers.watchdog import WINDOW, ConsistencyWatchdog
 from relloc.navigation.safety import SafetyGate
 from relloc.simulator import multi_scenario

@@ -13,13 +13,12 @@
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 
+from relloc import estimators
 from relloc.config import TeamConfig
 from relloc.engine import Pipeline, Stage
 from relloc.localizers.filtered import FilterLocalizer
-from relloc.localizers.range_graph import large_compass_team
 
 METHODS = ("pf", "pf_ul", "pf_uv", "pf_ulv", "multilateration", "ekf_oracle")
 
@@ -84,52 +83,13 @@ def build_pipeline(
     return Pipeline(method, filter_localizer(config, seed=seed, method=method), stages)
 
 
-LOCALIZERS: dict[str, tuple[str, str]] = {
-    "particle": ("relloc.localizers.sampled", "ParticleFilterLocalizer"),
-    "gaussian_sum": ("relloc.localizers.self_calibrating", "SelfCalibratingLocalizer"),
-    "range_graph": ("relloc.localizers.range_graph", "RangeGraphLocalizer"),
-    "smoother": ("relloc.localizers.smoother", "SmootherLocalizer"),
-}
-"""The localizer of each filter kind of ``[filter] kind`` (:data:`relloc.config.FilterKind`), as
-module and class: imported when chosen, so a process that runs the particle filter does not
-carry GTSAM (the smoother) in its memory."""
-
-
 def filter_choice(config: TeamConfig) -> tuple[str, str]:
-    """The filter ``pf`` runs and why: the config's ``[filter] kind``, or for ``auto`` the one
-    the team's measurements call for (docs/explanation/filter-kinds.md), in this order:
-
-    * headings or odometry scales estimated: the self-calibrating Gaussian sum, the only kind
-      that estimates them;
-    * some robot without odometry (no ``odom_topic``): the smoother, which gives it a motion
-      prior and lets later ranges correct where it was (online biases included: a key per
-      node pair);
-    * a large team in the shared heading frame with calibrated biases: the smoother too, whose
-      window of native factors costs far less than particles and beats the range graph's
-      Gaussian sum there (docs/scaling.md);
-    * else the sampled particle filter (which estimates range biases itself with
-      ``bias_mode = "online"``).
-
-    A kind that cannot do what the modes ask is refused by the config itself
-    (:class:`relloc.config.FilterConfig`)."""
-    fc = config.filter
-    if fc.kind != "auto":
-        return fc.kind, "the config's"
-    sc = fc.self_calibration
-    if sc.heading_mode == "estimate":
-        return "gaussian_sum", "headings estimated"
-    if sc.odom_scale_mode == "online":
-        return "gaussian_sum", "odometry scales estimated"
-    n = len(config.robots)
-    without = [r.name for r in config.robots if not r.odom_topic]
-    if without:
-        who = f"{len(without)} of {n} robots without odometry"
-        if sc.bias_mode == "online":
-            return "smoother", f"{who}, biases online"
-        return "smoother", who
-    if large_compass_team(config):
-        return "smoother", f"{n} robots, a large team"
-    return "particle", f"{n} robots with odometry"
+    """The filter kind ``pf`` runs and why: the config's ``[filter] kind``, or for ``auto`` the
+    one the registry picks for the team (:func:`relloc.estimators.choose`,
+    docs/explanation/filter-kinds.md). A kind that cannot do what the modes ask is a
+    :class:`relloc.config.ConfigError`."""
+    kind, why = estimators.choose(config)
+    return kind.name, why
 
 
 def filter_kind(config: TeamConfig) -> str:
@@ -138,10 +98,10 @@ def filter_kind(config: TeamConfig) -> str:
 
 
 def filter_localizer(config: TeamConfig, *, seed: int = 0, method: str = "pf") -> FilterLocalizer:
-    """The localizer of the filter :func:`filter_kind` names."""
-    module, name = LOCALIZERS[filter_kind(config)]
-    cls: type[FilterLocalizer] = getattr(importlib.import_module(module), name)
-    return cls(config, seed=seed, method=method)
+    """The localizer of the kind :func:`filter_choice` names (its module imported now)."""
+    kind, _ = estimators.choose(config)
+    localizer: FilterLocalizer = kind.load()(config, seed=seed, method=method)
+    return localizer
 
 
 def filter_header(methods: list[str], config: TeamConfig) -> str | None:

@@ -349,15 +349,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_filter_kind(parser: argparse.ArgumentParser) -> None:
-    """``--filter-kind``: one of ``[filter] kind`` (:data:`relloc.config.filter.FilterKind`)."""
-    from typing import get_args
-
-    from relloc.config.filter import FilterKind
+    """``--filter-kind``: a registered kind or ``auto`` (:mod:`relloc.estimators`)."""
+    from relloc import estimators
 
     parser.add_argument(
         "--filter-kind",
         default=None,
-        choices=get_args(FilterKind),
+        choices=estimators.names(),
         help="the filter the pf methods run (default: the config's [filter] kind)",
     )
 

@@ -13,30 +13,11 @@ from typing import Any, Literal, get_args
 from relloc.config.checks import Checked, ConfigError, build, require, type_hints
 from relloc.config.moved import moved_key_error, moved_message
 
-FilterKind = Literal["auto", "particle", "gaussian_sum", "range_graph", "smoother"]
-"""The filter a config names: ``particle`` the sampled particle filter
-(:mod:`relloc.localizers.sampled`), ``gaussian_sum`` the self-calibrating Gaussian-sum filter
-(:mod:`relloc.localizers.self_calibrating`), ``range_graph`` the Gaussian sum started from the
-range graph (:mod:`relloc.localizers.range_graph`), ``smoother`` the fixed-lag factor-graph
-smoother (:mod:`relloc.localizers.smoother`); ``auto`` the one the modes and the team
-size call for (:func:`relloc.methods.filter_localizer`)."""
-
-CANNOT: dict[str, dict[str, tuple[str, str]]] = {
-    "particle": {
-        "heading_mode": ("estimate", "estimate the headings"),
-        "odom_scale_mode": ("online", "estimate the odometry scales"),
-    },
-    "range_graph": {
-        "heading_mode": ("estimate", "estimate the headings"),
-        "odom_scale_mode": ("online", "estimate the odometry scales"),
-        "bias_mode": ("online", "estimate the range biases online"),
-    },
-    "smoother": {
-        "heading_mode": ("estimate", "estimate the headings"),
-        "odom_scale_mode": ("online", "estimate the odometry scales"),
-    },
-}
-"""Per filter kind, the self-calibration modes it cannot run: mode key -> (value, what)."""
+FilterKind = str
+"""The filter a config names: a kind registered in :mod:`relloc.estimators` (``particle``,
+``gaussian_sum``, ``range_graph``, ``smoother`` and any plug-in's), or ``auto``, the one the
+registry picks for the team's modes and size (:func:`relloc.estimators.choose`). The registry
+checks the name and what the kind can do when the run starts (:func:`relloc.estimators.check`)."""
 
 
 @dataclass(frozen=True)
@@ -84,7 +65,7 @@ class ResamplingConfig(Checked):
     """After each resampling, the fraction of the variance of the formation's orientation
     about the reference that is re-drawn by a Liu-West kernel (mean and variance kept): restores
     the diversity that resampling loses along the one direction ranges cannot see
-    (``relloc.filter.pf``). Only for a formation (three robots or more). 0 disables it."""
+    (``relloc.estimators.particle.filter``). Only for a formation (three robots or more). 0 disables it."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -104,7 +85,7 @@ class SelfCalibrationConfig(Checked):
     odom_scale_mode: Literal["fixed", "online"] = "fixed"
     """``fixed``: odometry is multiplied by the configured ``odom_scale``; ``online``: every
     robot's odometry scale is estimated (prior
-    :attr:`relloc.filter.gaussian_sum.CalibrationNoise.scale_prior_sigma` around 1; not read
+    :attr:`relloc.estimators.gaussian_sum.filter.CalibrationNoise.scale_prior_sigma` around 1; not read
     from the config)."""
     scale_min: float = 0.5
     """Online scale: the smallest physical odometry scale; below it the calibration restarts
@@ -115,7 +96,7 @@ class SelfCalibrationConfig(Checked):
     """``calibrated``: each pair's bias is the config's (or ``uwb.default_bias``);
     ``online``: every particle carries a Kalman belief about each pair's bias (Rao-Blackwellised),
     its prior the calibration when present, else around ``uwb.default_bias``
-    (:mod:`relloc.localizers.sampled`)."""
+    (:mod:`relloc.estimators.particle.localizer`)."""
     bias_walk: float = 0.01
     """Online mode: random walk of each bias (m per sqrt(s)): orientation-dependent errors
     make the effective bias drift as the robots turn. The smoother holds each bias constant
@@ -128,13 +109,13 @@ class SelfCalibrationConfig(Checked):
     heading_split_std: float = 0.0
     """Estimate mode: split a Gaussian of the self-calibrating filter into three along a
     heading whose angular std has grown past this (rad; 0: never), keeping the count
-    (relloc.filter.gaussian_sum, "Splitting a heading that has grown wide")."""
+    (relloc.estimators.gaussian_sum.filter, "Splitting a heading that has grown wide")."""
     heading_prior_sigma_deg: float = 0.0
     """Estimate mode: > 0 uses the configured heading offsets as a prior with this standard
     deviation (deg); 0 (default): uniform prior, the offsets are not read."""
     selfcal_particles: int = 1000
     """Particles (Gaussians) of the self-calibrating filter (heading estimate or online scale),
-    each carrying a Kalman filter over positions and calibration (relloc.filter.gaussian_sum)."""
+    each carrying a Kalman filter over positions and calibration (relloc.estimators.gaussian_sum.filter)."""
     selfcal_init_particles: int = 20000
     """Particles of the annealed start of the self-calibrating filter (then subsampled)."""
     selfcal_position_sigma: float = 0.2
@@ -192,7 +173,7 @@ class FilterConfig(Checked):
 
     kind: FilterKind = "auto"
     """Which filter runs as ``pf`` (:data:`FilterKind`); one that cannot do what the modes of
-    ``[filter.self_calibration]`` ask is a :class:`ConfigError`."""
+    ``[filter.self_calibration]`` ask is a :class:`ConfigError` when the run starts."""
     particles: int = 50000
     """Particles of the sampled filter: its full count, at the start and while the posterior is
     wide (``[filter.adaptive]`` lowers it once the posterior is narrow)."""
@@ -205,17 +186,13 @@ class FilterConfig(Checked):
     adaptive: AdaptiveConfig = field(default_factory=AdaptiveConfig)
 
     def __post_init__(self) -> None:
-        """Reject values no filter can run with (a typo must not become a silent NaN), and a
-        filter kind that cannot do what the modes ask."""
+        """Reject values no filter can run with (a typo must not become a silent NaN). Whether
+        the kind exists and can do what the modes ask is the registry's check
+        (:func:`relloc.estimators.check`), when the run starts."""
         super().__post_init__()
         require(self, "filter", at_least_one=("particles",), non_negative=("init_window",))
-        modes = self.self_calibration
-        for key, (value, what) in CANNOT.get(self.kind, {}).items():
-            if getattr(modes, key) == value:
-                raise ConfigError(
-                    f"filter.kind = {self.kind!r} cannot {what} (filter.self_calibration.{key} = {value!r}): "
-                    f"use kind = 'gaussian_sum' or 'auto'"
-                )
+        if not self.kind:
+            raise ConfigError("filter.kind: expected a filter kind's name or 'auto'")
 
     @classmethod
     def sections(cls) -> dict[str, type]:

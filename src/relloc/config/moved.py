@@ -54,16 +54,16 @@ MOVED: dict[str, tuple[str, str]] = {
     "reinject_fraction": ("resampling", _constant("relloc.filter.base.REINJECT_FRACTION", "0.01")),
     "rotation_kernel_max_spread": (
         "resampling",
-        _constant("relloc.filter.pf.ROTATION_KERNEL_MAX_SPREAD", "0.25 rad"),
+        _constant("relloc.estimators.particle.filter.ROTATION_KERNEL_MAX_SPREAD", "0.25 rad"),
     ),
     # [filter.self_calibration]
     "bias_prior_sigma": (
         "self_calibration",
-        _constant("relloc.localizers.sampled.BIAS_PRIOR_SIGMA", "0.05 m"),
+        _constant("relloc.localizers.priors.BIAS_PRIOR_SIGMA", "0.05 m"),
     ),
     "bias_prior_sigma_uncalibrated": (
         "self_calibration",
-        _constant("relloc.localizers.sampled.BIAS_PRIOR_SIGMA_UNCALIBRATED", "0.25 m"),
+        _constant("relloc.localizers.priors.BIAS_PRIOR_SIGMA_UNCALIBRATED", "0.25 m"),
     ),
     "scale_prior_sigma": (
         "self_calibration",

@@ -3,7 +3,7 @@ symmetries.
 
 A uniform prior over the arena is very wide compared with a range's noise, so the first batch
 (``init_window`` of measurements) is fused by likelihood tempering
-(:meth:`relloc.filter.pf.ParticleFilter.initialize_annealed`), guided by the plain Gaussian
+(:meth:`relloc.estimators.particle.filter.ParticleFilter.initialize_annealed`), guided by the plain Gaussian
 likelihood (a robust one is flat far from the target at every temperature).
 
 Models invariant under a rotation or reflection of the formation about the reference (ranges)
@@ -13,7 +13,7 @@ mirror images (exact for an invariant target), and only then weighs them by the 
 (a detection vector fixes the orientation). With no invariant model in the batch it anneals on
 everything and does not spread. Both particle localizers start so; the self-calibrating one
 then hands the particles to its Gaussian-sum filter. A particle filter's recovery restart
-(:meth:`relloc.filter.pf.ParticleFilter.restart`) is the same start from the recent
+(:meth:`relloc.estimators.particle.filter.ParticleFilter.restart`) is the same start from the recent
 measurements, each formation then turned to the orientation of a trusted one
 (:func:`orient_by`).
 
@@ -40,7 +40,7 @@ FloatArray = NDArray[np.float64]
 
 MCMC_STEPS = 3
 """Metropolis moves per temperature of the annealed start
-(:meth:`relloc.filter.pf.ParticleFilter.initialize_annealed`): enough to re-create the diversity
+(:meth:`relloc.estimators.particle.filter.ParticleFilter.initialize_annealed`): enough to re-create the diversity
 each tempered resampling takes away."""
 REFERENCE_SIGMA = 0.5
 """Scale (m) of the robust fit of a re-annealed formation to the dead-reckoned reference: a
@@ -48,7 +48,7 @@ robot farther off than this (moved unseen) hardly sways the orientation."""
 
 
 class Annealable(Protocol):
-    """What the start asks of a particle filter (:class:`relloc.filter.pf.ParticleFilter`)."""
+    """What the start asks of a particle filter (:class:`relloc.estimators.particle.filter.ParticleFilter`)."""
 
     particles: FloatArray
 

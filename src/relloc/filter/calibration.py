@@ -1,4 +1,4 @@
-"""The calibration state of the self-calibrating filter (:mod:`relloc.filter.gaussian_sum`):
+"""The calibration state of the self-calibrating filter (:mod:`relloc.estimators.gaussian_sum.filter`):
 which blocks are estimated and their columns (:class:`CalibrationLayout`), their noise and
 priors (:class:`CalibrationNoise`), and the read-out of a heading from a mixture of Gaussians.
 

@@ -1,5 +1,5 @@
 """Splitting a Gaussian of the self-calibrating filter whose heading has grown wide
-(:meth:`relloc.filter.gaussian_sum.GaussianSumFilter.split_headings`).
+(:meth:`relloc.estimators.gaussian_sum.filter.GaussianSumFilter.split_headings`).
 
 A robot that nobody sees and that sees nobody is dead reckoning: its heading's random walk
 widens ``u`` tangentially, and its predicted position spreads along an arc (it drove some

@@ -34,7 +34,7 @@ class ModelContext:
     layout: TeamLayout
     robust: bool = True
     """False: the plain Gaussian likelihood without the outlier floor (the guide that the
-    annealed start tempers, :meth:`relloc.filter.pf.ParticleFilter.initialize_annealed`)."""
+    annealed start tempers, :meth:`relloc.estimators.particle.filter.ParticleFilter.initialize_annealed`)."""
     range_model: str = "nlos"
     """``nlos`` or ``symmetric`` (:class:`relloc.config.FilterConfig`): which range likelihood
     the localizer's filter uses."""

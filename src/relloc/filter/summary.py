@@ -318,7 +318,7 @@ def summarize(
     per-robot position covariances ``covs`` ``(M, K, 2, 2)``. ``can_resolve``: whether what was
     fused could have broken the rotation/reflection symmetry (:class:`Evidence`). ``floor``
     (m^2) is added to every published and shape variance: the share of the error that the
-    hypotheses' spread cannot show (:attr:`relloc.filter.pf.ParticleFilter.covariance_floor`).
+    hypotheses' spread cannot show (:attr:`relloc.estimators.particle.filter.ParticleFilter.covariance_floor`).
     ``deferred``: return a :class:`DeferredSummary`, its shape and distances computed on first
     read."""
     rel = np.asarray(rel, float)

@@ -1,20 +1,20 @@
 """The large-team localizer: the formation from the range graph, then a Gaussian sum over it.
 
-What a large team gets as ``pf`` (:func:`relloc.methods.filter_localizer` picks it by team
-size, :data:`LARGE_TEAM_ROBOTS`): the sampled filter's start from the uniform prior does not
+What a large team with odometry runs as ``pf`` where the config names ``kind = "range_graph"``:
+the sampled filter's start from the uniform prior does not
 scale past a few robots (``2(N-1)`` dimensions), its updates cost ``M`` particles times
 ``N(N-1)/2`` ranges, and the posterior it approximates is, after the start, a single narrow
 bump. So:
 
 * **Start** (``init_window`` of measurements, as the sampled filter): the shape from all
   pair ranges by classical MDS refined by SMACOF, turned to ``ROTATIONS`` evenly spaced angles
-  about the reference and mirrored (:mod:`relloc.filter.range_graph`), one Gaussian per
+  about the reference and mirrored (:mod:`relloc.filter.range_shape`), one Gaussian per
   hypothesis whose covariance spans the gap to its neighbours along the rotation
   (``rotation_sigma`` half a step) and the shape's own error (``SHAPE_SIGMA``, or twice the
   fit's RMS residual if larger). Robots the range graph does not connect to the reference
   start at the reference with the prior box's variance. Detections of the window then weigh
   the hypotheses.
-* **Cycle**: :class:`relloc.filter.graph_filter.RangeGraphFilter`: odometry prediction,
+* **Cycle**: :class:`relloc.estimators.range_graph.filter.RangeGraphFilter`: odometry prediction,
   all ranges of a batch in one sparse information-form EKF update per hypothesis, the
   hypotheses that motion contradicts pruned.
 * **Recovery**: when the divergence monitor finds it lost, the same start from the last
@@ -31,43 +31,22 @@ import numpy as np
 
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
+from relloc.estimators.range_graph.filter import RangeGraphFilter
 from relloc.events import RangeEvent
-from relloc.filter.graph_filter import RangeGraphFilter
-from relloc.filter.range_graph import orientation_hypotheses, shape_from_ranges, start_covariance
+from relloc.filter.range_shape import orientation_hypotheses, shape_from_ranges, start_covariance
 from relloc.filter.ranges import RangeBatch
 from relloc.filter.state import StateLayout
 from relloc.localizers.base import Measurement
 from relloc.localizers.filtered import FilterLocalizer
-from relloc.localizers.sampled import covariance_floor
+from relloc.localizers.priors import ROTATION_FLOOR, covariance_floor
 
-LARGE_TEAM_ROBOTS = 12
-"""Teams of at least this many robots are large to the automatic choice (docs/scaling.md)."""
 ROTATIONS = 36
 """Orientation hypotheses per handedness at the start (10 degrees apart)."""
 SHAPE_SIGMA = 0.3
 """Smallest std (m per coordinate) of the start's shape."""
-ROTATION_FLOOR = 0.05
-"""Std (rad) of the formation's rotation that the published covariance keeps once the
-orientation is resolved: a range error that follows the robots' headings (an antenna pattern)
-turns the apparent motion of every robot alike, about its amplitude over the robots' turning
-radius (docs/scaling.md: 2.5-3 degrees on the grid), which no fusion of ranges and odometry
-can tell from a turn of the formation."""
 REFERENCE_SIGMA = 1.0
 """Recovery: how far (m per coordinate) a restarted hypothesis may be from the last trusted
 formation and still be taken as its orientation."""
-
-
-def large_compass_team(config: TeamConfig) -> bool:
-    """Whether ``config`` is a large team for the automatic choice
-    (:func:`relloc.methods.filter_choice`): ``LARGE_TEAM_ROBOTS`` or more in the shared heading
-    frame with fixed odometry scales and calibrated (not online) biases."""
-    sc = config.filter.self_calibration
-    return (
-        len(config.robot_names) >= LARGE_TEAM_ROBOTS
-        and sc.heading_mode != "estimate"
-        and sc.odom_scale_mode != "online"
-        and sc.bias_mode != "online"
-    )
 
 
 class RangeGraphLocalizer(FilterLocalizer):

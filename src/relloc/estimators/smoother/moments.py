@@ -1,6 +1,6 @@
 """What the smoother publishes of its positions: per-pair step ranges, and the moments.
 
-Pure functions of arrays, for :mod:`relloc.localizers.smoother` (the causal estimate at every
+Pure functions of arrays, for :mod:`relloc.estimators.smoother.localizer` (the causal estimate at every
 step and the whole run smoothed afterwards publish alike):
 
 * :func:`per_pair`: a step's ranges merged into one per robot pair, the median distance with

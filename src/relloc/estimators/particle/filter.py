@@ -1,6 +1,6 @@
 """The particle filter over relative positions: pure NumPy, no I/O, no knowledge of sensors.
 
-The derivation: docs/explanation/internals.md, section ``relloc.filter.pf``.
+The derivation: docs/explanation/internals.md, section ``relloc.estimators.particle.filter``.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ about a heading arrives a little at every step (odometry increments compared wit
 changes); a particle that carries one sampled trajectory cannot integrate it, it can only be
 selected, so brute force stays hopeless at any affordable count.
 
-The derivation: docs/explanation/internals.md, section ``relloc.filter.gaussian_sum``.
+The derivation: docs/explanation/internals.md, section ``relloc.estimators.gaussian_sum.filter``.
 """
 
 from __future__ import annotations

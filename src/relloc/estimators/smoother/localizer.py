@@ -1,7 +1,7 @@
 """The fixed-lag smoother (``[filter] kind = "smoother"``): a factor graph of the team's positions.
 
 For teams where UWB ranges dominate (robots without odometry, large teams). Every
-``STEP_PERIOD`` the smoother (:class:`relloc.filter.smoother_graph.GraphSmoother`, GTSAM's
+``STEP_PERIOD`` the smoother (:class:`relloc.estimators.smoother.graph.GraphSmoother`, GTSAM's
 iSAM2 over a ``LAG`` window) gets one key per robot and:
 
 * per pair ranged in the step, one Huber-robust range factor: the median of the bias-corrected
@@ -12,7 +12,7 @@ iSAM2 over a ``LAG`` window) gets one key per robot and:
   (sightings with a range and a bearing, in the shared frame by the observer's yaw; detections'
   relative observations): the step's median vector, its noise undivided.
 
-**Start**: the range graph's shape (:func:`relloc.filter.range_graph.shape_from_ranges`); with
+**Start**: the range graph's shape (:func:`relloc.filter.range_shape.shape_from_ranges`); with
 odometry ``ROTATIONS`` rotations times two reflections each start a smoother, pruned by cost
 (``PRUNE_COST``, then the best after ``HYPOTHESIS_TIME``); without, the rotation/reflection is
 a gauge the random walks hold (``orientation_observable = False``, ring moments, the shape in
@@ -40,19 +40,18 @@ from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
 from relloc.estimate import OWN_FRAME, Estimate
+from relloc.estimators.smoother.graph import GraphSmoother, Relative
+from relloc.estimators.smoother.moments import flatten, moments, per_pair
 from relloc.events import RangeEvent, RelativeObservation, SightingEvent
 from relloc.filter.base import FilterEstimate
 from relloc.filter.measurement import ModelContext
 from relloc.filter.motion import PROCESS_NOISE
-from relloc.filter.range_graph import orientation_hypotheses, shape_from_ranges, start_covariance
+from relloc.filter.range_shape import orientation_hypotheses, shape_from_ranges, start_covariance
 from relloc.filter.ranges import RangeBatch
-from relloc.filter.smoother_graph import GraphSmoother, Relative
-from relloc.filter.smoother_moments import flatten, moments, per_pair
 from relloc.filter.summary import estimate_fields
 from relloc.localizers.base import Measurement
 from relloc.localizers.filtered import FilterLocalizer
-from relloc.localizers.range_graph import ROTATION_FLOOR
-from relloc.localizers.sampled import bias_layout
+from relloc.localizers.priors import ROTATION_FLOOR, bias_layout
 
 FloatArray = NDArray[np.float64]
 
@@ -418,7 +417,7 @@ class SmootherLocalizer(FilterLocalizer):
     # ---------------------------------------------------------------- the estimate
     def _estimate(self) -> FilterEstimate:
         """The best hypothesis's latest positions, covariances and summary as published
-        (:func:`relloc.filter.smoother_moments.moments`), with the online biases."""
+        (:func:`relloc.estimators.smoother.moments.moments`), with the online biases."""
         best = self.hypotheses[0]
         mean, cov, summary = moments(
             best.estimate.copy(), best.covariances(), self._observable, ROTATION_FLOOR

@@ -2,7 +2,7 @@
 
 Where the config says ``heading_mode = "estimate"`` or ``odom_scale_mode = "online"``, the
 quantities a sampled particle cannot integrate (a heading revealed a little at every step) are
-carried by a Gaussian-sum filter (:mod:`relloc.filter.gaussian_sum`, which explains why): each
+carried by a Gaussian-sum filter (:mod:`relloc.estimators.gaussian_sum.filter`, which explains why): each
 of its components is a Kalman filter over positions and calibration. It starts from the
 sampled filter's annealed start (:mod:`relloc.filter.annealing`), one Gaussian per particle,
 after which the sampled filter is dropped.
@@ -20,14 +20,19 @@ import numpy as np
 
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
+from relloc.estimators.gaussian_sum.filter import (
+    CalibrationLayout,
+    CalibrationNoise,
+    GaussianSumFilter,
+)
+from relloc.estimators.particle.filter import ParticleFilter
+from relloc.estimators.particle.localizer import particle_filter
 from relloc.filter.annealing import annealed_start
-from relloc.filter.gaussian_sum import CalibrationLayout, CalibrationNoise, GaussianSumFilter
-from relloc.filter.pf import ParticleFilter
 from relloc.filter.resampling import normalize, systematic_resample
 from relloc.localizers.base import Measurement
 from relloc.localizers.bounds import CalibrationBounds
 from relloc.localizers.filtered import FilterLocalizer
-from relloc.localizers.sampled import bias_layout, covariance_floor, particle_filter
+from relloc.localizers.priors import bias_layout, covariance_floor
 
 
 def calibration_layout(config: TeamConfig) -> CalibrationLayout:

@@ -1,6 +1,6 @@
 """A Gaussian-sum filter over a large team's formation, with a sparse update over the range graph.
 
-The derivation: docs/explanation/internals.md, section ``relloc.filter.graph_filter``.
+The derivation: docs/explanation/internals.md, section ``relloc.estimators.range_graph.filter``.
 """
 
 from __future__ import annotations
