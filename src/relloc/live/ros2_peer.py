@@ -92,7 +92,8 @@ def closure(distro: str, msgtypes: Iterable[str] = PEER_TYPES) -> list[str]:
         if name in seen:
             continue
         seen.add(name)
-        for _, (nodetype, detail) in fielddefs[name][1]:
+        fields: list[tuple[str, Any]] = fielddefs[name][1]  # rosbags' nested field unions
+        for _, (nodetype, detail) in fields:
             while int(nodetype) in (3, 4):  # arrays and sequences of ...
                 (nodetype, detail), _ = detail
             if int(nodetype) == 2:
