@@ -10,6 +10,7 @@ import pytest
 from relloc.config import CameraConfig
 from relloc.events import OdometryEvent, RangeEvent
 from relloc.ros import messages as rm
+from relloc.ros.estimate_msgs import NOT_ESTIMATED
 
 
 def _types():
@@ -265,11 +266,12 @@ def test_pose_with_covariance_layout() -> None:
     )
     full = np.asarray(msg.pose.covariance).reshape(6, 6)
     np.testing.assert_allclose(full[np.ix_([0, 1, 5], [0, 1, 5])], cov3)
-    assert full[2:5].sum() == 0.0
+    np.testing.assert_array_equal(np.diag(full)[2:5], [NOT_ESTIMATED] * 3)
+    assert full[2:5, [0, 1, 5]].sum() == full[[0, 1, 5]][:, 2:5].sum() == 0.0
     assert msg.header.frame_id == "ref"
     assert rm.yaw_from_quaternion(msg.pose.pose.orientation) == pytest.approx(0.3)
     cov2 = rm.pose_with_covariance_msg(0.0, 0.0, 0.0, cov=np.eye(2)).pose.covariance
-    assert cov2[0] == cov2[7] == 1.0 and cov2[35] == 0.0
+    assert cov2[0] == cov2[7] == 1.0 and cov2[35] == NOT_ESTIMATED
     with pytest.raises(ValueError, match="2x2 or 3x3"):
         rm.pose_with_covariance_msg(0.0, 0.0, 0.0, cov=np.eye(4))
 

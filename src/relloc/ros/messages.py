@@ -47,6 +47,7 @@ from relloc.events import (
 )
 from relloc.ros.cdr import split_stamp, yaw_from_xyzw
 from relloc.ros.codec import decode, encode, in_distro, in_layout, typestore, zero_message
+from relloc.ros.estimate_msgs import pose_covariance
 from relloc.ros.stores import (
     DEFAULT_DISTRO,
     MSG_DIR,
@@ -349,17 +350,19 @@ def pose_with_covariance_msg(
     reference robot, in the shared heading frame named by ``frame_id``).
 
     ``cov`` is the 2x2 covariance of ``(x, y)`` or the 3x3 one of ``(x, y, yaw)``; it fills the
-    matching entries of the row-major 6x6 ROS covariance (x, y, z, roll, pitch, yaw); the rest
-    stay zero (planar motion: z, roll and pitch are known).
+    matching entries of the row-major 6x6 ROS covariance (x, y, z, roll, pitch, yaw), the rest
+    as :func:`~relloc.ros.estimate_msgs.pose_covariance` does (relloc's one convention: what is
+    not given is not estimated). Without ``cov`` the 36 entries are zero. An
+    :class:`~relloc.estimate.Estimate` goes out by :mod:`relloc.ros.estimate_msgs`.
     """
     full = np.zeros((6, 6))
     if cov is not None:
         c = np.asarray(cov, dtype=float)
         if c.shape == (2, 2):
-            full[:2, :2] = c
+            full = np.array(pose_covariance(c.tolist())).reshape(6, 6)
         elif c.shape == (3, 3):
-            idx = np.array([0, 1, 5])
-            full[np.ix_(idx, idx)] = c
+            full = np.array(pose_covariance(c[:2, :2].tolist(), c[2, 2])).reshape(6, 6)
+            full[:2, 5], full[5, :2] = c[:2, 2], c[2, :2]
         else:
             raise ValueError(f"cov must be 2x2 or 3x3, got shape {c.shape}")
     types = typestore().types

@@ -1,7 +1,7 @@
 """A run as one MCAP file of ROS 2 CDR messages, for Foxglove and RViz.
 
 Per method and robot the estimates (``/relloc/<method>/<robot>/pose``,
-``geometry_msgs/msg/PoseWithCovarianceStamped`` in the estimate's :attr:`Estimate.frame_id`),
+``geometry_msgs/msg/PoseWithCovarianceStamped`` by :mod:`relloc.ros.estimate_msgs`),
 per method the flags of each estimate (``/relloc/<method>/status``,
 ``diagnostic_msgs/msg/DiagnosticArray``), per robot the ground truth where the run has one
 (``/relloc/truth/<robot>/pose``, ``geometry_msgs/msg/PoseStamped``, relative to the reference in
@@ -22,13 +22,13 @@ from typing import TYPE_CHECKING, Any
 
 from relloc.estimate import Estimate
 from relloc.events import GroundTruthEvent, RangeEvent
+from relloc.ros.estimate_msgs import estimate_pose_msg
 from relloc.ros.messages import (
     POSE_STAMPED,
     POSE_WITH_COVARIANCE_STAMPED,
     RANGE,
     encode,
     pose_stamped_msg,
-    pose_with_covariance_msg,
     range_msg,
     time_msg,
     typestore,
@@ -38,12 +38,9 @@ if TYPE_CHECKING:
     from relloc.engine import Engine
     from relloc.evaluation.report import ScenarioReport
 
-__all__ = ["DIAGNOSTIC_ARRAY", "LARGE_VARIANCE", "McapWriter", "estimate_records", "write_mcap"]
+__all__ = ["DIAGNOSTIC_ARRAY", "McapWriter", "estimate_records", "write_mcap"]
 
 DIAGNOSTIC_ARRAY = "diagnostic_msgs/msg/DiagnosticArray"
-LARGE_VARIANCE = 1e6
-"""Variance (m^2, rad^2) of what relloc does not estimate: z, roll, pitch, and the yaw without
-a heading estimate."""
 
 Record = tuple[float, str, str, Any]
 """``(time in s, topic, message type, message)``."""
@@ -52,20 +49,6 @@ Record = tuple[float, str, str, Any]
 def pose_topic(method: str, robot: str) -> str:
     """The topic of ``method``'s estimates of ``robot``."""
     return f"/relloc/{method}/{robot}/pose"
-
-
-def _covariance(est: Estimate, robot: str) -> list[float]:
-    """The row-major 6x6 covariance: the estimate's 2x2 position one, large z/roll/pitch, and
-    the heading's variance as the yaw's (large without one)."""
-    cov = [0.0] * 36
-    c = est.covariances.get(robot)
-    if c is not None:
-        (cov[0], cov[1]), (cov[6], cov[7]) = ((float(a), float(b)) for a, b in c)
-    heading = est.headings.get(robot)
-    for i in (2, 3, 4):
-        cov[7 * i] = LARGE_VARIANCE
-    cov[35] = float(heading[1]) ** 2 if heading is not None else LARGE_VARIANCE
-    return cov
 
 
 def _status_msg(est: Estimate) -> Any:
@@ -92,9 +75,8 @@ def estimate_records(method: str, estimates: Iterable[Estimate]) -> list[Record]
     """One pose per robot and one status per estimate of ``method``."""
     out: list[Record] = []
     for est in estimates:
-        for robot, (x, y) in est.positions.items():
-            msg = pose_with_covariance_msg(est.t, float(x), float(y), frame_id=est.frame_id)
-            msg.pose.covariance[:] = _covariance(est, robot)
+        for robot in est.positions:
+            msg = estimate_pose_msg(est, robot)
             out.append((est.t, pose_topic(method, robot), POSE_WITH_COVARIANCE_STAMPED, msg))
         out.append((est.t, f"/relloc/{method}/status", DIAGNOSTIC_ARRAY, _status_msg(est)))
     return out

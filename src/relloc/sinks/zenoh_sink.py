@@ -15,19 +15,15 @@ import numpy as np
 
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
-from relloc.ros.cdr import encode_pose_with_covariance_stamped
+from relloc.ros.estimate_msgs import estimate_pose_cdr
 from relloc.ros.interfaces import Channel, RosInterface
 from relloc.ros.messages import POSE_WITH_COVARIANCE_STAMPED
 from relloc.ros.zenoh_node import ZenohNode
 from relloc.sources.zenoh_source import Arrival
 
-__all__ = ["STRING", "UNKNOWN_VARIANCE", "ZenohSink", "pose_topic", "shape_message"]
+__all__ = ["STRING", "ZenohSink", "pose_topic", "shape_message"]
 
 log = logging.getLogger(__name__)
-
-UNKNOWN_VARIANCE = 1e6
-"""Yaw variance (rad^2) published with every pose: the filter estimates positions only."""
-
 
 STRING = "std_msgs/msg/String"
 
@@ -110,15 +106,8 @@ class ZenohSink:
         return self.channel(robot, method).key
 
     def __call__(self, estimate: Estimate) -> None:
-        for robot, (x, y) in estimate.positions.items():
-            cov = [0.0] * 36  # row-major 6x6 over (x, y, z, roll, pitch, yaw)
-            c = estimate.covariances.get(robot)
-            if c is not None:
-                (cov[0], cov[1]), (cov[6], cov[7]) = ((float(v) for v in row) for row in c)
-            cov[35] = UNKNOWN_VARIANCE
-            payload = encode_pose_with_covariance_stamped(
-                estimate.t, float(x), float(y), 0.0, cov, estimate.frame_id
-            )
+        for robot in estimate.positions:  # the one conversion: relloc.ros.estimate_msgs
+            payload = estimate_pose_cdr(estimate, robot)
             self.node.put(self.channel(robot, estimate.method), payload)
         if estimate.shape:
             text = json.dumps(shape_message(estimate))
