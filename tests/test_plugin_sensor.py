@@ -236,3 +236,34 @@ def test_the_simulator_runs_the_toy_sensors_hook(toy: None) -> None:
         rx, ry, _ = sim.true_pose(config.reference, e.t)
         assert (e.robot, e.x, e.y, e.sigma) == (TARGET, x - rx, y - ry, SIGMA)
     assert [e for e in with_fixes if not isinstance(e, ToyFixEvent)] == list(plain.events())
+
+
+@pytest.mark.parametrize("kind", ["particle", "gaussian_sum", "range_graph", "smoother"])
+def test_the_toy_sensor_reaches_every_kind(toy: None, recording: Any, kind: str) -> None:
+    """One model serves every estimator: the particle likelihood, the Gaussian sums' linear
+    rows and the smoother's factors (``ToyFixBatch.fixes``) all pull the target towards the
+    fixes. (The fixes contradict the ranges by ten of their sigmas: the smoother's watchdog
+    restarts on it, so only its oriented estimates are scored.)"""
+    bag, config, truth, fixes = recording
+    _, fused, stats = run(bag, config.with_filter(kind=kind))
+    assert stats["toy_fix"] == len(fixes)
+    assert stats.get("smoother_toy_fix_unused", 0) == 0
+    errors = []
+    for e in fused:
+        t = e.t - SIM_TIME_BASE
+        p, ref = truth.pose_at(TARGET, t), truth.pose_at(config.reference, t)
+        if t >= WARMUP and e.orientation_observable and p is not None and ref is not None:
+            errors.append(e.positions[TARGET][0] - (p[0] - ref[0]))
+    assert len(errors) >= 5
+    assert float(np.mean(errors)) > 0.25
+
+
+def test_a_kind_that_takes_no_factors_of_a_sensor_says_so_and_counts_it(
+    toy: None, recording: Any, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    bag, config, _, fixes = recording
+    monkeypatch.delattr(ToyFixBatch, "fixes")  # a plug-in written for the filters only
+    with caplog.at_level("WARNING"):
+        _, _, stats = run(bag, config.with_filter(kind="smoother"))
+    assert "the smoother uses no toy_fix measurements" in caplog.text
+    assert stats["smoother_toy_fix_unused"] == len(fixes)

@@ -21,6 +21,7 @@ from relloc.estimators.smoother.localizer import SmootherLocalizer
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import MethodReport, evaluate
 from relloc.events import Event, OdometryEvent, RangeEvent
+from relloc.filter.factors import RangeTerms
 from relloc.methods import build_pipeline, filter_kind
 from relloc.simulator import multi_scenario
 
@@ -103,22 +104,14 @@ def test_the_graph_stays_the_same_size_over_a_long_run() -> None:
     points = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 3.0], [-2.0, 1.0]])
     ia, ib = np.array([0, 0, 0, 1, 1, 2]), np.array([1, 2, 3, 2, 3, 3])
     graph = GraphSmoother(4, 0, lag=10.0)
-    none = np.zeros(0, np.intp)
     graph.start(
-        0.0,
-        points + 0.2,
-        np.tile(0.3**2 * np.eye(2), (4, 1, 1)),
-        none,
-        none,
-        np.zeros(0),
-        np.zeros(0),
+        0.0, points + 0.2, np.tile(0.3**2 * np.eye(2), (4, 1, 1)), ranges=RangeTerms.empty()
     )
     sizes = {}
     for step in range(1, 241):
         d = np.linalg.norm(points[ia] - points[ib], axis=1) + rng.normal(0.0, 0.1, ia.size)
-        graph.advance(
-            0.5 * step, np.zeros((4, 2)), np.full(4, 0.25), ia, ib, d, np.full(ia.size, 0.15)
-        )
+        ranges = RangeTerms(ia, ib, d, np.full(ia.size, 0.15), np.full(ia.size, -1))
+        graph.advance(0.5 * step, np.zeros((4, 2)), np.full(4, 0.25), ranges=ranges)
         sizes[step] = graph.size()
     assert sizes[60] == sizes[120] == sizes[240]
     assert graph.factors_added > 4 * sizes[240]
@@ -257,4 +250,4 @@ def test_sightings_alone_start_and_hold_the_smoother() -> None:
     # measured 0.09-0.14 m
     assert set(ape) == {"r1", "r2", "r3", "r4"} and max(ape.values()) < 0.2
     assert pipeline.estimates[-1].orientation_observable
-    assert pipeline.localizer.stats["smoother_sightings_unused"] > 0
+    assert pipeline.localizer.stats["smoother_sighting_unused"] > 0

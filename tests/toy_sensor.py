@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from relloc.config import ConfigError, RobotConfig, TeamConfig
+from relloc.filter.factors import RelativeFix
 from relloc.filter.measurement import (
     LinearRow,
     MeasurementModel,
@@ -80,6 +81,18 @@ class ToyFixBatch(MeasurementModel):
                 layout,
             )
         ]
+
+    @classmethod
+    def fixes(
+        cls, events: Sequence[ToyFixEvent], context: ModelContext
+    ) -> tuple[list[RelativeFix], int]:
+        """For a factor graph: each fix a relative position from the reference."""
+        layout = context.layout
+        ref = layout.index(layout.reference)
+        return [
+            RelativeFix(ref, layout.index(e.robot), np.array([e.x, e.y]), e.sigma**2 * np.eye(2))
+            for e in events
+        ], 0
 
     @classmethod
     def heard(cls, event: ToyFixEvent) -> tuple[str, ...]:

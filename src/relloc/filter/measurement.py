@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 if TYPE_CHECKING:
     from relloc.config import TeamConfig
+    from relloc.filter.factors import RelativeFix
     from relloc.filter.state import TeamLayout
 
 FloatArray = NDArray[np.float64]
@@ -46,6 +47,10 @@ class ModelContext:
     what needs no heading)."""
     shared_heading: bool = True
     """Whether the localizer's filter works in a shared (compass) heading frame."""
+    yaw_at: Callable[[str, float], float] | None = None
+    """A robot's odometry yaw (rad, shared heading frame) at any time, NaN where unknown: what
+    a factor graph's model turns an event's body-frame measurement with at the event's own
+    time (:meth:`MeasurementModel.fixes`); ``None``: not known."""
 
 
 class ValidationContext(Protocol):
@@ -138,6 +143,16 @@ class MeasurementModel(Protocol):
     def heard(cls, event: Any) -> tuple[str, ...]:
         """The robots ``event`` is news of (their position): none by default."""
         return ()
+
+    @classmethod
+    def fixes(
+        cls, events: Sequence[Any], context: ModelContext
+    ) -> tuple[list[RelativeFix], int] | None:
+        """What a factor graph (the smoother) takes of ``events``: measured relative positions
+        (:class:`relloc.filter.factors.RelativeFix`) and how many events gave none. ``None``
+        (the default): this model offers no factors, and a factor-graph kind counts its events
+        unused."""
+        return None
 
 
 def hook(model: type[MeasurementModel], name: str) -> Any:

@@ -138,7 +138,7 @@ def pair_sigma(config: TeamConfig, node_pair: str, base: float) -> float:
 
 
 @dataclass(frozen=True)
-class RangeBatch:
+class RangeBatch(MeasurementModel):
     """``K`` ranges between robots ``index_a[k]`` and ``index_b[k]`` (indices into the team).
 
     ``distance`` is the measured range, ``bias`` the pair's fixed bias (``measured = true +

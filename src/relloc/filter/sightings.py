@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from relloc.events import SightingEvent
+from relloc.filter.factors import RelativeFix
 from relloc.filter.measurement import (
     LinearRow,
     MeasurementModel,
@@ -70,7 +71,7 @@ class _Row:
 
 
 @dataclass(frozen=True)
-class SightingBatch:
+class SightingBatch(MeasurementModel):
     """The sightings of one batch as scalar rows, for one filter's state layout."""
 
     events: ClassVar[tuple[type, ...]] = (SightingEvent,)
@@ -93,6 +94,37 @@ class SightingBatch:
         return len(self.items)
 
     # ---------------------------------------------------------------- building, validation
+    @classmethod
+    def fixes(
+        cls, events: Sequence[SightingEvent], context: ModelContext
+    ) -> tuple[list[RelativeFix], int]:
+        """The sightings with a range and a bearing whose observer's yaw (at the sighting's
+        time, ``context.yaw_at``) is known: ``r (cos a, sin a)``, ``a`` the yaw plus the
+        bearing, radial std the range's, tangential ``r`` times the bearing's. The others are
+        counted: one range or one bearing alone does not fix a relative position."""
+        out: list[RelativeFix] = []
+        unused = 0
+        index = context.layout.index
+        for m in events:
+            yaw = (
+                context.yaw_at(m.observer, m.t)
+                if m.bearing is not None and context.yaw_at is not None
+                else math.nan
+            )
+            if m.range is None or m.bearing is None or not math.isfinite(yaw):
+                unused += 1
+                continue
+            a = yaw + m.bearing
+            u = np.array([math.cos(a), math.sin(a)])
+            w = np.array([-u[1], u[0]])
+            cov = m.sigma_range**2 * np.outer(u, u) + (m.range * m.sigma_bearing) ** 2 * np.outer(
+                w, w
+            )
+            out.append(
+                RelativeFix(index(m.observer), index(m.target), m.range * u, cov + 1e-8 * np.eye(2))
+            )
+        return out, unused
+
     @classmethod
     def build(
         cls, events: Sequence[SightingEvent], context: ModelContext
@@ -129,9 +161,9 @@ class SightingBatch:
                         "bearing",
                         i,
                         j,
-                        float(ev.bearing),
+                        float(ev.bearing),  # type: ignore[arg-type]
                         ev.sigma_bearing**2,
-                        psi=yaw,  # type: ignore[arg-type]
+                        psi=yaw,
                         support=2.0 * math.pi,
                     )
                 )

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from relloc.events import RelativeObservation
+from relloc.filter.factors import RelativeFix
 from relloc.filter.measurement import (
     LinearRow,
     MeasurementModel,
@@ -41,7 +42,7 @@ OUTLIER_FRACTION = 0.02
 
 
 @dataclass(frozen=True)
-class RelativePositionBatch:
+class RelativePositionBatch(MeasurementModel):
     """``K`` measured vectors ``p_target - p_observer`` in the shared heading frame."""
 
     events: ClassVar[tuple[type, ...]] = (RelativeObservation,)
@@ -82,6 +83,19 @@ class RelativePositionBatch:
     @classmethod
     def heard(cls, event: RelativeObservation) -> tuple[str, ...]:
         return (event.observer, event.target)
+
+    @classmethod
+    def fixes(
+        cls, events: Sequence[RelativeObservation], context: ModelContext
+    ) -> tuple[list[RelativeFix], int]:
+        """Each observation as it is: ``(dx, dy)`` with ``sigma`` per axis."""
+        index = context.layout.index
+        return [
+            RelativeFix(
+                index(v.observer), index(v.target), np.array([v.dx, v.dy]), v.sigma**2 * np.eye(2)
+            )
+            for v in events
+        ], 0
 
     @classmethod
     def rejection(cls, event: RelativeObservation, context: ValidationContext) -> str | None:

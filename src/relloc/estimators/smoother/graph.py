@@ -34,6 +34,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import solve_triangular
 
+from relloc.filter.factors import RangeTerms
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
@@ -142,18 +144,14 @@ class GraphSmoother:
         t: float,
         mean: FloatArray,
         cov: FloatArray,
-        index_a: IntArray,
-        index_b: IntArray,
-        distance: FloatArray,
-        range_sigma: FloatArray,
-        bias_index: IntArray | None = None,
+        *,
+        ranges: RangeTerms,
         relative: Relative | None = None,
     ) -> None:
         """The first step at ``t``: the reference at the origin, each robot ``i`` with a prior at
         ``mean[i]`` (``(N, 2)``, relative to the reference) of covariance ``cov[i]``
         (``(N, 2, 2)``; the reference's is ignored), each online bias at its prior, and the
-        start's ranges (team indices; ``bias_index``: per range its online bias, -1 none) and
-        ``relative`` observations."""
+        start's ``ranges`` and ``relative`` observations."""
         self.step = 0
         graph = gtsam.NonlinearFactorGraph()
         values = gtsam.Values()
@@ -180,7 +178,7 @@ class GraphSmoother:
             )
             values.insert(key, np.array([m]))
             stamps.insert((key, t))
-        self._ranges(graph, keys, index_a, index_b, distance, range_sigma, bias_index)
+        self._ranges(graph, keys, ranges)
         self._relatives(graph, keys, relative)
         self._update(graph, values, stamps)
 
@@ -189,20 +187,16 @@ class GraphSmoother:
         t: float,
         disp: FloatArray,
         disp_sigma: FloatArray,
-        index_a: IntArray,
-        index_b: IntArray,
-        distance: FloatArray,
-        range_sigma: FloatArray,
+        *,
+        ranges: RangeTerms,
         guess: FloatArray | None = None,
-        bias_index: IntArray | None = None,
         relative: Relative | None = None,
     ) -> None:
         """The next step at ``t``: robot ``i`` moved by ``disp[i]`` (``(N, 2)``) with per-axis
-        std ``disp_sigma[i]``; one Huber-robust range factor per pair (team indices
-        ``index_a``/``index_b``) of ``distance`` and std ``range_sigma``; ``guess`` ``(N, 2)``:
-        where to linearise the new keys (default: the estimate moved by ``disp``);
-        ``bias_index``: per range its online bias (-1: none; module docstring); ``relative``:
-        measured relative positions (sightings, detections)."""
+        std ``disp_sigma[i]``; one Huber-robust range factor per range term (one per pair,
+        its online bias where it has one: module docstring); ``guess`` ``(N, 2)``: where to
+        linearise the new keys (default: the estimate moved by ``disp``); ``relative``:
+        measured relative positions (sightings, detections, plug-ins)."""
         prev = self.keys()
         self.step += 1
         new = self.keys()
@@ -217,28 +211,20 @@ class GraphSmoother:
             stamps.insert((new[i], t))
         for key in self.bias_keys:
             stamps.insert((key, t))  # kept in the window (module docstring)
-        self._ranges(graph, new, index_a, index_b, distance, range_sigma, bias_index)
+        self._ranges(graph, new, ranges)
         self._relatives(graph, new, relative)
         self._update(graph, values, stamps)
 
     def _ranges(
-        self,
-        graph: gtsam.NonlinearFactorGraph,
-        keys: list[int],
-        index_a: IntArray,
-        index_b: IntArray,
-        distance: FloatArray,
-        range_sigma: FloatArray,
-        bias_index: IntArray | None,
+        self, graph: gtsam.NonlinearFactorGraph, keys: list[int], ranges: RangeTerms
     ) -> None:
         huber = gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K)
-        biases = [-1] * index_a.size if bias_index is None else bias_index.tolist()
         rows = zip(
-            index_a.tolist(),
-            index_b.tolist(),
-            distance.tolist(),
-            range_sigma.tolist(),
-            biases,
+            ranges.index_a.tolist(),
+            ranges.index_b.tolist(),
+            ranges.distance.tolist(),
+            ranges.sigma.tolist(),
+            ranges.bias.tolist(),
             strict=True,
         )
         for a, b, d, s, j in rows:

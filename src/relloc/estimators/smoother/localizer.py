@@ -12,8 +12,8 @@ iSAM2 over a ``LAG`` window) gets one key per robot and:
   (sightings with a range and a bearing, in the shared frame by the observer's yaw; detections'
   relative observations): the step's median vector, its noise undivided.
 
-**Start**: the range graph's shape (:func:`relloc.filter.range_shape.shape_from_ranges`); with
-odometry ``ROTATIONS`` rotations times two reflections each start a smoother, pruned by cost
+**Start** (:mod:`.start`): the range graph's shape; with
+odometry ``start.ROTATIONS`` rotations times two reflections each start a smoother, pruned by cost
 (``PRUNE_COST``, then the best after ``HYPOTHESIS_TIME``); without, the rotation/reflection is
 a gauge the random walks hold (``orientation_observable = False``, ring moments, the shape in
 the smoother's own frame). Without ranges: the relative positions chained from the reference.
@@ -32,6 +32,7 @@ optimised at once, scored as the row ``<method>_smoothed``.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 from collections import deque
 
@@ -40,20 +41,23 @@ from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
 from relloc.estimate import OWN_FRAME, Estimate
-from relloc.estimators.smoother.graph import GraphSmoother, Relative
+from relloc.estimators.smoother.graph import GraphSmoother
 from relloc.estimators.smoother.moments import flatten, moments, per_pair
-from relloc.events import RangeEvent, RelativeObservation, SightingEvent
+from relloc.estimators.smoother.start import chained_start, merge_fixes, range_start
+from relloc.events import RangeEvent
 from relloc.filter.base import FilterEstimate
-from relloc.filter.measurement import ModelContext
+from relloc.filter.factors import RangeTerms, RelativeFix
+from relloc.filter.measurement import ModelContext, hook
 from relloc.filter.motion import PROCESS_NOISE
-from relloc.filter.range_shape import orientation_hypotheses, shape_from_ranges, start_covariance
 from relloc.filter.ranges import RangeBatch
+from relloc.filter.registry import MODELS, model_for
 from relloc.filter.summary import estimate_fields
 from relloc.localizers.base import Measurement
 from relloc.localizers.filtered import FilterLocalizer
 from relloc.localizers.priors import ROTATION_FLOOR, bias_layout
 
 FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
 
 STEP_PERIOD = 0.5
 """Seconds between smoother steps (keys): ranges of a step are merged per pair."""
@@ -64,12 +68,6 @@ UNKNOWN_SPEED = 0.5
 odometry is missing: the speed a ground robot of the team stays under."""
 ODOMETRY_FLOOR = 0.01
 """Smallest std (m per axis) of a step's relative odometry displacement."""
-SHAPE_SIGMA = 0.3
-"""Smallest std (m per coordinate) of the start's shape."""
-WIDE_SIGMA = 10.0
-"""Std (m) of the prior of a robot no range places."""
-ROTATIONS = 8
-"""Orientation hypotheses per handedness at the start (with odometry)."""
 PRUNE_COST = 10.0
 """A hypothesis whose graph error exceeds the best's by this much is dropped (error is half
 the chi-square: a likelihood ratio of e^-10)."""
@@ -110,7 +108,23 @@ class SmootherLocalizer(FilterLocalizer):
         self._pair_bias: dict[tuple[int, int], int] = {}
         """Team index pair -> its online bias (pairs with a fixed bias are not in it)."""
         self.method = method
-        self._context = ModelContext(config, self.layout, range_model="symmetric")
+        self._context = ModelContext(
+            config,
+            self.layout,
+            range_model="symmetric",
+            yaw_at=lambda robot, t: self.odometry.pose(robot, t)[2],
+        )
+        self._no_factors = [
+            cls.stat
+            for cls in dict.fromkeys(MODELS.values())
+            if cls is not RangeBatch and hook(cls, "fixes")([], self._context) is None
+        ]
+        """The registered sensors the smoother takes no factors from (said at the start)."""
+        if self._no_factors:
+            log.warning(
+                "the smoother uses no %s measurements: they are counted as smoother_<name>_unused",
+                ", ".join(self._no_factors),
+            )
         lay = self.layout
         self._ref = lay.index(lay.reference)
         self._others = np.array([lay.index(r) for r in lay.others], dtype=np.intp)
@@ -123,9 +137,9 @@ class SmootherLocalizer(FilterLocalizer):
         time of its ranges, which nothing could carry to the batch's time."""
         self._step_batch: list[Measurement] = []
         self._recent: deque[RangeEvent] = deque()
-        self._pending_rel: list[tuple[int, int, FloatArray, FloatArray]] = []
+        self._pending_rel: list[RelativeFix] = []
         """The step's measured relative positions (:meth:`_observations`)."""
-        self._recent_rel: deque[tuple[float, tuple[int, int, FloatArray, FloatArray]]] = deque()
+        self._recent_rel: deque[tuple[float, RelativeFix]] = deque()
         self._moved = np.zeros(self._others.size)
         self._t_start = math.nan
         self._observable = False
@@ -144,16 +158,12 @@ class SmootherLocalizer(FilterLocalizer):
         self._t_start += dt
 
     # ---------------------------------------------------------------- ranges
-    def _ranges(
-        self, events: list[RangeEvent]
-    ) -> tuple[NDArray[np.intp], NDArray[np.intp], FloatArray, FloatArray]:
-        """Team indices, bias-corrected distances and noise of ``events`` (per 0.1 s batch: the
-        median per pair, :meth:`RangeBatch.build`; an online bias is the graph's, noted in
-        ``_pair_bias``)."""
+    def _ranges(self, events: list[RangeEvent]) -> RangeTerms:
+        """The range terms of ``events`` (per 0.1 s batch: the median per pair,
+        :meth:`RangeBatch.build`; an online bias is the graph's, noted in ``_pair_bias``)."""
         models = [b for b in RangeBatch.build(events, self._context) if isinstance(b, RangeBatch)]
         if not models:
-            empty = np.zeros(0)
-            return np.zeros(0, np.intp), np.zeros(0, np.intp), empty, empty
+            return RangeTerms.empty()
         ia = np.concatenate([b.index_a for b in models])
         ib = np.concatenate([b.index_b for b in models])
         for b in models:
@@ -165,43 +175,30 @@ class SmootherLocalizer(FilterLocalizer):
                         self._pair_bias[(min(a, c), max(a, c))] = self._bias_of_column[col]
         z = np.maximum(np.concatenate([b.distance - b.bias for b in models]), 0.0)
         s = np.concatenate([b.sigma for b in models])
-        return ia, ib, z, s
+        return RangeTerms(ia, ib, z, s, self._bias_index(ia, ib))
 
-    def _observations(
-        self, batch: list[Measurement]
-    ) -> list[tuple[int, int, FloatArray, FloatArray]]:
-        """``(observer, target, p_target - p_observer, its covariance)`` of ``batch``'s
-        detections' relative observations and its sightings with a range and a bearing whose
-        observer's yaw in the shared frame is known (``r (cos a, sin a)``, ``a`` the yaw plus
-        the bearing; radial std the range's, tangential ``r`` times the bearing's). Sightings
-        without one of them are counted in ``smoother_sightings_unused``: one range or one
-        bearing alone does not fix a relative position."""
-        out = []
-        index = self.layout.index
+    def _observations(self, batch: list[Measurement]) -> list[RelativeFix]:
+        """The relative positions ``batch``'s measurement models give a factor graph
+        (:meth:`MeasurementModel.fixes`: detections, sightings with a range and a bearing, a
+        plug-in's); what a model gives none of is counted in ``smoother_<stat>_unused``."""
+        groups: dict[type, list[Measurement]] = {}
         for m in batch:
-            if isinstance(m, RelativeObservation):
-                cov = m.sigma**2 * np.eye(2)
-                out.append((index(m.observer), index(m.target), np.array([m.dx, m.dy]), cov))
-            elif isinstance(m, SightingEvent):
-                yaw = self.odometry.pose(m.observer, m.t)[2] if m.bearing is not None else math.nan
-                if m.range is None or not math.isfinite(yaw):
-                    self.stats["smoother_sightings_unused"] += 1
-                    continue
-                a = yaw + m.bearing  # type: ignore[operator]
-                u = np.array([math.cos(a), math.sin(a)])
-                w = np.array([-u[1], u[0]])
-                cov = m.sigma_range**2 * np.outer(u, u) + (
-                    m.range * m.sigma_bearing
-                ) ** 2 * np.outer(w, w)
-                out.append(
-                    (index(m.observer), index(m.target), m.range * u, cov + 1e-8 * np.eye(2))
-                )
+            cls = model_for(m)
+            if cls is not None and cls is not RangeBatch:
+                groups.setdefault(cls, []).append(m)
+        out: list[RelativeFix] = []
+        for cls, events in groups.items():
+            got = hook(cls, "fixes")(events, self._context)
+            fixes, unused = ([], len(events)) if got is None else got
+            out += fixes
+            if unused:
+                self.stats[f"smoother_{cls.stat}_unused"] += unused
         return out
 
     def _remember(self, t: float, batch: list[Measurement]) -> list[RangeEvent]:
         """Keep the last ``RESTART_WINDOW`` of ranges and relative positions (a restart's
         start); the new ranges, the step's relative positions into ``_pending_rel``."""
-        ranges = [m for m in batch if isinstance(m, RangeEvent)]
+        ranges = [m for m in batch if model_for(m) is RangeBatch]
         self._recent.extend(ranges)
         while self._recent and self._recent[0].t < t - RESTART_WINDOW:
             self._recent.popleft()
@@ -219,7 +216,14 @@ class SmootherLocalizer(FilterLocalizer):
             return super()._step(t, batch)
         ranges = self._remember(t, batch)
         self._step_batch += batch
-        for a, b, z, s in zip(*(x.tolist() for x in self._ranges(ranges)), strict=True):
+        terms = self._ranges(ranges)
+        for a, b, z, s in zip(
+            terms.index_a.tolist(),
+            terms.index_b.tolist(),
+            terms.distance.tolist(),
+            terms.sigma.tolist(),
+            strict=True,
+        ):
             self._pending.setdefault((a, b), []).append((z, s))
         self._range_times += [m.t for m in ranges]
         if t - self.t < STEP_PERIOD:
@@ -230,7 +234,7 @@ class SmootherLocalizer(FilterLocalizer):
         return self._advance(t)
 
     def _start(self, t: float, batch: list[Measurement]) -> Estimate | None:
-        ranges = [m for m in batch if isinstance(m, RangeEvent)]
+        ranges = [m for m in batch if model_for(m) is RangeBatch]
         if not self._start_from(t, ranges, [o for _, o in self._recent_rel]):
             return None
         self._started(t)
@@ -240,25 +244,29 @@ class SmootherLocalizer(FilterLocalizer):
         self,
         t: float,
         ranges: list[RangeEvent],
-        observed: list[tuple[int, int, FloatArray, FloatArray]],
+        observed: list[RelativeFix],
     ) -> bool:
         """Start the hypotheses at ``t`` from ``ranges``' graph, or where they place no robot
         from the ``observed`` relative positions alone (module docstring); False where
         neither places a robot."""
-        ia, ib, z, s = self._ranges(ranges)
+        terms = self._ranges(ranges)
         n = len(self.layout.robots)
-        relative = _relative(observed)
-        start = self._range_start(t, ia, ib, z) if z.size else None
+        relative = merge_fixes(observed)
+        start = (
+            range_start(n, self._ref, terms, self._bias_mean, odometry=self._framed(t))
+            if terms.size
+            else None
+        )
         if start is None:
-            start = _chained_start(n, self._ref, observed)
+            start = chained_start(n, self._ref, observed)
             if start is None:
                 return False
         means, covs, placed, rms = start
-        pa, pb, pz, ps = per_pair(ia, ib, z, s)
+        merged = self._per_pair(terms.index_a, terms.index_b, terms.distance, terms.sigma)
         self.hypotheses = []
         for m in range(means.shape[0]):
             smoother = GraphSmoother(n, self._ref, LAG, self._bias_mean, self._bias_sigma)
-            smoother.start(t, means[m], covs[m], pa, pb, pz, ps, self._bias_index(pa, pb), relative)
+            smoother.start(t, means[m], covs[m], ranges=merged, relative=relative)
             self.hypotheses.append(smoother)
         self._placed = placed
         self._pending = {}
@@ -277,42 +285,13 @@ class SmootherLocalizer(FilterLocalizer):
         """Whether some robot has odometry at ``t`` (the shared heading frame exists)."""
         return any(math.isfinite(self.odometry.pose(r, t)[0]) for r in self.layout.robots)
 
-    def _range_start(
-        self, t: float, ia: NDArray[np.intp], ib: NDArray[np.intp], z: FloatArray
-    ) -> tuple[FloatArray, FloatArray, NDArray[np.bool_], float] | None:
-        """The range graph's shape in every orientation hypothesis: means ``(M, N, 2)``,
-        covariances ``(M, N, 2, 2)``, which robots it placed, its RMS residual; ``None`` where
-        it places no robot."""
-        j = self._bias_index(ia, ib)
-        prior = np.where(j >= 0, np.append(self._bias_mean, 0.0)[j], 0.0)  # the start's bias guess
-        shape = shape_from_ranges(len(self.layout.robots), self._ref, ia, ib, z - prior)
-        placed = shape.placed[self._others]
-        if shape.measured == 0 or not placed.any():
-            return None
-        rel = shape.relative[self._others]
-        n = len(self.layout.robots)
-        odometry = self._framed(t)
-        rotations = ROTATIONS if odometry else 1
-        formations = orientation_hypotheses(rel, rotations, reflections=odometry)
-        step = 2.0 * math.pi / rotations if odometry else 0.0
-        cov = start_covariance(formations, max(SHAPE_SIGMA, 2.0 * shape.rms), step)
-        k = self._others.size
-        blocks = np.stack(
-            [cov[:, 2 * i : 2 * i + 2, 2 * i : 2 * i + 2] for i in range(k)], axis=1
-        )  # (M, K, 2, 2)
-        blocks[:, ~placed] = WIDE_SIGMA**2 * np.eye(2)
-        means = np.zeros((formations.shape[0], n, 2))
-        means[:, self._others] = formations
-        covs = np.tile(np.eye(2), (formations.shape[0], n, 1, 1))
-        covs[:, self._others] = blocks
-        return means, covs, shape.placed.copy(), float(shape.rms)
-
     def _advance(self, t: float) -> Estimate | None:
         disp, sigma = self._own_motion(t)
         pending, self._pending = self._pending, {}
         observed, self._pending_rel = self._pending_rel, []
-        relative = _relative(observed)
-        ia, ib, z, s = per_pair(*flatten(pending))
+        relative = merge_fixes(observed)
+        merged = self._per_pair(*flatten(pending))
+        ia, ib, z = merged.index_a, merged.index_b, merged.distance
         reached = np.zeros(len(self.layout.robots), dtype=bool)
         reached[ia] = True
         reached[ib] = True
@@ -322,9 +301,7 @@ class SmootherLocalizer(FilterLocalizer):
         for smoother in self.hypotheses:
             guess = self._placement(smoother, newly, ia, ib, z)
             try:
-                smoother.advance(
-                    t, disp, sigma, ia, ib, z, s, guess, self._bias_index(ia, ib), relative
-                )
+                smoother.advance(t, disp, sigma, ranges=merged, guess=guess, relative=relative)
             except RuntimeError:
                 self.stats["smoother_indeterminate"] += 1
                 continue
@@ -371,6 +348,13 @@ class SmootherLocalizer(FilterLocalizer):
         both = known[self._others] & known[ref]
         self._moved += np.where(both, np.hypot(rel[:, 0], rel[:, 1]), 0.0)
         return np.where(known[:, None], disp, 0.0), sigma
+
+    def _per_pair(
+        self, ia: NDArray[np.intp], ib: NDArray[np.intp], z: FloatArray, s: FloatArray
+    ) -> RangeTerms:
+        """One range term per pair (:func:`per_pair`) with its online bias."""
+        pa, pb, pz, ps = per_pair(ia, ib, z, s)
+        return RangeTerms(pa, pb, pz, ps, self._bias_index(pa, pb))
 
     def _bias_index(self, ia: NDArray[np.intp], ib: NDArray[np.intp]) -> NDArray[np.intp]:
         """Per range (team indices) its online bias, -1 where its bias is fixed."""
@@ -500,45 +484,3 @@ class SmootherLocalizer(FilterLocalizer):
                 dataclasses.replace(causal, positions=positions, covariances=covariances, **fields)
             )
         return out
-
-
-def _relative(observed: list[tuple[int, int, FloatArray, FloatArray]]) -> Relative | None:
-    """``observed`` (:meth:`SmootherLocalizer._observations`) merged into one factor per
-    observer and target: their median vector, their mean covariance undivided (a step's sightings
-    share their heading error, as its ranges their bias); ``None`` if empty."""
-    if not observed:
-        return None
-    groups: dict[tuple[int, int], list[tuple[FloatArray, FloatArray]]] = {}
-    for a, b, v, c in observed:
-        groups.setdefault((a, b), []).append((v, c))
-    pairs = list(groups)
-    vec = np.array([np.median([v for v, _ in groups[p]], axis=0) for p in pairs], float)
-    cov = np.array([np.mean([c for _, c in groups[p]], axis=0) for p in pairs], float)
-    a, b = (np.array(x, np.intp) for x in zip(*pairs, strict=True))
-    return Relative(a, b, vec, cov)
-
-
-def _chained_start(
-    n: int, ref: int, observed: list[tuple[int, int, FloatArray, FloatArray]]
-) -> tuple[FloatArray, FloatArray, NDArray[np.bool_], float] | None:
-    """One hypothesis from relative positions alone: each robot placed from a placed one along
-    a measured vector (the reference at the origin), its prior the chain's covariance widened to
-    ``SHAPE_SIGMA``; robots no chain reaches get ``WIDE_SIGMA``. ``None`` if none is reached."""
-    pos = np.zeros((n, 2))
-    cov = np.tile(WIDE_SIGMA**2 * np.eye(2), (n, 1, 1))
-    placed = np.zeros(n, dtype=bool)
-    placed[ref] = True
-    cov[ref] = np.eye(2)
-    grew = True
-    while grew:
-        grew = False
-        for a, b, v, c in observed:
-            for src, dst, sign in ((a, b, 1.0), (b, a, -1.0)):
-                if placed[src] and not placed[dst]:
-                    pos[dst] = pos[src] + sign * v
-                    base = cov[src] if src != ref else np.zeros((2, 2))
-                    cov[dst] = base + c + SHAPE_SIGMA**2 * np.eye(2)
-                    placed[dst] = grew = True
-    if placed.sum() < 2:
-        return None
-    return pos[None], cov[None], placed, 0.0
