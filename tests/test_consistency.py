@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 
 from relloc.estimate import Estimate
-from relloc.evaluation.metrics import CHI2_2D_95, GroundTruth, align, associate_shapes, consistency
+from relloc.evaluation.consistency import CHI2_2D_95, consistency
+from relloc.evaluation.gauges import associate_shapes
+from relloc.evaluation.metrics import GroundTruth, align
 from relloc.events import GroundTruthEvent
 
 

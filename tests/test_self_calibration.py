@@ -25,12 +25,14 @@ from relloc.estimators.gaussian_sum.filter import (
     GaussianSumFilter,
 )
 from relloc.estimators.gaussian_sum.localizer import SelfCalibratingLocalizer
-from relloc.evaluation.metrics import GroundTruth, HeadingPaired, wrap_angle
+from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
+from relloc.evaluation.selfcal_metrics import HeadingPaired
 from relloc.events import OdometryEvent
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.ranges import RangeBatch
 from relloc.methods import build_pipeline
+from relloc.odometry import wrap_angle
 from relloc.simulator import (
     RobotMotion,
     Simulation,

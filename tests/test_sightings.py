@@ -336,7 +336,8 @@ def test_simulated_aoa_sightings_leave_the_other_draws_alone() -> None:
 
 def test_the_oracle_ekf_tracks_a_team_from_camera_sightings() -> None:
     """Three simulated robots with teammate cameras; the EKF starts at their true poses."""
-    from relloc.evaluation.metrics import GroundTruth, associate, body_frame_paired
+    from relloc.evaluation.gauges import body_frame_paired
+    from relloc.evaluation.metrics import GroundTruth, associate
     from relloc.localizers.ekf import EkfOracleLocalizer
     from relloc.simulator import multi_scenario
     from relloc.simulator.error_models import TEAMMATE_CAMERA

@@ -15,21 +15,24 @@ Definitions follow evo (MichaelGrupp/evo), applied to *relative* positions:
   ground truth at every step and is reported as such.
 * **Convergence time**: the first estimate time after which at most 5 % of estimates have a
   worst-robot APE above ``threshold`` (0.3 m by default).
+
+Beside these: :mod:`~relloc.evaluation.consistency` (NEES and coverage of the covariances),
+:mod:`~relloc.evaluation.gauges` (the published shapes, the reference's body frame) and
+:mod:`~relloc.evaluation.selfcal_metrics` (headings, biases).
 """
 
 from __future__ import annotations
 
 import bisect
 import math
-from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, replace
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from relloc.estimate import BODY_FRAME, HEADING_FRAME, Estimate
+from relloc.estimate import BODY_FRAME, Estimate
 from relloc.events import GroundTruthEvent
-from relloc.odometry import wrap_angle
 
 FloatArray = NDArray[np.float64]
 
@@ -282,218 +285,6 @@ def after(p: Paired, t_start: float) -> Paired:
     """The part of ``p`` at or after ``t_start``."""
     keep = p.t >= t_start
     return Paired(p.t[keep], p.est[keep], p.gt[keep], p.std[keep])
-
-
-# ---------------------------------------------------------------------------- self-calibration
-def nearest_pose(
-    gt: GroundTruth, robot: str, t: float, max_gap: float = 0.5
-) -> tuple[float, float, float] | None:
-    """The motion-capture pose at ``t`` (interpolated), else the nearest sample within ``max_gap``."""
-    pose = gt.pose_at(robot, t)
-    if pose is not None:
-        return pose
-    times, poses = gt.trajectory(robot)
-    if times.size == 0:
-        return None
-    i = int(np.argmin(np.abs(times - t)))
-    if abs(times[i] - t) > max_gap:
-        return None
-    return float(poses[i, 0]), float(poses[i, 1]), float(poses[i, 2])
-
-
-def odometry_frame_rotation(
-    gt: GroundTruth, robot: str, odometry: tuple[float, float]
-) -> float | None:
-    """Rotation of ``robot``'s odometry frame in the world (mocap) frame (rad): its mocap yaw
-    minus its odometry yaw ``odometry = (t, yaw)``, taken at its first odometry message (the
-    odometry frame is fixed; later the odometry yaw drifts, not the frame). Evaluation only."""
-    t, yaw = odometry
-    pose = nearest_pose(gt, robot, t)
-    if pose is None:
-        return None
-    return float(wrap_angle(pose[2] - yaw))
-
-
-@dataclass
-class HeadingPaired:
-    """Published relative headings of one robot against the truth: times, mean, spread, truth (rad)."""
-
-    t: FloatArray
-    mean: FloatArray
-    spread: FloatArray
-    truth: FloatArray
-
-    @property
-    def errors(self) -> FloatArray:
-        """Absolute wrapped error (rad)."""
-        return np.abs(wrap_angle(self.mean - self.truth)) if len(self.t) else np.zeros(0)
-
-
-def associate_headings(
-    estimates: Sequence[Estimate],
-    gt: GroundTruth,
-    odometry_yaws: Mapping[str, Iterable[tuple[float, float]]],
-    frame_rotation: float,
-) -> dict[str, HeadingPaired]:
-    """Pair every published relative heading with its truth.
-
-    The estimates' frame is the reference's odometry frame, fixed in the world at
-    ``frame_rotation`` (:func:`odometry_frame_rotation` at its first odometry message). The
-    truth of robot ``i`` at ``t`` is the rotation that takes its odometry increments *now* into
-    that frame: ``mocap_yaw_i(t) - odometry_yaw_i(t) - frame_rotation``; it drifts with the
-    robot's gyro error, as the filter's estimate is meant to.
-    """
-    out: dict[str, HeadingPaired] = {}
-    robots = sorted({r for est in estimates for r in est.headings})
-    for robot in robots:
-        yaws = dict(odometry_yaws.get(robot, []))
-        t, m, s, g = [], [], [], []
-        for est in estimates:
-            if robot not in est.headings or est.t not in yaws:
-                continue
-            pose = gt.pose_at(robot, est.t)
-            if pose is None:
-                continue
-            t.append(est.t)
-            m.append(est.headings[robot][0])
-            s.append(est.headings[robot][1])
-            g.append(float(wrap_angle(pose[2] - yaws[est.t] - frame_rotation)))
-        out[robot] = HeadingPaired(np.array(t), np.array(m), np.array(s), np.array(g))
-    return out
-
-
-def bias_errors(
-    estimates: Sequence[Estimate], truth: dict[str, float], t_start: float
-) -> dict[str, FloatArray]:
-    """Per node pair with a known true bias: ``|published mean - truth|`` at every estimate
-    from ``t_start`` on."""
-    out: dict[str, list[float]] = {}
-    for est in estimates:
-        if est.t < t_start:
-            continue
-        for pair, (mean, _) in est.biases.items():
-            if pair in truth:
-                out.setdefault(pair, []).append(abs(mean - truth[pair]))
-    return {k: np.array(v) for k, v in out.items()}
-
-
-CHI2_2D_95 = 5.991464547107979
-"""95 % quantile of the chi-square distribution with 2 degrees of freedom: the squared
-Mahalanobis radius of a 2D 95 % ellipse."""
-
-
-@dataclass
-class Consistency:
-    """Whether the published covariances cover the error: per estimate the normalised
-    estimation error squared ``NEES = e^T C^-1 e`` (2 degrees of freedom: mean 2 for a
-    consistent filter) and whether the truth lies in the 95 % ellipse (``NEES <= 5.99``)."""
-
-    t: FloatArray
-    nees: FloatArray
-
-    @property
-    def coverage(self) -> float:
-        """Fraction of the estimates whose 95 % ellipse holds the truth."""
-        return float(np.mean(self.nees <= CHI2_2D_95)) if self.nees.size else math.nan
-
-    @property
-    def nees_median(self) -> float:
-        return float(np.median(self.nees)) if self.nees.size else math.nan
-
-    @property
-    def nees_mean(self) -> float:
-        return float(np.mean(self.nees)) if self.nees.size else math.nan
-
-
-def consistency(
-    estimates: Sequence[Estimate],
-    gt: GroundTruth,
-    robots: Iterable[str],
-    t_start: float,
-    rotation: float = 0.0,
-) -> dict[str, Consistency]:
-    """NEES of every estimate from ``t_start`` on that carries a covariance, per robot, against
-    interpolated relative ground truth in the estimate's frame (as in :func:`associate`).
-    Methods without covariances (multilateration) get none."""
-    out: dict[str, Consistency] = {}
-    for robot in robots:
-        t, nees = [], []
-        for est in estimates:
-            if est.t < t_start or robot not in est.positions or robot not in est.covariances:
-                continue
-            truth = truth_in_frame(est, gt, robot, rotation)
-            if truth is None:
-                continue
-            e = np.subtract(est.positions[robot], truth)
-            cov = np.array(est.covariances[robot], float)
-            if not np.all(np.isfinite(cov)) or np.linalg.det(cov) <= 0.0:
-                continue
-            t.append(est.t)
-            nees.append(float(e @ np.linalg.solve(cov, e)))
-        if t:
-            out[robot] = Consistency(np.array(t), np.array(nees))
-    return out
-
-
-def associate_shapes(
-    estimates: Sequence[Estimate],
-    gt: GroundTruth,
-    robots: Iterable[str],
-    rotation: float = 0.0,
-) -> dict[str, Paired]:
-    """Like :func:`associate`, for the published shapes (the formation in its declared gauge,
-    :attr:`Estimate.shape`) instead of the positions: align these once for the run
-    (:func:`align` ``"run"``), as multilateration's formation is, for the shape APE."""
-    shaped = [
-        replace(est, positions=dict(est.shape), frame=HEADING_FRAME)
-        for est in estimates
-        if est.shape
-    ]
-    return associate(shaped, gt, robots, rotation)
-
-
-def body_frame_paired(
-    estimates: Sequence[Estimate],
-    gt: GroundTruth,
-    robots: Iterable[str],
-    reference_yaws: Iterable[tuple[float, float]],
-) -> dict[str, Paired]:
-    """Every robot's estimated position in the *reference robot's body frame* (where robot j
-    is as the reference would see it: x forward, y left) paired with the same in the truth.
-
-    This is the gauge-free relative position: no shared heading frame, no alignment. The
-    estimate's frame turns into the body frame by the reference's heading in it, its odometry
-    yaw at the estimate's time (``reference_yaws``: ``(t, yaw)`` in its odometry track's frame,
-    :attr:`relloc.localizers.base.Localizer.odometry_yaws`) plus, where the method estimates
-    headings, the published heading of the reference's odometry frame (its drift); the truth
-    by the reference's motion-capture yaw. Estimates without a recorded yaw are left out.
-    """
-    yaw_at = dict(reference_yaws)
-    out: dict[str, Paired] = {}
-    ref = gt.reference
-    for robot in robots:
-        t, e, g, s = [], [], [], []
-        for est in estimates:
-            body = est.frame == BODY_FRAME  # already in the body frame
-            if robot not in est.positions or (est.t not in yaw_at and not body):
-                continue
-            truth = gt.relative_at(robot, est.t)
-            pose = gt.pose_at(ref, est.t)
-            if truth is None or pose is None:
-                continue
-            heading = (
-                0.0
-                if body
-                else yaw_at[est.t] + (est.headings[ref][0] if ref in est.headings else 0.0)
-            )
-            t.append(est.t)
-            e.append(_to_body(est.positions[robot], heading))
-            g.append(_to_body(truth, pose[2]))
-            s.append(est.std(robot))
-        out[robot] = Paired(
-            np.array(t), np.array(e).reshape(-1, 2), np.array(g).reshape(-1, 2), np.array(s)
-        )
-    return out
 
 
 def _to_body(v: tuple[float, float], heading: float) -> tuple[float, float]:

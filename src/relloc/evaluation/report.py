@@ -26,17 +26,10 @@ from rich.table import Table
 from relloc.engine import Engine
 from relloc.estimate import BODY_FRAME, HEADING_FRAME
 from relloc.evaluation import scores, selfcal_scores
+from relloc.evaluation.consistency import Consistency
 from relloc.evaluation.metric import METRICS, Column, MethodRun, MetricResult
-from relloc.evaluation.metrics import (
-    ApeStats,
-    Consistency,
-    GroundTruth,
-    HeadingPaired,
-    Paired,
-    align,
-    associate,
-    odometry_frame_rotation,
-)
+from relloc.evaluation.metrics import ApeStats, GroundTruth, Paired, align, associate
+from relloc.evaluation.selfcal_metrics import HeadingPaired, odometry_frame_rotation
 
 R = TypeVar("R", bound=MetricResult)
 

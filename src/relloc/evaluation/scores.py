@@ -16,6 +16,8 @@ import numpy as np
 from numpy.typing import NDArray
 from rich.table import Table
 
+from relloc.evaluation.consistency import Consistency, consistency
+from relloc.evaluation.gauges import associate_shapes, body_frame_paired
 from relloc.evaluation.metric import Column, MethodRun, Metric, MetricResult, num, register_metric
 from relloc.evaluation.metrics import (
     CONVERGENCE_HOLD_S,
@@ -23,14 +25,10 @@ from relloc.evaluation.metrics import (
     CONVERGENCE_THRESHOLD_M,
     CONVERGENCE_TOLERANCE,
     ApeStats,
-    Consistency,
     Paired,
     after,
     align,
-    associate_shapes,
     ate,
-    body_frame_paired,
-    consistency,
     convergence_time,
 )
 
@@ -176,7 +174,7 @@ class BodyFrameResult(MetricResult):
 
 @register_metric
 class BodyFrameApe(Metric):
-    """APE in the reference robot's body frame (:func:`~relloc.evaluation.metrics.body_frame_paired`):
+    """APE in the reference robot's body frame (:func:`~relloc.evaluation.gauges.body_frame_paired`):
     unaligned methods that track the reference's odometry yaw."""
 
     name = "body_frame"

@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 from rich.table import Table
 
 from relloc.evaluation.metric import MethodRun, Metric, MetricResult, num, register_metric
-from relloc.evaluation.metrics import HeadingPaired, associate_headings, bias_errors
+from relloc.evaluation.selfcal_metrics import HeadingPaired, associate_headings, bias_errors
 
 FloatArray = NDArray[np.float64]
 
