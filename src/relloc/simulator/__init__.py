@@ -3,6 +3,7 @@
 The derivation: docs/explanation/internals.md, section ``relloc.simulator``.
 """
 
+from relloc.simulator.camera_overlap import covisibility
 from relloc.simulator.error_models import (
     ActuationModel,
     DetectionErrorModel,
@@ -10,7 +11,7 @@ from relloc.simulator.error_models import (
     UwbErrorModel,
 )
 from relloc.simulator.kinematics import RobotMotion, SimObject
-from relloc.simulator.runner import ARENA, Simulation, covisibility
+from relloc.simulator.runner import ARENA, Simulation
 from relloc.simulator.scenarios import multi_scenario, nav_scenario, single_scenario
 
 __all__ = [
