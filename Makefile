@@ -1,6 +1,7 @@
 # Two entry points a new user needs: `make demo` and `make test`. Each creates .venv and installs.
 # `make demo` installs relloc alone (no PyTorch); `make test` adds the dev tools and the training
-# extra (PyTorch), because the test suite trains small models.
+# extra (PyTorch), because the test suite trains small models; it checks lint, format and types
+# (mypy on src/, configured in pyproject.toml) before the tests.
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -40,6 +41,7 @@ demo: setup
 test: setup-test
 	$(BIN)/ruff check src tests benchmarks examples scripts
 	$(BIN)/ruff format --check src tests benchmarks examples scripts
+	$(BIN)/mypy
 	$(BIN)/python -m pytest -q
 
 # The documentation site: its own environment (relloc and the `docs` extra); the command, config

@@ -14,7 +14,7 @@ takes one event, ``Engine.run`` a whole iterable.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -26,7 +26,10 @@ from relloc.localizers.base import Localizer
 class Stage(Protocol):
     """Transforms events between source and localizer (e.g. corrects ranges)."""
 
-    stats: dict[str, int]
+    @property
+    def stats(self) -> Mapping[str, int]:
+        """What the stage counted (rejections, corrections), by name."""
+        ...
 
     def process(self, event: Event) -> list[Event]: ...
 

@@ -197,7 +197,7 @@ class FilterConfig(Checked):
     @classmethod
     def sections(cls) -> dict[str, type]:
         """Section name -> its dataclass."""
-        hints = type_hints(cls)
+        hints = type_hints(cls)  # type: ignore[arg-type]  # a class is hashable
         return {name: hints[name] for name in SECTIONS}
 
     @classmethod

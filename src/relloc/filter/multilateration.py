@@ -47,8 +47,10 @@ def rigidity_rank(positions: FloatArray, pairs: IntArray) -> int:
     rows = np.arange(len(pairs))
     r[rows, pairs[:, 0]] = d
     r[rows, pairs[:, 1]] = -d
-    r = r.reshape(len(pairs), 2 * n)
-    return int(np.linalg.matrix_rank(r, tol=1e-6 * max(1.0, float(np.abs(r).max(initial=0.0)))))
+    flat = r.reshape(len(pairs), 2 * n)
+    return int(
+        np.linalg.matrix_rank(flat, tol=1e-6 * max(1.0, float(np.abs(flat).max(initial=0.0))))
+    )
 
 
 def can_determine(n_robots: int, pairs: IntArray) -> bool:

@@ -188,8 +188,8 @@ class RangeBatch(MeasurementModel):
         uwb = config.uwb
         groups: dict[tuple[int, int], list[RangeEvent]] = {}
         for m in events:
-            a, b = layout.index(m.robot_a), layout.index(m.robot_b)
-            groups.setdefault((min(a, b), max(a, b)), []).append(m)
+            ia, ib = layout.index(m.robot_a), layout.index(m.robot_b)
+            groups.setdefault((min(ia, ib), max(ia, ib)), []).append(m)
         if not groups:
             return []
         pairs, dist, bias, sigma, keys, model_sigma = [], [], [], [], [], []
@@ -334,8 +334,8 @@ class RangeBatch(MeasurementModel):
                 residual[online] -= particles[:, cols].T
                 sigma = np.repeat(sigma, residual.shape[1], axis=1)
                 sigma[online] = np.sqrt(self.sigma[online, None] ** 2 + particles[:, cols + 1].T)
-        for k, cols in enumerate(self.state_columns):
-            for c in cols:
+        for k, columns in enumerate(self.state_columns):
+            for c in columns:
                 residual[k] -= particles[:, c]
         return residual, sigma
 

@@ -483,7 +483,7 @@ class DeferredSummary(ModeSummary):
     def of(
         cls, fields: tuple[Any, ...], members: NDArray[np.bool_], tail: _Tail
     ) -> DeferredSummary:
-        out = cls(*fields, None, None, None, members)
+        out = cls(*fields, None, None, None, members)  # type: ignore[call-arg]
         out.__dict__["_tail"] = tail
         return out
 

@@ -229,6 +229,7 @@ class Localizer:
             return "invalid_time"
         if model is not None:
             return model.rejection(event, self)
+        assert isinstance(event, OdometryEvent)  # the only event without a model
         if event.robot not in self.layout.robots:
             return "unknown_robot"
         if not all(map(finite, (event.x, event.y, event.yaw, event.v, event.w))):

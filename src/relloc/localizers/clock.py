@@ -37,7 +37,8 @@ def stream(event: Event) -> tuple[str, ...]:
         return (type(event).__name__, str(event.robot))
     model = model_for(event)
     assert model is not None, "only odometry and measurement events reach the clock"
-    return hook(model, "stream")(event)  # type: ignore[no-any-return]
+    stream: tuple[str, ...] = hook(model, "stream")(event)
+    return stream
 
 
 class TeamClock:

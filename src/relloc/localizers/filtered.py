@@ -25,7 +25,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -53,7 +53,7 @@ class FilterLocalizer(Localizer):
     """A localizer around a filter of :mod:`relloc.filter.base` (module docstring)."""
 
     filter: WeightedFilter
-    range_model = "nlos"
+    range_model: Literal["nlos", "symmetric"] = "nlos"
     """Which range likelihood (:class:`relloc.filter.measurement.ModelContext`) the filter uses."""
 
     def __init__(
@@ -274,8 +274,9 @@ class FilterLocalizer(Localizer):
         widening = self.watchdog.widening
         if widening > 1.0:
             covs = {
-                r: tuple(tuple(widening * v for v in row) for row in c) for r, c in covs.items()
-            }  # type: ignore[misc]
+                r: ((widening * c[0][0], widening * c[0][1]), (widening * c[1][0], widening * c[1][1]))
+                for r, c in covs.items()
+            }
         unseen = self.heard.unseen(t, self.tracks)
         if unseen:
             covs = self.heard.widen(covs, unseen)

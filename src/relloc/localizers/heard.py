@@ -52,7 +52,9 @@ class Heard:
         (not the start's: the kernel's clock starts at its end)."""
         for m in batch:
             model = model_for(m)
-            robots = hook(model, "heard")(m) if model is not None else ()
+            if model is None:
+                continue
+            robots = hook(model, "heard")(m)
             if not robots:
                 continue
             if ranged and hook(model, "ranged"):

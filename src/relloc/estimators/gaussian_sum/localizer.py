@@ -146,7 +146,7 @@ class SelfCalibratingLocalizer(FilterLocalizer):
         if particles.shape[0] != gsf.n or np.ptp(pf.logw) > 0.0:  # (the vectors' weights)
             idx = systematic_resample(normalize(pf.logw), self.rng, gsf.n)
             particles = particles[idx]
-        gsf.initialize(particles[:, : self.layout.dim])
+        gsf.initialize(particles[:, : 2 * self.layout.n_others])
         self.start_filter = None
         fe = gsf.estimate()
         return self._emit(t, fe, self._body(t, fe))

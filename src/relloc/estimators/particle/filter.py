@@ -430,7 +430,7 @@ class ParticleFilter(WeightedFilter):
             flip = self.rng.random(m) < 0.5
             rel[flip, :, 1] *= -1.0
         self.particles[:, : self.layout.dim] = rel.reshape(m, -1)
-        self.rotate(self.rng.uniform(-np.pi, np.pi, m))
+        self.rotate(np.asarray(self.rng.uniform(-np.pi, np.pi, m), float))
 
     def rotate(self, theta: FloatArray) -> None:
         """Turn particle ``k``'s formation about the reference by ``theta[k]`` (rad)."""

@@ -175,7 +175,7 @@ class RangeGraphFilter(WeightedFilter):
         kb = np.flatnonzero(both)
         lam[:, sa[kb], sb[kb]] -= outer[:, kb]
         lam[:, sb[kb], sa[kb]] -= outer[:, kb].transpose(0, 1, 3, 2)
-        lam = lam.transpose(0, 1, 3, 2, 4).reshape(m, d, d)
+        lam = lam.transpose(0, 1, 3, 2, 4).reshape(m, d, d)  # type: ignore[assignment]
         # g = H^T W r: a signed incidence sum.
         signed = np.zeros((k, len(sa)))
         signed[sa[has_a], np.flatnonzero(has_a)] = 1.0
