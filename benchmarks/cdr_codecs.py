@@ -11,7 +11,7 @@ build + serialise the message object) on the same payloads, alternating the two 
 and prints the median time per message and the ratio. Both produce the same values (asserted
 once before timing). This is a warm tight loop: in the server, which sleeps between messages,
 both cost more, and the rosbags path more so (see ``docs/live.md``). ``--readme FILE`` writes
-the table of the run between the ``cdr_codecs`` figures markers of FILE (``benchmarks/figures.py``).
+the table of the run between the ``cdr_codecs`` figures markers of FILE (``relloc.evaluation.pages``).
 """
 
 from __future__ import annotations
@@ -21,7 +21,6 @@ import json
 import os
 import platform
 import statistics
-import sys
 import time
 from collections.abc import Callable
 from importlib.metadata import PackageNotFoundError
@@ -29,10 +28,7 @@ from importlib.metadata import version as dist_version
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from figures import missing_section, write_between
-
+from relloc.evaluation.pages import missing_section, write_between
 from relloc.events import OdometryEvent, RangeEvent
 from relloc.ros import cdr as ros_cdr
 from relloc.ros import messages as rm

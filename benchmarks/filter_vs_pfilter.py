@@ -116,11 +116,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from figures import markers, write_between
-
 from relloc.estimators.particle.filter import ParticleFilter
+from relloc.evaluation.pages import markers, write_between
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.ranges import GROSS_FRACTION, NLOS_FRACTION, NLOS_SIGMA, RangeBatch
 from relloc.filter.state import StateLayout

@@ -41,7 +41,7 @@ team sizes: the same predict + update + estimate + ``maybe_resample`` (pruning) 
 solves and ``O(H K)`` for the ranges.
 ``--json FILE`` writes every point; ``--readme FILE`` writes the tables of the run (the particle
 and team sweeps in section ``scaling``, the range-graph sweep in ``scaling_graph``) between the
-markers of FILE (``benchmarks/figures.py``).
+markers of FILE (``relloc.evaluation.pages``).
 
 Run it with relloc installed (no extra dependency)::
 
@@ -59,7 +59,6 @@ import math
 import os
 import platform
 import statistics
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -68,12 +67,9 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from figures import missing_section, write_between
-
 from relloc.estimators.particle.filter import ParticleFilter
 from relloc.estimators.range_graph.filter import RangeGraphFilter
+from relloc.evaluation.pages import missing_section, write_between
 from relloc.filter.base import WeightedFilter
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.ranges import RangeBatch

@@ -42,6 +42,14 @@ from relloc.live import (
     replay_bag,
     simulated_team,
 )
+from relloc.live.resources import (
+    CpuSampler,
+    percentiles,
+    proc_cpu_seconds,
+    proc_memory_mb,
+    round_finite,
+    thread_cpu_seconds,
+)
 
 SHORTBAG = "multi4_shortbag_20221011"
 """The shared TIERS recording of the ``shortbag`` case."""
@@ -66,88 +74,6 @@ class BenchOptions:
     bag: Path | None = None
     bag_config: Path | None = None
     json_path: Path | None = None
-
-
-def _proc_cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process (s), from ``/proc/<pid>/stat``."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-
-
-def _proc_memory_mb(pid: int) -> dict[str, float]:
-    """``VmHWM`` (peak RSS) and ``VmRSS`` of a process in MB, from ``/proc/<pid>/status``."""
-    out: dict[str, float] = {}
-    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-        name, _, value = line.partition(":")
-        if name in ("VmHWM", "VmRSS"):
-            out[name] = int(value.split()[0]) / 1024.0
-    return out
-
-
-def _thread_cpu_seconds(pid: int) -> dict[str, float]:
-    """CPU time (s) of each thread of a process, summed by thread name (``comm``), from
-    ``/proc/<pid>/task/*/stat``: tells the engine thread from Zenoh's and any BLAS pool."""
-    out: dict[str, float] = {}
-    tick = os.sysconf("SC_CLK_TCK")
-    for task in Path(f"/proc/{pid}/task").iterdir():
-        try:
-            text = (task / "stat").read_text()
-        except OSError:
-            continue  # the thread ended
-        name = text[text.index("(") + 1 : text.rindex(")")]
-        fields = text.rsplit(")", 1)[1].split()
-        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / tick
-    return out
-
-
-class _CpuSampler:
-    """Samples a process's CPU time every ``period`` seconds on a thread of its own, so that
-    the CPU of any window of the run (after convergence) can be read afterwards."""
-
-    def __init__(self, pid: int, period: float = 0.25) -> None:
-        import threading
-
-        self.pid = pid
-        self.period = period
-        self.samples: list[tuple[float, float]] = []
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                self.samples.append((time.time(), _proc_cpu_seconds(self.pid)))
-            except OSError:
-                return
-            self._stop.wait(self.period)
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join()
-
-    def percent_between(self, t0: float, t1: float) -> float:
-        """CPU % of one core between the samples nearest after ``t0`` and before ``t1``."""
-        inside = [s for s in self.samples if t0 <= s[0] <= t1]
-        if len(inside) < 2 or inside[-1][0] - inside[0][0] <= 0.0:
-            return math.nan
-        return 100.0 * (inside[-1][1] - inside[0][1]) / (inside[-1][0] - inside[0][0])
-
-
-def _percentiles(values: list[float]) -> dict[str, float | int | None]:
-    if not values:
-        return {"p50_ms": None, "p95_ms": None, "max_ms": None, "n": 0}
-    v = sorted(values)
-
-    def q(f: float) -> float:
-        return v[min(len(v) - 1, max(0, math.ceil(f * len(v)) - 1))]
-
-    return {
-        "p50_ms": round(1e3 * statistics.median(v), 3),
-        "p95_ms": round(1e3 * q(0.95), 3),
-        "max_ms": round(1e3 * v[-1], 3),
-        "n": len(v),
-    }
 
 
 def _bench_case(
@@ -202,7 +128,7 @@ def _bench_case(
         "settings": label,
         "adaptive": particles is None and config.filter.adaptive.particle_count != "fixed",
     }
-    sampler: _CpuSampler | None = None
+    sampler: CpuSampler | None = None
     try:
         t_spawn = time.time()
         cpu: dict[str, float] = {}
@@ -210,10 +136,10 @@ def _bench_case(
 
         def on_start() -> None:
             nonlocal sampler
-            cpu["start"] = _proc_cpu_seconds(proc.pid)
+            cpu["start"] = proc_cpu_seconds(proc.pid)
             cpu["wall_start"] = time.time()
-            threads["start"] = _thread_cpu_seconds(proc.pid)
-            sampler = _CpuSampler(proc.pid)
+            threads["start"] = thread_cpu_seconds(proc.pid)
+            sampler = CpuSampler(proc.pid)
 
         def server_died() -> bool:
             return proc.poll() is not None
@@ -237,15 +163,15 @@ def _bench_case(
             raise RuntimeError(f"serve exited early (status {proc.returncode}); see {log_path}")
         t_end = time.time()
         wall = t_end - cpu["wall_start"]
-        cpu_s = _proc_cpu_seconds(proc.pid) - cpu["start"]
-        mem = _proc_memory_mb(proc.pid)
-        by_thread = _thread_cpu_seconds(proc.pid)
+        cpu_s = proc_cpu_seconds(proc.pid) - cpu["start"]
+        mem = proc_memory_mb(proc.pid)
+        by_thread = thread_cpu_seconds(proc.pid)
         if sampler is not None:
             sampler.stop()
             converged = sampler.percent_between(cpu["wall_start"] + opts.settle, t_end)
         else:
             converged = math.nan
-        result["cpu_percent_converged"] = _round(converged, 2)
+        result["cpu_percent_converged"] = round_finite(converged, 2)
         result["settle_s"] = opts.settle
         result["converged_window_s"] = round(max(wall - opts.settle, 0.0), 2)
         result["thread_cpu_s"] = {
@@ -275,13 +201,11 @@ def _bench_case(
         result["serve_exit"] = proc.returncode
         time.sleep(0.2)
         traces = [r for r in collector.traces() if r.get("trigger_sent") is not None]
-        result["latency_publish"] = _percentiles(
+        result["latency_publish"] = percentiles(
             [r["published"] - r["trigger_sent"] for r in traces]
         )
-        result["latency_receive"] = _percentiles(
-            [r["received"] - r["trigger_sent"] for r in traces]
-        )
-        result["latency_compute"] = _percentiles(
+        result["latency_receive"] = percentiles([r["received"] - r["trigger_sent"] for r in traces])
+        result["latency_compute"] = percentiles(
             [r["published"] - r["trigger_received"] for r in traces]
         )
         estimates = collector.estimates()
@@ -297,9 +221,9 @@ def _bench_case(
             result["final_particles"] = summary.get("methods", {}).get("pf", {}).get("particles")
         if scenario == "shortbag" and opts.bag is not None:
             ape = ape_against_bag(estimates, opts.bag, config)
-            result["ape_mean_median_m"] = _round(ape["mean_median"])
+            result["ape_mean_median_m"] = round_finite(ape["mean_median"])
         else:
-            result["ape_mean_median_m"] = _round(
+            result["ape_mean_median_m"] = round_finite(
                 _sim_ape(sim, config, estimates, base, warmup=10.0)
             )
     finally:
@@ -311,10 +235,6 @@ def _bench_case(
         collector.close()
         session.close()
     return result
-
-
-def _round(x: float, nd: int = 3) -> float | None:
-    return None if x is None or not math.isfinite(x) else round(float(x), nd)
 
 
 def _sim_ape(

@@ -29,19 +29,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from figures import write_between
-from serve_resources import (
-    REPO,
-    SHORTBAG,
-    _CpuSampler,
-    _percentiles,
-    _proc_memory_mb,
-    _round,
-)
-
 from relloc.config import TeamConfig
+from relloc.evaluation.pages import write_between
 from relloc.live import (
     SIM_TIME_BASE,
     EstimateCollector,
@@ -53,8 +42,12 @@ from relloc.live import (
     replay_bag,
     simulated_team,
 )
+from relloc.live.resources import CpuSampler, percentiles, proc_memory_mb, round_finite
 from relloc.sources.zenoh_source import ZenohSource
 
+SHORTBAG = "multi4_shortbag_20221011"
+"""The shared TIERS recording of the ``shortbag`` case."""
+REPO = Path(__file__).resolve().parents[1]
 LATE_REASONS = ("late_measurement", "out_of_order_odometry", "late")
 """Rejections that mean a message came too late for the filter (localizer and source)."""
 
@@ -143,7 +136,7 @@ def run_case(
     bare = subprocess.Popen(
         [sys.executable, "-c", _SUBSCRIBER, endpoint, *exprs], stdout=subprocess.PIPE, text=True
     )
-    samplers: dict[str, _CpuSampler] = {}
+    samplers: dict[str, CpuSampler] = {}
     result: dict[str, Any] = {"scenario": scenario, "robots": len(config.robots), "hog": opts.hog}
     try:
         assert bare.stdout is not None
@@ -158,8 +151,8 @@ def run_case(
             raise RuntimeError(f"serve exited early; see {log_path}")
 
         def on_start() -> None:
-            samplers["serve"] = _CpuSampler(serve.pid)
-            samplers["bare"] = _CpuSampler(bare.pid)
+            samplers["serve"] = CpuSampler(serve.pid)
+            samplers["bare"] = CpuSampler(bare.pid)
             result["t_start"] = time.time()
 
         def serve_died() -> bool:
@@ -186,21 +179,23 @@ def run_case(
         t0 = result.pop("t_start") + opts.settle
         cpu = {name: s.percent_between(t0, t_end) for name, s in samplers.items()}
         result["messages"] = stats.messages
-        result["serve_cpu_percent"] = _round(cpu["serve"], 2)
-        result["bare_cpu_percent"] = _round(cpu["bare"], 2)
-        result["cpu_ratio"] = _round(cpu["serve"] / cpu["bare"], 2) if cpu["bare"] > 0 else None
-        result["serve_peak_rss_mb"] = round(_proc_memory_mb(serve.pid).get("VmHWM", math.nan), 1)
-        result["bare_peak_rss_mb"] = round(_proc_memory_mb(bare.pid).get("VmHWM", math.nan), 1)
+        result["serve_cpu_percent"] = round_finite(cpu["serve"], 2)
+        result["bare_cpu_percent"] = round_finite(cpu["bare"], 2)
+        result["cpu_ratio"] = (
+            round_finite(cpu["serve"] / cpu["bare"], 2) if cpu["bare"] > 0 else None
+        )
+        result["serve_peak_rss_mb"] = round(proc_memory_mb(serve.pid).get("VmHWM", math.nan), 1)
+        result["bare_peak_rss_mb"] = round(proc_memory_mb(bare.pid).get("VmHWM", math.nan), 1)
         _stop(serve)
         _stop(bare)
         out, _ = bare.communicate(timeout=10)
         result["bare_received"] = int(out.split()[-1]) if out.split() else None
         time.sleep(0.2)
         traces = [r for r in collector.traces() if r.get("trigger_sent") is not None]
-        result["latency"] = _percentiles(
+        result["latency"] = percentiles(
             [r["published"] - r["trigger_sent"] for r in traces if r["trigger_sent"] >= t0]
         )
-        result["latency_all"] = _percentiles([r["published"] - r["trigger_sent"] for r in traces])
+        result["latency_all"] = percentiles([r["published"] - r["trigger_sent"] for r in traces])
         summary = json.loads(summary_path.read_text())
         rejected = dict(summary["source"]["rejected"])
         for m in summary["methods"].values():

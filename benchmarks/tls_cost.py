@@ -42,10 +42,7 @@ from typing import Any
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-from figures import write_between
-
+from relloc.evaluation.pages import write_between
 from relloc.events import OdometryEvent
 from relloc.live import ZenohOptions, free_tcp_port, open_session, simulated_team
 from relloc.live.secure.certificates import write_secure_dir

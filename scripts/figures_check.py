@@ -3,10 +3,10 @@
     .venv/bin/python scripts/figures_check.py --out out/figures-before
     .venv/bin/python scripts/figures_check.py --out out/figures-after --compare out/figures-before
 
-The runs: `relloc demo --seed 0`, the self-calibration demo, the TIERS shortbag seeds 0-4,
-`pair_range` with calibrated and online biases, the static seven-robot team `case4_test1_static`
-(the smoother) and MRCLAM Dataset 6. Wall and compute times are
-dropped before comparing; every other field, and every TUM trajectory file byte for byte, must
+The runs (``relloc.evaluation.pages.figure_runs``): `relloc demo --seed 0`, the self-calibration
+demo, the TIERS shortbag seeds 0-4, `pair_range` with calibrated and online biases, the static
+seven-robot team `case4_test1_static` (the smoother) and MRCLAM Dataset 6. Wall and compute times
+are dropped before comparing; every other field, and every TUM trajectory file byte for byte, must
 be equal.
 """
 
@@ -19,64 +19,9 @@ import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
+from relloc.evaluation.pages import figure_runs
+
 TIMING_KEYS = {"compute_s", "wall_s", "elapsed_s", "cpu_s", "seconds"}
-
-
-def runs(data: Path) -> dict[str, list[str]]:
-    tiers = data / "tiers"
-    shortbag = [
-        "run",
-        str(tiers / "multi4_shortbag_20221011"),
-        "--config",
-        "configs/tiers/multi4_shortbag_20221011.toml",
-        "--methods",
-        "pf",
-    ]
-    pair = [
-        "run",
-        str(tiers / "pair_range_20220907_1725"),
-        "--config",
-        "configs/tiers/pair_range_20220907_1725.toml",
-        "--warmup",
-        "10",
-    ]
-    table = {
-        "demo": ["demo", "--seed", "0"],
-        "demo_selfcal": [
-            "demo",
-            "--seed",
-            "0",
-            "--heading",
-            "estimate",
-            "--bias",
-            "online",
-            "--warmup",
-            "20",
-            "--scenarios",
-            "multi",
-        ],
-        "pair_range": pair,
-        "pair_range_online": [*pair, "--bias", "online"],
-        "case4_static": [
-            "run",
-            str(data / "tiers_uwb_rel" / "case4_test1_static"),
-            "--config",
-            "configs/tiers_uwb_rel/case4.toml",
-        ],
-        "mrclam6": [
-            "run",
-            str(data / "mrclam" / "MRCLAM_Dataset6"),
-            "--config",
-            "configs/mrclam/dataset6.toml",
-            "--methods",
-            "pf",
-            "--warmup",
-            "30",
-        ],
-    }
-    for seed in range(5):
-        table[f"shortbag_seed{seed}"] = [*shortbag, "--seed", str(seed)]
-    return table
 
 
 def strip(value: object) -> object:
@@ -140,7 +85,7 @@ def main() -> None:
     parser.add_argument("--jobs", type=int, default=2)
     args = parser.parse_args()
     args.out.mkdir(parents=True, exist_ok=True)
-    table = runs(args.data)
+    table = figure_runs(args.data)
     if args.only:
         table = {k: v for k, v in table.items() if k in args.only.split(",")}
     with ThreadPoolExecutor(args.jobs) as pool:

@@ -16,7 +16,7 @@ Equal flags run both methods in one ``relloc run``. Runs go in ``--jobs`` proces
 thread each); every run's JSON stays under ``--work`` and is reused (keyed by flags and methods
 only: empty it after changing the code or the models); a recording whose first two seeds agree
 exactly in both variants (the smoother draws no random numbers) is not run on the others. ``--page FILE --section NAME`` writes the table between the page's markers
-(``benchmarks/figures.py``): docs/self-calibration.md, docs/ranging.md.
+(``relloc.evaluation.pages``): docs/self-calibration.md, docs/ranging.md.
 """
 
 from __future__ import annotations
@@ -35,9 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from relloc.cli import argtypes
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from figures import missing_section, write_between
+from relloc.evaluation.pages import missing_section, write_between
 
 RECORDINGS = {
     # name: (folder under --data, config, warm-up in s)

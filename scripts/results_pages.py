@@ -3,9 +3,9 @@
     .venv/bin/python scripts/results_pages.py                 # make results: docs/results.md
     .venv/bin/python scripts/results_pages.py --quick --out /tmp/r.md --generated /tmp/g
 
-The runs are those of ``scripts/figures_check.py`` (the demo, the self-calibration demo, the
-TIERS shortbag seeds 0-4, ``pair_range`` with calibrated and online biases, MRCLAM Dataset 6)
-plus the 10-robot grid; a run whose data is absent is listed as skipped. The benchmarks are
+The runs are those of ``scripts/figures_check.py`` (``relloc.evaluation.pages.figure_runs``: the
+demo, the self-calibration demo, the TIERS shortbag seeds 0-4, ``pair_range`` with calibrated and
+online biases, MRCLAM Dataset 6) plus the 10-robot grid; a run whose data is absent is listed as skipped. The benchmarks are
 those of ``benchmarks/`` that take seconds (CDR codecs, scaling, adaptive particle count,
 ranging inference, TLS cost, and the pfilter comparison where its environment exists). Every
 figure on the page is read from a ``--json`` file: nothing is copied by hand.
@@ -31,8 +31,7 @@ from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from figures_check import runs  # a sibling script, not a package
+from relloc.evaluation.pages import figure_runs
 
 ROOT = Path(__file__).resolve().parents[1]
 # The first-run tutorial's command, as `make demo` runs it.
@@ -73,7 +72,7 @@ def machine() -> str:
 def evaluation_runs(data: Path, quick: bool) -> dict[str, list[str]]:
     if quick:
         return {"demo": ["demo", "--seed", "0", "--scenarios", "single"]}
-    table = runs(data)
+    table = figure_runs(data)
     table["grid10"] = [
         "demo",
         "--scenarios",

@@ -3,10 +3,11 @@ writes it between its markers."""
 
 from __future__ import annotations
 
-import importlib
 from pathlib import Path
 
 from load_file import ROOT, load_module
+
+from relloc.evaluation.pages import markers
 
 bench = load_module(ROOT / "benchmarks" / "tls_cost.py", "bench_tls_cost")
 
@@ -28,9 +29,7 @@ def test_the_rectangles_table_gives_medians_ranges_and_the_difference(tmp_path: 
     assert "| mutual TLS | 0.072 m (0.071-0.090) | 0.135 m (0.131-0.160) |" in table
     assert "| TLS - plain | -0.003 m | -0.005 m |" in table
     page = tmp_path / "secure.md"
-    begin, end = importlib.import_module("figures").markers(
-        "tls_rectangle"
-    )  # benchmarks/figures.py
+    begin, end = markers("tls_rectangle")
     page.write_text(f"before\n{begin}\nold\n{end}\nafter\n")
     bench.write_between(page, "tls_rectangle", table)
     text = page.read_text()
