@@ -1,6 +1,6 @@
 """relloc serve on rmw_zenoh against an independent ROS 2 peer (zenoh-ros2-sdk), measured.
 
-A clean simulated team (:mod:`relloc.live.ros2_peer`: the grid scenario, 4 robots, near-perfect
+A clean simulated team (:mod:`relloc.live.peer_run`: the grid scenario, 4 robots, near-perfect
 sensors) publishes its odometry and UWB ranges through the SDK with one distribution's message
 definitions, written locally (the SDK never clones anything); ``relloc serve --ros-interface
 rmw_zenoh --ros-distro ...`` runs as its own process on loopback; the SDK's subscribers collect
@@ -19,7 +19,8 @@ import json
 import tempfile
 from pathlib import Path
 
-from relloc.live.ros2_peer import STORES, PeerRun, run_against_serve
+from relloc.live.peer_run import PeerRun, run_against_serve
+from relloc.live.ros2_peer import STORES
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -7,7 +7,7 @@ Jazzy (``sensor_msgs/Range`` differs: Jazzy's ends with ``float32 variance``, an
 RIHS01 hash; Humble nodes write ``TypeHashNotSupported`` in keys); the SDK's git clones are
 replaced by a recorder, and every run checks it recorded nothing. Everything is on loopback
 (``relloc serve`` / ``sim-robots`` listen on 127.0.0.1 with a free port, multicast off). The
-helpers are in :mod:`relloc.live.ros2_peer`; ``scripts/ros2_peer_check.py`` is the measurement.
+helpers are in :mod:`relloc.live.ros2_peer` and :mod:`relloc.live.peer_run`; ``scripts/ros2_peer_check.py`` is the measurement.
 """
 
 from __future__ import annotations
@@ -21,6 +21,14 @@ import pytest
 
 pytest.importorskip("zenoh_ros2_sdk")
 
+from relloc.live.peer_run import (
+    PeerRun,
+    RellocProcess,
+    TeamTopics,
+    free_port,
+    run_against_serve,
+    wait_for,
+)
 from relloc.live.ros2_peer import (
     HASH_NOT_SUPPORTED,
     ODOMETRY,
@@ -29,16 +37,10 @@ from relloc.live.ros2_peer import (
     RANGE,
     RANGE_HASHES,
     STRING,
-    PeerRun,
-    RellocProcess,
     Ros2Peer,
-    TeamTopics,
-    free_port,
     msg_text,
     offline_sdk,
     rihs01,
-    run_against_serve,
-    wait_for,
     write_messages,
 )
 
