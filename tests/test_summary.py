@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from relloc.filter.summary import gauge, summarize
+from relloc.filter.gauge import gauge
+from relloc.filter.summary import summarize
 
 FORMATION = np.array([[2.0, 0.5], [-1.0, 2.0], [0.5, -1.5]])  # three robots about the reference
 

@@ -21,7 +21,8 @@ import math
 import numpy as np
 from numpy.typing import NDArray
 
-from relloc.filter.summary import ModeSummary, gauge
+from relloc.filter.gauge import gauge
+from relloc.filter.summary import ModeSummary
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]

@@ -1,0 +1,63 @@
+"""The formation's gauge: where a shape is put when its orientation is not observed, and the
+rotation and handedness that best map one formation onto another.
+
+:func:`gauge` puts formations in the declared gauge (robot 0 on +x, robot 1 on the +y side);
+:func:`procrustes_fit` is the 2D Procrustes fit of many formations to one template at once,
+what the posterior summary (:mod:`relloc.filter.summary`) finds orientation modes with.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+FloatArray = NDArray[np.float64]
+
+
+def gauge(rel: FloatArray) -> FloatArray:
+    """Formations ``(M, K, 2)`` in the declared gauge: robot 0 on the +x axis, robot 1 (if any)
+    on the +y side. Deterministic; a formation with robot 0 at the reference keeps its angle."""
+    rel = np.asarray(rel, float)
+    ang = np.arctan2(rel[:, 0, 1], rel[:, 0, 0])
+    out = _rotate(rel, -ang)
+    if rel.shape[1] > 1:
+        flip = out[:, 1, 1] < 0.0
+        out[flip, :, 1] *= -1.0
+    return out
+
+
+def _rotate(rel: FloatArray, theta: FloatArray) -> FloatArray:
+    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
+    x, y = rel[:, :, 0], rel[:, :, 1]
+    out = np.empty(rel.shape)
+    out[:, :, 0] = c * x - s * y
+    out[:, :, 1] = s * x + c * y
+    return out
+
+
+def procrustes_fit(
+    planes: FloatArray, template: FloatArray
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """Rotation and handedness of each formation (coordinate planes ``planes`` ``(2K, M)``: the
+    ``x`` rows, then the ``y`` rows) relative to ``template`` ``(K, 2)``: formation ``m`` is best
+    explained as ``template`` mirrored (if the handedness is -1: ``y -> -y``) and then turned
+    about the reference by the angle whose cosine and sine are returned, with the handedness:
+    ``(cos, sin, hand)``."""
+    k, m = template.shape[0], planes.shape[1]
+    # H = sum_k t_k p_k^T per hypothesis, one einsum: h[a, b] = sum_k t_k[a] p_k[b].
+    h = np.einsum("ak,bkm->abm", template.T, planes[: 2 * k].reshape(2, k, m))
+    h00, h01, h10, h11 = h[0, 0], h[0, 1], h[1, 0], h[1, 1]
+    hand = np.where(h00 * h11 - h01 * h10 < 0.0, -1.0, 1.0) if k > 1 else np.ones(m)
+    # proper: p = R(a) t -> (cos, sin) ~ (h00 + h11, h01 - h10); mirrored: p = R(a) F t with
+    # F = diag(1, -1) -> (h00 - h11, h01 + h10).
+    c = hand * h11
+    c += h00
+    s = hand * h10
+    np.subtract(h01, s, out=s)
+    norm = c * c
+    norm += s * s
+    np.sqrt(norm, out=norm)
+    norm[norm == 0.0] = 1.0
+    c /= norm
+    s /= norm
+    return c, s, hand
