@@ -181,6 +181,30 @@ def config_page() -> str:
     return "\n".join(lines) + "\n"
 
 
+def kinds_page() -> str:
+    from relloc import estimators
+    from relloc.estimators.registry import capability_table
+
+    lines = [
+        "# Estimator kinds",
+        "",
+        "Generated from the registry of `relloc.estimators` at build time: every kind a config's",
+        "`[filter] kind` may name, with what it can do. `auto` picks among them in the order of",
+        "their priority, keeping those that can run the config's modes (which: [Which filter",
+        "kind](../explanation/filter-kinds.md)); adding a kind: [Extending](../extending.md).",
+        "",
+        capability_table(),
+        "Priorities (lowest first): "
+        + ", ".join(
+            f"`{k.name}` {k.priority}"
+            for k in sorted(estimators.KINDS.values(), key=lambda k: k.priority)
+        )
+        + ".",
+        "",
+    ]
+    return "\n".join(lines)
+
+
 # ---------------------------------------------------------------- Python API
 
 SRC = Path(__file__).resolve().parents[1] / "src"
@@ -221,7 +245,12 @@ def api_page() -> str:
     return "\n".join(lines) + "\n"
 
 
-PAGES = {"reference/cli.md": cli_page, "reference/config.md": config_page, "reference/api.md": api_page}
+PAGES = {
+    "reference/cli.md": cli_page,
+    "reference/config.md": config_page,
+    "reference/kinds.md": kinds_page,
+    "reference/api.md": api_page,
+}
 
 
 def on_files(files: Any, config: Any) -> Any:
