@@ -4,10 +4,13 @@ rule, the hooks that the measurement models and the filters give the localizer."
 from __future__ import annotations
 
 import math
+import time
+from typing import Any
 
 import numpy as np
 import pytest
 
+from relloc.config import TeamConfig
 from relloc.estimators.particle.filter import ParticleFilter
 from relloc.estimators.range_graph.filter import RangeGraphFilter
 from relloc.events import WAKE_ALWAYS, OdometryEvent, RangeEvent, RelativeObservation, SightingEvent
@@ -114,3 +117,32 @@ def test_only_the_particle_filter_restarts_and_pauses_its_kernel() -> None:
     graph = RangeGraphFilter(layout, (-4, 4, -4, 4), rng=np.random.default_rng(0))
     graph.pause_kernel(True)  # nothing to pause
     assert graph.restart([RangeEvent(1.0, "r0", "r1", 2.0)], None, None) is False  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------- step timer
+def test_the_step_timer_is_called_once_per_step_with_its_duration() -> None:
+    from relloc.cli.demo import DemoOptions, scenario_setup
+    from relloc.estimate import Estimate
+    from relloc.events import GroundTruthEvent
+    from relloc.localizers.base import Localizer
+
+    class Counted(Localizer):
+        def __init__(self, config: TeamConfig) -> None:
+            super().__init__(config)
+            self.steps: list[float] = []
+
+        def _step(self, t: float, batch: list[Any]) -> Estimate | None:
+            self.steps.append(t)
+            time.sleep(1e-4)
+            return None
+
+    sim, config, _ = scenario_setup("single", DemoOptions(seed=0))
+    loc = Counted(config)
+    calls: list[tuple[float, float, Estimate | None]] = []
+    loc.step_timer = lambda t, seconds, est: calls.append((t, seconds, est))
+    events = [e for e in sim.events() if not isinstance(e, GroundTruthEvent)]
+    for event in events[:2000]:
+        loc.process(event)
+    loc.flush()
+    assert loc.steps and [t for t, _, _ in calls] == loc.steps
+    assert all(seconds >= 1e-4 and est is None for _, seconds, est in calls)

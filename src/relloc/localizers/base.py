@@ -26,7 +26,9 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 from collections import Counter, deque
+from collections.abc import Callable
 from typing import Any
 
 from relloc.config import TeamConfig
@@ -53,7 +55,13 @@ _UNFUSED = (GroundTruthEvent, DetectionEvent)
 
 
 class Localizer:
-    """Validation, the team clock, odometry tracks and measurement batching of every method."""
+    """Validation, the team clock, odometry tracks and measurement batching of every method.
+
+    :attr:`step_timer`, when set, is called after each step (each batch fused) with the batch
+    time, the seconds the step took on :attr:`step_clock` (``time.perf_counter`` unless set) and
+    the estimate it built (``None``: none): how a benchmark times the filter step. Unset (the
+    default), nothing is timed.
+    """
 
     method = "base"
 
@@ -73,6 +81,10 @@ class Localizer:
         self._memory: dict[type, dict[Any, Any]] = {}
         self._last_emit = -math.inf
         self._batching = False
+        self.step_timer: Callable[[float, float, Estimate | None], None] | None = None
+        """Called after each step with its batch time, its duration (s) and its estimate."""
+        self.step_clock: Callable[[], float] = time.perf_counter
+        """The clock :attr:`step_timer`'s durations are read on (e.g. ``time.thread_time``)."""
 
     @property
     def layout(self) -> TeamLayout:
@@ -194,7 +206,12 @@ class Localizer:
         t, batch = self.grid.take()
         self._batching = True
         try:
-            est = self._step(t, batch)
+            if self.step_timer is None:
+                est = self._step(t, batch)
+            else:
+                start = self.step_clock()
+                est = self._step(t, batch)
+                self.step_timer(t, self.step_clock() - start, est)
         finally:
             self._batching = False
         if est is None:
