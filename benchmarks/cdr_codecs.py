@@ -32,6 +32,7 @@ from relloc.evaluation.pages import missing_section, write_between
 from relloc.events import OdometryEvent, RangeEvent
 from relloc.ros import cdr as ros_cdr
 from relloc.ros import messages as rm
+from relloc.ros.estimate_msgs import pose_covariance
 
 
 def _cases() -> dict[str, tuple[Callable[[], Any], Callable[[], Any]]]:
@@ -39,8 +40,8 @@ def _cases() -> dict[str, tuple[Callable[[], Any], Callable[[], Any]]]:
         rm.odometry_msg(OdometryEvent(t=1.7e9, robot="a", x=1.0, y=2.0, yaw=0.3, v=0.2, w=0.1))
     )
     rng = rm.encode(rm.range_msg(RangeEvent(t=1.7e9, robot_a="a", robot_b="b", distance=3.2)))
-    cov = [0.0] * 36  # row-major 6x6: an x/y block, zero elsewhere
-    cov[0], cov[7] = 0.04, 0.09
+    xy = [[0.04, 0.0], [0.0, 0.09]]
+    cov = pose_covariance(xy)  # row-major 6x6: the x/y block, the rest not estimated
 
     def odom_rosbags() -> Any:
         msg = rm.decode(odom, rm.ODOMETRY)
@@ -52,9 +53,7 @@ def _cases() -> dict[str, tuple[Callable[[], Any], Callable[[], Any]]]:
         return rm.stamp_to_sec(msg.header.stamp), msg.range
 
     def pose_rosbags() -> bytes:
-        return rm.encode(
-            rm.pose_with_covariance_msg(1.7e9, 1.0, 2.0, cov=[cov[0:2], cov[6:8]], frame_id="ref")
-        )
+        return rm.encode(rm.pose_with_covariance_msg(1.7e9, 1.0, 2.0, cov=xy, frame_id="ref"))
 
     def pose_fast() -> bytes:
         return ros_cdr.encode_pose_with_covariance_stamped(1.7e9, 1.0, 2.0, 0.0, cov, "ref")

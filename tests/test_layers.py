@@ -15,6 +15,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "relloc"
 
 LAYERS: tuple[tuple[str, ...], ...] = (
     ("events", "config", "estimate", "odometry", "malloc"),
+    ("geometry",),
     ("filter",),
     ("localizers", "stages", "ranging", "ros", "simulator", "faults", "sensors"),
     ("estimators",),
@@ -23,6 +24,7 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("sinks", "evaluation", "drafting"),
     ("live",),
     ("navigation",),
+    ("runs",),
     ("cli",),
 )
 """Bottom first, as on the architecture page: a module may import its own layer and those before it."""

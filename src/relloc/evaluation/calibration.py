@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from relloc import geometry
 from relloc.config import PairCalibration, TeamConfig
 from relloc.events import Event, GroundTruthEvent, OdometryEvent, RangeEvent, pair_key
 from relloc.ranging.dataset import CSV_COLUMNS
@@ -153,7 +154,11 @@ def pair_samples_from_bag(
         xb, yb, vb = interpolate_track(b[:, 0], b[:, 1], b[:, 2], t - lag, max_gap=max_gap)
         ok = va & vb
         if ok.any():
-            out[key] = (t[ok], measured[ok], np.hypot(xa - xb, ya - yb)[ok])
+            out[key] = (
+                t[ok],
+                measured[ok],
+                geometry.norm(np.stack([xa - xb, ya - yb], axis=-1))[ok],
+            )
     return out
 
 
@@ -392,7 +397,9 @@ def rank_node_assignments(
             xb, yb, vb = interpolate_track(
                 tb[:, 0], tb[:, 1], tb[:, 2], rows[:, 0], max_gap=max_gap
             )
-            errors[key] = (rows[:, 1] - np.hypot(xa - xb, ya - yb))[va & vb]
+            errors[key] = (rows[:, 1] - geometry.norm(np.stack([xa - xb, ya - yb], axis=-1)))[
+                va & vb
+            ]
         return errors[key]
 
     names = [r.name for r in robots if r.name in arrays]

@@ -24,6 +24,8 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 from scipy.sparse import csr_matrix
 
+from relloc import geometry
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 
@@ -83,7 +85,7 @@ def solve(
 
     def residuals(v: FloatArray) -> FloatArray:
         p = unpack(v)
-        return np.linalg.norm(p[pairs[:, 0]] - p[pairs[:, 1]], axis=1) - distances
+        return geometry.distance(p[pairs[:, 0]], p[pairs[:, 1]]) - distances
 
     column = np.full(n_robots, -1, dtype=np.intp)
     column[free] = np.arange(free.size)
@@ -100,11 +102,7 @@ def solve(
         any unit vector where they coincide), on the free robots' columns, sparse: two
         columns pairs per row, whatever the team's size."""
         p = unpack(v)
-        d = p[pairs[:, 0]] - p[pairs[:, 1]]
-        norm = np.linalg.norm(d, axis=1)
-        u = np.where(
-            norm[:, None] > 1e-12, d / np.maximum(norm, 1e-12)[:, None], np.array([1.0, 0.0])
-        )
+        _, u = geometry.direction(p[pairs[:, 0]] - p[pairs[:, 1]], floor=1e-12, fallback=(1.0, 0.0))
         vals = np.concatenate([(sign * u[ok]).ravel() for _, sign, ok in ends])
         return csr_matrix((vals, (jac_rows, jac_cols)), shape=(len(pairs), 2 * free.size))
 

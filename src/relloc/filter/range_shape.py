@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from relloc import geometry
+
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
 BoolArray = NDArray[np.bool_]
@@ -84,7 +86,7 @@ def classical_mds(d: FloatArray) -> FloatArray:
 
 def stress(x: FloatArray, d: FloatArray, w: FloatArray) -> float:
     """Weighted raw stress ``sum_{i<j} w_ij (|x_i - x_j| - d_ij)^2``."""
-    dist = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(axis=2))
+    dist = geometry.distance(x[:, None, :], x[None, :, :])
     return 0.5 * float(np.sum(w * (dist - d) ** 2))
 
 
@@ -99,7 +101,7 @@ def smacof(
     x = x0.copy()
     last = stress(x, d, w)
     for _ in range(iterations):
-        dist = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(axis=2))
+        dist = geometry.distance(x[:, None, :], x[None, :, :])
         ratio = np.where(dist > 1e-12, w * d / np.maximum(dist, 1e-12), 0.0)
         bmat = -ratio
         np.fill_diagonal(bmat, ratio.sum(axis=1))
@@ -138,7 +140,7 @@ def shape_from_ranges(
                 x = y
     ref = int(np.flatnonzero(idx == reference)[0])
     rel[idx] = x - x[ref]
-    dist = np.sqrt(((x[:, None, :] - x[None, :, :]) ** 2).sum(axis=2))
+    dist = geometry.distance(x[:, None, :], x[None, :, :])
     iu = np.triu_indices(idx.size, 1)
     res = (dist - sub_d)[iu][sub_known[iu]]
     return GraphShape(

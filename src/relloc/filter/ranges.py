@@ -22,6 +22,7 @@ from typing import ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
+from relloc import geometry
 from relloc.config import TeamConfig, UwbConfig
 from relloc.events import RangeEvent, pair_key
 from relloc.filter.measurement import (
@@ -316,8 +317,7 @@ class RangeBatch(MeasurementModel):
     def predicted(self, positions: FloatArray) -> FloatArray:
         """True distances of each particle's pairs, shape ``(K, M)``."""
         d = np.take(positions, self.index_a, axis=1) - np.take(positions, self.index_b, axis=1)
-        d *= d
-        return np.sqrt(d[0] + d[1])
+        return geometry.norm(d, axis=0, overwrite=True)
 
     def _residual_and_sigma(
         self, positions: FloatArray, particles: FloatArray | None
@@ -401,9 +401,7 @@ class RangeBatch(MeasurementModel):
         sb = self.layout.slot_of(int(self.index_b[k]))
         pa = mean[:, 2 * sa : 2 * sa + 2] if sa >= 0 else np.zeros((n, 2))
         pb = mean[:, 2 * sb : 2 * sb + 2] if sb >= 0 else np.zeros((n, 2))
-        diff = pa - pb
-        dist = np.sqrt(np.sum(diff * diff, axis=1))
-        e = diff / np.maximum(dist, 1e-6)[:, None]
+        dist, e = geometry.direction(pa - pb)
         cols: list[int] = []
         coefs: list[FloatArray] = []
         if sa >= 0:

@@ -274,7 +274,10 @@ class FilterLocalizer(Localizer):
         widening = self.watchdog.widening
         if widening > 1.0:
             covs = {
-                r: ((widening * c[0][0], widening * c[0][1]), (widening * c[1][0], widening * c[1][1]))
+                r: (
+                    (widening * c[0][0], widening * c[0][1]),
+                    (widening * c[1][0], widening * c[1][1]),
+                )
                 for r, c in covs.items()
             }
         unseen = self.heard.unseen(t, self.tracks)

@@ -12,6 +12,7 @@ from dataclasses import replace
 import numpy as np
 from numpy.typing import NDArray
 
+from relloc import geometry
 from relloc.filter.base import FilterEstimate, WeightedFilter, renormalized
 from relloc.filter.measurement import MeasurementModel
 from relloc.filter.motion import OdometryMotion
@@ -135,9 +136,7 @@ class RangeGraphFilter(WeightedFilter):
         k = d // 2
         sa, sb = self._slot[model.index_a], self._slot[model.index_b]
         pos = self._positions()
-        diff = pos[:, model.index_a] - pos[:, model.index_b]  # (M, K, 2)
-        dist = np.sqrt(np.sum(diff * diff, axis=2))
-        e = diff / np.maximum(dist, 1e-6)[:, :, None]
+        dist, e = geometry.direction(pos[:, model.index_a] - pos[:, model.index_b])  # (M, K, 2)
         r = (model.distance - model.bias)[None, :] - dist  # (M, K)
         has_a, has_b = sa >= 0, sb >= 0
         both = has_a & has_b

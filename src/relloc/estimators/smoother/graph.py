@@ -25,7 +25,6 @@ indeterminate within a lag, GTSAM's known fixed-lag marginalisation bugs.)
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -34,6 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import solve_triangular
 
+from relloc import geometry
 from relloc.filter.factors import RangeTerms
 
 FloatArray = NDArray[np.float64]
@@ -82,14 +82,14 @@ def _biased_range(
         factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None
     ) -> FloatArray:
         ka, kb, kbias = factor.keys()
-        diff = values.atPoint2(ka) - values.atPoint2(kb)
-        dist = math.hypot(diff[0], diff[1])
+        dist, u = geometry.direction(
+            values.atPoint2(ka) - values.atPoint2(kb), floor=1e-9, fallback=(1.0, 0.0)
+        )
         if jacobians is not None:
-            u = diff / dist if dist > 1e-9 else np.array([1.0, 0.0])
             jacobians[0] = u.reshape(1, 2)
             jacobians[1] = -u.reshape(1, 2)
             jacobians[2] = np.ones((1, 1))
-        return np.array([dist + values.atVector(kbias)[0] - distance])
+        return np.array([float(dist) + values.atVector(kbias)[0] - distance])
 
     return error
 
