@@ -22,11 +22,11 @@ from typing import Any
 
 import numpy as np
 
-from relloc.cli.demo import DemoOptions, scenario_setup
 from relloc.config import TeamConfig
 from relloc.events import GroundTruthEvent
 from relloc.malloc import tune_malloc
 from relloc.methods import filter_localizer
+from relloc.runs.demo import DemoOptions, scenario_setup
 
 ROOT = Path(__file__).resolve().parents[1]
 BAG = ROOT.parent / "shared" / "data" / "tiers" / "multi4_shortbag_20221011"

@@ -45,12 +45,12 @@ from typing import Any
 import numpy as np
 
 import relloc.estimators.gaussian_sum.localizer
-from relloc.cli.demo import DemoOptions, scenario_setup
 from relloc.config import TeamConfig
 from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
 from relloc.methods import build_pipeline
+from relloc.runs.demo import DemoOptions, scenario_setup
 from relloc.simulator import RobotMotion, Simulation
 
 TEAMS = {"two": "pair", "single": "single", "five": "multi"}

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from relloc.cli.recording import RunOptions, run_recording
 from relloc.config import TeamConfig
+from relloc.runs.recording import RunOptions, run_recording
 
 BAGS = {
     "multi4_shortbag_20221011": 5.0,

@@ -17,8 +17,8 @@ from test_rosbag_source import synthetic_messages, synthetic_team
 
 from relloc.cli import _every_parser, build_parser, main
 from relloc.cli.common import format_stamp
-from relloc.cli.rejections import REASONS, rejection_lines
 from relloc.config import ConfigError, TeamConfig, UwbConfig
+from relloc.runs.rejections import REASONS, rejection_lines
 
 
 def _code(args: list[str]) -> int:

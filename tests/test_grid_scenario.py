@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from relloc.cli import main
-from relloc.cli.demo import SCENARIOS, DemoOptions, build_simulation, scenario_setup
 from relloc.events import GroundTruthEvent, RangeEvent
+from relloc.runs.demo import SCENARIOS, DemoOptions, build_simulation, scenario_setup
 from relloc.simulator.scenarios import grid_scenario
 
 

@@ -121,10 +121,10 @@ def test_only_the_particle_filter_restarts_and_pauses_its_kernel() -> None:
 
 # ---------------------------------------------------------------------------- step timer
 def test_the_step_timer_is_called_once_per_step_with_its_duration() -> None:
-    from relloc.cli.demo import DemoOptions, scenario_setup
     from relloc.estimate import Estimate
     from relloc.events import GroundTruthEvent
     from relloc.localizers.base import Localizer
+    from relloc.runs.demo import DemoOptions, scenario_setup
 
     class Counted(Localizer):
         def __init__(self, config: TeamConfig) -> None:

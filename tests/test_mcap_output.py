@@ -33,7 +33,7 @@ def read_mcap(path: Path) -> dict[str, list[tuple[str, int, Any]]]:
 def test_run_writes_mcap_that_an_independent_reader_decodes(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    import relloc.cli.recording as recording
+    import relloc.runs.recording as recording
     from relloc.cli import main
 
     captured: dict[str, Any] = {}

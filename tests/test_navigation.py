@@ -530,8 +530,8 @@ def test_closed_loop_in_the_simulator_drives_a_small_rectangle() -> None:
 
 
 def test_demo_reports_the_nav_scenario(tmp_path: Path) -> None:
-    from relloc.cli.demo import DemoOptions, run_demo
     from relloc.evaluation.report import make_console
+    from relloc.runs.demo import DemoOptions, run_demo
 
     opts = DemoOptions(
         seed=0,

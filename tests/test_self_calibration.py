@@ -15,8 +15,6 @@ import numpy as np
 import pytest
 
 from relloc.cli import build_parser
-from relloc.cli.demo import DemoOptions, scenario_setup
-from relloc.cli.recording import RunOptions, run_recording
 from relloc.config import ConfigError, TeamConfig
 from relloc.engine import Engine
 from relloc.estimators.gaussian_sum.filter import (
@@ -33,6 +31,8 @@ from relloc.filter.motion import OdometryMotion
 from relloc.filter.ranges import RangeBatch
 from relloc.methods import build_pipeline
 from relloc.odometry import wrap_angle
+from relloc.runs.demo import DemoOptions, scenario_setup
+from relloc.runs.recording import RunOptions, run_recording
 from relloc.simulator import (
     RobotMotion,
     Simulation,

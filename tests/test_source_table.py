@@ -11,10 +11,10 @@ from test_rosbag_source import synthetic_messages, synthetic_team
 from test_sightings import _write_dataset
 
 from relloc.cli import main
-from relloc.cli.demo import DemoOptions, run_scenario
-from relloc.cli.recording import RunOptions, run_recording
 from relloc.config import RobotConfig, TeamConfig
 from relloc.evaluation.report import make_console
+from relloc.runs.demo import DemoOptions, run_scenario
+from relloc.runs.recording import RunOptions, run_recording
 from relloc.sources.protocol import Source
 from relloc.sources.table import SourceError, open_source, source_kind
 

@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 
 from relloc.cli import main
-from relloc.cli.recording import RunOptions, run_recording
 from relloc.config import TeamConfig
 from relloc.evaluation.report import ScenarioReport
+from relloc.runs.recording import RunOptions, run_recording
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "tiers"
 

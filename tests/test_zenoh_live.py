@@ -248,7 +248,7 @@ def test_serve_command_shuts_down_cleanly_on_sigterm(
 
 @functools.cache
 def _offline_shortbag(bag: Path, particles: int, seed: int) -> Any:
-    from relloc.cli.recording import RunOptions, run_recording
+    from relloc.runs.recording import RunOptions, run_recording
 
     config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")
     return run_recording(

@@ -4,7 +4,8 @@ The whole command-line layer lives in this package, on top of the library; nothi
 imports it. This module is the parser and the dispatch; each command family registers itself
 from its own module (:mod:`.live`, :mod:`.navigation`, :mod:`.ranging`);
 :mod:`.common` holds what they share (user errors, signals, Zenoh sessions, options from
-arguments). Each command is a thin layer: parse arguments, call one function, print.
+arguments). Each command is a thin layer: parse arguments, call one function of the
+library (``demo`` and ``run``: :mod:`relloc.runs`), print.
 Expected failures (bad config, unreadable bag, unknown method) print one clear line and exit
 with status 2; they never show a traceback.
 """
@@ -56,8 +57,8 @@ def _check_outputs(args: argparse.Namespace) -> None:
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from relloc.cli.demo import SCENARIOS, DemoOptions, run_demo
     from relloc.methods import parse_methods
+    from relloc.runs.demo import SCENARIOS, DemoOptions, run_demo
 
     known = [*SCENARIOS, "nav"]
     for name in args.scenarios.split(","):
@@ -87,9 +88,9 @@ def _faults(args: argparse.Namespace) -> Any:
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
-    from relloc.cli.recording import RunOptions, run_recording
     from relloc.config import TeamConfig
     from relloc.methods import parse_methods
+    from relloc.runs.recording import RunOptions, run_recording
     from relloc.sources.rosbag import recording_name
 
     config = TeamConfig.load(args.config) if args.config else None

@@ -1,7 +1,8 @@
 """What every command shares: user errors, stopping on signals, Zenoh sessions, options.
 
 * :class:`UserError` is a problem with the user's input; :func:`is_user_error` says which
-  exceptions (this one, and the library's own: bad config, bag, method, model directory) the
+  exceptions (this one, and the library's own: bad config, bag, method, model directory, a
+  run's :class:`~relloc.runs.checks.RunError`) the
   ``relloc`` entry point reports as one line with exit status 2 instead of a traceback.
 * :func:`stop_on_signals` turns SIGINT/SIGTERM into a request to stop (a :class:`threading.Event`,
   and an optional callback), so a long-running command ends cleanly and prints its figures;
@@ -22,7 +23,6 @@ import argparse
 import datetime
 import os
 import signal
-import tempfile
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -36,6 +36,7 @@ from relloc.live.secure.refusals import AccessRefusals
 from relloc.live.session import ZenohOptions, open_session
 from relloc.ros.interfaces import ROS_INTERFACES, RosInterface
 from relloc.ros.stores import DISTROS
+from relloc.runs.checks import RunError, check_warmup, check_writable
 
 __all__ = [
     "UserError",
@@ -72,6 +73,7 @@ def is_user_error(exc: Exception) -> bool:
 
     known = (
         UserError,
+        RunError,
         ConfigError,
         MethodError,
         BagError,
@@ -106,26 +108,6 @@ def stop_on_signals(on_stop: Callable[[], None] | None = None) -> Iterator[threa
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
-
-
-def check_writable(folder: Path, what: str = "--out") -> None:
-    """Create ``folder`` and write a file in it, or raise :class:`UserError` now: a run must not
-    fail on its outputs after minutes of work."""
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".relloc-write-check-"):
-            pass
-    except OSError as exc:
-        raise UserError(f"cannot write to {what} {folder}: {exc.strerror or exc}") from None
-
-
-def check_warmup(warmup: float, duration: float, name: str) -> None:
-    """A warm-up at least as long as the run leaves nothing to score: an error before the run."""
-    if warmup >= duration:
-        raise UserError(
-            f"--warmup {warmup:g} s is not shorter than {name} ({duration:.1f} s): every estimate "
-            "would fall in the warm-up and no APE would be scored"
-        )
 
 
 def format_stamp(t: float | None) -> str:

@@ -21,13 +21,13 @@ from relloc.cli.common import (
     session_security,
     stop_on_signals,
 )
-from relloc.cli.rejections import rejection_lines
 from relloc.config import TeamConfig
 from relloc.faults import Faults
 from relloc.faults import add_arguments as add_fault_arguments
 from relloc.faults import from_args as faults_from_args
 from relloc.live.publish import ReplayOptions, replay_bag
 from relloc.live.server import LiveServer, ServeOptions
+from relloc.runs.rejections import rejection_lines
 from relloc.sources.table import source_kind
 
 __all__ = ["register"]

@@ -1,4 +1,4 @@
-"""``relloc run``: a source (a rosbag2 recording, an MRCLAM data set, a simulated scenario) through the engine.
+"""A run (``relloc run``): a source (a rosbag2 recording, an MRCLAM data set, a simulated scenario) through the engine.
 
 ``run_recording`` streams the source the path names (:mod:`relloc.sources.table`) through every
 requested method (the same engine as the demo and the live server), evaluates against its
@@ -11,7 +11,8 @@ Everything that would make the run useless is checked before it starts, once the
 open: a warm-up as long as the recording, and for a bag a robot whose ``uwb_node`` matches no
 range topic (a warning) or no range at all between the team's robots (an error: every method
 fuses ranges, :meth:`~relloc.sources.rosbag.RosbagSource.check_ranges`).
-``relloc calibrate`` is in :mod:`relloc.cli` (its library part: :mod:`relloc.drafting.calibrate`).
+The command (:mod:`relloc.cli`) only parses its arguments into :class:`RunOptions` and calls
+:func:`run_recording`; ``relloc calibrate``'s library part is :mod:`relloc.drafting.calibrate`.
 """
 
 from __future__ import annotations
@@ -25,9 +26,6 @@ from typing import Any
 from rich.console import Console
 from rich.markup import escape
 
-from relloc.cli.common import check_warmup
-from relloc.cli.progress import run_with_progress
-from relloc.cli.rejections import rejection_lines
 from relloc.config import TeamConfig
 from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
@@ -36,6 +34,9 @@ from relloc.evaluation.report import ScenarioReport, evaluate, make_console, pri
 from relloc.events import Event, RangeEvent
 from relloc.faults import Faults, inject
 from relloc.methods import DETECTION_METHODS, build_pipeline, filter_header
+from relloc.runs.checks import check_warmup
+from relloc.runs.progress import run_with_progress
+from relloc.runs.rejections import rejection_lines
 from relloc.sinks.mcap import write_mcap
 from relloc.sinks.tum import write_tum
 from relloc.sources.span import SpanSource

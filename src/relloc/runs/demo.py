@@ -1,4 +1,4 @@
-"""``relloc demo``: the simulated scenarios of the paper, every method, tables, plots and JSON.
+"""The demo (``relloc demo``): the simulated scenarios of the paper, every method, tables, plots and JSON.
 
 Runs the ``multi`` scenario (five robots: triangle, X, circle, rectangle and a static
 reference) and the ``single`` scenario (two robots, one range) through the same engine that
@@ -22,8 +22,6 @@ from typing import Any
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn
 
-from relloc.cli.common import check_warmup, check_writable
-from relloc.cli.progress import run_with_progress
 from relloc.config import TeamConfig
 from relloc.engine import Engine
 from relloc.evaluation.metrics import GroundTruth
@@ -31,6 +29,8 @@ from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajector
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.faults import Faults, inject
 from relloc.methods import DETECTION_METHODS, build_pipeline, filter_header
+from relloc.runs.checks import check_warmup, check_writable
+from relloc.runs.progress import run_with_progress
 from relloc.simulator import Simulation
 from relloc.simulator.scenarios import SCENARIOS
 
