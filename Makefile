@@ -57,16 +57,16 @@ $(DOCS_VENV)/.installed: pyproject.toml
 docs: $(DOCS_VENV)/.installed
 	NO_MKDOCS_2_WARNING=1 $(DOCS_VENV)/bin/mkdocs build --strict --quiet
 
-# Reruns the evaluation commands and the benchmarks that take seconds and writes docs/results.md
+# Reruns the evaluation commands and the benchmarks that take seconds and writes docs/results/index.md
 # from their JSON, and the first-run tutorial's output and plot (docs/generated/): about 4 min on
 # 2 cores. `results-mrclam` is the long sweep, MRCLAM Dataset 6 with every robot as the
 # reference, seeds 0-2 (15 runs, two at a time, about 20 min; skipped without ../shared/data):
-# docs/mrclam_references_generated.md.
+# docs/results/mrclam_references_generated.md.
 results: setup
-	$(BIN)/python scripts/results_pages.py --out docs/results.md --generated docs/generated
+	$(BIN)/python scripts/results_pages.py --out docs/results/index.md --generated docs/generated
 
 results-mrclam: setup
-	$(BIN)/python scripts/mrclam_references.py --skip-missing --page docs/mrclam_references_generated.md
+	$(BIN)/python scripts/mrclam_references.py --skip-missing --page docs/results/mrclam_references_generated.md
 
 # The benchmark has an environment of its own: relloc plus the pfilter reference (not a dependency).
 BENCH_VENV := .venv-bench

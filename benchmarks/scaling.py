@@ -34,7 +34,7 @@ The ratios ``update / pass`` and ``update / floor`` say how far the update is fr
 memory allows; they mean something on any machine, where the absolute times do not.
 
 A third sweep times the large-team representation, :class:`relloc.estimators.range_graph.filter.RangeGraphFilter`
-(what ``pf`` is for teams of ``LARGE_TEAM_ROBOTS`` and more, docs/scaling.md), over the same
+(what ``pf`` is for teams of ``LARGE_TEAM_ROBOTS`` and more, docs/explanation/scaling.md), over the same
 team sizes: the same predict + update + estimate + ``maybe_resample`` (pruning) cycle with
 ``--hypotheses`` Gaussians (1: converged; 72: the start's orientation hypotheses), each started
 0.3 m about the truth. Its cost does not depend on a particle count: ``H`` batched ``D x D``

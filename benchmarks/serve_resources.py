@@ -6,7 +6,7 @@ Runs the server as a subprocess (so that its CPU time and peak RSS can be read f
 feeds it over Zenoh on loopback (five simulated robots, the paper's team, and/or the TIERS
 shortbag replayed), and measures the latency from a message's publication to the publication
 of the estimate it triggered (the server's ``--trace`` key carries the trigger's send time).
-The paper's Table II reports the same quantities; docs/live.md sets ours beside them.
+The paper's Table II reports the same quantities; docs/explanation/live-engine.md sets ours beside them.
 """
 
 from __future__ import annotations
@@ -332,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
 def _parser() -> argparse.ArgumentParser:
     res = argparse.ArgumentParser(
         description="Start relloc serve and a publisher on loopback for each scenario and "
-        "particle count; measure CPU, peak RSS and estimate latency (docs/live.md).",
+        "particle count; measure CPU, peak RSS and estimate latency (docs/explanation/live-engine.md).",
     )
     res.add_argument(
         "--particles",

@@ -191,7 +191,7 @@ def kinds_page() -> str:
         "Generated from the registry of `relloc.estimators` at build time: every kind a config's",
         "`[filter] kind` may name, with what it can do. `auto` picks among them in the order of",
         "their priority, keeping those that can run the config's modes (which: [Which filter",
-        "kind](../explanation/filter-kinds.md)); adding a kind: [Extending](../extending.md).",
+        "kind](../explanation/filter-kinds.md)); adding a kind: [Extending](../howto/extending.md).",
         "",
         capability_table(),
         "Priorities (lowest first): "

@@ -1,8 +1,8 @@
 """Every filter kind on the recordings and scenarios that tell them apart; the table of
-docs/filter_kinds_generated.md.
+docs/results/filter_kinds_generated.md.
 
-    .venv/bin/python scripts/filter_kinds.py --page docs/filter_kinds_generated.md
-    .venv/bin/python scripts/filter_kinds.py --from-json --page docs/filter_kinds_generated.md
+    .venv/bin/python scripts/filter_kinds.py --page docs/results/filter_kinds_generated.md
+    .venv/bin/python scripts/filter_kinds.py --from-json --page docs/results/filter_kinds_generated.md
 
 Each cell is one ``relloc run`` (a recording) or ``relloc demo`` (a simulated scenario) with
 ``--methods pf --filter-kind K --json`` in a subprocess; multilateration is run once per row.

@@ -1,4 +1,4 @@
-"""The scaling table of docs/scaling.md: the ``grid`` scenario for several team sizes, the
+"""The scaling table of docs/explanation/scaling.md: the ``grid`` scenario for several team sizes, the
 sampled particle filter against the range-graph Gaussian sum, with multilateration.
 
 For every team size and representation it prints the APE median over robots (the median of

@@ -1,7 +1,7 @@
 """Run an MRCLAM session with every robot as the reference and tabulate the figures.
 
-    .venv/bin/python scripts/mrclam_references.py --page docs/mrclam_references_generated.md
-    .venv/bin/python scripts/mrclam_references.py --from-json --page docs/mrclam_references_generated.md
+    .venv/bin/python scripts/mrclam_references.py --page docs/results/mrclam_references_generated.md
+    .venv/bin/python scripts/mrclam_references.py --from-json --page docs/results/mrclam_references_generated.md
 
 Each reference and seed is one ``relloc run DATA --config CONFIG --methods pf --warmup 30
 --reference R --seed S --json OUT/R_sS.json`` in a subprocess (``--jobs`` at a time). The
@@ -230,7 +230,7 @@ def page(
         lines += [
             f"`(rule)` marks the reference the rule of `relloc.sources.mrclam.choose_reference` gives "
             f"for this session (`python -m relloc.sources.mrclam --reference FOLDER`): {rule}. "
-            "See [MRCLAM](mrclam.md#the-reference-robot).",
+            "See [MRCLAM](../explanation/mrclam.md#the-reference-robot).",
             "",
         ]
     return "\n".join(lines + table(rows, rule)) + "\n"

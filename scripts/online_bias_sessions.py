@@ -16,7 +16,7 @@ error off, which is what drives a long session's online bias away from that medi
 ``--set key=value`` changes a filter parameter (``FilterConfig.with_changes``, e.g.
 ``bias_walk=0.002``, ``kind=gaussian_sum``) for the online run only, to compare variants of the
 online bias (the sampled filter's prior width of an uncalibrated pair is
-``uwb.default_bias_sigma``, not a filter parameter). Figures: docs/self-calibration.md, "Online bias on a new session".
+``uwb.default_bias_sigma``, not a filter parameter). Figures: docs/explanation/self-calibration.md, "Online bias on a new session".
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ Equal flags run both methods in one ``relloc run``. Runs go in ``--jobs`` proces
 thread each); every run's JSON stays under ``--work`` and is reused (keyed by flags and methods
 only: empty it after changing the code or the models); a recording whose first two seeds agree
 exactly in both variants (the smoother draws no random numbers) is not run on the others. ``--page FILE --section NAME`` writes the table between the page's markers
-(``relloc.evaluation.pages``): docs/self-calibration.md, docs/ranging.md.
+(``relloc.evaluation.pages``): docs/explanation/self-calibration.md, docs/explanation/range-correction.md.
 """
 
 from __future__ import annotations

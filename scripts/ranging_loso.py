@@ -13,7 +13,7 @@ Recommendation rule: the row with the lowest LOSO mean, the mean over held-out s
 session's mean per-pair MSE (every session weighs the same); a baseline can win. With fewer
 than two held-out sessions that share a pair with another session there is no choice to make.
 
-    python scripts/ranging_loso.py --page docs/ranging_loso_generated.md
+    python scripts/ranging_loso.py --page docs/results/ranging_loso_generated.md
 
 ``--quick`` trains one small configuration per variant (a smoke run); ``--epochs`` and
 ``--patience`` bound the training time (defaults: the whole table in well under 20 min on two
@@ -360,7 +360,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = "python scripts/ranging_loso.py" + (" --quick" if args.quick else "")
     if args.epochs != 30 or args.patience != 6:
         command += f" --epochs {args.epochs} --patience {args.patience}"
-    page = markdown(result, matrix, command + " --page docs/ranging_loso_generated.md")
+    page = markdown(result, matrix, command + " --page docs/results/ranging_loso_generated.md")
     print(page)
     if args.page:
         args.page.write_text(page)

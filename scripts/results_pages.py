@@ -1,6 +1,6 @@
 """Rerun the evaluation commands and the cheap benchmarks; write the results page from their JSON.
 
-    .venv/bin/python scripts/results_pages.py                 # make results: docs/results.md
+    .venv/bin/python scripts/results_pages.py                 # make results: docs/results/index.md
     .venv/bin/python scripts/results_pages.py --quick --out /tmp/r.md --generated /tmp/g
 
 The runs are those of ``scripts/figures_check.py`` (``relloc.evaluation.pages.figure_runs``: the
@@ -397,8 +397,8 @@ starts from a uniform prior over the arena and is never aligned to ground truth;
 `multilateration` fits one rotation/reflection for the whole run, `multilateration_oracle`
 aligns every step to ground truth (an oracle, for reference only).
 
-More: [the measurements behind the design](explanation/measurements.md) (diagnoses, sweeps and
-the figures they gave), [TIERS recordings over seeds](results_tiers.md),
+More: [the measurements behind the design](../explanation/measurements.md) (diagnoses, sweeps and
+the figures they gave), [TIERS recordings over seeds](tiers.md),
 [MRCLAM with every reference](mrclam_references_generated.md),
 [filter kinds side by side](filter_kinds_generated.md), [benchmarks](#benchmarks) below.
 """
@@ -408,7 +408,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=Path("../shared/data"))
     parser.add_argument("--json-dir", type=Path, default=Path("out/results"))
-    parser.add_argument("--out", type=Path, default=Path("docs/results.md"))
+    parser.add_argument("--out", type=Path, default=Path("docs/results/index.md"))
     parser.add_argument(
         "--generated",
         type=Path,

@@ -206,7 +206,7 @@ def test_divergence_is_flagged_and_recovered_within_10_s(kind: str) -> None:
     """All ranges 1 m or 3 m long for 2 s, or r2 moved 2 m unseen, on seeds 0-2: the loss is
     flagged within 2 s of the onset every time (by the divergence monitor, ``recovering``, or
     first by the consistency watchdog, ``inconsistent``) and counted, and the error is back
-    under 0.2 m within 10 s of the fault's end (measured: 1.0-5.5 s, docs/faults.md)."""
+    under 0.2 m within 10 s of the fault's end (measured: 1.0-5.5 s, docs/howto/faults.md)."""
     end = 22.0 if kind.startswith("burst") else 20.0
     for seed in (0, 1, 2):
         ests, gt, loc = _run(seed, _kidnapped(kind))
@@ -381,7 +381,7 @@ def test_a_10_s_silence_on_the_shortbag_costs_little_after_it(shared_data: Path)
     """turtle05 (the far, static robot) silent 5-15 s of the 17.5 s shortbag, seeds 0-2:
     after it the error is within 0.03 m of the clean run's on the median seed, within 0.05 m
     on every seed (measured gaps 0.016 / 0.024 / 0.017 m; 0.104 / 0.125 / 0.050 m before
-    the orientation kernel paused for a silent robot, docs/faults.md), and no divergence is
+    the orientation kernel paused for a silent robot, docs/howto/faults.md), and no divergence is
     flagged, clean or silent."""
     silence = Faults(silence=(Window(5.0, 15.0, "turtle05"),))
     gaps = []

@@ -7,7 +7,7 @@ twice as fast as real time (``--rate 2``) and the server and the navigator are t
 (``--clock-rate 2``): every clock, the control period included, runs twice as fast, so the
 system is the real one, sped up. The server fuses the events in stamp order (``--reorder-window
 0.1``) and sim-robots starts its clock on a whole second, so a run's estimates do not depend on
-the order the messages happened to arrive in (docs/navigation.md, "Run-to-run spread").
+the order the messages happened to arrive in (docs/howto/navigation.md, "Run-to-run spread").
 """
 
 from __future__ import annotations

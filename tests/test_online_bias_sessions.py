@@ -7,7 +7,7 @@ by more than 0.03 m, whatever the session's true bias and odometry scale error. 
 the pair's distance in a narrow band, so the data barely determine the bias: the online
 estimate is only as good as its prior, which is why the sampled filter's prior has the
 default's width.
-Figures over seeds, biases and scale errors: docs/self-calibration.md, "Online bias on a new
+Figures over seeds, biases and scale errors: docs/explanation/self-calibration.md, "Online bias on a new
 session" (``scripts/online_bias_sessions.py``).
 """
 

@@ -142,7 +142,7 @@ def test_the_twenty_robot_grid_converges_fast(heading_error: bool) -> None:
     """20 robots, 20 s: the shape within 0.1 m once a rotation is fitted, one orientation
     hypothesis left, far faster than real time (in CPU time, which a loaded machine does not
     stretch as it does the wall clock); the unaligned error is the rotation the
-    heading-dependent range error mimics (docs/scaling.md), about 2.5 degrees, and without that
+    heading-dependent range error mimics (docs/explanation/scaling.md), about 2.5 degrees, and without that
     error the filter beats multilateration's fitted-rotation figure by far."""
     from relloc.evaluation.metrics import GroundTruth
     from relloc.evaluation.report import evaluate

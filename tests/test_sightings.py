@@ -269,7 +269,7 @@ def test_the_first_300_s_of_mrclam_dataset_6_from_the_uniform_prior(shared_data:
     below 1 on average (measured 0.982; Vicon says 0.94, the Creates drive 4-9 % less than
     their commands; reading a sighting's range as scale times distance gave 1.023; with the
     split's resampling 1.011, so this check of the rows runs without it). Figures of the whole
-    run: docs/mrclam.md."""
+    run: docs/explanation/mrclam.md."""
     import itertools
 
     from relloc.engine import Engine

@@ -266,7 +266,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--variant",
         choices=VARIANT_CHOICES,
         default="stacked",
-        help="network: stacked LSTM, bidirectional LSTM or ConvLSTM (docs/ranging.md)",
+        help="network: stacked LSTM, bidirectional LSTM or ConvLSTM (docs/explanation/range-correction.md)",
     )
     train.add_argument("--out", required=True, help="model directory to write")
     train.add_argument("--n-steps", type=int, default=10, help="frames per window (default 10)")
@@ -283,7 +283,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--features",
         choices=FEATURE_CHOICES,
         default="relative",
-        help="input features (default relative; see docs/ranging.md)",
+        help="input features (default relative; see docs/explanation/range-correction.md)",
     )
     train.add_argument(
         "--conv-subseq",

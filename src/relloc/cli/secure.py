@@ -1,4 +1,4 @@
-"""``relloc secure init``: a team's CA, certificates and Zenoh role configs (docs/secure.md).
+"""``relloc secure init``: a team's CA, certificates and Zenoh role configs (docs/howto/secure.md).
 
 Thin layer over :func:`relloc.live.secure.certificates.write_secure_dir`: load the team config, write the
 directory (never over an existing one without ``--force``), list what was written and what
@@ -48,7 +48,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "secure",
         help="authenticated, authorised Zenoh: a team CA and a config per role",
         description="Tools for a secure deployment: mutual TLS between the team's machines and "
-        "access control on who may publish what (docs/secure.md).",
+        "access control on who may publish what (docs/howto/secure.md).",
     )
     verbs = secure.add_subparsers(dest="secure_command", metavar="VERB", required=True)
     init = verbs.add_parser(

@@ -74,7 +74,7 @@ class ResamplingConfig(Checked):
 
 @dataclass(frozen=True)
 class SelfCalibrationConfig(Checked):
-    """What is estimated online and how (``[filter.self_calibration]``, docs/self-calibration.md).
+    """What is estimated online and how (``[filter.self_calibration]``, docs/explanation/self-calibration.md).
     The defaults are the compass/fixed/calibrated modes."""
 
     heading_mode: Literal["compass", "estimate"] = "compass"

@@ -64,7 +64,7 @@ class RobotConfig(Checked):
     sighting_topic: str = ""
     """Teammates this robot sees (a camera reading markers, UWB angle of arrival): a topic
     template with ``{target}`` (the teammate's name), ``geometry_msgs/PointStamped`` of the
-    teammate in this robot's body frame (docs/mrclam.md, "Sightings over ROS 2")."""
+    teammate in this robot's body frame (docs/explanation/mrclam.md, "Sightings over ROS 2")."""
     sighting_sigma_range: float = 0.1
     """Range noise of those sightings (m)."""
     sighting_sigma_bearing_deg: float = 1.0

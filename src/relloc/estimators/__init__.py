@@ -3,7 +3,7 @@
 Each kind registers itself (:mod:`.registry`) with what it can do; importing this package
 registers the built-in ones: :mod:`.particle`, :mod:`.gaussian_sum`, :mod:`.range_graph`,
 :mod:`.smoother`. A kind of one's own is one module that calls :func:`register` with a
-:class:`Kind` (docs/extending.md).
+:class:`Kind` (docs/howto/extending.md).
 """
 
 from __future__ import annotations

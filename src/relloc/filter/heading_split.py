@@ -12,7 +12,7 @@ correlated with the heading move with it), ``a = (-1.058, 0, 1.058)``, weights
 ``(0.225, 0.550, 0.225)``, ``sigma = 0.672``: the three-component split of a unit Gaussian
 that keeps its mean and variance (the splitting library of Huber et al. and DeMars et al.).
 The enlarged mixture is resampled back to ``M`` Gaussians, so the count and the cost per step
-stay fixed. Range-only sightings are where this matters (docs/mrclam.md).
+stay fixed. Range-only sightings are where this matters (docs/explanation/mrclam.md).
 """
 
 from __future__ import annotations

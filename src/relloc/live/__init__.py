@@ -8,7 +8,7 @@ topics as bridged by zenoh-bridge-ros2dds, or as robots on rmw_zenoh publish the
 enqueue. ``replay`` publishes a rosbag2 recording's raw CDR messages on the interface's keys at
 the recorded pace (times ``--rate``), so a recording stands in for the robots;
 ``benchmarks/serve_resources.py`` runs both on loopback and measures the server process (CPU,
-peak RSS, end-to-end latency). ``docs/live.md`` tells the whole story.
+peak RSS, end-to-end latency). ``docs/explanation/live-engine.md`` tells the whole story.
 
 The derivation: docs/explanation/internals.md, section ``relloc.live``.
 """

@@ -48,7 +48,7 @@ class ServeOptions:
     faults: Faults = field(default_factory=Faults)
     """Faults injected into the received events (testing; :mod:`relloc.faults`)."""
     reorder_window: float = 0.0
-    """Reorder-buffer window (s of header time); 0: lowest latency (see ``docs/live.md``)."""
+    """Reorder-buffer window (s of header time); 0: lowest latency (see ``docs/explanation/live-engine.md``)."""
     clock_rate: float = 1.0
     """Header seconds per wall second: pair with ``relloc replay --rate``."""
     status_period: float = 1.0

@@ -13,7 +13,7 @@ as ranged (``MeasurementModel.ranged``). From those times:
   as long again after every robot is ranged once more (the orientations are then still the
   split's mixture): a filter's orientation kernel treats the orientation as a static
   parameter of one rigid formation, and a robot out of ranging splits it into parts whose
-  relative orientation nothing observes (docs/faults.md).
+  relative orientation nothing observes (docs/howto/faults.md).
 """
 
 from __future__ import annotations

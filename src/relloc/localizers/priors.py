@@ -19,7 +19,7 @@ BIAS_PRIOR_SIGMA_UNCALIBRATED = 0.25
 standard deviation (m) of an uncalibrated pair's bias. The sampled filter uses
 ``uwb.default_bias_sigma`` instead, the width its default mode assumes for the same pair: a
 wider prior let the bias run, on a new session, along what one range cannot tell apart (a
-longer bias, a nearer robot) (docs/self-calibration.md, "Online bias on a new session")."""
+longer bias, a nearer robot) (docs/explanation/self-calibration.md, "Online bias on a new session")."""
 
 
 def bias_layout(
@@ -60,7 +60,7 @@ ROTATION_FLOOR = 0.05
 """Std (rad) of the formation's rotation that the published covariance keeps once the
 orientation is resolved: a range error that follows the robots' headings (an antenna pattern)
 turns the apparent motion of every robot alike, about its amplitude over the robots' turning
-radius (docs/scaling.md: 2.5-3 degrees on the grid), which no fusion of ranges and odometry
+radius (docs/explanation/scaling.md: 2.5-3 degrees on the grid), which no fusion of ranges and odometry
 can tell from a turn of the formation."""
 
 

@@ -17,5 +17,5 @@ Modules, and what each needs:
 * :mod:`~relloc.cli.ranging`: ``relloc ranging train | eval | export | bag-csv``.
 
 The run-time stage is :class:`relloc.stages.range_correction.RangeCorrector`. Importing this
-package (or anything but the three torch modules) never imports torch. See docs/ranging.md.
+package (or anything but the three torch modules) never imports torch. See docs/explanation/range-correction.md.
 """

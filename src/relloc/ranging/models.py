@@ -31,7 +31,7 @@ def _relative_features(w: torch.Tensor) -> torch.Tensor:
     No absolute range: in a recording where robots drive fixed patterns, their headings encode
     where they are, so a model given both the absolute range and the headings learns
     ``error = range - distance(headings)`` for that one geometry, which scores very well on
-    the same session and fails on the next (see docs/ranging.md). The range relative to the
+    the same session and fails on the next (see docs/explanation/range-correction.md). The range relative to the
     window keeps what transfers: spikes (NLOS) and lag while the distance changes. Yaws enter
     as sine and cosine: no jump at +-pi, and the antenna pattern is periodic.
     """

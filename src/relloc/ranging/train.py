@@ -3,7 +3,7 @@
 What is learnt, and what is not. A pair's ranging error is a constant (its bias) plus a part
 that depends on how the antennas are turned and on recent motion. The constant moves between
 sessions (the per-pair biases of one day are worse than one shared constant on another, see
-docs/ranging.md); the orientation- and motion-dependent part should not. So each model learns
+docs/explanation/range-correction.md); the orientation- and motion-dependent part should not. So each model learns
 only the **residual around the pair's constant** (``error - train_bias``, with ``train_bias``
 the median error of the rows before the test part: the statistic of a pair calibration, so a
 pair that falls back gets what ``relloc calibrate`` would give), and the constant is stored

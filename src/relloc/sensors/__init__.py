@@ -5,7 +5,7 @@ types with decoder, fast path and replay encoder, its routes from the team confi
 measurement model, its counters and its fault hooks; ingestion, bag resolution, replay
 encoding, message faults and the Zenoh source ask the :mod:`~relloc.sensors.registry` instead
 of comparing kind names. The built-in sensors (:mod:`relloc.sensors.builtin`) are registered
-here; a new sensor is one descriptor and one :func:`register` call (``docs/extending.md``).
+here; a new sensor is one descriptor and one :func:`register` call (``docs/howto/extending.md``).
 """
 
 from relloc.sensors.base import Conversion, Route, Sensor, Switch

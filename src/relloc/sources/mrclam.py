@@ -18,7 +18,7 @@ teammates and of static landmarks, and Vicon ground truth. A data set folder hol
 The team config (``configs/mrclam/``) names the robots ``robot1`` .. ``robot5`` after the
 subject numbers. Each sighting carries the camera's noise, a range sigma that grows with the
 distance and a bearing sigma (:data:`RANGE_SIGMA`, :data:`RANGE_SIGMA_PER_M`,
-:data:`BEARING_SIGMA`): docs/mrclam.md says where the values come from.
+:data:`BEARING_SIGMA`): docs/explanation/mrclam.md says where the values come from.
 """
 
 from __future__ import annotations

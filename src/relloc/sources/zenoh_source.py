@@ -17,7 +17,7 @@ to the engine's. What payloads become is the shared ingestion layer,
   reason in :attr:`ZenohSource.stats`.
 
 Keys, threads, time and order, rejections in full: ``docs/explanation/internals.md`` and
-``docs/live.md``.
+``docs/explanation/live-engine.md``.
 """
 
 from __future__ import annotations

@@ -75,7 +75,7 @@ class ParticleFilterLocalizer(FilterLocalizer):
 
     def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
         # An uncalibrated pair's online bias starts from what the default mode assumes about it,
-        # default_bias +- default_bias_sigma (docs/self-calibration.md, "Online bias on a new session").
+        # default_bias +- default_bias_sigma (docs/explanation/self-calibration.md, "Online bias on a new session").
         layout, prior = bias_layout(config, uncalibrated_sigma=config.uwb.default_bias_sigma)
         super().__init__(config, layout, seed=seed)
         self.method = method

@@ -3,7 +3,7 @@
 :mod:`.graph` is the iSAM2 window and its factors, :mod:`.moments` the published moments,
 :mod:`.localizer` the cycle, the start's hypotheses and the smoothed run. ``auto`` picks it for
 a team with a robot without odometry, and for a large team in the shared heading frame
-(``LARGE_TEAM_ROBOTS``, docs/scaling.md).
+(``LARGE_TEAM_ROBOTS``, docs/explanation/scaling.md).
 """
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from relloc.config import TeamConfig
 from relloc.estimators.registry import Capabilities, Kind, register
 
 LARGE_TEAM_ROBOTS = 12
-"""Teams of at least this many robots are large to the automatic choice (docs/scaling.md)."""
+"""Teams of at least this many robots are large to the automatic choice (docs/explanation/scaling.md)."""
 
 
 def large_compass_team(config: TeamConfig) -> bool:

@@ -190,7 +190,7 @@ def write_secure_dir(
         header = (
             f"// relloc secure init: Zenoh config of role {role!r} for team {config.name!r}.\n"
             "// Mutual TLS with the team's CA and the team's access control; it holds this\n"
-            "// role's private key: keep it readable by its owner only (docs/secure.md).\n"
+            "// role's private key: keep it readable by its owner only (docs/howto/secure.md).\n"
         )
         body = json.dumps(role_config(role, ca_pem, cert_pem, key_pem, acl), indent=2)
         _write(out / f"{role}.pem", cert_pem, private=False)
