@@ -10,7 +10,7 @@ estimate) it times ``relloc.ros.cdr`` and the ``rosbags`` path it replaces (dese
 build + serialise the message object) on the same payloads, alternating the two in every round,
 and prints the median time per message and the ratio. Both produce the same values (asserted
 once before timing). This is a warm tight loop: in the server, which sleeps between messages,
-both cost more, and the rosbags path more so (see ``docs/live.md``). ``--readme FILE`` writes
+both cost more, and the rosbags path more so (see ``docs/explanation/live-engine.md``). ``--readme FILE`` writes
 the table of the run between the ``cdr_codecs`` figures markers of FILE (``relloc.evaluation.pages``).
 """
 

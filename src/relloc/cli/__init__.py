@@ -362,7 +362,7 @@ def _add_filter_kind(parser: argparse.ArgumentParser) -> None:
 
 
 def _add_mode_flags(parser: argparse.ArgumentParser) -> None:
-    """Self-calibration modes (docs/self-calibration.md); the default is the config's."""
+    """Self-calibration modes (docs/explanation/self-calibration.md); the default is the config's."""
     from relloc.config import FilterConfig
 
     parser.add_argument(

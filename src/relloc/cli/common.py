@@ -170,7 +170,7 @@ def add_zenoh_args(p: argparse.ArgumentParser, role: str) -> None:
         default=None,
         metavar="DIR",
         help=f"mutual TLS and access control: DIR/{role}.json5 of relloc secure init "
-        "(tls/ endpoints only; docs/secure.md)",
+        "(tls/ endpoints only; docs/howto/secure.md)",
     )
     g.add_argument(
         "--prefix", default="", help="key prefix of the robots' topics (the bridge namespace)"

@@ -160,7 +160,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "zenoh-bridge-ros2dds publishes them or as robots on rmw_zenoh do (--ros-interface), run the "
         "localizer on them live and publish each robot's pose relative to the reference on "
         "<out-prefix>/<robot>/pose and a JSON status. Ctrl-C or SIGTERM stops it and prints its "
-        "figures (docs/live.md).",
+        "figures (docs/explanation/live-engine.md).",
     )
     serve.add_argument("--config", required=True, help="team config (TOML)")
     serve.add_argument(

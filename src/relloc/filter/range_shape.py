@@ -4,7 +4,7 @@ orientation hypotheses that ranges cannot tell apart.
 A uniform prior over relative positions has ``2(N-1)`` dimensions. The annealed start of the
 sampled filter (:meth:`relloc.estimators.particle.filter.ParticleFilter.initialize_annealed`) finds a five-robot
 formation (8 dimensions) among 20 000 particles; at twenty robots (38 dimensions) it does not
-(docs/scaling.md). Yet the ranges of a team where many pairs range say almost everything about
+(docs/explanation/scaling.md). Yet the ranges of a team where many pairs range say almost everything about
 the formation directly: with every pair, the distance matrix *is* the shape, up to the
 rotations and reflections about the reference that no range can see.
 

@@ -118,7 +118,7 @@ def _model_sigma(group: Sequence[RangeEvent]) -> float:
 
     It can only *widen* the range noise the config sets (the caller takes the larger): the
     model's sigma ranks ranges well but is not calibrated outside its training session
-    (docs/ranging.md), so a model that is unsure makes its ranges weigh less, while a confident
+    (docs/explanation/range-correction.md), so a model that is unsure makes its ranges weigh less, while a confident
     one never makes them weigh more than an uncorrected range of the same pair would.
     """
     sigmas = [
