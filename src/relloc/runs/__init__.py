@@ -17,25 +17,23 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+# light (the standard library only), and imported now: the function ``sweep`` must shadow the
+# module of its name on this package
+from relloc.runs.checks import RunError
+from relloc.runs.sweep import SweepError, SweepJob, SweepResult, run_jobs, sweep
+
 if TYPE_CHECKING:
-    from relloc.runs.checks import RunError
     from relloc.runs.demo import DemoOptions, run_demo
     from relloc.runs.recording import RunOptions, run_recording
-    from relloc.runs.sweep import SweepError, SweepJob, SweepResult, run_jobs, sweep
 
 _HOME = {
-    "RunError": "checks",
     "DemoOptions": "demo",
     "run_demo": "demo",
     "RunOptions": "recording",
     "run_recording": "recording",
-    "SweepError": "sweep",
-    "SweepJob": "sweep",
-    "SweepResult": "sweep",
-    "run_jobs": "sweep",
-    "sweep": "sweep",
 }
-"""Each name's module, imported on first use: a sweep or the command's start needs no engine."""
+"""The heavy names' modules, imported on first use: a sweep or the command's start needs no
+engine."""
 
 __all__ = [
     "DemoOptions",
