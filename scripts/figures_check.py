@@ -14,12 +14,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 from relloc.evaluation.pages import figure_runs
+from relloc.runs.sweep import SweepJob, SweepResult, run_jobs
 
 TIMING_KEYS = {"compute_s", "wall_s", "elapsed_s", "cpu_s", "seconds"}
 
@@ -32,23 +31,14 @@ def strip(value: object) -> object:
     return value
 
 
-def run_one(name: str, argv: list[str], out: Path) -> str:
-    json_path = out / f"{name}.json"
-    cmd = [
-        sys.executable,
-        "-m",
-        "relloc.cli",
-        *argv,
-        "--no-progress",
-        "--out",
-        str(out / name),
-        "--json",
-        str(json_path),
-    ]
-    done = subprocess.run(cmd, capture_output=True, text=True)
-    if done.returncode != 0:
-        return f"{name}: exit {done.returncode}\n{done.stderr[-2000:]}"
-    return f"{name}: ok"
+def job(name: str, argv: list[str], out: Path) -> SweepJob:
+    return SweepJob([*argv, "--no-progress", "--out", str(out / name)], out / f"{name}.json", name)
+
+
+def line(result: SweepResult) -> str:
+    if result.ok:
+        return f"{result.job.label}: ok"
+    return f"{result.job.label}: {result.error}\n{result.stderr[-2000:]}"
 
 
 def compare(a: Path, b: Path) -> int:
@@ -88,9 +78,8 @@ def main() -> None:
     table = figure_runs(args.data)
     if args.only:
         table = {k: v for k, v in table.items() if k in args.only.split(",")}
-    with ThreadPoolExecutor(args.jobs) as pool:
-        for line in pool.map(lambda kv: run_one(*kv, args.out), table.items()):
-            print(line, flush=True)
+    for result in run_jobs([job(*kv, args.out) for kv in table.items()], args.jobs):
+        print(line(result), flush=True)
     if args.compare is not None:
         sys.exit(1 if compare(args.compare, args.out) else 0)
 
