@@ -25,10 +25,7 @@ import argparse
 import hashlib
 import json
 import math
-import os
 import shlex
-import subprocess
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -36,6 +33,7 @@ import numpy as np
 
 from relloc.cli import argtypes
 from relloc.evaluation.pages import missing_section, write_between
+from relloc.runs.sweep import SweepJob, run_job
 
 RECORDINGS = {
     # name: (folder under --data, config, warm-up in s)
@@ -70,43 +68,37 @@ def _label(seeds: list[int]) -> str:
     return ",".join(map(str, seeds))
 
 
+ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+"""Each run on one core: ``--jobs`` runs at once share the machine."""
+
+
 def _run(data: Path, name: str, flags: str, methods: list[str], seed: int, work: Path) -> Path:
     folder, config, warmup = RECORDINGS[name]
     key = hashlib.sha1(f"{flags}|{','.join(methods)}".encode()).hexdigest()[:10]
     out = work / name / f"{key}_s{seed}.json"
     if out.exists():
         return out
-    out.parent.mkdir(parents=True, exist_ok=True)
-    cmd = [
-        sys.executable,
-        "-m",
-        "relloc.cli",
-        "run",
-        str(data / folder),
-        "--config",
-        config,
-        "--methods",
-        ",".join(methods),
-        "--warmup",
-        str(warmup),
-        "--seed",
-        str(seed),
-        "--no-progress",
-        "--json",
-        str(out),
-        *shlex.split(flags),
-    ]
-    env = {
-        **os.environ,
-        "OMP_NUM_THREADS": "1",
-        "OPENBLAS_NUM_THREADS": "1",
-        "MKL_NUM_THREADS": "1",
-    }
-    done = subprocess.run(
-        cmd, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env
+    job = SweepJob(
+        [
+            "run",
+            str(data / folder),
+            "--config",
+            config,
+            "--methods",
+            ",".join(methods),
+            "--warmup",
+            str(warmup),
+            "--seed",
+            str(seed),
+            "--no-progress",
+            *shlex.split(flags),
+        ],
+        out,
+        env=ONE_THREAD,
     )
-    if done.returncode != 0:
-        raise SystemExit(f"{' '.join(cmd)} failed:\n{done.stderr[-2000:]}")
+    result = run_job(job)
+    if not result.ok:
+        raise SystemExit(result.message())
     return out
 
 
