@@ -19,13 +19,13 @@ import json
 import math
 import shlex
 import statistics
-import subprocess
 import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+
+from relloc.runs.sweep import SweepJob, run_job
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT.parent / "shared" / "data" / "mrclam" / "MRCLAM_Dataset6"
@@ -240,36 +240,32 @@ def run_one(data: Path, config: Path, reference: str, seed: int, out: Path) -> P
     """One ``relloc run`` in a subprocess; its JSON gets a ``run`` entry with the wall time."""
     target = out / json_name(reference, seed)
     stem = target.with_suffix("")
-    argv = [
-        sys.executable,
-        "-m",
-        "relloc.cli",
-        "run",
-        str(data),
-        "--config",
-        str(config),
-        "--methods",
-        METHOD,
-        "--warmup",
-        f"{WARMUP:g}",
-        "--reference",
-        reference,
-        "--seed",
-        str(seed),
-        "--json",
-        str(target),
-        "--out",
-        str(stem),
-        "--no-progress",
-    ]
-    target.unlink(missing_ok=True)
-    t0 = time.monotonic()
-    proc = subprocess.run(argv, capture_output=True, text=True)
-    wall = time.monotonic() - t0
-    stem.with_suffix(".log").write_text(proc.stdout + proc.stderr)
-    if proc.returncode != 0 or not target.is_file():
+    job = SweepJob(
+        [
+            "run",
+            str(data),
+            "--config",
+            str(config),
+            "--methods",
+            METHOD,
+            "--warmup",
+            f"{WARMUP:g}",
+            "--reference",
+            reference,
+            "--seed",
+            str(seed),
+            "--out",
+            str(stem),
+            "--no-progress",
+        ],
+        target,
+    )
+    result = run_job(job)
+    wall = result.wall_s
+    stem.with_suffix(".log").write_text(result.stdout + result.stderr)
+    if not result.ok:
         raise RuntimeError(
-            f"{reference} seed {seed} failed (exit {proc.returncode}): see {stem.with_suffix('.log')}"
+            f"{reference} seed {seed} failed ({result.error}): see {stem.with_suffix('.log')}"
         )
     payload = json.loads(target.read_text())
     payload["run"] = {"reference": reference, "seed": seed, "wall_s": round(wall, 2)}
