@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from relloc.evaluation.pages import figure_runs
+from relloc.runs.sweep import SweepJob, run_job
 
 ROOT = Path(__file__).resolve().parents[1]
 # The first-run tutorial's command, as `make demo` runs it.
@@ -135,20 +136,9 @@ def _last_line(done: subprocess.CompletedProcess[str]) -> str:
 
 
 def run_one(name: str, argv: list[str], folder: Path) -> str:
-    (folder / f"{name}.json").unlink(missing_ok=True)  # no stale figures from an earlier run
-    cmd = [
-        sys.executable,
-        "-m",
-        "relloc.cli",
-        *argv,
-        "--no-progress",
-        "--out",
-        str(folder / name),
-        "--json",
-        str(folder / f"{name}.json"),
-    ]
-    done = subprocess.run(cmd, capture_output=True, text=True)
-    return "ok" if done.returncode == 0 else _last_line(done)
+    job = SweepJob([*argv, "--no-progress", "--out", str(folder / name)], folder / f"{name}.json")
+    result = run_job(job)  # removes an earlier run's JSON first: no stale figures
+    return "ok" if result.returncode == 0 else result.last_line()
 
 
 # ---------------------------------------------------------------- the first-run tutorial
