@@ -27,7 +27,7 @@ worst heading error median over the moving robots, worst and median pair-bias er
     .venv/bin/python benchmarks/self_calibration.py --team five --particles 500 1000 2000 --seeds 0 1 2
     .venv/bin/python benchmarks/self_calibration.py --json out/bench/self_calibration.json
 
-Times are wall clock on whatever machine runs it (the figures in docs/self-calibration.md come
+Times are wall clock on whatever machine runs it (the figures in docs/explanation/self-calibration.md come
 from a 2-core machine shared with other jobs; read them as orders of magnitude).
 """
 

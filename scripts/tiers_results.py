@@ -1,7 +1,7 @@
-"""Regenerate the real-data tables of docs/results_tiers.md: every shared TIERS bag with a UWB range,
+"""Regenerate the real-data tables of docs/results/tiers.md: every shared TIERS bag with a UWB range,
 every method, the default seed and the median and range over seeds 0-4.
 
-    .venv/bin/python scripts/tiers_results.py --data ../shared/data --out docs/results_tiers.md
+    .venv/bin/python scripts/tiers_results.py --data ../shared/data --out docs/results/tiers.md
 
 Warm-up windows follow the issue: 5 s for the multi-robot shortbag, 10 s for the pair bags.
 """

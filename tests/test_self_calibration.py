@@ -2,7 +2,7 @@
 
 Fast simulated runs of the Gaussian-sum filter (relloc.estimators.gaussian_sum.filter), its pieces, the
 evaluation of headings (wrapping at +-180 deg), and the acceptance runs on the TIERS bags (skipped
-without ``../shared/data``). Figures of the full acceptance runs: docs/self-calibration.md.
+without ``../shared/data``). Figures of the full acceptance runs: docs/explanation/self-calibration.md.
 """
 
 from __future__ import annotations
@@ -163,7 +163,7 @@ def test_bias_recovered_on_a_simulated_pair_with_motion(heading: str) -> None:
 
 def test_five_robots_all_online_short_run() -> None:
     """The multi scenario in heading-estimate mode with online biases, 40 s (the full 60 s
-    acceptance run and its figures: docs/self-calibration.md)."""
+    acceptance run and its figures: docs/explanation/self-calibration.md)."""
     opts = DemoOptions(seed=0, heading="estimate", bias="online", particles=800)
     sim, config, truth = scenario_setup("multi", opts)
     sim = type(sim)(
@@ -189,7 +189,7 @@ def test_the_acceptance_run_of_the_self_calibration_issue() -> None:
     where the reference's own heading error counts, times each robot's distance; in its
     odometry frame, turned once by the truth, it was 0.06-0.08 m. The bias bound holds narrowly
     (n_0-n_2 0.047 m): pairs with the static r0 are at the edge of what the simulated data
-    determine (docs/self-calibration.md), and other seeds have pairs over 0.05 m."""
+    determine (docs/explanation/self-calibration.md), and other seeds have pairs over 0.05 m."""
     opts = DemoOptions(
         seed=0, heading="estimate", bias="online", scenarios=("multi",), methods=("pf",)
     )
