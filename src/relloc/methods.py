@@ -18,7 +18,7 @@ from pathlib import Path
 from relloc import estimators
 from relloc.config import TeamConfig
 from relloc.engine import Pipeline, Stage
-from relloc.localizers.filtered import FilterLocalizer
+from relloc.localizers.base import Localizer
 
 METHODS = ("pf", "pf_ul", "pf_uv", "pf_ulv", "multilateration", "ekf_oracle")
 
@@ -97,10 +97,10 @@ def filter_kind(config: TeamConfig) -> str:
     return filter_choice(config)[0]
 
 
-def filter_localizer(config: TeamConfig, *, seed: int = 0, method: str = "pf") -> FilterLocalizer:
+def filter_localizer(config: TeamConfig, *, seed: int = 0, method: str = "pf") -> Localizer:
     """The localizer of the kind :func:`filter_choice` names (its module imported now)."""
     kind, _ = estimators.choose(config)
-    localizer: FilterLocalizer = kind.load()(config, seed=seed, method=method)
+    localizer: Localizer = kind.load()(config, seed=seed, method=method)
     return localizer
 
 

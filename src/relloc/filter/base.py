@@ -41,7 +41,9 @@ class FilterEstimate:
 
     mean: FloatArray  # (N-1, 2)
     cov: FloatArray  # (N-1, 2, 2)
-    ess: float
+    ess: float | None
+    """Effective sample size of the weights (``None``: the estimator has no weighted
+    hypotheses, the smoother)."""
     headings: dict[str, tuple[float, float]] = field(default_factory=dict)
     biases: dict[str, tuple[float, float]] = field(default_factory=dict)
     scales: dict[str, tuple[float, float]] = field(default_factory=dict)

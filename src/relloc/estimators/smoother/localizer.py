@@ -53,8 +53,8 @@ from relloc.filter.ranges import RangeBatch
 from relloc.filter.registry import MODELS, model_for
 from relloc.filter.summary import estimate_fields
 from relloc.localizers.base import Measurement
-from relloc.localizers.filtered import FilterLocalizer
 from relloc.localizers.priors import ROTATION_FLOOR, bias_layout
+from relloc.localizers.stepped import SteppedLocalizer
 
 FloatArray = NDArray[np.float64]
 log = logging.getLogger(__name__)
@@ -90,7 +90,7 @@ class _Segment:
     estimates: list[Estimate] = dataclasses.field(default_factory=list)
 
 
-class SmootherLocalizer(FilterLocalizer):
+class SmootherLocalizer(SteppedLocalizer):
     """Odometry, UWB ranges and relative positions in a fixed-lag factor-graph smoother
     (module docstring)."""
 
@@ -415,7 +415,7 @@ class SmootherLocalizer(FilterLocalizer):
         return FilterEstimate(
             mean,
             cov,
-            float(len(self.hypotheses)),
+            None,  # no weighted particles: the hypotheses are counted in smoother_hypotheses
             biases=biases,
             summary=summary,
             particles=len(self.hypotheses),
