@@ -5,7 +5,8 @@ docs/results/filter_kinds_generated.md.
     .venv/bin/python scripts/filter_kinds.py --from-json --page docs/results/filter_kinds_generated.md
 
 Each cell is one ``relloc run`` (a recording) or ``relloc demo`` (a simulated scenario) with
-``--methods pf --filter-kind K --json`` in a subprocess; multilateration is run once per row.
+``--methods pf --filter-kind K --json``, a subprocess of ``relloc.runs.sweep.run_job``;
+multilateration is run once per row.
 The figure of a robot is its APE median after one rotation/reflection for the run, the
 alignment relloc gives multilateration (where the orientation was unobservable, its published
 shapes' APE aligned the same way). A cell gives the mean over the robots / the worst robot, the
@@ -23,12 +24,13 @@ import math
 import re
 import subprocess
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import tomlkit
+
+from relloc.runs.sweep import SweepJob, SweepResult, run_job
 
 ROOT = Path(__file__).resolve().parent.parent
 DATA = ROOT.parent / "shared" / "data"
@@ -161,40 +163,36 @@ def _json(out: Path, row: Row, kind: str) -> Path:
     return out / f"{row.name}__{kind}.json"
 
 
+def job(row: Row, kind: str, out: Path) -> SweepJob:
+    """The ``relloc`` run of one cell (``relloc.runs.sweep`` adds ``--json``)."""
+    method = "multilateration" if kind == "multilateration" else "pf"
+    argv = [*row.args, "--methods", method, "--no-progress"]
+    argv += ["--out", str(out / "plots" / f"{row.name}__{kind}")]
+    if kind != "multilateration":
+        argv += ["--filter-kind", kind, *dict(row.kind_args).get(kind, ())]
+    return SweepJob(argv, _json(out, row, kind), cwd=ROOT, timeout=TIMEOUT)
+
+
+def cell_payload(result: SweepResult, kind: str) -> dict[str, Any]:
+    """One run's figures plus ``wall_s`` and the chosen kind, or ``{"error": ...}``, written back
+    to its JSON path."""
+    if result.payload is None:
+        if result.returncode is None:
+            reason = f"over {TIMEOUT:.0f} s"
+        else:
+            reason = (result.stderr.strip().splitlines() or [result.error or "failed"])[-1]
+        payload: dict[str, Any] = {"error": reason}
+    else:
+        payload = result.payload
+        chosen = re.search(r"filter: (\w+) \(kind", result.stdout)
+        payload["run"] = {"wall_s": result.wall_s, "kind": chosen.group(1) if chosen else kind}
+    result.job.json_path.write_text(json.dumps(payload, indent=1))
+    return payload
+
+
 def run_cell(row: Row, kind: str, out: Path) -> dict[str, Any]:
     """One run; its JSON path gets the figures plus ``wall_s`` and the chosen kind."""
-    path = _json(out, row, kind)
-    method = "multilateration" if kind == "multilateration" else "pf"
-    cmd = [
-        sys.executable,
-        "-m",
-        "relloc.cli",
-        *row.args,
-        "--methods",
-        method,
-        "--no-progress",
-        "--json",
-        str(path),
-        "--out",
-        str(out / "plots" / f"{row.name}__{kind}"),
-    ]
-    if kind != "multilateration":
-        cmd += ["--filter-kind", kind, *dict(row.kind_args).get(kind, ())]
-    start = time.perf_counter()
-    try:
-        done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=TIMEOUT)
-    except subprocess.TimeoutExpired:
-        path.write_text(json.dumps({"error": f"over {TIMEOUT:.0f} s"}))
-        return json.loads(path.read_text())
-    wall = time.perf_counter() - start
-    if done.returncode != 0:
-        path.write_text(json.dumps({"error": (done.stderr.strip().splitlines() or ["failed"])[-1]}))
-        return json.loads(path.read_text())
-    payload = json.loads(path.read_text())
-    chosen = re.search(r"filter: (\w+) \(kind", done.stdout)
-    payload["run"] = {"wall_s": wall, "kind": chosen.group(1) if chosen else kind}
-    path.write_text(json.dumps(payload, indent=1))
-    return payload
+    return cell_payload(run_job(job(row, kind, out)), kind)
 
 
 def robot_figure(robot: dict[str, Any]) -> Any:
