@@ -69,10 +69,10 @@ def pair_oracles(seed: int) -> dict[str, tuple[float, float, bool]]:
     return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--seeds", default="0-9", help="a range 'A-B' or a list 'A,B,...'")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     if "-" in args.seeds:
         lo, hi = (int(s) for s in args.seeds.split("-"))
         seeds = list(range(lo, hi + 1))

@@ -64,10 +64,10 @@ def shape_errors(seed: int) -> dict[str, float]:
     return dict(zip(others, errors.tolist(), strict=True))
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3, 4])
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
     for seed in args.seeds:
         errors = shape_errors(seed)
         print(f"seed {seed}: " + "  ".join(f"{r} {e:.3f}" for r, e in errors.items()))

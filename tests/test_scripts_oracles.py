@@ -1,0 +1,44 @@
+"""The two oracle measurements behind figures of the explanation pages, on seed 0 of their
+simulated scenario: ``scripts/bias_observability.py`` (docs/explanation/self-calibration.md)
+and ``scripts/static_shape_oracle.py`` (docs/explanation/measurements.md)."""
+
+from __future__ import annotations
+
+from types import ModuleType
+
+import pytest
+from load_file import ROOT, load_module
+
+
+def _script(name: str) -> ModuleType:
+    return load_module(ROOT / "scripts" / f"{name}.py", name)
+
+
+def test_bias_observability_on_seed_0(capsys: pytest.CaptureFixture[str]) -> None:
+    bo = _script("bias_observability")
+    pairs = bo.pair_oracles(0)
+    assert len(pairs) == 10  # every pair of the five robots
+    static = {key for key, (_, _, at_static) in pairs.items() if at_static}
+    assert static == {"n_0-n_1", "n_0-n_2", "n_0-n_3", "n_0-n_4"}  # the static r0's pairs
+    average, fit, _ = pairs["n_0-n_4"]
+    assert fit == pytest.approx(0.044, abs=5e-4)  # just inside the bound, as the page says
+    assert average > bo.BOUND
+    for key, (average, fit, at_static) in pairs.items():
+        if not at_static:
+            assert abs(average) < bo.BOUND and abs(fit) < bo.BOUND, key
+    bo.main(["--seeds", "0"])
+    out = capsys.readouterr().out.splitlines()
+    assert out[2].startswith("| 0 | n_0-n_4 | +0.063 | +0.044 | yes |")
+    assert out[-2:] == [
+        "average: 1 pairs over 0.05 m in 1 seeds (1 with a static end, 0 between moving robots)",
+        "pattern fit: 0 pairs over 0.05 m in 1 seeds (0 with a static end, 0 between moving robots)",
+    ]
+
+
+def test_static_shape_oracle_on_seed_0(capsys: pytest.CaptureFixture[str]) -> None:
+    so = _script("static_shape_oracle")
+    errors = so.shape_errors(0)
+    # The first row of the table in docs/explanation/measurements.md.
+    assert errors == pytest.approx({"r1": 0.083, "r2": 0.107, "r3": 0.100, "r4": 0.041}, abs=5e-4)
+    so.main(["--seeds", "0"])
+    assert capsys.readouterr().out == "seed 0: r1 0.083  r2 0.107  r3 0.100  r4 0.041\n"
