@@ -82,7 +82,7 @@ def _r1_minus_r0(o: RelativeObservation) -> tuple[float, float]:
     """The measured ``p_r1 - p_r0`` whichever robot the observation names as observer."""
     sign = 1.0 if (o.observer, o.target) == ("r0", "r1") else -1.0
     assert {o.observer, o.target} == {"r0", "r1"}
-    return sign * o.dx, sign * o.dy
+    return sign * o.vector[0], sign * o.vector[1]
 
 
 def _converged_estimate(t: float, std: float = 0.1) -> Estimate:
@@ -198,7 +198,7 @@ def test_events_pass_through_and_one_robot_is_never_paired_with_itself() -> None
         OdometryEvent(0.0, "r0", 0.0, 0.0, 0.0),
         RangeEvent(0.0, "r0", "r1", 4.2, "n_0", "n_1"),
         GroundTruthEvent(0.0, "r0", 0.0, 0.0),
-        RelativeObservation(0.0, "r0", "r1", 4.0, 0.0, 0.2),
+        RelativeObservation(0.0, "r0", "r1", (4.0, 0.0), 0.2),
         _seen("r0", 0.1, ("chair", CHAIR_A)),
         _seen("r0", 0.15, ("chair", CHAIR_A)),  # same robot, within the window
     ]
@@ -302,7 +302,7 @@ def test_nothing_wrong_gets_through_on_a_simulated_run() -> None:
             next_estimate += 0.1
         for o in _observations(stage.process(ev)):
             pi, pj = sim.true_pose(o.observer, o.t), sim.true_pose(o.target, o.t)
-            errors.append(math.hypot(o.dx - (pj[0] - pi[0]), o.dy - (pj[1] - pi[1])))
+            errors.append(math.hypot(o.vector[0] - (pj[0] - pi[0]), o.vector[1] - (pj[1] - pi[1])))
     s = stage.stats
     assert s["accepted_by_range"] > 20 and s["accepted_by_estimate"] > 50
     assert s["rejected"] > 0  # decoys and wrong pairings were proposed and turned down

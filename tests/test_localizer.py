@@ -86,7 +86,7 @@ def test_unknown_robots_and_bad_odometry_are_rejected_and_counted() -> None:
     loc.process(RangeEvent(1.0, "r0", "ghost", 2.0))
     loc.process(OdometryEvent(1.0, "ghost", 0.0, 0.0, 0.0))
     loc.process(OdometryEvent(1.0, "r1", math.nan, 0.0, 0.0))
-    loc.process(RelativeObservation(1.0, "r0", "r1", 1.0, math.nan, 0.1))
+    loc.process(RelativeObservation(1.0, "r0", "r1", (1.0, math.nan), 0.1))
     loc.process(RangeEvent(1.0, "r1", "r1", 2.0))
     assert loc.rejected == {
         "unknown_robot": 2,
@@ -215,7 +215,7 @@ def test_online_bias_rejects_a_node_pair_it_has_no_state_for() -> None:
 
 def test_self_observations_and_non_numbers_are_rejected() -> None:
     _, loc = _team_localizer()
-    loc.process(RelativeObservation(1.0, "r0", "r0", 1.0, 0.0, 0.1))
+    loc.process(RelativeObservation(1.0, "r0", "r0", (1.0, 0.0), 0.1))
     loc.process(RangeEvent(1.0, "r0", "r1", "2.0", "n_0", "n_1"))  # type: ignore[arg-type]
     loc.process(RangeEvent(1.0, "r0", "r1", 0.0, "n_0", "n_1"))
     loc.process("hello")  # type: ignore[arg-type]

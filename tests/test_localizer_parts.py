@@ -32,7 +32,7 @@ def _odometry(t: float, robot: str = "r1") -> OdometryEvent:
 def test_the_models_say_which_stream_an_event_is_and_whom_it_is_news_of() -> None:
     r = RangeEvent(1.0, "r2", "r1", 3.0)
     s = SightingEvent(1.0, "r1", "r3", 2.0, 0.5)
-    v = RelativeObservation(1.0, "r3", "r2", 1.0, 0.0, 0.1)
+    v = RelativeObservation(1.0, "r3", "r2", (1.0, 0.0), 0.1)
     assert RangeBatch.stream(r) == stream(r) == ("range", "r1", "r2")
     assert stream(s) == ("SightingEvent", "r1") and stream(v) == ("RelativeObservation", "r3")
     assert stream(_odometry(1.0, "r2")) == ("OdometryEvent", "r2")

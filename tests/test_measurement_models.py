@@ -172,8 +172,8 @@ def _events(config: TeamConfig) -> dict[type, list[object]]:
             RangeEvent(0.0, "r0", "r2", 4.0, corrected=True),
         ],
         RelativeObservation: [
-            RelativeObservation(0.0, "r1", "r2", 1.0, -2.0, 0.2),
-            RelativeObservation(0.0, "r2", "r0", -0.5, 0.7, 0.3),
+            RelativeObservation(0.0, "r1", "r2", (1.0, -2.0), 0.2),
+            RelativeObservation(0.0, "r2", "r0", (-0.5, 0.7), 0.3),
         ],
         SightingEvent: [
             SightingEvent(0.0, "r1", "r2", 2.0, 0.4, 0.1, 0.02),

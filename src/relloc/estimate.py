@@ -8,9 +8,11 @@ navigation read it without depending on the localizers that produce it.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import NDArray
 
 RESOLVE_HINT = (
     "formation orientation unobservable: drive any robot but the reference about 0.5 m, "
@@ -29,6 +31,23 @@ BODY_FRAME = "body"
 """The reference robot's body frame (x forward, y left) at the estimate's time."""
 
 
+Position = tuple[float, ...]
+"""A position (m): ``(x, y)`` in 2D, ``(x, y, z)`` in 3D; an estimate's positions share one
+dimension (:attr:`Estimate.dimension`)."""
+Covariance = tuple[tuple[float, ...], ...]
+"""A position's covariance (m^2), ``D x D`` rows for a position of dimension ``D``."""
+
+
+def position_of(values: Iterable[float]) -> Position:
+    """A position from any sequence of coordinates (a NumPy row, a message's fields)."""
+    return tuple(float(v) for v in values)
+
+
+def covariance_of(matrix: Iterable[Iterable[float]]) -> Covariance:
+    """A covariance from any ``D x D`` nested sequence (a NumPy matrix)."""
+    return tuple(tuple(float(v) for v in row) for row in matrix)
+
+
 @dataclass(frozen=True)
 class Estimate:
     """Positions of every non-reference robot relative to the reference, with covariances, in
@@ -37,10 +56,8 @@ class Estimate:
     t: float
     method: str
     reference: str
-    positions: dict[str, tuple[float, float]]
-    covariances: dict[str, tuple[tuple[float, float], tuple[float, float]]] = field(
-        default_factory=dict
-    )
+    positions: dict[str, Position]
+    covariances: dict[str, Covariance] = field(default_factory=dict)
     ess: float | None = None
     headings: dict[str, tuple[float, float]] = field(default_factory=dict)
     """Heading-estimate mode: per robot, the rotation that takes its odometry displacements
@@ -61,9 +78,9 @@ class Estimate:
     """Posterior weight of the mode that ``positions`` summarise (1 for a unimodal posterior)."""
     n_modes: int = 1
     """How many orientation/handedness modes the posterior has."""
-    weighted_mean: dict[str, tuple[float, float]] = field(default_factory=dict)
+    weighted_mean: dict[str, Position] = field(default_factory=dict)
     """Diagnostic: the weighted mean over every hypothesis, modes mixed (not an estimate)."""
-    shape: dict[str, tuple[float, float]] = field(default_factory=dict)
+    shape: dict[str, Position] = field(default_factory=dict)
     """The formation's shape relative to the reference in the declared gauge: turned so that
     ``shape_gauge`` lies on the reference's +x axis, mirrored so that the next robot (in the
     config's order) lies on the +y side. Known even when the orientation is not."""
@@ -95,6 +112,20 @@ class Estimate:
     methods aligned to the truth) or :data:`BODY_FRAME` (headings estimated: the reference's
     odometry frame turns against the world as its heading drifts, unobserved, so relloc
     publishes in the reference's body frame, which sightings and ranges do observe)."""
+
+    @property
+    def dimension(self) -> int:
+        """The positions' dimension: 2 (``x, y``) or 3 (``x, y, z``); 2 when there are none."""
+        return len(next(iter(self.positions.values()), (0.0, 0.0)))
+
+    def position(self, robot: str) -> NDArray[np.float64]:
+        """``robot``'s position as an array of :attr:`dimension`."""
+        return np.asarray(self.positions[robot], dtype=float)
+
+    def covariance(self, robot: str) -> NDArray[np.float64] | None:
+        """``robot``'s covariance as a ``D x D`` array (``None``: the estimate gives none)."""
+        cov = self.covariances.get(robot)
+        return None if cov is None else np.asarray(cov, dtype=float)
 
     @property
     def frame_id(self) -> str:

@@ -116,9 +116,10 @@ class RelativeObservation:
     t: float
     observer: str
     target: str
-    dx: float
-    dy: float
+    vector: tuple[float, ...]
+    """``p_target - p_observer`` (m), one entry per dimension: ``(dx, dy)`` in 2D."""
     sigma: float
+    """Std (m) per axis."""
 
 
 @dataclass(frozen=True, slots=True)

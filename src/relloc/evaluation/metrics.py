@@ -175,7 +175,10 @@ def truth_in_frame(
         if pose is None:
             return None
         rotation = pose[2]
-    return _to_body(truth, rotation) if rotation != 0.0 else truth
+    if rotation == 0.0:
+        return truth
+    x, y = _to_body(truth, rotation)
+    return x, y
 
 
 def orthogonal_procrustes(src: FloatArray, dst: FloatArray) -> FloatArray:
@@ -287,8 +290,8 @@ def after(p: Paired, t_start: float) -> Paired:
     return Paired(p.t[keep], p.est[keep], p.gt[keep], p.std[keep])
 
 
-def _to_body(v: tuple[float, float], heading: float) -> tuple[float, float]:
+def _to_body(v: Sequence[float], heading: float) -> tuple[float, ...]:
     """``v`` turned by ``-heading``: a vector of the frame into the body frame of a robot whose
-    heading in that frame is ``heading``."""
+    heading in that frame is ``heading`` (a yaw-only turn: a height is carried)."""
     c, s = math.cos(heading), math.sin(heading)
-    return (c * v[0] + s * v[1], -s * v[0] + c * v[1])
+    return (c * v[0] + s * v[1], -s * v[0] + c * v[1], *v[2:])

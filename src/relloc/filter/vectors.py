@@ -73,7 +73,7 @@ class RelativePositionBatch(MeasurementModel):
             cls(
                 np.array([layout.index(v.observer) for v in events], dtype=np.intp),
                 np.array([layout.index(v.target) for v in events], dtype=np.intp),
-                np.array([[v.dx, v.dy] for v in events]),
+                np.array([v.vector for v in events], dtype=float),
                 np.array([v.sigma for v in events]),
                 outlier_fraction=OUTLIER_FRACTION if context.robust else 0.0,
                 layout=layout,
@@ -92,7 +92,10 @@ class RelativePositionBatch(MeasurementModel):
         index = context.layout.index
         return [
             RelativeFix(
-                index(v.observer), index(v.target), np.array([v.dx, v.dy]), v.sigma**2 * np.eye(2)
+                index(v.observer),
+                index(v.target),
+                np.array(v.vector, dtype=float),
+                v.sigma**2 * np.eye(len(v.vector)),
             )
             for v in events
         ], 0
@@ -104,7 +107,11 @@ class RelativePositionBatch(MeasurementModel):
             return "unknown_robot"
         if event.observer == event.target:
             return "self_observation"
-        if not all(map(finite, (event.dx, event.dy, event.sigma))) or event.sigma <= 0:
+        if (
+            len(event.vector) != 2  # the filters' positions are planar
+            or not all(map(finite, (*event.vector, event.sigma)))
+            or event.sigma <= 0
+        ):
             return "invalid_relative_observation"
         if context.is_late(event.t):
             return "late_measurement"

@@ -227,9 +227,9 @@ class PoseInbox:
 
     def estimates(self) -> list[Any]:
         """The poses as relloc estimates, one per stamp, in time order (frame: the reference)."""
-        from relloc.estimate import Estimate
+        from relloc.estimate import Estimate, Position
 
-        grouped: dict[float, dict[str, tuple[float, float]]] = {}
+        grouped: dict[float, dict[str, Position]] = {}
         for robot, inbox in self.poses.items():
             for msg in inbox.snapshot():
                 t = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9

@@ -35,7 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
-from relloc.estimate import Estimate
+from relloc.estimate import Covariance, Estimate, Position
 from relloc.events import RangeEvent, SightingEvent
 from relloc.filter.motion import NOISE_PER_M, NOISE_PER_RAD, PROCESS_NOISE
 from relloc.localizers.base import Localizer, Measurement
@@ -190,7 +190,8 @@ class EkfOracleLocalizer(Localizer):
     def _estimate(self, t: float) -> Estimate:
         lay = self.layout
         ref = lay.index(lay.reference)
-        positions, covs = {}, {}
+        positions: dict[str, Position] = {}
+        covs: dict[str, Covariance] = {}
         for robot in lay.others:
             j = lay.index(robot)
             positions[robot] = (

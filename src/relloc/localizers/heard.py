@@ -22,6 +22,7 @@ import math
 from typing import Any
 
 from relloc.config import TeamConfig
+from relloc.estimate import Covariance
 from relloc.filter.measurement import hook
 from relloc.filter.registry import model_for
 from relloc.filter.state import TeamLayout
@@ -31,7 +32,7 @@ _UNRANGED_AFTER = 2.0
 """Seconds without a range after which a robot pauses the orientation kernel (and, without
 any measurement, may be unseen)."""
 
-Covariances = dict[str, tuple[tuple[float, float], tuple[float, float]]]
+Covariances = dict[str, Covariance]
 
 
 class Heard:
@@ -86,10 +87,13 @@ class Heard:
         speed = self.unseen_speed
         ref = unseen.get(self.reference, 0.0)
         out = dict(covs)
-        for robot, ((xx, xy), (yx, yy)) in covs.items():
+        for robot, cov in covs.items():
             add = (speed * unseen.get(robot, 0.0)) ** 2 + (speed * ref) ** 2
             if add:
-                out[robot] = ((xx + add, xy), (yx, yy + add))
+                out[robot] = tuple(
+                    tuple(v + add if i == j else v for j, v in enumerate(row))
+                    for i, row in enumerate(cov)
+                )
         return out
 
     def split(self, t: float) -> bool:

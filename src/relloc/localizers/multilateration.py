@@ -12,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
-from relloc.estimate import Estimate
+from relloc.estimate import Estimate, position_of
 from relloc.events import RangeEvent
 from relloc.filter import multilateration
 from relloc.filter.measurement import ModelContext
@@ -57,8 +57,5 @@ class MultilaterationLocalizer(Localizer):
             self.stats["no_estimate"] += 1
             return None
         self._previous = sol
-        positions = {
-            r: (float(sol[self.layout.index(r), 0]), float(sol[self.layout.index(r), 1]))
-            for r in self.layout.others
-        }
+        positions = {r: position_of(sol[self.layout.index(r)]) for r in self.layout.others}
         return Estimate(t, self.method, self.layout.reference, positions)

@@ -28,7 +28,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
-from relloc.estimate import BODY_FRAME, HEADING_FRAME, Estimate
+from relloc.estimate import (
+    BODY_FRAME,
+    HEADING_FRAME,
+    Covariance,
+    Estimate,
+    Position,
+    covariance_of,
+    position_of,
+)
 from relloc.filter.base import FilterEstimate
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.state import StateLayout
@@ -146,11 +154,11 @@ class SteppedLocalizer(Localizer):
         With ``body`` (:meth:`_body`) the positions, covariances and shape are published in the
         reference's body frame; the headings, biases and scales stay the filter's."""
         shown = body or fe
-        positions, covs = {}, {}
+        positions: dict[str, Position] = {}
+        covs: dict[str, Covariance] = {}
         for k, robot in enumerate(self.layout.others):
-            positions[robot] = (float(shown.mean[k, 0]), float(shown.mean[k, 1]))
-            c = shown.cov[k]
-            covs[robot] = ((float(c[0, 0]), float(c[0, 1])), (float(c[1, 0]), float(c[1, 1])))
+            positions[robot] = position_of(shown.mean[k])
+            covs[robot] = covariance_of(shown.cov[k])
         for robot in {
             *fe.headings,
             self.layout.reference,
@@ -168,11 +176,7 @@ class SteppedLocalizer(Localizer):
         widening = self.watchdog.widening
         if widening > 1.0:
             covs = {
-                r: (
-                    (widening * c[0][0], widening * c[0][1]),
-                    (widening * c[1][0], widening * c[1][1]),
-                )
-                for r, c in covs.items()
+                r: covariance_of((widening * v for v in row) for row in c) for r, c in covs.items()
             }
         unseen = self.heard.unseen(t, self.tracks)
         if unseen:

@@ -126,7 +126,13 @@ def decode_range(raw: bytes, variance: bool | None = None) -> tuple[float, float
 
 
 def encode_pose_with_covariance_stamped(
-    t: float, x: float, y: float, yaw: float, covariance: list[float], frame_id: str
+    t: float,
+    x: float,
+    y: float,
+    yaw: float,
+    covariance: list[float],
+    frame_id: str,
+    z: float = 0.0,
 ) -> bytes:
     """``geometry_msgs/PoseWithCovarianceStamped`` as little-endian CDR.
 
@@ -139,5 +145,5 @@ def encode_pose_with_covariance_stamped(
     head = b"\x00\x01\x00\x00" + struct.pack("<iII", sec, nanosec, len(name)) + name
     head += bytes(-(len(head) - 4) % 8)
     half = yaw / 2.0
-    pose = struct.pack("<7d", x, y, 0.0, 0.0, 0.0, math.sin(half), math.cos(half))
+    pose = struct.pack("<7d", x, y, z, 0.0, 0.0, math.sin(half), math.cos(half))
     return head + pose + struct.pack("<36d", *covariance)

@@ -8,10 +8,10 @@ same ``geometry_msgs/msg/PoseWithCovarianceStamped`` whichever way it came:
   nanoseconds rounded, carried), ``frame_id`` the estimate's
   (:attr:`Estimate.frame_id <relloc.estimate.Estimate.frame_id>`: ``<reference>`` for the
   heading frame, ``<reference>/base_link`` for the reference's body frame).
-* **Pose.** ``(x, y)`` of the estimate, ``z = 0``; the orientation a pure rotation about z by
+* **Pose.** The estimate's position: ``(x, y)``, and ``z`` where it is 3D (else 0); the orientation a pure rotation about z by
   the robot's heading mean where the estimate has a heading for it, else the identity.
 * **Covariance.** ROS's row-major 6x6 over ``(x, y, z, roll, pitch, yaw)``, built by
-  :func:`pose_covariance`: the estimate's 2x2 position covariance in the x, y block (the
+  :func:`pose_covariance`: the estimate's position covariance in the x, y (and z) block (the
   "not estimated" value on its diagonal where the estimate has none for the robot); the
   heading's variance (its circular std squared) as yaw's where there is a heading; every other
   diagonal entry :data:`NOT_ESTIMATED` (1e6), every other off-diagonal entry 0. Why 1e6 and
@@ -57,14 +57,17 @@ _MSGTYPE = "geometry_msgs/msg/PoseWithCovarianceStamped"
 def pose_covariance(
     xy: Sequence[Sequence[float]] | None, yaw_variance: float | None = None
 ) -> list[float]:
-    """The row-major 6x6 ROS covariance (36 floats) of a planar estimate: ``xy`` the 2x2 one of
-    ``(x, y)`` (``None``: not estimated), ``yaw_variance`` yaw's (``None``: not estimated);
-    z, roll and pitch :data:`NOT_ESTIMATED`."""
+    """The row-major 6x6 ROS covariance (36 floats) of an estimate: ``xy`` the 2x2 one of
+    ``(x, y)``, or the 3x3 one of ``(x, y, z)`` (``None``: not estimated), ``yaw_variance``
+    yaw's (``None``: not estimated); what is not given (z in 2D, roll and pitch)
+    :data:`NOT_ESTIMATED`."""
     cov = [0.0] * 36
     for i in range(6):
         cov[7 * i] = NOT_ESTIMATED
     if xy is not None:
-        (cov[0], cov[1]), (cov[6], cov[7]) = ((float(a), float(b)) for a, b in xy)
+        for i, row in enumerate(xy):
+            for j, value in enumerate(row):
+                cov[6 * i + j] = float(value)
     if yaw_variance is not None:
         cov[35] = float(yaw_variance)
     return cov
@@ -81,17 +84,19 @@ class EstimatePose:
     yaw: float
     covariance: list[float]
     """Row-major 6x6 over ``(x, y, z, roll, pitch, yaw)``."""
+    z: float = 0.0
 
 
 def estimate_pose(est: Estimate, robot: str) -> EstimatePose:
     """``robot``'s entry of ``est`` by the convention of the module docstring."""
-    x, y = est.positions[robot]
+    position = est.positions[robot]
     heading = est.headings.get(robot)
     return EstimatePose(
         t=est.t,
         frame_id=est.frame_id,
-        x=float(x),
-        y=float(y),
+        x=float(position[0]),
+        y=float(position[1]),
+        z=float(position[2]) if len(position) > 2 else 0.0,
         yaw=float(heading[0]) if heading is not None else 0.0,
         covariance=pose_covariance(
             est.covariances.get(robot),
@@ -107,7 +112,7 @@ def estimate_pose_msg(est: Estimate, robot: str, distro: str | None = None) -> A
     sec, nanosec = split_stamp(p.t)
     stamp = types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
     header = types["std_msgs/msg/Header"](stamp=stamp, frame_id=p.frame_id)
-    point = types["geometry_msgs/msg/Point"](x=p.x, y=p.y, z=0.0)
+    point = types["geometry_msgs/msg/Point"](x=p.x, y=p.y, z=p.z)
     half = p.yaw / 2.0
     quat = types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(half), w=math.cos(half))
     pose = types["geometry_msgs/msg/Pose"](position=point, orientation=quat)
@@ -120,4 +125,6 @@ def estimate_pose_msg(est: Estimate, robot: str, distro: str | None = None) -> A
 def estimate_pose_cdr(est: Estimate, robot: str) -> bytes:
     """:func:`estimate_pose_msg` as little-endian CDR: the bytes the Zenoh sink publishes."""
     p = estimate_pose(est, robot)
-    return encode_pose_with_covariance_stamped(p.t, p.x, p.y, p.yaw, p.covariance, p.frame_id)
+    return encode_pose_with_covariance_stamped(
+        p.t, p.x, p.y, p.yaw, p.covariance, p.frame_id, z=p.z
+    )

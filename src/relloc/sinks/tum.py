@@ -1,7 +1,8 @@
 """TUM trajectory files (``t x y z qx qy qz qw``), the format evo and most SLAM tools read.
 
-relloc writes 2-D positions relative to the reference robot: ``z`` is 0 and the orientation the
-identity quaternion, so ``evo_ape tum groundtruth_r1.txt pf_r1.txt`` compares positions only.
+relloc writes positions relative to the reference robot: ``z`` the position's own in 3D, 0 in
+2D, and the orientation the identity quaternion, so ``evo_ape tum groundtruth_r1.txt
+pf_r1.txt`` compares positions only.
 """
 
 from __future__ import annotations
@@ -12,10 +13,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 
-def write_tum(path: Path, times: NDArray[np.float64], xy: NDArray[np.float64]) -> None:
-    """A TUM trajectory file of 2-D positions, one line per time."""
+def write_tum(path: Path, times: NDArray[np.float64], positions: NDArray[np.float64]) -> None:
+    """A TUM trajectory file of positions ``(N, 2)`` or ``(N, 3)``, one line per time."""
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w") as fh:
         fh.write("# timestamp tx ty tz qx qy qz qw\n")
-        for t, (x, y) in zip(times, xy, strict=True):
-            fh.write(f"{t:.6f} {x:.6f} {y:.6f} 0 0 0 0 1\n")
+        for t, p in zip(times, positions, strict=True):
+            z = f"{p[2]:.6f}" if len(p) > 2 else "0"
+            fh.write(f"{t:.6f} {p[0]:.6f} {p[1]:.6f} {z} 0 0 0 1\n")

@@ -265,8 +265,7 @@ class DetectionAssociator:
                 t,
                 observer=i,
                 target=j,
-                dx=float(vectors[m, n, 0]),
-                dy=float(vectors[m, n, 1]),
+                vector=(float(vectors[m, n, 0]), float(vectors[m, n, 1])),
                 sigma=float(sigma[m, n]),
             )
             for m, n in matching

@@ -40,7 +40,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
-from relloc.estimate import OWN_FRAME, Estimate
+from relloc.estimate import OWN_FRAME, Estimate, covariance_of, position_of
 from relloc.estimators.smoother.graph import GraphSmoother
 from relloc.estimators.smoother.moments import flatten, moments, per_pair
 from relloc.estimators.smoother.start import chained_start, merge_fixes, range_start
@@ -472,14 +472,8 @@ class SmootherLocalizer(SteppedLocalizer):
             fields = estimate_fields(summary, self.layout.reference, others)
             if not summary.orientation_observable:
                 fields["shape_gauge"] = OWN_FRAME
-            positions = {r: (float(mean[k, 0]), float(mean[k, 1])) for k, r in enumerate(others)}
-            covariances = {
-                r: (
-                    (float(cov[k, 0, 0]), float(cov[k, 0, 1])),
-                    (float(cov[k, 1, 0]), float(cov[k, 1, 1])),
-                )
-                for k, r in enumerate(others)
-            }
+            positions = {r: position_of(mean[k]) for k, r in enumerate(others)}
+            covariances = {r: covariance_of(cov[k]) for k, r in enumerate(others)}
             out.append(
                 dataclasses.replace(causal, positions=positions, covariances=covariances, **fields)
             )
