@@ -211,9 +211,12 @@ class SmootherLocalizer(SteppedLocalizer):
 
     # ---------------------------------------------------------------- the cycle
     def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
-        if not self.initialized:
+        if not self.initialized:  # the start window; a restart builds on it too
             self._remember(t, batch)
-            return super()._step(t, batch)
+        return super()._step(t, batch)
+
+    def _cycle(self, t: float, batch: list[Measurement]) -> Estimate | None:
+        """The step's ranges merged per pair; every ``STEP_PERIOD`` a smoother step."""
         ranges = self._remember(t, batch)
         self._step_batch += batch
         terms = self._ranges(ranges)
