@@ -66,7 +66,7 @@ def median_range_error(sim: object) -> float:
     errors = []
     for ev in sim.events():  # type: ignore[attr-defined]
         if isinstance(ev, GroundTruthEvent):
-            where[ev.robot] = (ev.x, ev.y)
+            where[ev.robot] = (ev.position[0], ev.position[1])
         elif isinstance(ev, RangeEvent) and ev.robot_a in where and ev.robot_b in where:
             (xa, ya), (xb, yb) = where[ev.robot_a], where[ev.robot_b]
             errors.append(ev.distance - float(np.hypot(xa - xb, ya - yb)))

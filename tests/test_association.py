@@ -197,7 +197,7 @@ def test_events_pass_through_and_one_robot_is_never_paired_with_itself() -> None
     events: list[Event] = [
         OdometryEvent(0.0, "r0", 0.0, 0.0, 0.0),
         RangeEvent(0.0, "r0", "r1", 4.2, "n_0", "n_1"),
-        GroundTruthEvent(0.0, "r0", 0.0, 0.0),
+        GroundTruthEvent(0.0, "r0", (0.0, 0.0)),
         RelativeObservation(0.0, "r0", "r1", (4.0, 0.0), 0.2),
         _seen("r0", 0.1, ("chair", CHAIR_A)),
         _seen("r0", 0.15, ("chair", CHAIR_A)),  # same robot, within the window

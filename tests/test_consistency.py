@@ -18,9 +18,9 @@ from relloc.events import GroundTruthEvent
 def _truth() -> GroundTruth:
     gt = GroundTruth("r0")
     for t in np.arange(0.0, 10.01, 0.5):
-        gt.add(GroundTruthEvent(float(t), "r0", 1.0, 1.0))
-        gt.add(GroundTruthEvent(float(t), "r1", 3.0, 1.0))  # r1 at (2, 0) relative to r0
-        gt.add(GroundTruthEvent(float(t), "r2", 1.0, 2.0))  # r2 at (0, 1)
+        gt.add(GroundTruthEvent(float(t), "r0", (1.0, 1.0)))
+        gt.add(GroundTruthEvent(float(t), "r1", (3.0, 1.0)))  # r1 at (2, 0) relative to r0
+        gt.add(GroundTruthEvent(float(t), "r2", (1.0, 2.0)))  # r2 at (0, 1)
     return gt
 
 

@@ -1,6 +1,6 @@
 """Positions carry their dimension: an :class:`Estimate` in 3D reaches the pose message, its
 CDR bytes and a TUM file with its height and the z block of its covariance, and the 2D
-outputs are what they were."""
+outputs are what they were; a ground-truth pose carries its position as a tuple too."""
 
 from __future__ import annotations
 
@@ -9,6 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from relloc.estimate import Estimate, covariance_of, position_of
+from relloc.evaluation.metrics import GroundTruth
+from relloc.events import GroundTruthEvent
 from relloc.ros import messages as rm
 from relloc.ros.estimate_msgs import NOT_ESTIMATED, estimate_pose, estimate_pose_cdr
 from relloc.sinks.tum import write_tum
@@ -59,3 +61,16 @@ def test_tum_files_carry_z_in_3d_and_0_in_2d(tmp_path: Path) -> None:
     three = (tmp_path / "b.txt").read_text().splitlines()[1]
     assert two == "1.000000 1.000000 2.000000 0 0 0 0 1"
     assert three == "1.000000 1.000000 2.000000 0.500000 0 0 0 1"
+
+
+def test_a_2d_ground_truth_position_flows_through_ground_truth_unchanged() -> None:
+    a = GroundTruthEvent(3.0, "a", (1.25, -0.5), 0.3)
+    b = GroundTruthEvent(3.0, "b", (4.0, 2.75), -1.0)
+    assert rm.pose_to_ground_truth(rm.pose_stamped_msg(a), "a") == a  # the message round trip
+    gt = GroundTruth("a")
+    gt.add(a)
+    gt.add(b)
+    assert gt.pose_at("a", 3.0) == (1.25, -0.5, 0.3)
+    assert gt.relative_at("b", 3.0) == (4.0 - 1.25, 2.75 + 0.5)
+    times, poses = gt.trajectory("b")
+    assert times.tolist() == [3.0] and poses.tolist() == [[4.0, 2.75, -1.0]]

@@ -36,8 +36,8 @@ def test_body_frame_moments_match_sampling_the_gaussian() -> None:
 
 def test_a_body_frame_estimate_is_scored_against_the_truth_seen_from_the_reference() -> None:
     gt = GroundTruth("a")
-    gt.add(GroundTruthEvent(0.0, "a", 1.0, 1.0, math.pi / 2))  # facing +y
-    gt.add(GroundTruthEvent(0.0, "b", 1.0, 3.0, 0.0))  # 2 m ahead of a
+    gt.add(GroundTruthEvent(0.0, "a", (1.0, 1.0), math.pi / 2))  # facing +y
+    gt.add(GroundTruthEvent(0.0, "b", (1.0, 3.0), 0.0))  # 2 m ahead of a
     est = Estimate(0.0, "pf", "a", {"b": (2.0, 0.0)}, frame=BODY_FRAME)
     assert truth_in_frame(est, gt, "b") == pytest.approx((2.0, 0.0))
     heading = Estimate(0.0, "pf", "a", {"b": (0.0, 2.0)})

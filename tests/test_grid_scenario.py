@@ -32,7 +32,7 @@ def test_every_pair_ranges_and_the_reference_is_static(n: int) -> None:
     assert np.ptp(sim.true_poses("r0", t)[:, :2], axis=0).max() == 0.0
     xmin, xmax, ymin, ymax = sim.config.area
     gt = [e for e in events if isinstance(e, GroundTruthEvent)]
-    assert all(xmin < e.x < xmax and ymin < e.y < ymax for e in gt)
+    assert all(xmin < e.position[0] < xmax and ymin < e.position[1] < ymax for e in gt)
     for r in robots[1:]:
         p = sim.true_poses(r, t)[:, :2]
         path = np.hypot(*np.diff(p, axis=0).T).sum()

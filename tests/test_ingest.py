@@ -204,7 +204,7 @@ def test_detections_and_ground_truth() -> None:
     assert stats.rejected == {"detection_zero_position": 1}
     mocap = types[POSE_STAMPED](header=header, pose=pose(1.0, 2.0, 0.1))
     gt = convert.convert(route_of(routes, "/vrpn_client_node/body_a/pose"), "m", encode(mocap), T0)
-    assert gt == GroundTruthEvent(T0, "a", 1.0, 2.0, 0.0)
+    assert gt == GroundTruthEvent(T0, "a", (1.0, 2.0), 0.0)
 
 
 def test_zero_stamps_take_the_receive_time_on_their_kinds_clock_and_keep_increasing() -> None:
@@ -319,7 +319,7 @@ def test_stats_record_counts_emitted_kinds_and_has_one_plain_view() -> None:
         OdometryEvent(0.1, "a", 0.0, 0.0, 0.0),
         RangeEvent(0.1, "a", "b", 3.0),
         DetectionEvent(0.2, "b"),
-        GroundTruthEvent(0.3, "a", 0.0, 0.0),
+        GroundTruthEvent(0.3, "a", (0.0, 0.0)),
     ):
         stats.emitted(event)
     stats.rejected["late"] += 1

@@ -42,13 +42,13 @@ def _mocap_msg(msgtype: str, t: float, name: str, x: float, y: float) -> Any:
         return odometry_msg(OdometryEvent(t, name, x, y, 0.2), frame_id="world")
     if msgtype == TRANSFORM_STAMPED:
         types = typestore().types
-        ts = pose_stamped_msg(GroundTruthEvent(t, name, x, y, 0.2))
+        ts = pose_stamped_msg(GroundTruthEvent(t, name, (x, y), 0.2))
         transform = types["geometry_msgs/msg/Transform"](
             translation=types["geometry_msgs/msg/Vector3"](x=x, y=y, z=0.0),
             rotation=quaternion_from_yaw(0.2),
         )
         return types[TRANSFORM_STAMPED](header=ts.header, child_frame_id=name, transform=transform)
-    return pose_stamped_msg(GroundTruthEvent(t, name, x, y, 0.2))
+    return pose_stamped_msg(GroundTruthEvent(t, name, (x, y), 0.2))
 
 
 def _synthetic_bag(
@@ -85,7 +85,7 @@ def _synthetic_bag(
                         decoy.format(body=name),
                         POSE_STAMPED,
                         t,
-                        pose_stamped_msg(GroundTruthEvent(t, name, 1.0, 1.0)),
+                        pose_stamped_msg(GroundTruthEvent(t, name, (1.0, 1.0))),
                     )
                 )
             if i % 2 == 0:

@@ -148,7 +148,12 @@ def test_a_localizer_fuses_a_registered_sensor_without_knowing_it(x_fix) -> None
         if isinstance(ev, GroundTruthEvent):
             truth[ev.robot] = ev
             if ev.robot == "r1" and "r0" in truth and len(fixes) < int(ev.t * 5):
-                fix = XFix(ev.t, "r1", ev.x - truth["r0"].x + rng.normal(0.0, 0.05), 0.05)
+                fix = XFix(
+                    ev.t,
+                    "r1",
+                    ev.position[0] - truth["r0"].position[0] + rng.normal(0.0, 0.05),
+                    0.05,
+                )
                 fixes.append(fix)
                 estimates += loc.process(fix)
             continue

@@ -223,7 +223,7 @@ def test_range_to_event_keeps_nodes_and_value() -> None:
 def test_pose_to_ground_truth() -> None:
     msg = sample_messages()[rm.POSE_STAMPED]
     gt = rm.pose_to_ground_truth(msg, "turtle01")
-    assert (gt.t, gt.robot, gt.x, gt.y) == (7.0, "turtle01", 1.0, 2.0)
+    assert (gt.t, gt.robot, gt.position) == (7.0, "turtle01", (1.0, 2.0))
     assert gt.yaw == pytest.approx(1.2)
 
 

@@ -253,7 +253,7 @@ def test_the_mrclam_reader_turns_a_data_set_into_events(tmp_path: Path) -> None:
     assert source.stats.counts["landmark_sightings"] == 1
     assert source.stats.rejected == {"unknown_barcode": 1}
     truth = [e for e in events if isinstance(e, GroundTruthEvent)]
-    assert len(truth) == 4 and truth[0].x == 1.0
+    assert len(truth) == 4 and truth[0].position[0] == 1.0
 
 
 def test_odometry_integration_follows_arcs() -> None:

@@ -105,7 +105,7 @@ def test_patterns_stay_in_the_arena_and_move_at_walking_speed(multi) -> None:
     sim, events = multi
     xmin, xmax, ymin, ymax = sim.config.area
     gt = _by_type(events, GroundTruthEvent)
-    assert all(xmin < e.x < xmax and ymin < e.y < ymax for e in gt)
+    assert all(xmin < e.position[0] < xmax and ymin < e.position[1] < ymax for e in gt)
     t = np.arange(0.0, sim.duration, 0.05)
     assert np.ptp(sim.true_poses("r0", t)[:, :2], axis=0).max() == 0.0  # static reference
     for r in ("r1", "r2", "r3", "r4"):

@@ -100,8 +100,9 @@ class GroundTruthEvent:
 
     t: float
     robot: str
-    x: float
-    y: float
+    position: tuple[float, ...]
+    """World-frame position (m), one entry per dimension: ``(x, y)`` in 2D, ``(x, y, z)`` where
+    the motion capture's height is kept."""
     yaw: float = 0.0
 
 

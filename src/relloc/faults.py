@@ -131,8 +131,9 @@ def _robots(ev: Event) -> tuple[str, ...]:
 def _transform(ev: Event, f: Faults, s: _State, counts: dict[str, int]) -> Event | None:
     if isinstance(ev, GroundTruthEvent):
         dx, dy = _kidnap_offset(f, ev.robot, ev.t)
-        s.truth[ev.robot] = (ev.x, ev.y)  # the untouched truth: ranges are corrected from it
-        return dataclasses.replace(ev, x=ev.x + dx, y=ev.y + dy) if dx or dy else ev
+        x, y, *rest = ev.position
+        s.truth[ev.robot] = (x, y)  # the untouched truth: ranges are corrected from it
+        return dataclasses.replace(ev, position=(x + dx, y + dy, *rest)) if dx or dy else ev
     if isinstance(ev, OdometryEvent | RangeEvent | DetectionEvent):
         if f.drop > 0.0 and s.rng.random() < f.drop:
             counts["dropped"] = counts.get("dropped", 0) + 1

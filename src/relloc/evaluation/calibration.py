@@ -138,7 +138,7 @@ def pair_samples_from_bag(
     ranges: dict[str, list[tuple[float, str, str, float]]] = defaultdict(list)
     for ev in source:
         if isinstance(ev, GroundTruthEvent) and ev.robot in robots:
-            tracks[ev.robot].append((ev.t, ev.x, ev.y))
+            tracks[ev.robot].append((ev.t, ev.position[0], ev.position[1]))
         elif isinstance(ev, RangeEvent):
             ranges[ev.node_pair].append((ev.t, ev.robot_a, ev.robot_b, ev.distance))
     arrays = {r: np.array(v, dtype=float).reshape(-1, 3) for r, v in tracks.items()}
@@ -378,7 +378,7 @@ def rank_node_assignments(
         t = stamp_to_sec(msg.header.stamp)
         if topic in mocap_topic:
             gt = pose_to_ground_truth(msg, "", t=t)  # any of MOCAP_TYPES
-            tracks[mocap_topic[topic]].append((t, gt.x, gt.y))
+            tracks[mocap_topic[topic]].append((t, gt.position[0], gt.position[1]))
         elif math.isfinite(msg.range) and msg.range > 0.0:
             ranges[pair_key(*range_topics[topic])].append((t, float(msg.range)))
     arrays = {r: np.array(v).reshape(-1, 3) for r, v in tracks.items()}

@@ -48,11 +48,14 @@ class GroundTruth:
         self._sorted = True
 
     def add(self, ev: GroundTruthEvent) -> None:
+        """Add one motion-capture pose; the evaluation is planar: a position's height (its
+        third entry, where the source keeps it) is not used."""
         ts = self._t.setdefault(ev.robot, [])
         if ts and ev.t < ts[-1]:
             self._sorted = False
         ts.append(ev.t)
-        self._xy.setdefault(ev.robot, []).append((ev.x, ev.y, ev.yaw))
+        x, y = ev.position[0], ev.position[1]
+        self._xy.setdefault(ev.robot, []).append((x, y, ev.yaw))
 
     def _sort(self) -> None:
         if self._sorted:

@@ -70,7 +70,8 @@ def bag_rows(
         source = RosbagSource(bag, team, detections=False, odometry=False)
         for event in source:
             if isinstance(event, GroundTruthEvent):
-                poses[bodies[event.robot]].append((event.t, event.x, event.y, event.yaw))
+                x, y = event.position[0], event.position[1]
+                poses[bodies[event.robot]].append((event.t, x, y, event.yaw))
             elif isinstance(event, RangeEvent):
                 ranges.append((event.t, event.node_a, event.node_b, event.distance))
     except BagError as exc:

@@ -207,7 +207,8 @@ class SimRobots:
 
     def _publish(self, ev: Any) -> None:
         if isinstance(ev, GroundTruthEvent):
-            self.truth[ev.robot].append((ev.t + self.time_base, ev.x, ev.y, ev.yaw))
+            x, y = ev.position[0], ev.position[1]
+            self.truth[ev.robot].append((ev.t + self.time_base, x, y, ev.yaw))
         out = self.encoder.encode(ev, self.time_base)
         if out is not None:
             self._pubs.put(*out)

@@ -223,8 +223,7 @@ def pose_to_ground_truth(msg: Any, robot: str, *, t: float | None = None) -> Gro
     return GroundTruthEvent(
         t=_msg_time(msg, t),
         robot=robot,
-        x=float(position.x),
-        y=float(position.y),
+        position=(float(position.x), float(position.y)),  # planar: the height is not kept
         yaw=yaw_from_quaternion(orientation),
     )
 
@@ -412,8 +411,9 @@ def range_msg(event: RangeEvent, *, frame_id: str = "", distro: str = DEFAULT_DI
 def pose_stamped_msg(event: GroundTruthEvent, *, frame_id: str = "world") -> Any:
     """A :class:`GroundTruthEvent` as ``geometry_msgs/PoseStamped`` (what a motion-capture
     bridge publishes; the inverse of :func:`pose_to_ground_truth`)."""
+    x, y, *z = event.position  # z where the position has a height
     return typestore().types[POSE_STAMPED](
-        header=_header(event.t, frame_id), pose=_pose(event.x, event.y, event.yaw)
+        header=_header(event.t, frame_id), pose=_pose(x, y, event.yaw, *z)
     )
 
 

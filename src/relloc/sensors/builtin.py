@@ -226,9 +226,10 @@ class GroundTruth(Sensor):
         return pose_to_ground_truth(msg, route.robot, t=t)
 
     def write_back(self, msg: Any, before: Any, after: Any) -> Any:
-        if (after.x, after.y) == (before.x, before.y):
+        if after.position == before.position:
             return msg
-        position = dataclasses.replace(msg.pose.position, x=after.x, y=after.y)
+        x, y = after.position[0], after.position[1]  # faults move a robot in the plane
+        position = dataclasses.replace(msg.pose.position, x=x, y=y)
         return dataclasses.replace(msg, pose=dataclasses.replace(msg.pose, position=position))
 
 

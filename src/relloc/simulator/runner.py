@@ -334,7 +334,7 @@ class _Runner:
             x, y, yaw, _ = self.traj[name].evaluate(times)
             yaw = wrap_angle(yaw)
             out.extend(
-                GroundTruthEvent(t, name, xi, yi, th)
+                GroundTruthEvent(t, name, (xi, yi), th)
                 for t, xi, yi, th in zip(
                     times.tolist(), x.tolist(), y.tolist(), yaw.tolist(), strict=True
                 )

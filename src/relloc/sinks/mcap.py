@@ -93,7 +93,7 @@ def _truth_records(report: ScenarioReport, engine: Engine) -> list[Record]:
         out: list[Record] = []
         for robot, q in m.paired.items():
             for t, (x, y) in zip(q.t.tolist(), q.gt.tolist(), strict=True):
-                truth = GroundTruthEvent(t, robot, x, y, 0.0)
+                truth = GroundTruthEvent(t, robot, (x, y), 0.0)
                 msg = pose_stamped_msg(truth, frame_id=frames[t])
                 out.append((t, f"/relloc/truth/{robot}/pose", POSE_STAMPED, msg))
         return out

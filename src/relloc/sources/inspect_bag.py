@@ -268,7 +268,7 @@ def inspect_bag(path: str | Path, mocap_topic: str | None = None) -> BagInventor
             t = stamp if stamp != 0.0 else recv
             if topic in mocap:
                 gt = pose_to_ground_truth(msg, "", t=t)
-                rows[topic].append((t, gt.x, gt.y))
+                rows[topic].append((t, gt.position[0], gt.position[1]))
             elif topic in range_nodes:
                 if not layout:  # no stored definition: the layout the payload fits
                     layout = next(

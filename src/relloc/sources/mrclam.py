@@ -309,7 +309,7 @@ class MrclamSource:
     def _truth(self, subject: int) -> Iterator[GroundTruthEvent]:
         name = self.robots[subject]
         for t, x, y, yaw in self.truth[subject].tolist():
-            yield GroundTruthEvent(t, name, x, y, yaw)
+            yield GroundTruthEvent(t, name, (x, y), yaw)
 
 
 # ---------------------------------------------------------------------- the reference rule
