@@ -70,9 +70,10 @@ def test_shape_ape_fits_one_rotation_and_reflection_for_the_run() -> None:
 
 
 def test_run_aligned_ape_removes_one_rotation_for_every_method() -> None:
+    from relloc.evaluation.aligned_scores import RunAlignedApe
     from relloc.evaluation.metric import MethodRun
     from relloc.evaluation.metrics import associate
-    from relloc.evaluation.scores import Ape, RunAlignedApe
+    from relloc.evaluation.scores import Ape
 
     # A filter whose formation is right but turned by 0.1 rad, with 0.05 m of noise on r1.
     c, s = math.cos(0.1), math.sin(0.1)
@@ -91,5 +92,46 @@ def test_run_aligned_ape_removes_one_rotation_for_every_method() -> None:
     # Multilateration's own run alignment is kept; the per-step oracle gets no figure.
     assert (
         RunAlignedApe().compute(MethodRun("m", ests, truth, ["r1"], 0.0, 2.0, paired, "step")).stats
+        == {}
+    )
+
+
+def test_step_aligned_ape_removes_a_rotation_at_every_estimate_and_scores_shapes() -> None:
+    from relloc.evaluation.aligned_scores import RunAlignedApe, StepAlignedApe
+    from relloc.evaluation.metric import MethodRun
+    from relloc.evaluation.metrics import associate
+
+    # A formation that is right but whose gauge turns by a new angle at every estimate: the run
+    # alignment cannot remove that, the step alignment does.
+    ests = []
+    for t in range(6):
+        c, s = math.cos(0.3 * t), math.sin(0.3 * t)
+        ests.append(Estimate(float(t), "pf", "r0", {"r1": (2.0 * c, 2.0 * s), "r2": (-s, c)}))
+    # ... and, while the orientation is unobservable, ring moments at the origin with the shape
+    # in its gauge (the step alignment reads the shape there).
+    hidden = [
+        Estimate(
+            float(t),
+            "pf",
+            "r0",
+            {"r1": (0.0, 0.0), "r2": (0.0, 0.0)},
+            orientation_observable=False,
+            shape={"r1": (2.0, 0.0), "r2": (0.0, -1.0)},
+        )
+        for t in range(6, 10)
+    ]
+    truth = _truth()
+    every = ests + hidden
+    paired = associate(every, truth, ["r1", "r2"])
+    run = MethodRun("pf", every, truth, ["r1", "r2"], 0.0, 2.0, paired)
+    step = StepAlignedApe().compute(run).stats
+    assert step["r1"].n == step["r2"].n == 8  # 4 positions after the warm-up, 4 shapes
+    assert step["r1"].max < 1e-9 and step["r2"].max < 1e-9
+    assert RunAlignedApe().compute(run).stats["r1"].median > 0.5
+    # an aligned method (multilateration and its oracle) gets no figure
+    assert (
+        StepAlignedApe()
+        .compute(MethodRun("m", every, truth, ["r1"], 0.0, 2.0, paired, "run"))
+        .stats
         == {}
     )

@@ -25,7 +25,7 @@ from rich.table import Table
 
 from relloc.engine import Engine
 from relloc.estimate import BODY_FRAME, HEADING_FRAME
-from relloc.evaluation import scores, selfcal_scores
+from relloc.evaluation import aligned_scores, scores, selfcal_scores  # noqa: F401 (registers)
 from relloc.evaluation.consistency import Consistency
 from relloc.evaluation.metric import METRICS, Column, MethodRun, MetricResult
 from relloc.evaluation.metrics import ApeStats, GroundTruth, Paired, align, associate

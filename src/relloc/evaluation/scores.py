@@ -316,35 +316,6 @@ class ShapeApe(Metric):
 
 
 @dataclass(frozen=True)
-class RunAlignedResult(MetricResult):
-    stats: dict[str, ApeStats] = field(default_factory=dict)
-    """Per robot, the APE after the warm-up once one rotation/reflection about the reference,
-    fitted to all of the method's estimates after the warm-up, is removed."""
-
-    def robot_json(self) -> dict[str, dict[str, Any]]:
-        return {r: {"run_aligned_ape_median": num(s.median)} for r, s in self.stats.items()}
-
-    def method_json(self) -> dict[str, Any]:
-        vals = [s.median for s in self.stats.values() if s.n]
-        return {"mean_run_aligned_ape_median": num(float(np.mean(vals)))} if vals else {}
-
-
-@register_metric
-class RunAlignedApe(Metric):
-    """The APE every method gets under multilateration's fair alignment (one orthogonal map for
-    the run): what the estimate is worth as a formation, like for like with the baseline, beside
-    the unaligned APE that also charges the filters for their absolute orientation. JSON only."""
-
-    name = "run_aligned"
-
-    def compute(self, run: MethodRun) -> RunAlignedResult:
-        if run.alignment == "step":
-            return RunAlignedResult()
-        late = run.late if run.aligned else align(run.late, "run")
-        return RunAlignedResult({r: ApeStats.of(q.errors) for r, q in late.items()})
-
-
-@dataclass(frozen=True)
 class FinalShapeResult(MetricResult):
     shape: dict[str, Any]
     """The last estimate's shape in its gauge, pairwise distances, flag and status."""
