@@ -70,7 +70,7 @@ def test_run_writes_mcap_that_an_independent_reader_decodes(
     poses = {t: m for t, m in topics.items() if t.startswith("/relloc/pf/") and t.endswith("/pose")}
     assert sorted(poses) == [f"/relloc/pf/{r}/pose" for r in robots]
     for robot in robots:
-        mine = [e for e in estimates if robot in e.positions]
+        mine = [e.published() for e in estimates if robot in e.positions]  # what is published
         got = poses[f"/relloc/pf/{robot}/pose"]
         assert len(got) == len(mine)
         for (schema, log_time, msg), est in zip(got, mine, strict=True):

@@ -149,7 +149,7 @@ def test_serve_records_what_it_publishes_to_mcap(tmp_path: Path) -> None:
         }
         for est in published:
             msg = recorded[est.t]  # the stamp, as the collector rebuilds it
-            assert msg.header.frame_id == config.reference
+            assert msg.header.frame_id in (config.reference, f"{config.reference}/formation")
             pos = msg.pose.pose.position
             assert (pos.x, pos.y) == est.positions[robot]
             cov = np.array(msg.pose.covariance).reshape(6, 6)

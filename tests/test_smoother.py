@@ -18,7 +18,8 @@ from relloc.engine import Engine, Pipeline
 from relloc.estimate import OWN_FRAME, Estimate
 from relloc.estimators.smoother.graph import GraphSmoother
 from relloc.estimators.smoother.localizer import SmootherLocalizer
-from relloc.evaluation.metrics import GroundTruth
+from relloc.evaluation.aligned_scores import RunAlignedResult
+from relloc.evaluation.metrics import GroundTruth, after, align
 from relloc.evaluation.report import MethodReport, evaluate
 from relloc.events import Event, OdometryEvent, RangeEvent
 from relloc.filter.factors import RangeTerms
@@ -76,10 +77,21 @@ def test_without_odometry_the_shape_is_at_least_as_good_as_multilateration() -> 
     last: Estimate = pipelines[0].estimates[-1]
     assert not last.orientation_observable and last.shape and last.shape_gauge == OWN_FRAME
     assert len(last.distances) == 10
-    # the published positions are the ring's moments (the contract of an unobservable
-    # orientation): mean at the reference, a covariance that holds the truth
+    # the estimate's positions are the ring's moments (the contract of an unobservable
+    # orientation): mean at the reference, a covariance that holds the truth ...
     assert all(np.allclose(p, 0.0) for p in last.positions.values())
     assert min(c.coverage for c in reports["pf"].consistency.values()) == 1.0
+    # ... and what is published (TUM, MCAP, Zenoh) is the formation in the smoother's own
+    # gauge, which one alignment for the run scores as the shape APE is scored
+    shown = last.published()
+    assert shown.frame_id == "r0/formation" and shown.positions == last.shape
+    assert reports["pf"].published_frames == ("r0/formation",)
+    aligned = align({r: after(q, 5.0) for r, q in reports["pf"].published.items()}, "run")
+    for robot, q in aligned.items():
+        assert abs(float(np.median(q.errors)) - shape[robot]) < 0.02
+        assert reports["pf"].result(RunAlignedResult).stats[robot].median == pytest.approx(
+            float(np.median(q.errors)), abs=1e-9
+        )
 
 
 def test_bad_input_is_rejected_and_counted_not_a_crash() -> None:

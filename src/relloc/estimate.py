@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,6 +29,10 @@ HEADING_FRAME = "heading"
 """Axes of the team's shared heading frame (the compass's), origin at the reference robot."""
 BODY_FRAME = "body"
 """The reference robot's body frame (x forward, y left) at the estimate's time."""
+FORMATION_FRAME = "formation"
+"""The formation in a gauge (:attr:`Estimate.shape_gauge`): the reference at the origin and a
+rotation/reflection that nothing measured fixes, where the orientation is not observable
+(:meth:`Estimate.published`)."""
 
 
 Position = tuple[float, ...]
@@ -88,6 +92,8 @@ class Estimate:
     """The robot put on the reference's +x axis in ``shape``; :data:`OWN_FRAME` where the
     shape is in the localizer's own frame instead: an arbitrary rotation/reflection that it
     keeps continuous over time (the smoother's), so that one alignment holds for a run."""
+    shape_covariances: dict[str, Covariance] = field(default_factory=dict)
+    """Each robot's covariance in ``shape``'s gauge."""
     distances: dict[str, tuple[float, float]] = field(default_factory=dict)
     """Every pair's distance (mean, std) in m, keyed by :func:`relloc.events.pair_key`; the
     reference's pairs included."""
@@ -130,8 +136,29 @@ class Estimate:
     @property
     def frame_id(self) -> str:
         """The frame's ROS name: the reference's name for the heading frame (a frame with the
-        compass's axes at the reference), ``<reference>/base_link`` for its body frame."""
-        return f"{self.reference}/base_link" if self.frame == BODY_FRAME else self.reference
+        compass's axes at the reference), ``<reference>/base_link`` for its body frame,
+        ``<reference>/formation`` for the formation in its gauge."""
+        if self.frame == BODY_FRAME:
+            return f"{self.reference}/base_link"
+        if self.frame == FORMATION_FRAME:
+            return f"{self.reference}/formation"
+        return self.reference
+
+    def published(self) -> Estimate:
+        """What relloc publishes of this estimate (TUM files, MCAP, Zenoh poses): itself where
+        the orientation is observable; where it is not, the formation in its gauge
+        (positions ``shape``, covariances ``shape_covariances``, frame
+        :data:`FORMATION_FRAME`), since the moments over the ring of orientations sit at the
+        reference for every robot and show nobody where anyone is. The ring moments stay in
+        ``positions`` of the estimate itself (what evaluation and the association read)."""
+        if self.orientation_observable or not self.shape or self.frame == FORMATION_FRAME:
+            return self
+        return replace(
+            self,
+            positions=dict(self.shape),
+            covariances=dict(self.shape_covariances),
+            frame=FORMATION_FRAME,
+        )
 
     @property
     def status(self) -> str:

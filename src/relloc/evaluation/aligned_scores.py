@@ -41,14 +41,21 @@ class RunAlignedResult(MetricResult):
 class RunAlignedApe(Metric):
     """The APE every method gets under multilateration's fair alignment (one orthogonal map for
     the run): what the estimate is worth as a formation, like for like with the baseline, beside
-    the unaligned APE that also charges the filters for their absolute orientation. JSON only."""
+    the unaligned APE that also charges the filters for their absolute orientation. Of what the
+    method publishes (:meth:`relloc.estimate.Estimate.published`: the formation in its gauge
+    where the orientation is not observable, not the moments over the ring of orientations,
+    which sit at the reference). JSON only."""
 
     name = "run_aligned"
 
     def compute(self, run: MethodRun) -> RunAlignedResult:
         if run.alignment == "step":
             return RunAlignedResult()
-        late = run.late if run.aligned else align(run.late, "run")
+        if run.aligned:
+            late = run.late
+        else:
+            shown = [e.published() for e in run.estimates if e.t >= run.start]
+            late = align(associate(shown, run.truth, run.robots, run.rotation), "run")
         return RunAlignedResult({r: ApeStats.of(q.errors) for r, q in late.items()})
 
 

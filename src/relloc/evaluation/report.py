@@ -50,6 +50,12 @@ class MethodReport:
     frame: str = HEADING_FRAME
     """The frame of the method's last estimate (:attr:`relloc.estimate.Estimate.frame`), in
     which it is scored."""
+    published: dict[str, Paired] = field(default_factory=dict, repr=False)
+    """What the method publishes at each scored time (:meth:`relloc.estimate.Estimate.published`:
+    where the orientation is not observable, the formation in its gauge), as the TUM files
+    hold it; an aligned method's (multilateration) as scored."""
+    published_frames: tuple[str, ...] = ()
+    """The ROS frame ids of what the method published, in order of first use."""
 
     def result(self, kind: type[R]) -> R | None:
         """The result of type ``kind``, if a metric produced one."""
@@ -141,6 +147,7 @@ class MethodReport:
             **method,
             "n_estimates": self.n_estimates,
             "frame": self.frame,
+            "published_frames": list(self.published_frames),
             "compute_s": round(self.compute_s, 4),
             "stats": dict(self.stats),
         }
@@ -216,6 +223,7 @@ def evaluate(
                 reference=loc.layout.reference, rotation=rotation, frame_rotation_deg=frame_deg,
                 odometry_yaws=getattr(loc, "odometry_yaws", {}), bias_truth=bias_truth or {},
             )  # fmt: skip
+            shown = [e.published() for e in estimates] if mode == "none" else estimates
             methods[method] = MethodReport(
                 {metric.name: metric().compute(run) for metric in METRICS},
                 run.paired,
@@ -223,6 +231,10 @@ def evaluate(
                 compute_s=p.compute_s,
                 n_estimates=len(estimates),
                 frame=estimates[-1].frame if estimates else HEADING_FRAME,
+                published=(
+                    associate(shown, truth, names, rotation) if mode == "none" else run.paired
+                ),
+                published_frames=tuple(dict.fromkeys(e.frame_id for e in shown)),
             )
     return ScenarioReport(name, warmup, duration, methods, t0, truth.reference, truth_name)
 

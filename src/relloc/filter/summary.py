@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from relloc.estimate import covariance_of
 from relloc.events import pair_key
 from relloc.filter.gauge import gauge, procrustes_fit
 from relloc.filter.measurement import MeasurementModel
@@ -126,6 +127,9 @@ def estimate_fields(
     d = summary.distances.tolist()
     g = summary.shape.tolist()
     out["shape"] = {r: (g[k][0], g[k][1]) for k, r in enumerate(others)}
+    out["shape_covariances"] = {
+        r: covariance_of(summary.shape_cov[k]) for k, r in enumerate(others)
+    }
     out["shape_gauge"] = others[0]
     out["distances"] = {
         pair_key(a, b): (d[i][j][0], d[i][j][1])

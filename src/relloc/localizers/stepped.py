@@ -170,7 +170,11 @@ class SteppedLocalizer(Localizer):
             {}
             if shown.summary is None or not self.publishes(t)
             else estimate_fields(
-                shown.summary, self.layout.reference, self.layout.others, shape=self.shape_wanted
+                shown.summary,
+                self.layout.reference,
+                self.layout.others,
+                # the published positions are the shape where the orientation is a gauge
+                shape=self.shape_wanted or not shown.summary.orientation_observable,
             )
         )
         widening = self.watchdog.widening

@@ -5,9 +5,11 @@ and ``relloc serve --record``) goes through :func:`estimate_pose`, so that a con
 same ``geometry_msgs/msg/PoseWithCovarianceStamped`` whichever way it came:
 
 * **Header.** The stamp is the estimate's time (:func:`~relloc.ros.cdr.split_stamp`:
-  nanoseconds rounded, carried), ``frame_id`` the estimate's
+  nanoseconds rounded, carried), ``frame_id`` the published estimate's
   (:attr:`Estimate.frame_id <relloc.estimate.Estimate.frame_id>`: ``<reference>`` for the
-  heading frame, ``<reference>/base_link`` for the reference's body frame).
+  heading frame, ``<reference>/base_link`` for the reference's body frame,
+  ``<reference>/formation`` for the formation in its gauge where the orientation is not
+  observable, :meth:`Estimate.published <relloc.estimate.Estimate.published>`).
 * **Pose.** The estimate's position: ``(x, y)``, and ``z`` where it is 3D (else 0); the orientation a pure rotation about z by
   the robot's heading mean where the estimate has a heading for it, else the identity.
 * **Covariance.** ROS's row-major 6x6 over ``(x, y, z, roll, pitch, yaw)``, built by
@@ -88,7 +90,10 @@ class EstimatePose:
 
 
 def estimate_pose(est: Estimate, robot: str) -> EstimatePose:
-    """``robot``'s entry of ``est`` by the convention of the module docstring."""
+    """``robot``'s entry of what ``est`` publishes (:meth:`Estimate.published`: the formation
+    in its gauge, frame ``<reference>/formation``, where the orientation is not observable) by
+    the convention of the module docstring."""
+    est = est.published()
     position = est.positions[robot]
     heading = est.headings.get(robot)
     return EstimatePose(

@@ -183,6 +183,9 @@ def write_outputs(report: ScenarioReport, engine: Engine, out: Path) -> None:
     for method, m in report.methods.items():
         for robot, p in m.paired.items():
             if len(p.t):
-                write_tum(out / "tum" / f"{method}_{robot}.txt", p.t, p.est)
+                shown = m.published.get(robot, p)
+                write_tum(
+                    out / "tum" / f"{method}_{robot}.txt", shown.t, shown.est, m.published_frames
+                )
                 if method == next(iter(report.methods)):
                     write_tum(out / "tum" / f"groundtruth_{robot}.txt", p.t, p.gt)
