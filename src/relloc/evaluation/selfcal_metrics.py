@@ -108,3 +108,23 @@ def bias_errors(
             if pair in truth:
                 out.setdefault(pair, []).append(abs(mean - truth[pair]))
     return {k: np.array(v) for k, v in out.items()}
+
+
+BIAS_Z95 = 1.959964
+"""Half-width of a two-sided 95 % Gaussian interval, in standard deviations."""
+
+
+def bias_coverage(
+    estimates: Sequence[Estimate], truth: dict[str, float], t_start: float
+) -> dict[str, FloatArray]:
+    """Per node pair with a known true bias: at every estimate from ``t_start`` on, whether the
+    published 95 % interval (mean +- 1.96 std) holds the truth (1.0) or not (0.0): whether the
+    published std is honest, as the position coverage asks of a covariance."""
+    out: dict[str, list[float]] = {}
+    for est in estimates:
+        if est.t < t_start:
+            continue
+        for pair, (mean, std) in est.biases.items():
+            if pair in truth:
+                out.setdefault(pair, []).append(float(abs(mean - truth[pair]) <= BIAS_Z95 * std))
+    return {k: np.array(v) for k, v in out.items()}

@@ -5,7 +5,7 @@ online range biases, scored against the truth where it is known (:mod:`relloc.ev
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -13,7 +13,12 @@ from numpy.typing import NDArray
 from rich.table import Table
 
 from relloc.evaluation.metric import MethodRun, Metric, MetricResult, num, register_metric
-from relloc.evaluation.selfcal_metrics import HeadingPaired, associate_headings, bias_errors
+from relloc.evaluation.selfcal_metrics import (
+    HeadingPaired,
+    associate_headings,
+    bias_coverage,
+    bias_errors,
+)
 
 FloatArray = NDArray[np.float64]
 
@@ -121,31 +126,46 @@ class BiasResult(MetricResult):
     truth: dict[str, float]
     errors: dict[str, FloatArray]
     """``|estimate - truth|`` per node pair after the warm-up (where a truth is known)."""
+    covered: dict[str, FloatArray] = field(default_factory=dict)
+    """Per node pair after the warm-up: whether each published 95 % interval held the truth."""
 
     def error_median(self, pair: str) -> float:
         e = self.errors.get(pair)
         return float(np.median(e)) if e is not None and e.size else math.nan
 
+    def coverage(self, pair: str | None = None) -> float:
+        """Share of the published 95 % intervals that held the truth: of ``pair``, or of every
+        pair's together (``None``)."""
+        parts = [self.covered[pair]] if pair in self.covered else []
+        if pair is None:
+            parts = list(self.covered.values())
+        hits = np.concatenate(parts) if parts else np.zeros(0)
+        return float(hits.mean()) if hits.size else math.nan
+
     def method_json(self) -> dict[str, Any]:
         if not self.final:
             return {}
-        return {
+        out: dict[str, Any] = {
             "pairs": {
                 pair: {
                     "bias": num(mean),
                     "bias_std": num(std),
                     "bias_true": num(self.truth.get(pair, math.nan)),
                     "bias_error_median": num(self.error_median(pair)),
+                    "bias_coverage95": num(self.coverage(pair)),
                 }
                 for pair, (mean, std) in self.final.items()
             }
         }
+        if self.covered:
+            out["bias_coverage95"] = num(self.coverage())
+        return out
 
     def tables(self, scenario: str, method: str) -> list[Table]:
         if not self.final:
             return []
         table = Table(title=f"{scenario} / {method}: online range biases (m)")
-        for col in ("pair", "bias", "std", "true", "error (median)"):
+        for col in ("pair", "bias", "std", "true", "error (median)", "95 % cov."):
             table.add_column(col, justify="left" if col == "pair" else "right")
         for pair, (mean, std) in sorted(self.final.items()):
             true = self.truth.get(pair)
@@ -155,6 +175,7 @@ class BiasResult(MetricResult):
                 f"{std:.3f}",
                 "" if true is None else f"{true:.3f}",
                 "" if true is None else f"{self.error_median(pair):.3f}",
+                "" if true is None else f"{self.coverage(pair):.0%}",
             )
         return [table]
 
@@ -173,4 +194,5 @@ class OnlineBiases(Metric):
             dict(last.biases) if last is not None else {},
             truth,
             bias_errors(run.estimates, dict(run.bias_truth), run.start),
+            bias_coverage(run.estimates, dict(run.bias_truth), run.start),
         )
