@@ -1,6 +1,10 @@
-"""Measurement models: what a sensor tells the filters, in one protocol both filters call.
+"""Measurement models: what a sensor tells every estimator kind, in one protocol.
 
-The derivation: docs/explanation/internals.md, section ``relloc.filter.measurement``.
+A model serves the particle filter (``log_likelihood`` over all particles), the Gaussian sums
+(``rows``/``row``: the measurement linearised at each Gaussian's mean) and the smoother
+(``fixes``: relative positions as factors, :mod:`relloc.filter.factors`), so that a sensor is
+one class whatever runs it (navlie's pattern). The derivation: docs/explanation/internals.md,
+section ``relloc.filter.measurement``.
 """
 
 from __future__ import annotations

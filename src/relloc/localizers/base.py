@@ -18,8 +18,9 @@ own rates and lags. A :class:`Localizer`
   batch time (its newest stamp) in one step: subclasses differ only in ``_step``;
 * emits at most one estimate per ``ESTIMATE_PERIOD``.
 
-:class:`~relloc.localizers.filtered.FilterLocalizer` is that step for a filter of
-:mod:`relloc.filter.base`.
+:class:`~relloc.localizers.stepped.SteppedLocalizer` is that step for an estimator kind
+(:mod:`relloc.estimators`), :class:`~relloc.localizers.filtered.FilterLocalizer` for a weighted
+filter of :mod:`relloc.filter.base`.
 """
 
 from __future__ import annotations
