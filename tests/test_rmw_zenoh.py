@@ -277,7 +277,8 @@ def test_served_over_rmw_zenoh_seen_by_a_subscriber_written_from_the_design_docu
         assert typename == "geometry_msgs::msg::dds_::PoseWithCovarianceStamped_"
         assert type_hash_ == hash_
         msg = decode(payload, POSE_WITH_COVARIANCE_STAMPED)
-        assert msg.header.frame_id == config.reference
+        # the heading frame, or the formation in its gauge while the orientation is a gauge
+        assert msg.header.frame_id in (config.reference, f"{config.reference}/formation")
         assert att is not None and len(att) == 33 and att[16] == 16
         seq, stamp = struct.unpack_from("<qq", att)
         assert abs(stamp * 1e-9 - time.time()) < 60
