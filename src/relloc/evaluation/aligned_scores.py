@@ -18,9 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from relloc.evaluation.gauges import associate_shapes
 from relloc.evaluation.metric import MethodRun, Metric, MetricResult, num, register_metric
-from relloc.evaluation.metrics import ApeStats, Paired, align, associate
+from relloc.evaluation.metrics import ApeStats, Paired, after, align
 
 
 @dataclass(frozen=True)
@@ -51,11 +50,7 @@ class RunAlignedApe(Metric):
     def compute(self, run: MethodRun) -> RunAlignedResult:
         if run.alignment == "step":
             return RunAlignedResult()
-        if run.aligned:
-            late = run.late
-        else:
-            shown = [e.published() for e in run.estimates if e.t >= run.start]
-            late = align(associate(shown, run.truth, run.robots, run.rotation), "run")
+        late = run.late if run.aligned else align(_published_late(run), "run")
         return RunAlignedResult({r: ApeStats.of(q.errors) for r, q in late.items()})
 
 
@@ -85,28 +80,14 @@ class StepAlignedApe(Metric):
     name = "step_aligned"
 
     def compute(self, run: MethodRun) -> StepAlignedResult:
-        if run.alignment != "none":
+        if run.aligned:
             return StepAlignedResult()
-        late = [e for e in run.estimates if e.t >= run.start]
-        seen = [e for e in late if e.orientation_observable]
-        hidden = [e for e in late if not e.orientation_observable]
-        parts = [associate(seen, run.truth, run.robots, run.rotation)]
-        parts.append(associate_shapes(hidden, run.truth, run.robots, run.rotation))
-        merged = {r: _joined([p[r] for p in parts if r in p]) for r in run.robots}
-        aligned = align({r: q for r, q in merged.items() if len(q.t)}, "step")
+        late = {r: q for r, q in _published_late(run).items() if len(q.t)}
+        aligned = align(late, "step")
         return StepAlignedResult({r: ApeStats.of(q.errors) for r, q in aligned.items()})
 
 
-def _joined(parts: list[Paired]) -> Paired:
-    """One robot's pairs from several associations, in time order."""
-    if not parts:
-        empty = np.zeros(0)
-        return Paired(empty, np.zeros((0, 2)), np.zeros((0, 2)), empty)
-    t = np.concatenate([p.t for p in parts])
-    order = np.argsort(t, kind="stable")
-    return Paired(
-        t[order],
-        np.concatenate([p.est for p in parts])[order],
-        np.concatenate([p.gt for p in parts])[order],
-        np.concatenate([p.std for p in parts])[order],
-    )
+def _published_late(run: MethodRun) -> dict[str, Paired]:
+    """What the method published after the warm-up, paired with the truth (the shape where
+    the orientation was not observable: :meth:`relloc.estimate.Estimate.published`)."""
+    return {r: after(q, run.start) for r, q in run.published.items()}

@@ -31,7 +31,7 @@ from typing import Any, ClassVar, TypeVar
 from rich.table import Table
 
 from relloc.estimate import Estimate
-from relloc.evaluation.metrics import GroundTruth, Paired, after
+from relloc.evaluation.metrics import GroundTruth, Paired, after, associate
 
 __all__ = ["METRICS", "Column", "MethodRun", "Metric", "MetricResult", "num", "register_metric"]
 
@@ -78,6 +78,21 @@ class MethodRun:
     def late(self) -> dict[str, Paired]:
         """``paired`` after the warm-up."""
         return {r: after(q, self.start) for r, q in self.paired.items()}
+
+    @cached_property
+    def shown(self) -> Sequence[Estimate]:
+        """What the method published of each estimate (:meth:`Estimate.published`: the
+        formation in its gauge where the orientation is not observable); an aligned method's
+        estimates as they are."""
+        return list(self.estimates) if self.aligned else [e.published() for e in self.estimates]
+
+    @cached_property
+    def published(self) -> dict[str, Paired]:
+        """``shown`` associated with the ground truth over the whole run (an aligned method's:
+        ``paired``, aligned as scored)."""
+        if self.aligned:
+            return self.paired
+        return associate(self.shown, self.truth, self.robots, self.rotation)
 
 
 @dataclass(frozen=True)

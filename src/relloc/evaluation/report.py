@@ -223,7 +223,6 @@ def evaluate(
                 reference=loc.layout.reference, rotation=rotation, frame_rotation_deg=frame_deg,
                 odometry_yaws=getattr(loc, "odometry_yaws", {}), bias_truth=bias_truth or {},
             )  # fmt: skip
-            shown = [e.published() for e in estimates] if mode == "none" else estimates
             methods[method] = MethodReport(
                 {metric.name: metric().compute(run) for metric in METRICS},
                 run.paired,
@@ -231,10 +230,8 @@ def evaluate(
                 compute_s=p.compute_s,
                 n_estimates=len(estimates),
                 frame=estimates[-1].frame if estimates else HEADING_FRAME,
-                published=(
-                    associate(shown, truth, names, rotation) if mode == "none" else run.paired
-                ),
-                published_frames=tuple(dict.fromkeys(e.frame_id for e in shown)),
+                published=run.published,
+                published_frames=tuple(dict.fromkeys(e.frame_id for e in run.shown)),
             )
     return ScenarioReport(name, warmup, duration, methods, t0, truth.reference, truth_name)
 

@@ -51,7 +51,3 @@ class RangeTerms:
     @property
     def size(self) -> int:
         return int(self.distance.size)
-
-    def with_bias(self, bias: IntArray) -> RangeTerms:
-        """The same ranges with ``bias`` as their online biases."""
-        return RangeTerms(self.index_a, self.index_b, self.distance, self.sigma, bias)
