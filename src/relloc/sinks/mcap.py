@@ -75,8 +75,9 @@ def estimate_records(method: str, estimates: Iterable[Estimate]) -> list[Record]
     """One pose per robot and one status per estimate of ``method``."""
     out: list[Record] = []
     for est in estimates:
-        for robot in est.positions:
-            msg = estimate_pose_msg(est, robot)
+        shown = est.published()  # once, not per robot
+        for robot in shown.positions:
+            msg = estimate_pose_msg(shown, robot)
             out.append((est.t, pose_topic(method, robot), POSE_WITH_COVARIANCE_STAMPED, msg))
         out.append((est.t, f"/relloc/{method}/status", DIAGNOSTIC_ARRAY, _status_msg(est)))
     return out

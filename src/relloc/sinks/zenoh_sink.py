@@ -106,8 +106,9 @@ class ZenohSink:
         return self.channel(robot, method).key
 
     def __call__(self, estimate: Estimate) -> None:
-        for robot in estimate.positions:  # the one conversion: relloc.ros.estimate_msgs
-            payload = estimate_pose_cdr(estimate, robot)
+        shown = estimate.published()  # once, not per robot
+        for robot in shown.positions:  # the one conversion: relloc.ros.estimate_msgs
+            payload = estimate_pose_cdr(shown, robot)
             self.node.put(self.channel(robot, estimate.method), payload)
         if estimate.shape:
             text = json.dumps(shape_message(estimate))
