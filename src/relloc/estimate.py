@@ -181,7 +181,7 @@ class Estimate:
 
     def std(self, robot: str) -> float:
         """Position standard deviation of ``robot``: sqrt of the covariance's largest eigenvalue."""
-        cov = self.covariances.get(robot)
+        cov = self.covariance(robot)
         if cov is None:
             return math.nan
-        return float(np.sqrt(np.max(np.linalg.eigvalsh(np.array(cov)))))
+        return float(np.sqrt(np.max(np.linalg.eigvalsh(cov))))
