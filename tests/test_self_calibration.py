@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.special import ndtr
 
 from relloc.cli import build_parser
 from relloc.config import ConfigError, TeamConfig
@@ -21,12 +22,13 @@ from relloc.estimators.gaussian_sum.filter import (
     CalibrationLayout,
     CalibrationNoise,
     GaussianSumFilter,
+    truncated_normal,
 )
 from relloc.estimators.gaussian_sum.localizer import SelfCalibratingLocalizer
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
 from relloc.evaluation.selfcal_metrics import HeadingPaired
-from relloc.events import OdometryEvent
+from relloc.events import GroundTruthEvent, OdometryEvent
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.ranges import RangeBatch
 from relloc.methods import build_pipeline
@@ -40,6 +42,7 @@ from relloc.simulator import (
     multi_scenario,
     single_scenario,
 )
+from relloc.simulator.error_models import TEAMMATE_CAMERA, OdometryErrorModel
 
 CONFIGS = Path(__file__).resolve().parents[1] / "configs" / "tiers"
 
@@ -533,3 +536,92 @@ def test_a_heading_prior_holds_the_scale_once() -> None:
     c0, c1 = layout.u_columns("b")
     r = np.array([math.cos(0.3), math.sin(0.3)])
     assert math.sqrt(r @ gsf.cov[0, c0 : c1 + 1, c0 : c1 + 1] @ r) == pytest.approx(0.15)
+
+
+# ---------------------------------------------------------------------------- scale runaway
+def _sparse_sightings_run(seed: int, rate_hz: float) -> tuple[SelfCalibratingLocalizer, list]:
+    """Five robots, no UWB, a forward camera seeing teammates at ``rate_hz`` with half of the
+    sightings missed (long gaps), wheel scales 0.95-1.05, every odometry frame rotated at
+    random, headings and scales online with MRCLAM's walks and splits
+    (configs/mrclam/mrclam.toml), 600 s."""
+    camera = replace(TEAMMATE_CAMERA, rate_hz=rate_hz, miss_probability=0.5)
+    sim = multi_scenario(
+        seed=seed,
+        duration=600.0,
+        heading_offsets="random",
+        uwb=UwbErrorModel(dropout_probability=1.0),
+        sightings=[camera],
+        odometry=OdometryErrorModel(scale_range=(0.95, 1.05)),
+    )
+    config = replace(
+        sim.config, robots=tuple(replace(r, heading_offset_deg=0.0) for r in sim.config.robots)
+    )
+    config = config.with_modes(heading="estimate", odom_scale="online", reference="r1")
+    config = config.with_filter(
+        selfcal_particles=200,
+        selfcal_init_particles=5000,
+        heading_walk=0.04,
+        reference_heading_walk=0.04,
+        heading_split_std=0.15,
+        selfcal_position_sigma=2.0,
+    )
+    loc = SelfCalibratingLocalizer(config, seed=seed)
+    ests = [
+        est
+        for ev in sim.events()
+        if not isinstance(ev, GroundTruthEvent)
+        for est in loc.process(ev)
+    ]
+    return loc, ests
+
+
+def test_sparse_sightings_do_not_run_a_scale_out_of_its_interval() -> None:
+    """Sightings 10 s apart on average: each heading correction is large. Added to ``u`` as a
+    vector, a turn lengthened it (the scale ratcheted up), and a Gaussian whose angle came
+    late kept whatever length the linear updates had given it: the scale of r3 reached 1.51
+    here and the calibration restarted. Turned as a rotation and truncated to 0.5-1.5 per
+    Gaussian, no scale leaves the interval and nothing restarts."""
+    loc, ests = _sparse_sightings_run(seed=0, rate_hz=0.1)
+    counters = loc.fault_counters()
+    assert counters["calibration_restarts"] == 0, counters.get("calibration_restart_reason")
+    assert all(0.5 <= s <= 1.5 for e in ests for s, _ in e.scales.values())
+
+
+def test_truncation_of_a_standard_normal_matches_scipy() -> None:
+    from scipy.stats import truncnorm
+
+    a = np.array([-30.0, -3.0, 0.0, 5.0, 40.0, -1e3, -2.0])
+    b = np.array([30.0, 3.0, 2.0, 8.0, 60.0, -999.0, -1.5])
+    log_z, mu, var = truncated_normal(a, b)
+    ref_mu, ref_var = truncnorm.stats(a, b, moments="mv")
+    np.testing.assert_allclose(mu, ref_mu, rtol=1e-9, atol=1e-12)
+    np.testing.assert_allclose(var, ref_var, rtol=1e-6)
+    np.testing.assert_allclose(log_z[:4], np.log(ndtr(b[:4]) - ndtr(a[:4])), rtol=1e-9, atol=1e-15)
+    assert np.all(np.isfinite(log_z))
+
+
+def test_a_scale_outside_its_interval_is_truncated_and_its_gaussian_loses_weight() -> None:
+    """Compass mode, online scales: one Gaussian's scale of b at 1.8 +- 0.1 (beyond 1.5), the
+    other's at 1.0. The first takes the truncated normal's mean (inside, near 1.5), its
+    position moves with its correlation, and its weight drops by the mass inside."""
+    layout = CalibrationLayout(("a", "b"), "a", scale=True)
+    gsf = GaussianSumFilter(layout, 2, (-4, 4, -4, 4), rng=np.random.default_rng(0))
+    c = layout.scale_column("b")
+    gsf.mean[:, c] = [1.8, 1.0]
+    cov = gsf.cov
+    cov[:, c, c] = 0.01
+    cov[:, 0, c] = cov[:, c, 0] = 0.005  # x of b correlated with its scale
+    gsf.cov = cov
+    x0 = gsf.mean[:, 0].copy()
+    logw0 = gsf.logw.copy()
+    gsf.constrain_scales()
+    log_z, mu, var = truncated_normal(np.array([-13.0]), np.array([-3.0]))
+    assert gsf.mean[0, c] == pytest.approx(1.8 + 0.1 * mu[0])
+    assert 1.45 < gsf.mean[0, c] < 1.5
+    assert gsf.cov[0, c, c] == pytest.approx(0.01 * var[0])
+    assert gsf.mean[0, 0] == pytest.approx(x0[0] + 0.5 * (gsf.mean[0, c] - 1.8))
+    # relative to the other Gaussian (the reference's scale, 1 +- 0.15, loses the same mass in
+    # both; b's 1.0 +- 0.1 in the second loses 6e-7)
+    drop = (gsf.logw[0] - gsf.logw[1]) - (logw0[0] - logw0[1])
+    assert drop == pytest.approx(log_z[0], abs=1e-5)
+    assert gsf.mean[1, c] == pytest.approx(1.0)  # symmetric inside: the mean stays

@@ -144,6 +144,10 @@ class CalibrationNoise:
     """Prior standard deviation of an odometry scale when estimated online."""
     scale_fixed_sigma: float = 0.02
     """How tightly ``|u|`` is held to the configured scale when scales are fixed."""
+    scale_bounds: tuple[float, float] = (0.5, 1.5)
+    """The physical interval of an odometry scale (``[filter.self_calibration] scale_min``,
+    ``scale_max``): each Gaussian's scale is held inside it
+    (:meth:`relloc.estimators.gaussian_sum.filter.GaussianSumFilter.constrain_scales`)."""
     magnitude_gate: float = 0.25
     """Apply the ``|u|`` pseudo-measurement once the angular std of ``u`` is below this (rad)."""
 

@@ -19,6 +19,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.special import log_ndtr
 
 from relloc.filter.base import (
     ESS_THRESHOLD,
@@ -45,6 +46,29 @@ __all__ = ["CalibrationLayout", "CalibrationNoise", "GaussianSumFilter"]
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
+_LOG_SQRT_2PI = 0.5 * math.log(2.0 * math.pi)
+
+
+TRUNCATION_NEGLIGIBLE = 8.0
+"""A scale interval whose ends lie this many standard deviations beyond a Gaussian's scale
+leaves it unchanged (its mass outside is under 1e-15)."""
+
+
+def truncated_normal(a: FloatArray, b: FloatArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """The standard normal truncated to ``[a, b]`` (elementwise, ``a < b``): the log of its
+    mass, its mean and its variance, stable for intervals far in either tail (computed on the
+    side of the origin where the interval lies is the smaller tail)."""
+    flip = a + b > 0.0
+    lo, hi = np.where(flip, -b, a), np.where(flip, -a, b)  # now lo + hi <= 0: the left tail
+    log_hi, log_lo = log_ndtr(hi), log_ndtr(lo)
+    log_z = log_hi + np.log1p(-np.exp(np.minimum(log_lo - log_hi, 0.0)))
+    q_lo = np.exp(-0.5 * lo * lo - _LOG_SQRT_2PI - log_z)  # phi(lo) / Z
+    q_hi = np.exp(-0.5 * hi * hi - _LOG_SQRT_2PI - log_z)
+    mu = q_lo - q_hi
+    lo_term = np.where(np.isfinite(lo), lo * q_lo, 0.0)
+    hi_term = np.where(np.isfinite(hi), hi * q_hi, 0.0)
+    var = np.maximum(1.0 + lo_term - hi_term - mu * mu, 1e-12)
+    return log_z, np.where(flip, -mu, mu), var
 
 
 class GaussianSumFilter(WeightedFilter):
@@ -289,19 +313,123 @@ class GaussianSumFilter(WeightedFilter):
         become due, and normalise. False (weights kept) if no Gaussian has any support."""
         before = self.logw
         self.evidence.fused(models)
+        u_before = self._u_means() if self.layout.heading else None
         for model in models:
             for k in range(model.rows):
                 row = model.row(k, self.mean)
                 self._scalar_update(
                     row.columns, row.jacobian, row.residual, row.variance, row.density
                 )
+        if u_before is not None:
+            self._turn_headings(u_before)
         if self.layout.heading:
             self.magnitude_count += self.apply_magnitude_priors(np.ones(self.layout.n_others))
+        self.constrain_scales()
         logw = renormalized(self.logw)
         ok = logw is not None
         self.logw = logw if logw is not None else before
         self.cov = 0.5 * (self.cov + self.cov.transpose(0, 2, 1))  # symmetric against round-off
         return ok
+
+    def _u_means(self) -> FloatArray:
+        """Every robot's ``u`` per Gaussian, ``(M, N, 2)`` (heading mode)."""
+        cols = [c for r in self.layout.robots for c in self.layout.u_columns(r)]
+        return self.mean[:, cols].reshape(self.n, len(self.layout.robots), 2).copy()
+
+    def _turn_headings(self, u_before: FloatArray) -> None:
+        """Apply the update's correction of each known ``u`` as a turn and a change of length
+        (polar), not as a vector sum.
+
+        The Kalman update adds ``du`` to ``u``; its component along ``u`` is evidence about
+        the scale, its component across ``u`` about the angle. Added as a vector, a turn by
+        ``delta`` also lengthens ``u`` by ``|u| (sqrt(1 + delta^2) - 1)``, whatever its sign:
+        every heading correction ratchets the scale up, and with sparse sightings after long
+        gaps (wide headings, large turns) the scale runs out of its physical interval. Here the
+        across component turns ``u`` by ``delta = du_t / |u|`` (its covariance turned with it)
+        and only the along component changes its length. A ``u`` whose angle is still unknown
+        (the Gaussian's ``|u|`` pseudo-measurement not yet applied; the reference's is always
+        known) keeps the linear update: its prior is a Gaussian in ``u`` itself."""
+        lay = self.layout
+        mean, cov = self.mean, self.cov
+        for i, robot in enumerate(lay.robots):
+            known = (
+                np.ones(self.n, dtype=bool)
+                if robot == lay.reference
+                else self.magnitude_done[:, lay.others.index(robot)]
+            )
+            u0 = u_before[:, i]
+            norm = np.sqrt(np.sum(u0 * u0, axis=1))
+            known &= norm > 1e-6
+            if not np.any(known):
+                continue
+            c0, c1 = lay.u_columns(robot)
+            rows = np.flatnonzero(known)
+            u0, norm = u0[rows], norm[rows]
+            r = u0 / norm[:, None]
+            t = np.stack([-r[:, 1], r[:, 0]], axis=1)
+            du = mean[rows, c0 : c1 + 1] - u0
+            length = norm + np.einsum("ma,ma->m", du, r)
+            delta = np.einsum("ma,ma->m", du, t) / norm
+            c, s = np.cos(delta), np.sin(delta)
+            mean[rows, c0] = length * (c * r[:, 0] + s * t[:, 0])
+            mean[rows, c1] = length * (c * r[:, 1] + s * t[:, 1])
+            rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # R(delta)
+            block = cov[rows]
+            block[:, c0 : c1 + 1, :] = np.einsum("mab,mbd->mad", rot, block[:, c0 : c1 + 1, :])
+            block[:, :, c0 : c1 + 1] = np.einsum("mdb,mab->mda", block[:, :, c0 : c1 + 1], rot)
+            cov[rows] = block
+        self.cov = cov
+
+    def constrain_scales(self) -> None:
+        """Hold every Gaussian's odometry scale inside its physical interval
+        (:attr:`CalibrationNoise.scale_bounds`): the prior of a scale is zero outside it.
+
+        Per Gaussian and robot whose scale is known (``|u|`` once its angle is, or the scale
+        column), the scale is ``h . x`` (``h`` along ``u``, or the column); the constraint
+        ``lo <= h . x <= hi`` is a measurement, so the Gaussian's weight is multiplied by its
+        mass inside the interval and the Gaussian is conditioned on it, moment-matched: its
+        scale takes the truncated normal's mean and variance, every correlated state moves
+        with it (the truncation of Simon and Simon, "Kalman filtering with inequality
+        constraints"). A hypothesis that needs an impossible scale loses its weight rather
+        than publishing the scale; no mixture mean can leave the interval."""
+        lay = self.layout
+        if not lay.scale:
+            return
+        lo, hi = self.noise.scale_bounds
+        mean, cov = self.mean, self.cov
+        for robot in lay.robots:
+            if lay.heading:
+                c0, c1 = lay.u_columns(robot)
+                cols = np.array([c0, c1])
+                u = mean[:, c0 : c1 + 1]
+                m = np.sqrt(np.sum(u * u, axis=1))
+                known = m > 1e-6
+                if robot != lay.reference:
+                    known &= self.magnitude_done[:, lay.others.index(robot)]
+                h = u / np.maximum(m, 1e-12)[:, None]
+            else:
+                c = lay.scale_column(robot)
+                if c < 0:
+                    continue
+                cols = np.array([c])
+                m = mean[:, c]
+                known = np.ones(self.n, dtype=bool)
+                h = np.ones((self.n, 1))
+            pht = np.einsum("mdc,mc->md", cov[:, :, cols], h)
+            v = np.maximum(np.einsum("mc,mc->m", pht[:, cols], h), 1e-18)
+            sd = np.sqrt(v)
+            a, b = (lo - m) / sd, (hi - m) / sd
+            rows = np.flatnonzero(
+                known & ((a > -TRUNCATION_NEGLIGIBLE) | (b < TRUNCATION_NEGLIGIBLE))
+            )
+            if not rows.size:
+                continue
+            log_z, shift, ratio = truncated_normal(a[rows], b[rows])
+            p = pht[rows]
+            mean[rows] += p * (sd[rows] * shift / v[rows])[:, None]
+            cov[rows] -= p[:, :, None] * p[:, None, :] * ((1.0 - ratio) / v[rows])[:, None, None]
+            self.logw[rows] += log_z
+        self.cov = cov
 
     def apply_magnitude_priors(self, nominal: FloatArray) -> int:
         """Heading mode: apply the prior on ``|u|`` (``nominal[k]`` +- the scale sigma) once,
