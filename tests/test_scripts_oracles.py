@@ -42,3 +42,24 @@ def test_static_shape_oracle_on_seed_0(capsys: pytest.CaptureFixture[str]) -> No
     assert errors == pytest.approx({"r1": 0.083, "r2": 0.107, "r3": 0.100, "r4": 0.041}, abs=5e-4)
     so.main(["--seeds", "0"])
     assert capsys.readouterr().out == "seed 0: r1 0.083  r2 0.107  r3 0.100  r4 0.041\n"
+
+
+def test_selfcal_oracle_is_told_what_the_demo_hides() -> None:
+    so = _script("selfcal_oracle")
+    sim, config, _ = so.scenario_setup(so.SCENARIO, so.demo_options(0))
+    assert all(r.heading_offset_deg == 0.0 for r in config.robots)  # hidden from the demo
+    oracle = so.oracle_config(sim, config)
+    truth = {r.name: r.heading_offset_deg for r in sim.config.robots}
+    assert {r.name: r.heading_offset_deg for r in oracle.robots} == truth
+    assert {r.name: r.odom_scale for r in oracle.robots} == sim.true_odom_scales
+    assert oracle.uwb.pairs == sim.config.uwb.pairs and oracle.uwb.pairs
+    sc = oracle.filter.self_calibration
+    assert (sc.heading_mode, sc.bias_mode, sc.odom_scale_mode) == (
+        "estimate",
+        "calibrated",
+        "fixed",
+    )
+    assert sc.heading_prior_sigma_deg == so.ORACLE_HEADING_SIGMA_DEG
+    assert oracle.reference == config.reference
+    assert so.passes(0.25, 0.24) and so.passes(0.19, 0.0) and not so.passes(0.25, 0.2)
+    assert so.parse_seeds("0-4") == [0, 1, 2, 3, 4] and so.parse_seeds("0,3") == [0, 3]

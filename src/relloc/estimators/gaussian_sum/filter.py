@@ -374,10 +374,13 @@ class GaussianSumFilter(WeightedFilter):
             mean[rows, c0] = length * (c * r[:, 0] + s * t[:, 0])
             mean[rows, c1] = length * (c * r[:, 1] + s * t[:, 1])
             rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # R(delta)
-            block = cov[rows]
-            block[:, c0 : c1 + 1, :] = np.einsum("mab,mbd->mad", rot, block[:, c0 : c1 + 1, :])
-            block[:, :, c0 : c1 + 1] = np.einsum("mdb,mab->mda", block[:, :, c0 : c1 + 1], rot)
-            cov[rows] = block
+            uc = np.array([c0, c1])
+            cov[rows[:, None], uc[None, :], :] = np.einsum(
+                "mab,mbd->mad", rot, cov[rows[:, None], uc[None, :], :]
+            )
+            cov[rows[:, None], :, uc[None, :]] = np.einsum(
+                "mab,mbd->mad", rot, cov[rows[:, None], :, uc[None, :]]
+            )
         self.cov = cov
 
     def constrain_scales(self) -> None:
