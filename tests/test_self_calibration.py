@@ -539,11 +539,13 @@ def test_a_heading_prior_holds_the_scale_once() -> None:
 
 
 # ---------------------------------------------------------------------------- scale runaway
-def _sparse_sightings_run(seed: int, rate_hz: float) -> tuple[SelfCalibratingLocalizer, list]:
+def _sparse_sightings_run(
+    seed: int, rate_hz: float, scale_step: tuple[float, float] = (math.inf, 1.0)
+) -> tuple[SelfCalibratingLocalizer, list]:
     """Five robots, no UWB, a forward camera seeing teammates at ``rate_hz`` with half of the
-    sightings missed (long gaps), wheel scales 0.95-1.05, every odometry frame rotated at
-    random, headings and scales online with MRCLAM's walks and splits
-    (configs/mrclam/mrclam.toml), 600 s."""
+    sightings missed (long gaps), wheel scales 0.95-1.05 (times ``scale_step[1]`` from
+    ``scale_step[0]`` s on), every odometry frame rotated at random, headings and scales online
+    with MRCLAM's walks and splits (configs/mrclam/mrclam.toml), 600 s."""
     camera = replace(TEAMMATE_CAMERA, rate_hz=rate_hz, miss_probability=0.5)
     sim = multi_scenario(
         seed=seed,
@@ -551,7 +553,7 @@ def _sparse_sightings_run(seed: int, rate_hz: float) -> tuple[SelfCalibratingLoc
         heading_offsets="random",
         uwb=UwbErrorModel(dropout_probability=1.0),
         sightings=[camera],
-        odometry=OdometryErrorModel(scale_range=(0.95, 1.05)),
+        odometry=OdometryErrorModel(scale_range=(0.95, 1.05), scale_step=scale_step),
     )
     config = replace(
         sim.config, robots=tuple(replace(r, heading_offset_deg=0.0) for r in sim.config.robots)
@@ -585,6 +587,18 @@ def test_sparse_sightings_do_not_run_a_scale_out_of_its_interval() -> None:
     counters = loc.fault_counters()
     assert counters["calibration_restarts"] == 0, counters.get("calibration_restart_reason")
     assert all(0.5 <= s <= 1.5 for e in ests for s, _ in e.scales.values())
+
+
+def test_a_scale_step_is_followed_without_a_restart() -> None:
+    """Every wheel reads 15 % long from 300 s on (sightings every 3 s on average): the moving
+    robots' scales (the odometry's correction, 0.83-0.91 after the step) all end below 1,
+    within the interval, with no restart (before the fix: one, r3's scale at 0.46)."""
+    loc, ests = _sparse_sightings_run(seed=0, rate_hz=0.3, scale_step=(300.0, 1.15))
+    counters = loc.fault_counters()
+    assert counters["calibration_restarts"] == 0, counters.get("calibration_restart_reason")
+    assert all(0.5 <= s <= 1.5 for e in ests for s, _ in e.scales.values())
+    final = {robot: s for robot, (s, _) in ests[-1].scales.items()}
+    assert all(final[r] < 1.0 for r in ("r1", "r2", "r3", "r4")), final
 
 
 def test_truncation_of_a_standard_normal_matches_scipy() -> None:

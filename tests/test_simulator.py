@@ -27,6 +27,7 @@ from relloc.simulator import (
     nav_scenario,
     single_scenario,
 )
+from relloc.simulator.error_models import OdometryErrorModel
 
 
 def _rot(a: float) -> np.ndarray:
@@ -347,3 +348,22 @@ def test_generating_the_multi_run_is_fast() -> None:
     elapsed = time.process_time() - start
     assert n > 15000
     assert elapsed < 1.5  # typically about 0.1 s
+
+
+def test_a_wheel_scale_step_lengthens_the_odometry_from_its_time_on() -> None:
+    """Without odometry noise, the odometry's path length over the true one is the drawn wheel
+    scale before the step and that scale times the factor after it."""
+    quiet = OdometryErrorModel(sigma_v=0.0, sigma_w=0.0, gyro_bias_max=0.0)
+    stepped = OdometryErrorModel(
+        sigma_v=0.0, sigma_w=0.0, gyro_bias_max=0.0, scale_step=(20.0, 1.2)
+    )
+    lengths = {}
+    for name, model in (("quiet", quiet), ("stepped", stepped)):
+        sim = multi_scenario(seed=0, duration=40.0, odometry=model)
+        odom = [e for e in _by_type(sim.events(), OdometryEvent) if e.robot == "r1"]
+        xy = np.array([(e.x, e.y) for e in odom])
+        t = np.array([e.t for e in odom])
+        steps = np.hypot(*np.diff(xy, axis=0).T)
+        lengths[name] = (steps[t[1:] <= 20.0].sum(), steps[t[1:] > 20.0].sum())
+    assert lengths["stepped"][0] == pytest.approx(lengths["quiet"][0])
+    assert lengths["stepped"][1] == pytest.approx(1.2 * lengths["quiet"][1], rel=1e-3)

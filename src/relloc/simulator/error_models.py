@@ -85,6 +85,14 @@ class OdometryErrorModel:
     """Per-robot constant yaw-rate bias, drawn uniformly in +-this (rad/s; 0.0015 rad/s is
     5 degrees a minute)."""
     rate_hz: float = 20.0
+    scale_step: tuple[float, float] = (math.inf, 1.0)
+    """``(t, factor)``: from ``t`` (s from the start) on, every robot's wheel scale is
+    multiplied by ``factor`` (a tyre change, a load, a floor that makes the wheels slip)."""
+
+    def scale_at(self, scale: float, t: FloatArray) -> FloatArray:
+        """The wheel scale ``scale`` at times ``t`` (after :attr:`scale_step`)."""
+        step_t, factor = self.scale_step
+        return np.where(t >= step_t, scale * factor, scale)
 
 
 @dataclass(frozen=True)

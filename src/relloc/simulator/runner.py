@@ -354,7 +354,8 @@ class _Runner:
             ds = np.diff(s, prepend=s_last)
             dyaw = np.diff(yaw, prepend=yaw_last)
             moving = (np.abs(ds) > 1e-12) | (np.abs(dyaw) > 1e-12)
-            v_m = self.sim.true_odom_scales[name] * ds / dt + moving * om.sigma_v * od["nv"][i0:i1]
+            scale = om.scale_at(self.sim.true_odom_scales[name], times)
+            v_m = scale * ds / dt + moving * om.sigma_v * od["nv"][i0:i1]
             w_m = dyaw / dt + moving * (
                 self.sim.true_gyro_biases[name] + om.sigma_w * od["nw"][i0:i1]
             )
