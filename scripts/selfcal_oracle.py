@@ -9,7 +9,9 @@ Per seed, the five-robot scenario of ``relloc demo --heading estimate --bias onl
 * **oracle**: the same filter (the Gaussian sum, headings estimated in the reference's odometry
   frame, so the gyros' drift is still tracked online) told everything the demo hides: every
   robot's true heading offset as a prior of ``ORACLE_HEADING_SIGMA_DEG``, every pair's true
-  bias (calibrated), every robot's true wheel scale (fixed).
+  bias as the prior of its online bias (``bias_prior_sigma``; online, so that the filter keeps
+  its state for the heading-dependent range error), every robot's odometry divided by its true
+  wheel scale (fixed scales).
 
 What the oracle still misses (odometry noise, gyro drift, range noise and its heading-dependent
 part, the body frame's dependence on the reference's heading) is the floor no calibration can
@@ -54,22 +56,21 @@ def demo_options(seed: int) -> DemoOptions:
 
 def oracle_config(sim: Simulation, config: TeamConfig) -> TeamConfig:
     """``config`` (the self-calibrating run's) told the truth: the simulator's heading offsets
-    as a tight prior, its pair biases as the calibration, its wheel scales as the odometry's."""
+    as a tight prior, its pair biases as the online biases' prior, the inverse of its wheel
+    scales as the odometry's (the simulated odometry reads the true scale times the motion)."""
     truth = {r.name: r for r in sim.config.robots}
     robots = tuple(
         replace(
             r,
             heading_offset_deg=truth[r.name].heading_offset_deg,
-            odom_scale=sim.true_odom_scales[r.name],
+            odom_scale=1.0 / sim.true_odom_scales[r.name],
         )
         for r in config.robots
     )
     config = replace(
         config, robots=robots, uwb=replace(config.uwb, pairs=dict(sim.config.uwb.pairs))
     )
-    return config.with_modes(bias="calibrated").with_filter(
-        heading_prior_sigma_deg=ORACLE_HEADING_SIGMA_DEG
-    )
+    return config.with_filter(heading_prior_sigma_deg=ORACLE_HEADING_SIGMA_DEG)
 
 
 def body_errors(sim: Simulation, config: TeamConfig, seed: int) -> dict[str, float]:
