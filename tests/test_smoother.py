@@ -198,8 +198,8 @@ def _bias_run(
     odometry: bool, online: bool
 ) -> tuple[float, dict[str, tuple[float, float]], dict[str, float]]:
     """The smoother on 30 s of the multi scenario with the config's pair biases removed (as
-    ``relloc demo --bias online``): online, the uncalibrated prior ``default_bias`` +-
-    ``default_bias_sigma``; else calibrated with every bias left at 0. Returns the mean over
+    ``relloc demo --bias online``): online, the uncalibrated prior (``default_bias``, a team
+    offset, node offsets, each pair's ``default_bias_sigma``); else calibrated with every bias left at 0. Returns the mean over
     robots of the median APE (shape APE without odometry), the last published biases and the
     simulator's true ones."""
     sim = multi_scenario(seed=0, duration=30.0)
@@ -233,12 +233,15 @@ def test_online_biases_approach_the_true_ones_and_beat_biases_left_at_zero(odome
     default = multi_scenario(seed=0, duration=1.0).config.uwb.default_bias
     error = np.mean([abs(biases[p][0] - truth[p]) for p in truth])
     prior_error = np.mean([abs(default - truth[p]) for p in truth])
-    # measured: mean |error| 0.050 m with odometry, 0.046 m without; the prior's 0.095 m
-    assert error < 0.07 and error < 0.75 * prior_error
-    assert all(0.0 < std < 0.15 for _, std in biases.values())  # narrower than the prior
+    # measured: mean |error| 0.078 m with odometry (the team offset 0.08 m low: it trades
+    # with the odometry's scale errors), 0.048 m without; the prior's 0.095 m
+    assert error < 0.09 and error < 0.85 * prior_error
+    # narrower than the prior (0.34 m with the team and node offsets) and covering the truth
+    assert all(0.0 < std < 0.25 for _, std in biases.values())
+    assert np.mean([abs(biases[p][0] - truth[p]) <= 1.96 * biases[p][1] for p in truth]) >= 0.9
     zero, none, _ = _bias_run(odometry, online=False)
     assert none == {}
-    # measured: with odometry APE 0.115 m (biases at 0: 0.295 m); without, shape APE 0.468 m
+    # measured: with odometry APE 0.123 m (biases at 0: 0.295 m); without, shape APE 0.463 m
     # (0.541 m)
     assert ape < zero - (0.1 if odometry else 0.03)
 

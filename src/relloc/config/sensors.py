@@ -87,6 +87,10 @@ class PairCalibration(Checked):
     sigma: float | None = None
     """Range noise for this pair (m); ``None`` uses ``[uwb] sigma`` (``los_sigma`` for the
     NLOS-aware likelihood)."""
+    bias_sigma: float | None = None
+    """Std (m) of the calibrated bias as a prior of the online biases (``bias_mode =
+    "online"``: a calibration is a prior, still estimated); ``None``: ``BIAS_PRIOR_SIGMA`` of
+    :mod:`relloc.localizers.priors`, the spread of a pair's bias between sessions."""
     source: str = ""
     """Which recording this calibration was estimated from."""
 
@@ -96,6 +100,8 @@ class PairCalibration(Checked):
             raise ConfigError(f"a pair's range scale must be > 0, got {self.scale}")
         if self.sigma is not None and not self.sigma > 0.0:
             raise ConfigError(f"a pair's sigma must be > 0, got {self.sigma}")
+        if self.bias_sigma is not None and not self.bias_sigma > 0.0:
+            raise ConfigError(f"a pair's bias_sigma must be > 0, got {self.bias_sigma}")
 
 
 @dataclass(frozen=True)
@@ -120,7 +126,15 @@ class UwbConfig(Checked):
     """Bias assumed for a pair with no calibration (m)."""
     default_bias_sigma: float = 0.15
     """Extra range noise for an uncalibrated pair (m; added in quadrature to ``sigma`` or
-    ``los_sigma``)."""
+    ``los_sigma``); with online biases, the std of an uncalibrated pair's own deviation from
+    the team offset."""
+    team_offset_sigma: float = 0.3
+    """Online biases: std (m) of the offset every uncalibrated pair of the team shares about
+    ``default_bias`` (one hardware delay). Broad: ``default_bias`` is one lab's hardware, and
+    the team's ranges teach the offset (:class:`relloc.localizers.priors.BiasPrior`)."""
+    node_offset_sigma: float = 0.05
+    """Online biases: std (m) of each transceiver's own offset, shared by every pair it is in,
+    calibrated or not (an antenna delay, what moves when the node turns or moves); 0: none."""
     sigma: float = 0.15
     """Range noise (m, one standard deviation) of the symmetric range likelihood (Gaussian plus
     uniform outliers, :mod:`relloc.filter.ranges`): ranges corrected by a learned model, pairs
@@ -134,7 +148,12 @@ class UwbConfig(Checked):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        require(self, "uwb", positive=("sigma", "los_sigma"), non_negative=("default_bias_sigma",))
+        require(
+            self,
+            "uwb",
+            positive=("sigma", "los_sigma"),
+            non_negative=("default_bias_sigma", "team_offset_sigma", "node_offset_sigma"),
+        )
         dirs = self.msg_dirs
         if isinstance(dirs, str) or not all(isinstance(d, str) for d in dirs):
             raise ConfigError(f"uwb.msg_dirs must be a list of folders, got {dirs!r}")

@@ -52,6 +52,9 @@ class FilterEstimate:
     ``cov`` are then its published moments."""
     particles: int | None = None
     """Hypotheses the filter holds (an adaptive particle count changes it at resampling)."""
+    offsets: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """Shared offsets of the online biases (team, nodes: :class:`~relloc.localizers.priors.BiasPrior`)
+    where the estimator keeps them apart (the smoother)."""
 
 
 def renormalized(logw: FloatArray) -> FloatArray | None:

@@ -1,11 +1,17 @@
 """What every estimator kind starts from and publishes at least: the prior of the online pair
-biases (one belief per UWB node pair, :func:`bias_layout`), the covariance a published estimate
+biases (one belief per UWB node pair, offsets they share: :func:`bias_layout`,
+:class:`BiasPrior`), the covariance a published estimate
 keeps per axis (:func:`covariance_floor`) and about the formation's rotation
 (``ROTATION_FLOOR``). Shared by the kinds of :mod:`relloc.estimators`, so that one kind never
 imports another's localizer for them.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
 from relloc.events import pair_key
@@ -22,30 +28,114 @@ wider prior let the bias run, on a new session, along what one range cannot tell
 longer bias, a nearer robot) (docs/explanation/self-calibration.md, "Online bias on a new session")."""
 
 
+FloatArray = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class BiasPrior:
+    """The prior of the online pair biases: ``b = mean + A v + d``. ``v`` are shared latent
+    offsets, each ``N(0, latent_sigma^2)``: the team's (one hardware delay every uncalibrated
+    pair shares) and each node's (a transceiver's delay, in every pair it is in); ``A`` says
+    which pair shares which. ``d_j`` is the pair's own deviation, ``N(0, sigma_j^2)``. A
+    calibrated pair shares no team offset (its calibration holds it), but its nodes' offsets:
+    what moved since the calibration. The shared offsets' evidence is the team's: an offset
+    common to many ranges is not what a change of the formation makes of them
+    (docs/explanation/bias-offsets.md)."""
+
+    pairs: tuple[str, ...]
+    mean: FloatArray
+    sigma: FloatArray
+    """Each pair's own deviation std ``(B,)``."""
+    latents: tuple[str, ...]
+    """The shared offsets' names (``"team"``, the node ids)."""
+    loading: FloatArray
+    """``A`` ``(B, L)``: 1 where pair ``j`` shares offset ``l``."""
+    latent_sigma: FloatArray
+    """Each shared offset's prior std ``(L,)``."""
+
+    @property
+    def covariance(self) -> FloatArray:
+        """The biases' joint prior covariance ``(B, B)``."""
+        a = self.loading * self.latent_sigma
+        return np.diag(self.sigma**2) + a @ a.T
+
+    @property
+    def variance(self) -> FloatArray:
+        """Each bias's marginal prior variance ``(B,)``."""
+        return self.sigma**2 + (self.loading * self.latent_sigma) ** 2 @ np.ones(
+            self.latent_sigma.size
+        )
+
+    def flat(self) -> list[float]:
+        """(mean, marginal variance) per pair, the columns of a belief at the prior."""
+        out = np.empty(2 * self.mean.size)
+        out[0::2], out[1::2] = self.mean, self.variance
+        return out.tolist()
+
+    def beliefs(self, rng: np.random.Generator, m: int) -> FloatArray:
+        """``m`` draws of the Rao-Blackwellised beliefs ``(m, 2B)``: each draws the shared
+        offsets; its beliefs are the pairs' own deviations about them (mean, variance)."""
+        out = np.empty((m, 2 * self.mean.size))
+        v = rng.standard_normal((m, self.latent_sigma.size)) * self.latent_sigma
+        out[:, 0::2] = self.mean + v @ self.loading.T
+        out[:, 1::2] = self.sigma**2
+        return out
+
+
 def bias_layout(
-    config: TeamConfig, *, uncalibrated_sigma: float | None = None
-) -> tuple[StateLayout, list[float]]:
-    """The sampled state's layout and the prior of its non-position columns: with online
-    biases a (mean, variance) belief per UWB node pair of the team, none otherwise. An
-    uncalibrated pair's prior is ``uwb.default_bias`` +- ``uncalibrated_sigma`` (default:
-    ``BIAS_PRIOR_SIGMA_UNCALIBRATED``), a calibrated pair's its bias +- ``BIAS_PRIOR_SIGMA``."""
+    config: TeamConfig,
+    *,
+    uncalibrated_sigma: float | None = None,
+    team: bool = True,
+    nodes: bool = True,
+) -> tuple[StateLayout, BiasPrior]:
+    """The sampled state's layout and the prior of its online pair biases (none unless
+    ``bias_mode = "online"``). An uncalibrated pair's prior is ``uwb.default_bias`` plus the
+    team offset (``uwb.team_offset_sigma``) plus its own deviation of ``uncalibrated_sigma``
+    (default: ``BIAS_PRIOR_SIGMA_UNCALIBRATED``); a calibrated pair's its bias +- its stated
+    ``bias_sigma`` (default ``BIAS_PRIOR_SIGMA``); every pair its nodes' offsets
+    (``uwb.node_offset_sigma``). ``team``/``nodes`` false leave those offsets out (a pair with
+    none is its own deviation's prior alone), as does a team whose pairs are no more than the
+    shape's ``2N - 3`` degrees of freedom (two robots, one range: an offset is a distance)."""
     fc = config.filter
     names = config.robot_names
-    if fc.self_calibration.bias_mode != "online":
-        return StateLayout(names, config.reference), []
-    node_pairs = sorted(
-        {_node_pair(config, a, b) for i, a in enumerate(names) for b in names[i + 1 :]}
+    node_pairs: list[str] = []
+    if fc.self_calibration.bias_mode == "online":
+        node_pairs = sorted(
+            {_node_pair(config, a, b) for i, a in enumerate(names) for b in names[i + 1 :]}
+        )
+    own = BIAS_PRIOR_SIGMA_UNCALIBRATED if uncalibrated_sigma is None else uncalibrated_sigma
+    uwb = config.uwb
+    node_ids = sorted({n for p in node_pairs for n in p.split("-")})
+    latents = ["team", *node_ids]
+    latent_sigma = np.array(
+        [uwb.team_offset_sigma if team else 0.0]
+        + [uwb.node_offset_sigma if nodes else 0.0] * len(node_ids)
     )
-    prior: list[float] = []
-    for pair in node_pairs:
-        cal = config.uwb.pairs.get(pair)
+    loading = np.zeros((len(node_pairs), len(latents)))
+    mean, sigma = [], []
+    for j, pair in enumerate(node_pairs):
+        cal = uwb.pairs.get(pair)
         if cal is not None:
-            prior += [cal.bias, BIAS_PRIOR_SIGMA**2]
+            mean.append(cal.bias)
+            sigma.append(BIAS_PRIOR_SIGMA if cal.bias_sigma is None else cal.bias_sigma)
         else:
-            sigma = (
-                BIAS_PRIOR_SIGMA_UNCALIBRATED if uncalibrated_sigma is None else uncalibrated_sigma
-            )
-            prior += [config.uwb.default_bias, sigma**2]
+            mean.append(uwb.default_bias)
+            sigma.append(own)
+            loading[j, 0] = 1.0
+        for node in pair.split("-"):
+            loading[j, latents.index(node)] = 1.0
+    if len(node_pairs) <= 2 * len(names) - 3:
+        latent_sigma[:] = 0.0  # ranges that do not over-determine the shape cannot tell an offset
+    keep = (latent_sigma > 0.0) & loading.any(axis=0)
+    prior = BiasPrior(
+        tuple(node_pairs),
+        np.array(mean, float),
+        np.array(sigma, float),
+        tuple(lat for lat, k in zip(latents, keep, strict=True) if k),
+        loading[:, keep],
+        latent_sigma[keep],
+    )
     return StateLayout(names, config.reference, tuple(node_pairs)), prior
 
 

@@ -43,6 +43,7 @@ from relloc.filter.state import StateLayout
 from relloc.filter.summary import estimate_fields
 from relloc.localizers.base import Localizer, Measurement
 from relloc.localizers.bounds import CalibrationBounds
+from relloc.localizers.calibration_check import CalibrationCheck
 from relloc.localizers.floor import SightingFloor
 from relloc.localizers.heard import Heard
 from relloc.localizers.watchdog import ConsistencyWatchdog
@@ -72,6 +73,9 @@ class SteppedLocalizer(Localizer):
         self.floor = SightingFloor(config)
         self.bounds: CalibrationBounds | None = None
         """The bounds of the online calibration (a filter that estimates it sets them)."""
+        self.calibration_check: CalibrationCheck | None = None
+        """Judges calibrated online biases against the data (a kind with a
+        :class:`~relloc.localizers.priors.BiasPrior` sets it)."""
         self.calibration_restart_reason = ""
         """Why the calibration was last restarted (empty: never)."""
 
@@ -202,5 +206,7 @@ class SteppedLocalizer(Localizer):
             unseen=unseen,
             frame=HEADING_FRAME if body is None else BODY_FRAME,
         )
+        if self.calibration_check is not None and fe.biases:
+            self.calibration_check.judge(fe.biases, fe.offsets, self.stats)
         self.last_estimate = est
         return est

@@ -56,13 +56,14 @@ class SelfCalibratingLocalizer(FilterLocalizer):
     filter: GaussianSumFilter
 
     def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
-        layout, prior = bias_layout(config)
+        # independent pair priors: a pair's columns already hold its time-correlated error
+        layout, prior = bias_layout(config, team=False, nodes=False)
         self.calibration = calibration_layout(config)
         super().__init__(config, layout, seed=seed)
         self.method = method
         self.watchdog.range_model = self.range_model  # judged with the noise this filter assumes
         fc = config.filter
-        self.filter = self._gaussian_sum(np.array(prior))
+        self.filter = self._gaussian_sum(np.array(prior.flat()))
         self.filter.covariance_floor = covariance_floor(config, self.range_model)
         gsf = self.filter
         self.bounds = CalibrationBounds(

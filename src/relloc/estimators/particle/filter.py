@@ -58,6 +58,7 @@ class ParticleFilter(WeightedFilter):
         ess_threshold: float = ESS_THRESHOLD,
         reinject_fraction: float = REINJECT_FRACTION,
         extra_prior: FloatArray | None = None,
+        extra_sampler: Callable[[np.random.Generator, int], FloatArray] | None = None,
         rotation_noise: float = 0.0,
         rotation_kernel: float = 0.0,
         rotation_kernel_max_spread: float = ROTATION_KERNEL_MAX_SPREAD,
@@ -82,6 +83,10 @@ class ParticleFilter(WeightedFilter):
         )
         if self.extra_prior.shape != (layout.width - layout.dim,):
             raise ValueError(f"extra_prior needs {layout.width - layout.dim} values")
+        self.extra_sampler = extra_sampler
+        """Draws ``m`` rows of the further blocks (``(m, width - dim)``: online bias beliefs
+        about a sampled team offset, :meth:`relloc.localizers.priors.BiasPrior.beliefs`);
+        ``None``: every particle at ``extra_prior``."""
         self.motion = motion or OdometryMotion()
         self.rotation_noise = rotation_noise
         """Random turn of the whole formation about the reference (rad/sqrt(s)) per predict:
@@ -123,8 +128,14 @@ class ParticleFilter(WeightedFilter):
         their prior values)."""
         out = np.empty((m, self.layout.width))
         out[:, : self.layout.dim] = self.prior.sample(self.rng, m, self.layout.n_others)
-        out[:, self.layout.dim :] = self.extra_prior
+        out[:, self.layout.dim :] = self._extra(m)
         return out
+
+    def _extra(self, m: int) -> FloatArray:
+        """``m`` rows of the further blocks at their prior (module docstring)."""
+        if self.extra_sampler is None or not self.extra_prior.size:
+            return np.broadcast_to(self.extra_prior, (m, self.extra_prior.size))
+        return self.extra_sampler(self.rng, m)
 
     def in_prior(self, particles: FloatArray) -> NDArray[np.bool_]:
         return self.prior.contains(particles[:, : self.layout.dim])
@@ -193,7 +204,7 @@ class ParticleFilter(WeightedFilter):
     def _reinject(self, slots: IntArray, positions: FloatArray) -> None:
         self.particles[slots, : self.layout.dim] = positions
         if self.extra_prior.size:
-            self.particles[slots, self.layout.dim :] = self.extra_prior
+            self.particles[slots, self.layout.dim :] = self._extra(slots.size)
 
     def _after_resample(self) -> None:
         """Keep a team at rest on its ring, else the orientation kernel (module docstring),

@@ -2,9 +2,10 @@
 
 Every particle is one hypothesis about the formation (:mod:`relloc.estimators.particle.filter`); with online
 biases (``bias_mode = "online"``) it also carries a Gaussian belief about each UWB node pair's
-range bias, its prior the pair's calibration where there is one, else ``uwb.default_bias`` +-
-``uwb.default_bias_sigma``, what the default mode assumes (Rao-Blackwellised,
-:mod:`relloc.filter.state`). The range model updates
+range bias, its prior the pair's calibration where there is one, else ``uwb.default_bias``
+plus a team offset the particle draws (``uwb.team_offset_sigma``) +- ``uwb.default_bias_sigma``
+(Rao-Blackwellised given the offset, :mod:`relloc.filter.state`;
+:class:`relloc.localizers.priors.BiasPrior`). The range model updates
 those beliefs; the filter walks their variances. The particle count adapts
 (``[filter.adaptive]``, :mod:`relloc.filter.adaptive`): ``[filter] particles`` at the start and
 while the posterior is wide, down to ``min_particles`` once it is one narrow mode. The
@@ -26,7 +27,7 @@ from relloc.filter.annealing import annealed_start
 from relloc.filter.state import StateLayout
 from relloc.localizers.base import Measurement
 from relloc.localizers.filtered import FilterLocalizer
-from relloc.localizers.priors import bias_layout, covariance_floor
+from relloc.localizers.priors import BiasPrior, bias_layout, covariance_floor
 
 
 def count_rule(config: TeamConfig, layout: StateLayout) -> KldSampling | None:
@@ -46,7 +47,7 @@ def count_rule(config: TeamConfig, layout: StateLayout) -> KldSampling | None:
 def particle_filter(
     config: TeamConfig,
     layout: StateLayout,
-    prior: list[float],
+    prior: BiasPrior,
     n: int,
     rng: np.random.Generator,
     rule: KldSampling | None = None,
@@ -59,7 +60,8 @@ def particle_filter(
         n,
         config.area,
         rng=rng,
-        extra_prior=np.array(prior),
+        extra_prior=np.array(prior.flat()),
+        extra_sampler=prior.beliefs,
         rotation_noise=fc.odometry.rotation_noise,
         rotation_kernel=fc.resampling.rotation_kernel,
         bias_walk=fc.self_calibration.bias_walk,
@@ -76,7 +78,10 @@ class ParticleFilterLocalizer(FilterLocalizer):
     def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
         # An uncalibrated pair's online bias starts from what the default mode assumes about it,
         # default_bias +- default_bias_sigma (docs/explanation/self-calibration.md, "Online bias on a new session").
-        layout, prior = bias_layout(config, uncalibrated_sigma=config.uwb.default_bias_sigma)
+        # no node offsets: sampled, not Rao-Blackwellised, five more dimensions thin the particles
+        layout, prior = bias_layout(
+            config, uncalibrated_sigma=config.uwb.default_bias_sigma, nodes=False
+        )
         super().__init__(config, layout, seed=seed)
         self.method = method
         self.range_model = (

@@ -14,11 +14,14 @@ Every factor added is also kept (the small per-step graphs, and the latest value
 ever created): :meth:`GraphSmoother.batch` optimises all of them at once afterwards, the
 smoothed trajectory of the whole run (nothing of it runs while the smoother is live).
 
-**Online biases**: a ``Vector1`` key per node pair whose bias is estimated, a prior at its
-calibration, and a range factor ``|p_a - p_b| + b - z`` (a Python ``CustomFactor``, Huber-robust
-too; GTSAM has no native one, and a Python callback is slow, so pairs with a fixed bias keep
-the native ``RangeFactor2``). A bias is constant: its one key's timestamp is refreshed every
-step, so the lag never marginalises a key later factors reference. (A random walk, a new key
+**Online biases**: a ``Vector1`` key per node pair whose bias is estimated, and a range factor
+``|p_a - p_b| + b - z`` (a Python ``CustomFactor``, Huber-robust too; GTSAM has no native one,
+and a Python callback is slow, so pairs with a fixed bias keep the native ``RangeFactor2``).
+The prior (:class:`relloc.localizers.priors.BiasPrior`): a ``Vector1`` key ``o`` per shared
+offset, ``N(0, sigma_l^2)``, and per pair a factor ``b - sum(o_l) - mean ~ N(0, sigma^2)`` over
+the offsets it shares. Biases and offsets are constant: their keys' timestamps are refreshed
+every step, so the lag never marginalises a key later factors reference, and what leaves the
+window stays in their marginal. (A random walk, a new key
 tied to the last by a between factor, makes iSAM2's marginalisation of the old keys fail as
 indeterminate within a lag, GTSAM's known fixed-lag marginalisation bugs.)
 """
@@ -35,6 +38,7 @@ from scipy.linalg import solve_triangular
 
 from relloc import geometry
 from relloc.filter.factors import RangeTerms
+from relloc.localizers.priors import BiasPrior
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -69,6 +73,27 @@ def robot_key(step: int, i: int, n: int) -> int:
 
 BIAS_CHR = ord("b")
 """The symbol character of the bias keys (``gtsam.symbol("b", j)``, ``j`` counting them)."""
+OFFSET_CHR = ord("o")
+"""The symbol character of the shared offsets' keys."""
+
+
+def _deviation(
+    mean: float,
+) -> Callable[[gtsam.CustomFactor, gtsam.Values, list[FloatArray] | None], FloatArray]:
+    """The error of a pair's own deviation, keys ``(b, o_1, ..., o_k)``: ``b - sum(o) - mean``."""
+
+    def error(
+        factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None
+    ) -> FloatArray:
+        keys = factor.keys()
+        if jacobians is not None:
+            jacobians[0] = np.ones((1, 1))
+            for i in range(1, len(keys)):
+                jacobians[i] = -np.ones((1, 1))
+        shared = sum(values.atVector(k)[0] for k in keys[1:])
+        return np.array([values.atVector(keys[0])[0] - shared - mean])
+
+    return error
 
 
 def _biased_range(
@@ -103,10 +128,9 @@ class GraphSmoother:
         n: int,
         reference: int,
         lag: float,
-        bias_mean: FloatArray | None = None,
-        bias_sigma: FloatArray | None = None,
+        biases: BiasPrior | None = None,
     ) -> None:
-        """``bias_mean``/``bias_sigma``: the prior of each online bias (none by default)."""
+        """``biases``: the prior of the online biases (none by default)."""
         self.n = n
         self.reference = reference
         self.others = np.array([i for i in range(n) if i != reference], dtype=np.intp)
@@ -118,10 +142,13 @@ class GraphSmoother:
         """Every step's factors since the start (for :meth:`batch`)."""
         self.values: dict[int, FloatArray] = {}
         """The latest fixed-lag estimate of every key ever created (where :meth:`batch` starts)."""
-        self.bias_mean = np.zeros(0) if bias_mean is None else np.asarray(bias_mean, float)
-        self.bias_sigma = np.zeros(0) if bias_sigma is None else np.asarray(bias_sigma, float)
+        self.prior = biases
+        self.bias_mean = np.zeros(0) if biases is None else biases.mean
         self.bias_keys = [gtsam.symbol("b", j) for j in range(self.bias_mean.size)]
         """Each online bias's key."""
+        latents = 0 if biases is None else biases.latent_sigma.size
+        self.offset_keys = [gtsam.symbol("o", j) for j in range(latents)]
+        """Each shared offset's key."""
         self.biases: FloatArray = self.bias_mean.copy()
         """Each online bias's latest estimate."""
         self._estimate = gtsam.Values()
@@ -170,14 +197,7 @@ class GraphSmoother:
                 )
                 values.insert(key, np.asarray(mean[i], float))
             stamps.insert((key, t))
-        for key, m, sd in zip(
-            self.bias_keys, self.bias_mean.tolist(), self.bias_sigma.tolist(), strict=True
-        ):
-            graph.add(
-                gtsam.PriorFactorVector(key, np.array([m]), gtsam.noiseModel.Isotropic.Sigma(1, sd))
-            )
-            values.insert(key, np.array([m]))
-            stamps.insert((key, t))
+        self._bias_priors(graph, values, stamps, t)
         self._ranges(graph, keys, ranges)
         self._relatives(graph, keys, relative)
         self._update(graph, values, stamps)
@@ -209,11 +229,41 @@ class GraphSmoother:
             graph.add(gtsam.BetweenFactorPoint2(prev[i], new[i], np.asarray(disp[i], float), noise))
             values.insert(new[i], np.asarray(guess[i], float))
             stamps.insert((new[i], t))
-        for key in self.bias_keys:
+        for key in [*self.bias_keys, *self.offset_keys]:
             stamps.insert((key, t))  # kept in the window (module docstring)
         self._ranges(graph, new, ranges)
         self._relatives(graph, new, relative)
         self._update(graph, values, stamps)
+
+    def _bias_priors(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        stamps: gtsam.FixedLagSmootherKeyTimestampMap,
+        t: float,
+    ) -> None:
+        """The online biases' prior (module docstring), every key at its prior mean."""
+        prior = self.prior
+        if prior is None:
+            return
+        for key, sd in zip(self.offset_keys, prior.latent_sigma.tolist(), strict=True):
+            noise = gtsam.noiseModel.Isotropic.Sigma(1, sd)
+            graph.add(gtsam.PriorFactorVector(key, np.zeros(1), noise))
+            values.insert(key, np.zeros(1))
+            stamps.insert((key, t))
+        rows = zip(
+            self.bias_keys,
+            prior.mean.tolist(),
+            prior.sigma.tolist(),
+            prior.loading > 0,
+            strict=True,
+        )
+        for key, m, sd, shares in rows:
+            noise = gtsam.noiseModel.Isotropic.Sigma(1, sd)
+            offsets = [k for k, on in zip(self.offset_keys, shares.tolist(), strict=True) if on]
+            graph.add(gtsam.CustomFactor(noise, [key, *offsets], _deviation(m)))
+            values.insert(key, np.array([m]))
+            stamps.insert((key, t))
 
     def _ranges(
         self, graph: gtsam.NonlinearFactorGraph, keys: list[int], ranges: RangeTerms
@@ -267,23 +317,29 @@ class GraphSmoother:
         self._joint = None
         self._estimate = est = self.smoother.calculateEstimate()
         for key in list(est.keys()):  # a gtsam.Values, not a dict
-            bias = gtsam.Symbol(key).chr() == BIAS_CHR
-            self.values[key] = est.atVector(key) if bias else est.atPoint2(key)
+            vector = gtsam.Symbol(key).chr() in (BIAS_CHR, OFFSET_CHR)
+            self.values[key] = est.atVector(key) if vector else est.atPoint2(key)
         self.positions = np.array([est.atPoint2(key) for key in self.keys()], float).reshape(
             self.n, 2
         )
         self.biases = np.array([est.atVector(key)[0] for key in self.bias_keys], float)
 
     def _window_joint(self) -> FloatArray:
-        """The joint covariance of the window's marginal on ``[x_ref, x_others..., biases...]``
-        (the latest step's keys, 2 rows each, then 1 per bias) at the estimate, once per update.
+        """The joint covariance of the window's marginal on ``[x_ref, x_others..., biases...,
+        offsets...]`` (the latest step's keys, 2 rows each, then 1 per bias and shared offset)
+        at the estimate, once per update.
 
         The linearised window is eliminated with those keys last, so their marginal is the
         dense ``R^T R`` of one small Bayes net: four times cheaper than ``gtsam.Marginals``'
         joint over the same keys at 50 robots, and equal to it."""
         if self._joint is None:
             keys = self.keys()
-            order = [keys[self.reference], *(keys[i] for i in self.others), *self.bias_keys]
+            order = [
+                keys[self.reference],
+                *(keys[i] for i in self.others),
+                *self.bias_keys,
+                *self.offset_keys,
+            ]
             linear = self.smoother.getFactors().linearize(self._estimate)
             r, _ = linear.marginalMultifrontalBayesNet(gtsam.Ordering(order)).matrix()
             r_inv = solve_triangular(r, np.eye(r.shape[0]))
@@ -298,8 +354,17 @@ class GraphSmoother:
 
     def bias_std(self) -> FloatArray:
         """Std of each online bias (the window's marginal), ``(B,)``."""
-        tail = np.diag(self._window_joint())[2 * self.n :]
+        tail = np.diag(self._window_joint())[2 * self.n : 2 * self.n + len(self.bias_keys)]
         return np.sqrt(np.maximum(tail, 0.0))
+
+    def offset_estimates(self) -> tuple[list[float], list[float]]:
+        """Each shared offset's estimate and std (the window's marginal)."""
+        if not self.offset_keys:
+            return [], []
+        est = self._estimate
+        mean = [float(est.atVector(k)[0]) for k in self.offset_keys]
+        tail = np.diag(self._window_joint())[2 * self.n + len(self.bias_keys) :]
+        return mean, np.sqrt(np.maximum(tail, 0.0)).tolist()
 
     def batch(
         self, steps: list[int], covariances: bool = True

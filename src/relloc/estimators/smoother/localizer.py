@@ -22,8 +22,8 @@ the smoother's own frame). Without ranges: the relative positions chained from t
 the median time of the step's ranges, since nothing carries the motion past them.
 
 **Estimate**: each robot's latest key less the reference's, covariance from their joint
-marginal; online biases (a constant key per node pair, the sampled filter's prior) from
-their marginals. GTSAM's ``RuntimeError`` or the watchdog's alarm restarts from the last
+marginal; online biases (a constant key per node pair and a team offset, the sampled
+filter's prior) from their marginals. GTSAM's ``RuntimeError`` or the watchdog's alarm restarts from the last
 ``RESTART_WINDOW`` of ranges. Headings and odometry scales are not estimated. **Smoothed**
 (:meth:`SmootherLocalizer.smoothed_estimates`, after a run): each segment between restarts
 optimised at once, scored as the row ``<method>_smoothed``.
@@ -53,6 +53,7 @@ from relloc.filter.ranges import RangeBatch
 from relloc.filter.registry import MODELS, model_for
 from relloc.filter.summary import estimate_fields
 from relloc.localizers.base import Measurement
+from relloc.localizers.calibration_check import calibration_check
 from relloc.localizers.priors import ROTATION_FLOOR, bias_layout
 from relloc.localizers.stepped import SteppedLocalizer
 
@@ -100,8 +101,8 @@ class SmootherLocalizer(SteppedLocalizer):
     def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
         layout, prior = bias_layout(config, uncalibrated_sigma=config.uwb.default_bias_sigma)
         super().__init__(config, layout, seed=seed)
-        self._bias_mean = np.array(prior[0::2], float)
-        self._bias_sigma = np.sqrt(np.array(prior[1::2], float))
+        self._bias_prior = prior
+        self.calibration_check = calibration_check(config, prior)
         self._bias_of_column = {
             layout.bias_belief_column(p): j for j, p in enumerate(layout.bias_pairs)
         }
@@ -256,7 +257,7 @@ class SmootherLocalizer(SteppedLocalizer):
         n = len(self.layout.robots)
         relative = merge_fixes(observed)
         start = (
-            range_start(n, self._ref, terms, self._bias_mean, odometry=self._framed(t))
+            range_start(n, self._ref, terms, self._bias_prior.mean, odometry=self._framed(t))
             if terms.size
             else None
         )
@@ -268,7 +269,7 @@ class SmootherLocalizer(SteppedLocalizer):
         merged = self._per_pair(terms.index_a, terms.index_b, terms.distance, terms.sigma)
         self.hypotheses = []
         for m in range(means.shape[0]):
-            smoother = GraphSmoother(n, self._ref, LAG, self._bias_mean, self._bias_sigma)
+            smoother = GraphSmoother(n, self._ref, LAG, self._bias_prior)
             smoother.start(t, means[m], covs[m], ranges=merged, relative=relative)
             self.hypotheses.append(smoother)
         self._placed = placed
@@ -415,11 +416,19 @@ class SmootherLocalizer(SteppedLocalizer):
                 self.layout.bias_pairs, best.biases.tolist(), best.bias_std().tolist(), strict=True
             )
         }
+        offsets = dict(
+            zip(
+                self._bias_prior.latents,
+                zip(*best.offset_estimates(), strict=True),
+                strict=True,
+            )
+        )
         return FilterEstimate(
             mean,
             cov,
             None,  # no weighted particles: the hypotheses are counted in smoother_hypotheses
             biases=biases,
+            offsets=offsets,
             summary=summary,
             particles=len(self.hypotheses),
         )
