@@ -111,6 +111,7 @@ class SelfCalibratingLocalizer(FilterLocalizer):
             heading_walk=fc.self_calibration.heading_walk,
             reference_heading_walk=fc.self_calibration.reference_heading_walk,
             bias_walk=fc.self_calibration.bias_walk,
+            scale_bounds=(fc.self_calibration.scale_min, fc.self_calibration.scale_max),
         )
         return GaussianSumFilter(
             layout,
