@@ -197,7 +197,12 @@ class Simulation:
             # ambiguity of the uniform start resolves quickly and fewer particles than the
             # mostly static recordings need will do (docs/explanation/measurements.md, "Measurements moved
             # from the code").
-            filter=FilterConfig(particles=SIM_PARTICLES),
+            # The reference's odometry heading drifts as much as every other robot's (one
+            # gyro model for the team): its heading walk is the others' (see SIM_PARTICLES
+            # for the particles, docs/explanation/self-calibration.md, "The floor").
+            filter=FilterConfig(particles=SIM_PARTICLES).with_changes(
+                reference_heading_walk=FilterConfig().self_calibration.heading_walk
+            ),
         )
         self._runner = _Runner(self)
 
