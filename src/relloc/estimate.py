@@ -118,6 +118,10 @@ class Estimate:
     methods aligned to the truth) or :data:`BODY_FRAME` (headings estimated: the reference's
     odometry frame turns against the world as its heading drifts, unobserved, so relloc
     publishes in the reference's body frame, which sightings and ranges do observe)."""
+    yaws: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """Robots with several UWB tags (their ranges show their heading): each one's heading in
+    the frame of :attr:`frame` (the reference's body frame where the reference has several tags
+    too), (mean, std) in rad."""
 
     @property
     def dimension(self) -> int:

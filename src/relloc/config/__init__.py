@@ -29,6 +29,7 @@ from relloc.config.sensors import (
     CameraConfig,
     PairCalibration,
     RobotConfig,
+    TagConfig,
     UwbConfig,
 )
 from relloc.events import RangeEvent, pair_key
@@ -48,6 +49,7 @@ __all__ = [
     "RosDistro",
     "RosInterfaceKind",
     "SelfCalibrationConfig",
+    "TagConfig",
     "TeamConfig",
     "UwbConfig",
     "with_numeric_overrides",
@@ -105,9 +107,12 @@ class TeamConfig(Checked):
         xmin, xmax, ymin, ymax = self.area
         if not all(map(math.isfinite, self.area)) or not (xmin < xmax and ymin < ymax):
             raise ConfigError(f"area must be [xmin, xmax, ymin, ymax] with min < max: {self.area}")
-        nodes = [r.uwb_node for r in self.robots if r.uwb_node]
+        nodes = [n for r in self.robots for n in r.nodes]
         if len(set(nodes)) != len(nodes):
             raise ConfigError(f"each UWB node may be on one robot only: {nodes}")
+        arms = {len(t.lever_arm) for r in self.robots for t in r.tags}
+        if len(arms) > 1:
+            raise ConfigError("every tag's lever_arm has the same dimension (2 or 3)")
 
     @property
     def robot_names(self) -> tuple[str, ...]:
@@ -125,17 +130,37 @@ class TeamConfig(Checked):
         raise KeyError(f"unknown robot {name!r}; the team is {list(self.robot_names)}")
 
     def range_nodes(self, event: RangeEvent) -> tuple[str, str]:
-        """The transceivers of a range: the event's node ids, else the robots' configured ones,
+        """The transceivers of a range: the event's node ids, else the robots' first tags,
         else the robot names."""
-        node_a = event.node_a or self.robot(event.robot_a).uwb_node or event.robot_a
-        node_b = event.node_b or self.robot(event.robot_b).uwb_node or event.robot_b
+        node_a = event.node_a or next(iter(self.robot(event.robot_a).nodes), event.robot_a)
+        node_b = event.node_b or next(iter(self.robot(event.robot_b).nodes), event.robot_b)
         return node_a, node_b
 
     def robot_of_node(self, node: str) -> str | None:
+        """The robot carrying UWB node ``node`` (``None``: no robot lists it)."""
         for r in self.robots:
-            if r.uwb_node == node:
+            if node in r.nodes:
                 return r.name
         return None
+
+    def lever_arm(self, node: str) -> tuple[float, ...]:
+        """Where node ``node`` sits in its robot's body frame (the origin for ``uwb_node``, or a
+        node no robot lists: a range keyed by robot names)."""
+        for r in self.robots:
+            for tag in r.tags:
+                if tag.node == node:
+                    return tag.lever_arm
+        return (0.0, 0.0)
+
+    @property
+    def multi_tag_robots(self) -> tuple[str, ...]:
+        """Robots with two or more tags: ranges see their headings."""
+        return tuple(r.name for r in self.robots if len(r.tag_list) >= 2)
+
+    @property
+    def has_lever_arms(self) -> bool:
+        """Whether some tag sits off its robot's body origin."""
+        return any(any(v != 0.0 for v in t.lever_arm) for r in self.robots for t in r.tags)
 
     def with_filter(self, **changes: Any) -> TeamConfig:
         """A copy with some filter parameters changed (:meth:`FilterConfig.with_changes`: each
@@ -187,7 +212,17 @@ class TeamConfig(Checked):
         for i, raw in enumerate(robots_raw):
             raw = dict(raw)
             camera = build(CameraConfig, raw.pop("camera", {}), f"robots[{i}].camera")
-            robots.append(build(RobotConfig, {**raw, "camera": camera}, f"robots[{i}]"))
+            tags_raw = raw.pop("tags", [])
+            if not isinstance(tags_raw, list | tuple) or not all(
+                isinstance(t, dict) for t in tags_raw
+            ):
+                raise ConfigError(f"robots[{i}].tags must be a list of {{node, lever_arm}} tables")
+            tags = tuple(
+                build(TagConfig, dict(t), f"robots[{i}].tags[{k}]") for k, t in enumerate(tags_raw)
+            )
+            robots.append(
+                build(RobotConfig, {**raw, "camera": camera, "tags": tags}, f"robots[{i}]")
+            )
         uwb_raw = dict(data.pop("uwb", {}))
         pairs = {
             pair_key(*_split_pair(k)): build(PairCalibration, v, f"uwb.pairs.{k}")

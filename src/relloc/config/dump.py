@@ -53,7 +53,13 @@ def dump_toml(d: dict[str, Any]) -> str:
         lines.append("[[robots]]")
         camera = robot.get("camera", {})
         for k, v in robot.items():
-            if k != "camera":
+            if k == "tags" and v:
+                tags = ", ".join(
+                    f"{{ node = {toml_value(t['node'])}, lever_arm = {toml_value(t['lever_arm'])} }}"
+                    for t in v
+                )
+                lines.append(f"tags = [{tags}]")
+            elif k not in ("camera", "tags"):
                 lines.append(f"{k} = {toml_value(v)}")
         lines.append("[robots.camera]")
         for k, v in camera.items():

@@ -38,11 +38,37 @@ class CameraConfig(Checked):
 
 
 @dataclass(frozen=True)
+class TagConfig(Checked):
+    """One UWB tag a robot carries: its node id and where it sits in the robot's body frame."""
+
+    node: str
+    lever_arm: tuple[float, ...] = (0.0, 0.0)
+    """The tag's position in the robot's body frame (m; x forward, y left, z up if given)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        arm = tuple(self.lever_arm)
+        if not self.node:
+            raise ConfigError("a tag needs a node id")
+        if len(arm) not in (2, 3) or not all(
+            isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v) for v in arm
+        ):
+            raise ConfigError(
+                f"tag {self.node}: lever_arm must be [x, y] or [x, y, z] in metres, got {arm!r}"
+            )
+        object.__setattr__(self, "lever_arm", tuple(float(v) for v in arm))
+
+
+@dataclass(frozen=True)
 class RobotConfig(Checked):
     """One robot of the team and where its data comes from."""
 
     name: str
     uwb_node: str = ""
+    """The robot's one UWB tag, at its body origin (``tags`` for several, or off the origin)."""
+    tags: tuple[TagConfig, ...] = ()
+    """The robot's UWB tags with their lever arms; with two or more, ranges see its heading
+    (docs/explanation/tags.md). Give ``uwb_node`` or ``tags``, not both."""
     odom_topic: str = ""
     """Where the robot's odometry comes from (``nav_msgs/Odometry``); empty: the robot has none
     (a drone, a tag, a UWB-only team) and the filters give it a motion prior instead. The
@@ -70,10 +96,36 @@ class RobotConfig(Checked):
     sighting_sigma_bearing_deg: float = 1.0
     """Bearing noise of those sightings (deg)."""
 
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        tags = tuple(self.tags)
+        if tags and self.uwb_node:
+            raise ConfigError(
+                f"robot {self.name}: give uwb_node (one tag at the body origin) or tags, not both"
+            )
+        if not all(isinstance(t, TagConfig) for t in tags):
+            raise ConfigError(f"robot {self.name}: tags must be tables of node and lever_arm")
+        nodes = [t.node for t in tags]
+        if len(set(nodes)) != len(nodes):
+            raise ConfigError(f"robot {self.name}: a node is listed twice in its tags: {nodes}")
+        object.__setattr__(self, "tags", tags)
+
     @property
     def heading_offset(self) -> float:
         """Heading offset in radians."""
         return math.radians(self.heading_offset_deg)
+
+    @property
+    def tag_list(self) -> tuple[TagConfig, ...]:
+        """The robot's tags: ``tags``, or ``uwb_node`` at the body origin, or none."""
+        if self.tags:
+            return self.tags
+        return (TagConfig(self.uwb_node),) if self.uwb_node else ()
+
+    @property
+    def nodes(self) -> tuple[str, ...]:
+        """The node ids of the robot's tags."""
+        return tuple(t.node for t in self.tag_list)
 
 
 @dataclass(frozen=True)

@@ -52,6 +52,8 @@ class FilterEstimate:
     ``cov`` are then its published moments."""
     particles: int | None = None
     """Hypotheses the filter holds (an adaptive particle count changes it at resampling)."""
+    yaws: dict[str, tuple[float, float]] = field(default_factory=dict)
+    """Robots whose tags show their heading: each one's heading relative to the reference's."""
     offsets: dict[str, tuple[float, float]] = field(default_factory=dict)
     """Shared offsets of the online biases (team, nodes: :class:`~relloc.localizers.priors.BiasPrior`)
     where the estimator keeps them apart (the smoother)."""

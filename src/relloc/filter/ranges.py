@@ -174,6 +174,9 @@ class RangeBatch(MeasurementModel):
     none anywhere."""
     layout: TeamLayout | None = None
     """The state layout the ranges index (needed by :meth:`row` only)."""
+    nodes: tuple[tuple[str, str], ...] = ()
+    """Per range the tags (node ids) on robots ``index_a`` and ``index_b`` (a robot with
+    several tags has a range per tag pair); ``()``: not known."""
 
     def __len__(self) -> int:
         return len(self.distance)
@@ -187,16 +190,22 @@ class RangeBatch(MeasurementModel):
         (the correction predicted the skewed part)."""
         config, layout = context.config, context.layout
         uwb = config.uwb
-        groups: dict[tuple[int, int], list[RangeEvent]] = {}
-        for m in events:
+        groups: dict[tuple[int, int, str, str], list[RangeEvent]] = {}
+        for m in events:  # per robot pair and tag pair (one tag per robot: per robot pair)
             ia, ib = layout.index(m.robot_a), layout.index(m.robot_b)
-            groups.setdefault((min(ia, ib), max(ia, ib)), []).append(m)
+            na, nb = config.range_nodes(m)
+            if ia > ib:
+                ia, ib, na, nb = ib, ia, nb, na
+            groups.setdefault((ia, ib, na, nb), []).append(m)
         if not groups:
             return []
         pairs, dist, bias, sigma, keys, model_sigma = [], [], [], [], [], []
-        for key, group in groups.items():
+        tags: list[tuple[str, str]] = []
+        for (ia, ib, na, nb), group in groups.items():
+            key = (ia, ib)
             nodes = config.range_nodes(group[0])
             node_pair = pair_key(*nodes)
+            tags.append((na, nb))
             d = float(statistics.median(ev.distance for ev in group))  # a few values: no NumPy
             if all(ev.corrected for ev in group):
                 b, s, node_pair = 0.0, uwb.sigma, ""
@@ -264,6 +273,7 @@ class RangeBatch(MeasurementModel):
                     nlos_sigma=NLOS_SIGMA,
                     state_columns=tuple(state[i] for i in rows) if any(state) else (),
                     layout=layout,
+                    nodes=tuple(tags[i] for i in rows),
                 )
             )
         return out

@@ -66,7 +66,12 @@ class TeamTopics:
             reference=data["reference"],
             robots=tuple(r["name"] for r in robots),
             odom=odom,
-            nodes={r["uwb_node"]: r["name"] for r in robots if r.get("uwb_node")},
+            nodes={
+                node: r["name"]
+                for r in robots
+                for node in ([r["uwb_node"]] if r.get("uwb_node") else [])
+                + [t["node"] for t in r.get("tags", [])]
+            },
             scopes=scopes,
             range_template=data.get("uwb", {}).get("range_topic", "/uwb/tof/{a}/{b}/distance"),
         )

@@ -29,7 +29,7 @@ class SightingFloor:
     """The floor from the sightings of a team without UWB (module docstring)."""
 
     def __init__(self, config: TeamConfig) -> None:
-        self.active = not any(r.uwb_node for r in config.robots)
+        self.active = not any(r.nodes for r in config.robots)
         """Whether the team has no UWB node (else the floor is one range's noise)."""
         self._noise: deque[float] = deque(maxlen=KEPT)
 

@@ -102,7 +102,12 @@ def bias_layout(
     node_pairs: list[str] = []
     if fc.self_calibration.bias_mode == "online":
         node_pairs = sorted(
-            {_node_pair(config, a, b) for i, a in enumerate(names) for b in names[i + 1 :]}
+            {
+                pair
+                for i, a in enumerate(names)
+                for b in names[i + 1 :]
+                for pair in _node_pairs(config, a, b)
+            }
         )
     own = BIAS_PRIOR_SIGMA_UNCALIBRATED if uncalibrated_sigma is None else uncalibrated_sigma
     uwb = config.uwb
@@ -139,11 +144,11 @@ def bias_layout(
     return StateLayout(names, config.reference, tuple(node_pairs)), prior
 
 
-def _node_pair(config: TeamConfig, robot_a: str, robot_b: str) -> str:
-    """Key of the UWB transceiver pair between two robots (robot names if no node ids)."""
-    a = config.robot(robot_a).uwb_node or robot_a
-    b = config.robot(robot_b).uwb_node or robot_b
-    return pair_key(a, b)
+def _node_pairs(config: TeamConfig, robot_a: str, robot_b: str) -> list[str]:
+    """Keys of the UWB transceiver pairs between two robots' tags (robot names if no nodes)."""
+    a = config.robot(robot_a).nodes or (robot_a,)
+    b = config.robot(robot_b).nodes or (robot_b,)
+    return [pair_key(x, y) for x in a for y in b]
 
 
 ROTATION_FLOOR = 0.05

@@ -205,6 +205,7 @@ class SteppedLocalizer(Localizer):
             particles=fe.particles,
             unseen=unseen,
             frame=HEADING_FRAME if body is None else BODY_FRAME,
+            yaws=fe.yaws,
         )
         if self.calibration_check is not None and fe.biases:
             self.calibration_check.judge(fe.biases, fe.offsets, self.stats)

@@ -305,8 +305,8 @@ class Range(Sensor):
         load_range_type(uwb)
         fields = RangeFields.of(uwb)
         _check_range_template(uwb.range_topic, peers=bool(fields.peer))
-        with_nodes = [r for r in config.robots if r.uwb_node]
-        nodes = {r.uwb_node: r.name for r in with_nodes}
+        tags = [(r.name, node) for r in config.robots for node in r.nodes]
+        nodes = {node: robot for robot, node in tags}
         base: dict[str, Any] = {
             "kind": self.kind,
             "msgtypes": (uwb.range_type,),
@@ -314,33 +314,29 @@ class Range(Sensor):
             "params": (fields, nodes),
         }
         if fields.peer:
-            topics = {
-                r.name: uwb.range_topic.format(a=r.uwb_node, robot=r.name) for r in with_nodes
-            }
-            what = "UWB ranges of {}"
             return [
                 Route(
-                    topics[r.name],
-                    robot=r.name,
-                    what=what.format(r.uwb_node),
-                    node_a=r.uwb_node,
+                    uwb.range_topic.format(a=node, robot=robot),
+                    robot=robot,
+                    what=f"UWB ranges of {node}",
+                    node_a=node,
                     **base,
                 )
-                for r in with_nodes
+                for robot, node in tags
             ]
         routes = []
-        for ra, rb in combinations(with_nodes, 2):
-            if ra.uwb_node == rb.uwb_node:
-                continue
-            for first, second in ((ra, rb), (rb, ra)):
+        for (ra, na), (rb, nb) in combinations(tags, 2):
+            if ra == rb:
+                continue  # two tags of one robot: their range is a constant of its body
+            for (r1, n1), (r2, n2) in (((ra, na), (rb, nb)), ((rb, nb), (ra, na))):
                 routes.append(
                     Route(
-                        uwb.range_topic.format(a=first.uwb_node, b=second.uwb_node),
-                        robot=first.name,
-                        what=f"UWB ranges {first.uwb_node}-{second.uwb_node}",
-                        robot_b=second.name,
-                        node_a=first.uwb_node,
-                        node_b=second.uwb_node,
+                        uwb.range_topic.format(a=n1, b=n2),
+                        robot=r1,
+                        what=f"UWB ranges {n1}-{n2}",
+                        robot_b=r2,
+                        node_a=n1,
+                        node_b=n2,
                         **base,
                     )
                 )
@@ -431,7 +427,7 @@ class Range(Sensor):
         read = {r.topic for r in resolved}
         listed = [] if config.uwb.peer_field else match_range_topics(bag_topics, template)
         ignored = [t for t in listed if t not in read]
-        nodes = [r.uwb_node for r in config.robots if r.uwb_node]
+        nodes = [n for r in config.robots for n in r.nodes]
         warnings = []
         if len(nodes) >= 2 and not read:
             warnings.append(

@@ -322,31 +322,31 @@ class RosbagSource:
         return None
 
     def check_ranges(self) -> None:
-        """What a run over this bag needs of its UWB topics: robots whose ``uwb_node`` matches
-        no range topic get a warning (only their odometry moves them from the uniform prior);
+        """What a run over this bag needs of its UWB topics: robots none of whose tags matches
+        a range topic get a warning (only their odometry moves them from the uniform prior);
         no range at all between the team's robots is a :class:`BagError`, since every method
         fuses ranges."""
         template = self.config.uwb.range_topic
         if self.config.uwb.peer_field:  # one topic per node, listing any of its peers
-            every = tuple(r.uwb_node for r in self.config.robots if r.uwb_node)
+            every = tuple(n for r in self.config.robots for n in r.nodes)
             found: Mapping[str, tuple[str, ...]] = {
                 t: every for t, r in self._routes.items() if r.kind == "range"
             }
         else:
             found = match_range_topics(self.topics, template)
         ranged = {node for pair in found.values() for node in pair}
-        robots = [r for r in self.config.robots if r.uwb_node]
+        robots = [r for r in self.config.robots if r.nodes]
         if len(robots) >= 2 and not found:
-            nodes = ", ".join(f"{r.name}={r.uwb_node}" for r in robots)
+            nodes = ", ".join(f"{r.name}={'/'.join(r.nodes)}" for r in robots)
             raise BagError(
                 f"no UWB range topic of the bag joins two of the team's nodes ({nodes}; template "
                 f"{template!r}): every method needs ranges; check uwb_node and uwb.range_topic"
             )
         self.warnings += [
-            f"{r.name}: uwb_node {r.uwb_node!r} matches no range topic of the bag (template "
+            f"{r.name}: uwb_node {'/'.join(r.nodes)!r} matches no range topic of the bag (template "
             f"{template!r}): it gets no range, so only its odometry moves it from the uniform prior"
             for r in robots
-            if found and r.uwb_node not in ranged
+            if found and not ranged.intersection(r.nodes)
         ]
 
     # ------------------------------------------------------------------ topics against the bag

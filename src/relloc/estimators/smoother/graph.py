@@ -374,15 +374,7 @@ class GraphSmoother:
         the reference at each of ``steps`` ``(S, N-1, 2)``, and with ``covariances`` their
         covariances ``(S, N-1, 2, 2)`` from the batch graph's joint marginals (else ``None``).
         Raises GTSAM's ``RuntimeError`` where the system is indeterminate."""
-        graph = gtsam.NonlinearFactorGraph()
-        for g in self.graphs:
-            graph.push_back(g)
-        initial = gtsam.Values()
-        for key, value in self.values.items():
-            initial.insert(key, np.asarray(value, float))  # a bias's Vector1 stays a Vector
-        result = gtsam.LevenbergMarquardtOptimizer(
-            graph, initial, gtsam.LevenbergMarquardtParams()
-        ).optimize()
+        graph, result = self._optimised()
         mean = np.empty((len(steps), self.others.size, 2))
         for j, step in enumerate(steps):
             pos = np.array([result.atPoint2(key) for key in self.keys(step)], float).reshape(
@@ -400,6 +392,43 @@ class GraphSmoother:
                 marginals.jointMarginalCovariance(order).fullMatrix(), self.others.size
             )
         return mean, cov
+
+    def batch_joint(self, steps: list[int]) -> tuple[FloatArray, FloatArray]:
+        """:meth:`batch`'s optimum as every key's absolute position at each of ``steps``
+        ``(S, N, 2)`` and their joint covariance ``(S, 2N, 2N)`` (team order)."""
+        graph, result = self._optimised()
+        marginals = gtsam.Marginals(graph, result)
+        pos = np.empty((len(steps), self.n, 2))
+        joint = np.empty((len(steps), 2 * self.n, 2 * self.n))
+        for j, step in enumerate(steps):
+            keys = self.keys(step)
+            pos[j] = np.array([result.atPoint2(key) for key in keys], float).reshape(self.n, 2)
+            joint[j] = marginals.jointMarginalCovariance(keys).fullMatrix()
+        return pos, joint
+
+    def _optimised(self) -> tuple[gtsam.NonlinearFactorGraph, gtsam.Values]:
+        """Every factor since the start and their Levenberg-Marquardt optimum (from the
+        fixed-lag estimates)."""
+        graph = gtsam.NonlinearFactorGraph()
+        for g in self.graphs:
+            graph.push_back(g)
+        initial = gtsam.Values()
+        for key, value in self.values.items():
+            initial.insert(key, np.asarray(value, float))  # a bias's Vector1 stays a Vector
+        result = gtsam.LevenbergMarquardtOptimizer(
+            graph, initial, gtsam.LevenbergMarquardtParams()
+        ).optimize()
+        return graph, result
+
+    def point_joint(self) -> FloatArray:
+        """The joint covariance ``(2N, 2N)`` of every key of the latest step (team order,
+        absolute positions: the window's marginal)."""
+        order = [self.reference, *self.others.tolist()]
+        joint = self._window_joint()[: 2 * self.n, : 2 * self.n]
+        rows = np.empty(2 * self.n, np.intp)
+        for slot, i in enumerate(order):
+            rows[2 * i : 2 * i + 2] = (2 * slot, 2 * slot + 1)
+        return joint[np.ix_(rows, rows)]
 
     def cost(self) -> float:
         """The graph's error at the estimate (half the robust chi-square): compares hypotheses

@@ -43,6 +43,7 @@ from relloc.config import TeamConfig
 from relloc.estimate import OWN_FRAME, Estimate, covariance_of, position_of
 from relloc.estimators.smoother.graph import GraphSmoother
 from relloc.estimators.smoother.moments import flatten, moments, per_pair
+from relloc.estimators.smoother.points import RIGID_SIGMA, TagPoints
 from relloc.estimators.smoother.start import chained_start, merge_fixes, range_start
 from relloc.events import RangeEvent
 from relloc.filter.base import FilterEstimate
@@ -79,6 +80,9 @@ MOTION_TO_RESOLVE = 0.3
 observed (:mod:`relloc.filter.summary`)."""
 RESTART_WINDOW = 2.0
 """Seconds of ranges a restart builds its start from."""
+TURN_RATE = 1.0
+"""Turn rate (rad/s) of a robot with odometry that a step's displacement leaves out of its tags'
+motion (the lever arm turning with the robot): a ground robot's turns stay under it."""
 
 
 @dataclasses.dataclass
@@ -107,7 +111,10 @@ class SmootherLocalizer(SteppedLocalizer):
             layout.bias_belief_column(p): j for j, p in enumerate(layout.bias_pairs)
         }
         self._pair_bias: dict[tuple[int, int], int] = {}
-        """Team index pair -> its online bias (pairs with a fixed bias are not in it)."""
+        """Point pair -> its online bias (pairs with a fixed bias are not in it)."""
+        self._points = TagPoints.of(config, self.layout)
+        """The graph's points: the robots, or a robot's tags where it has several."""
+        self._rigid = self._points.rigid()
         self.method = method
         self._context = ModelContext(
             config,
@@ -128,9 +135,10 @@ class SmootherLocalizer(SteppedLocalizer):
             )
         lay = self.layout
         self._ref = lay.index(lay.reference)
+        self._ref_point = self._points.reference_point
         self._others = np.array([lay.index(r) for r in lay.others], dtype=np.intp)
         self.hypotheses: list[GraphSmoother] = []
-        self._placed = np.zeros(len(lay.robots), dtype=bool)
+        self._placed = np.zeros(self._points.size, dtype=bool)
         self._pending: dict[tuple[int, int], list[tuple[float, float]]] = {}
         self._range_times: list[float] = []
         self._ranges_only = not any(r.odom_topic for r in config.robots)
@@ -165,18 +173,51 @@ class SmootherLocalizer(SteppedLocalizer):
         models = [b for b in RangeBatch.build(events, self._context) if isinstance(b, RangeBatch)]
         if not models:
             return RangeTerms.empty()
-        ia = np.concatenate([b.index_a for b in models])
-        ib = np.concatenate([b.index_b for b in models])
+        ia = np.concatenate([self._tag_points(b.index_a, b.nodes, 0) for b in models])
+        ib = np.concatenate([self._tag_points(b.index_b, b.nodes, 1) for b in models])
+        start = 0
         for b in models:
             if b.bias_columns is not None:
-                for a, c, col in zip(
-                    b.index_a.tolist(), b.index_b.tolist(), b.bias_columns.tolist(), strict=True
-                ):
+                rows = zip(
+                    ia[start : start + len(b)].tolist(),
+                    ib[start : start + len(b)].tolist(),
+                    b.bias_columns.tolist(),
+                    strict=True,
+                )
+                for a, c, col in rows:
                     if col >= 0:
                         self._pair_bias[(min(a, c), max(a, c))] = self._bias_of_column[col]
+            start += len(b)
         z = np.maximum(np.concatenate([b.distance - b.bias for b in models]), 0.0)
         s = np.concatenate([b.sigma for b in models])
         return RangeTerms(ia, ib, z, s, self._bias_index(ia, ib))
+
+    def _tag_points(
+        self, robots: NDArray[np.intp], nodes: tuple[tuple[str, str], ...], end: int
+    ) -> NDArray[np.intp]:
+        """The points ranges of ``robots`` reach (their tags' ``nodes[k][end]``)."""
+        if self._points.identity:
+            return robots
+        return np.array(
+            [
+                self._points.point(r, pair[end] if nodes else "")
+                for r, pair in zip(robots.tolist(), nodes or [("", "")] * robots.size, strict=True)
+            ],
+            dtype=np.intp,
+        )
+
+    def _with_rigid(self, terms: RangeTerms) -> RangeTerms:
+        """``terms`` and the ranges that hold a robot's tags at their lever arms' distance."""
+        a, b, d = self._rigid
+        if not a.size:
+            return terms
+        return RangeTerms(
+            np.concatenate([terms.index_a, a]),
+            np.concatenate([terms.index_b, b]),
+            np.concatenate([terms.distance, d]),
+            np.concatenate([terms.sigma, np.full(a.size, RIGID_SIGMA)]),
+            np.concatenate([terms.bias, np.full(a.size, -1, np.intp)]),
+        )
 
     def _observations(self, batch: list[Measurement]) -> list[RelativeFix]:
         """The relative positions ``batch``'s measurement models give a factor graph
@@ -191,7 +232,11 @@ class SmootherLocalizer(SteppedLocalizer):
         for cls, events in groups.items():
             got = hook(cls, "fixes")(events, self._context)
             fixes, unused = ([], len(events)) if got is None else got
-            out += fixes
+            first = self._points.first
+            out += [
+                dataclasses.replace(f, observer=int(first[f.observer]), target=int(first[f.target]))
+                for f in fixes
+            ]
             if unused:
                 self.stats[f"smoother_{cls.stat}_unused"] += unused
         return out
@@ -254,22 +299,30 @@ class SmootherLocalizer(SteppedLocalizer):
         from the ``observed`` relative positions alone (module docstring); False where
         neither places a robot."""
         terms = self._ranges(ranges)
-        n = len(self.layout.robots)
+        n = self._points.size
         relative = merge_fixes(observed)
         start = (
-            range_start(n, self._ref, terms, self._bias_prior.mean, odometry=self._framed(t))
+            range_start(
+                n,
+                self._ref_point,
+                self._with_rigid(terms),
+                self._bias_prior.mean,
+                odometry=self._framed(t),
+            )
             if terms.size
             else None
         )
         if start is None:
-            start = chained_start(n, self._ref, observed)
+            start = chained_start(n, self._ref_point, observed)
             if start is None:
                 return False
         means, covs, placed, rms = start
-        merged = self._per_pair(terms.index_a, terms.index_b, terms.distance, terms.sigma)
+        merged = self._with_rigid(
+            self._per_pair(terms.index_a, terms.index_b, terms.distance, terms.sigma)
+        )
         self.hypotheses = []
         for m in range(means.shape[0]):
-            smoother = GraphSmoother(n, self._ref, LAG, self._bias_prior)
+            smoother = GraphSmoother(n, self._ref_point, LAG, self._bias_prior)
             smoother.start(t, means[m], covs[m], ranges=merged, relative=relative)
             self.hypotheses.append(smoother)
         self._placed = placed
@@ -279,6 +332,7 @@ class SmootherLocalizer(SteppedLocalizer):
         self._moved[:] = 0.0
         self._t_start = t
         # a relative position in the shared frame fixes the orientation the ranges leave open
+        # (a reference's tags do not: ranges never tell the formation from its mirror image)
         self._observable = relative is not None and means.shape[0] == 1 and self._framed(t)
         self._started_with = len(self.hypotheses)
         self.stats["smoother_hypotheses"] = len(self.hypotheses)
@@ -294,9 +348,9 @@ class SmootherLocalizer(SteppedLocalizer):
         pending, self._pending = self._pending, {}
         observed, self._pending_rel = self._pending_rel, []
         relative = merge_fixes(observed)
-        merged = self._per_pair(*flatten(pending))
+        merged = self._with_rigid(self._per_pair(*flatten(pending)))
         ia, ib, z = merged.index_a, merged.index_b, merged.distance
-        reached = np.zeros(len(self.layout.robots), dtype=bool)
+        reached = np.zeros(self._points.size, dtype=bool)
         reached[ia] = True
         reached[ib] = True
         newly = reached & ~self._placed
@@ -338,8 +392,9 @@ class SmootherLocalizer(SteppedLocalizer):
         return self._emit(t, self._estimate())
 
     def _own_motion(self, t: float) -> tuple[FloatArray, FloatArray]:
-        """Each robot's displacement since the last step ``(N, 2)`` and its per-axis std
-        ``(N,)``: its odometry's (module docstring), or none with ``UNKNOWN_SPEED``."""
+        """Each point's displacement since the last step ``(P, 2)`` and its per-axis std
+        ``(P,)``: its robot's odometry's (module docstring), or none with ``UNKNOWN_SPEED``;
+        a tag's widened by its lever arm turning at ``TURN_RATE``."""
         known = np.array(
             [not math.isnan(self._anchor.get(r, (math.nan,))[0]) for r in self.layout.robots]
         )
@@ -351,7 +406,15 @@ class SmootherLocalizer(SteppedLocalizer):
         rel = disp[self._others] - disp[ref]
         both = known[self._others] & known[ref]
         self._moved += np.where(both, np.hypot(rel[:, 0], rel[:, 1]), 0.0)
-        return np.where(known[:, None], disp, 0.0), sigma
+        disp = np.where(known[:, None], disp, 0.0)
+        if self._points.identity:
+            return disp, sigma
+        # a tag moves with its robot, and by its lever arm as the robot turns
+        robot = self._points.robot
+        arm = np.hypot(self._points.arm[:, 0], self._points.arm[:, 1])
+        return disp[robot], np.hypot(
+            sigma[robot], np.where(known[robot], arm * TURN_RATE * dt, 0.0)
+        )
 
     def _per_pair(
         self, ia: NDArray[np.intp], ib: NDArray[np.intp], z: FloatArray, s: FloatArray
@@ -407,9 +470,13 @@ class SmootherLocalizer(SteppedLocalizer):
         """The best hypothesis's latest positions, covariances and summary as published
         (:func:`relloc.estimators.smoother.moments.moments`), with the online biases."""
         best = self.hypotheses[0]
-        mean, cov, summary = moments(
-            best.estimate.copy(), best.covariances(), self._observable, ROTATION_FLOOR
-        )
+        if self._points.identity:
+            rel, rel_cov = best.estimate.copy(), best.covariances()
+            yaws: dict[str, tuple[float, float]] = {}
+        else:
+            rel, rel_cov, yaws = self._robots(best.positions, best.point_joint())
+        floor = 0.0 if self._points.oriented else ROTATION_FLOOR
+        mean, cov, summary = moments(rel, rel_cov, self._observable, floor)
         biases = {
             pair: (float(m), float(sd))
             for pair, m, sd in zip(
@@ -431,9 +498,30 @@ class SmootherLocalizer(SteppedLocalizer):
             offsets=offsets,
             summary=summary,
             particles=len(self.hypotheses),
+            yaws=yaws,
         )
 
+    def _robots(
+        self, points: FloatArray, joint: FloatArray
+    ) -> tuple[FloatArray, FloatArray, dict[str, tuple[float, float]]]:
+        """A team with multi-tag robots: the non-reference robots' positions ``(N-1, 2)`` and
+        covariances from the graph's absolute point positions and their joint covariance, and
+        the multi-tag robots' headings relative to the reference's
+        (:mod:`relloc.estimators.smoother.points`)."""
+        pts = self._points
+        rel, cov, heads, stds = pts.moments(points, joint)
+        if not self._observable:  # a heading's sign flips with the formation's mirror image
+            return rel, cov, {}
+        robots = self.layout.robots
+        yaws = {
+            robots[r]: (float(h), float(sd))
+            for r, h, sd in zip(pts.heading_robots(), heads.tolist(), stds.tolist(), strict=True)
+        }
+        return rel, cov, yaws
+
     def _emit(self, t: float, fe: FilterEstimate, body: FilterEstimate | None = None) -> Estimate:
+        if body is None and self._points.oriented and self._observable:
+            body = fe  # the positions are in the reference's body frame its tags observe
         est = super()._emit(t, fe, body)
         if not est.orientation_observable:
             est = dataclasses.replace(est, shape_gauge=OWN_FRAME)
@@ -470,16 +558,25 @@ class SmootherLocalizer(SteppedLocalizer):
 
     def _smooth(self, segment: _Segment) -> list[Estimate]:
         try:
-            means, covs = segment.smoother.batch(segment.steps)
+            if self._points.identity:
+                means, covs = segment.smoother.batch(segment.steps)
+                assert covs is not None
+                yaws: list[dict[str, tuple[float, float]]] = [{} for _ in segment.steps]
+            else:
+                points, joints = segment.smoother.batch_joint(segment.steps)
+                robots = [self._robots(p, j) for p, j in zip(points, joints, strict=True)]
+                means = np.array([r[0] for r in robots])
+                covs = np.array([r[1] for r in robots])
+                yaws = [r[2] for r in robots]
         except RuntimeError:
             return list(segment.estimates)
-        assert covs is not None
         observable = segment.estimates[-1].orientation_observable
         others = self.layout.others
         out = []
-        for causal, mean, cov in zip(segment.estimates, means, covs, strict=True):
+        floor = 0.0 if self._points.oriented else ROTATION_FLOOR
+        for causal, mean, cov, yaw in zip(segment.estimates, means, covs, yaws, strict=True):
             mean, cov, summary = moments(
-                mean, cov, observable or causal.orientation_observable, ROTATION_FLOOR
+                mean, cov, observable or causal.orientation_observable, floor
             )
             fields = estimate_fields(summary, self.layout.reference, others)
             if not summary.orientation_observable:
@@ -487,6 +584,8 @@ class SmootherLocalizer(SteppedLocalizer):
             positions = {r: position_of(mean[k]) for k, r in enumerate(others)}
             covariances = {r: covariance_of(cov[k]) for k, r in enumerate(others)}
             out.append(
-                dataclasses.replace(causal, positions=positions, covariances=covariances, **fields)
+                dataclasses.replace(
+                    causal, positions=positions, covariances=covariances, yaws=yaw, **fields
+                )
             )
         return out
