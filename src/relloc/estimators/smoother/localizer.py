@@ -43,7 +43,6 @@ from relloc.config import TeamConfig
 from relloc.estimate import OWN_FRAME, Estimate, covariance_of, position_of
 from relloc.estimators.smoother.graph import GraphSmoother
 from relloc.estimators.smoother.moments import flatten, moments, per_pair
-from relloc.estimators.smoother.points import RIGID_SIGMA, TagPoints
 from relloc.estimators.smoother.start import chained_start, merge_fixes, range_start
 from relloc.events import RangeEvent
 from relloc.filter.base import FilterEstimate
@@ -53,6 +52,7 @@ from relloc.filter.motion import PROCESS_NOISE
 from relloc.filter.ranges import RangeBatch
 from relloc.filter.registry import MODELS, model_for
 from relloc.filter.summary import estimate_fields
+from relloc.filter.tag_points import TagPoints
 from relloc.localizers.base import Measurement
 from relloc.localizers.calibration_check import calibration_check
 from relloc.localizers.priors import ROTATION_FLOOR, bias_layout
@@ -114,7 +114,6 @@ class SmootherLocalizer(SteppedLocalizer):
         """Point pair -> its online bias (pairs with a fixed bias are not in it)."""
         self._points = TagPoints.of(config, self.layout)
         """The graph's points: the robots, or a robot's tags where it has several."""
-        self._rigid = self._points.rigid()
         self.method = method
         self._context = ModelContext(
             config,
@@ -173,8 +172,8 @@ class SmootherLocalizer(SteppedLocalizer):
         models = [b for b in RangeBatch.build(events, self._context) if isinstance(b, RangeBatch)]
         if not models:
             return RangeTerms.empty()
-        ia = np.concatenate([self._tag_points(b.index_a, b.nodes, 0) for b in models])
-        ib = np.concatenate([self._tag_points(b.index_b, b.nodes, 1) for b in models])
+        ia = np.concatenate([self._points.points_of(b.index_a, b.nodes, 0) for b in models])
+        ib = np.concatenate([self._points.points_of(b.index_b, b.nodes, 1) for b in models])
         start = 0
         for b in models:
             if b.bias_columns is not None:
@@ -191,33 +190,6 @@ class SmootherLocalizer(SteppedLocalizer):
         z = np.maximum(np.concatenate([b.distance - b.bias for b in models]), 0.0)
         s = np.concatenate([b.sigma for b in models])
         return RangeTerms(ia, ib, z, s, self._bias_index(ia, ib))
-
-    def _tag_points(
-        self, robots: NDArray[np.intp], nodes: tuple[tuple[str, str], ...], end: int
-    ) -> NDArray[np.intp]:
-        """The points ranges of ``robots`` reach (their tags' ``nodes[k][end]``)."""
-        if self._points.identity:
-            return robots
-        return np.array(
-            [
-                self._points.point(r, pair[end] if nodes else "")
-                for r, pair in zip(robots.tolist(), nodes or [("", "")] * robots.size, strict=True)
-            ],
-            dtype=np.intp,
-        )
-
-    def _with_rigid(self, terms: RangeTerms) -> RangeTerms:
-        """``terms`` and the ranges that hold a robot's tags at their lever arms' distance."""
-        a, b, d = self._rigid
-        if not a.size:
-            return terms
-        return RangeTerms(
-            np.concatenate([terms.index_a, a]),
-            np.concatenate([terms.index_b, b]),
-            np.concatenate([terms.distance, d]),
-            np.concatenate([terms.sigma, np.full(a.size, RIGID_SIGMA)]),
-            np.concatenate([terms.bias, np.full(a.size, -1, np.intp)]),
-        )
 
     def _observations(self, batch: list[Measurement]) -> list[RelativeFix]:
         """The relative positions ``batch``'s measurement models give a factor graph
@@ -305,7 +277,7 @@ class SmootherLocalizer(SteppedLocalizer):
             range_start(
                 n,
                 self._ref_point,
-                self._with_rigid(terms),
+                self._points.with_rigid(terms),
                 self._bias_prior.mean,
                 odometry=self._framed(t),
             )
@@ -317,7 +289,7 @@ class SmootherLocalizer(SteppedLocalizer):
             if start is None:
                 return False
         means, covs, placed, rms = start
-        merged = self._with_rigid(
+        merged = self._points.with_rigid(
             self._per_pair(terms.index_a, terms.index_b, terms.distance, terms.sigma)
         )
         self.hypotheses = []
@@ -348,7 +320,7 @@ class SmootherLocalizer(SteppedLocalizer):
         pending, self._pending = self._pending, {}
         observed, self._pending_rel = self._pending_rel, []
         relative = merge_fixes(observed)
-        merged = self._with_rigid(self._per_pair(*flatten(pending)))
+        merged = self._points.with_rigid(self._per_pair(*flatten(pending)))
         ia, ib, z = merged.index_a, merged.index_b, merged.distance
         reached = np.zeros(self._points.size, dtype=bool)
         reached[ia] = True
@@ -507,7 +479,7 @@ class SmootherLocalizer(SteppedLocalizer):
         """A team with multi-tag robots: the non-reference robots' positions ``(N-1, 2)`` and
         covariances from the graph's absolute point positions and their joint covariance, and
         the multi-tag robots' headings relative to the reference's
-        (:mod:`relloc.estimators.smoother.points`)."""
+        (:mod:`relloc.filter.tag_points`)."""
         pts = self._points
         rel, cov, heads, stds = pts.moments(points, joint)
         if not self._observable:  # a heading's sign flips with the formation's mirror image

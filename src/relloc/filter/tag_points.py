@@ -1,14 +1,15 @@
-"""The smoother's points: one per robot, or one per tag of a robot with several.
+"""A team's range points: one per robot, or one per tag of a robot with several.
 
 A robot with two or more UWB tags (``[[robots]] tags``) is a rigid body whose heading its ranges
-see: the smoother gives each of its tags a ``Point2`` of its own, tied to its siblings by a
-tight range at their lever arms' distance (:data:`RIGID_SIGMA`), so the graph stays one of
-points. A robot's pose is the rigid fit of its lever arms to its points (the 2D Procrustes
-rotation), its heading that fit's angle. Published positions are robot positions; where the
-reference has several tags they are in its body frame (its heading is estimated, so the
-formation's orientation is observed, no gauge), and each multi-tag robot's heading relative to
-the reference's is published too. Their covariance is the joint marginal of the points pushed
-through the Jacobian of that map (central differences: a handful of points).
+see: the smoother and multilateration give each of its tags a point of its own, tied to its
+siblings by a tight range at their lever arms' distance (:data:`RIGID_SIGMA`), so their problem
+stays one of points. A robot's pose is the rigid fit of its lever arms to its points (the 2D
+Procrustes rotation), its heading that fit's angle. Published positions are robot positions;
+where the reference has several tags they are in its body frame, and each multi-tag robot's
+heading relative to the reference's is published too. Their covariance is the joint marginal of
+the points pushed through the Jacobian of that map (central differences: a handful of points).
+Ranges never tell the formation from its mirror image: the caller decides whether the
+orientation is observed (docs/explanation/tags.md).
 
 A team with one tag per robot has exactly its robots as points (``identity``), and nothing of
 this module changes its estimates.
@@ -23,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
+from relloc.filter.factors import RangeTerms
 from relloc.filter.state import TeamLayout
 
 FloatArray = NDArray[np.float64]
@@ -100,6 +102,31 @@ class TagPoints:
     def point(self, robot: int, node: str) -> int:
         """The point a range of ``robot``'s node ``node`` reaches."""
         return self.of_node.get(node, int(self.first[robot]))
+
+    def points_of(self, robots: IntArray, nodes: tuple[tuple[str, str], ...], end: int) -> IntArray:
+        """The points ranges of ``robots`` reach: their tags ``nodes[k][end]`` (a
+        :class:`~relloc.filter.ranges.RangeBatch`'s ``nodes``, ``end`` 0 for ``index_a``)."""
+        if self.identity:
+            return robots
+        pairs = nodes or (("", ""),) * robots.size
+        return np.array(
+            [self.point(r, pair[end]) for r, pair in zip(robots.tolist(), pairs, strict=True)],
+            dtype=np.intp,
+        )
+
+    def with_rigid(self, terms: RangeTerms) -> RangeTerms:
+        """``terms`` (point indices) and the ranges that hold each robot's tags at their lever
+        arms' distance."""
+        a, b, d = self.rigid()
+        if not a.size:
+            return terms
+        return RangeTerms(
+            np.concatenate([terms.index_a, a]),
+            np.concatenate([terms.index_b, b]),
+            np.concatenate([terms.distance, d]),
+            np.concatenate([terms.sigma, np.full(a.size, RIGID_SIGMA)]),
+            np.concatenate([terms.bias, np.full(a.size, -1, np.intp)]),
+        )
 
     def rigid(self) -> tuple[IntArray, IntArray, FloatArray]:
         """Every two points of one robot and the distance of their lever arms."""
