@@ -1,6 +1,6 @@
 """Several UWB tags per robot: the config's tags and lever arms, the range routes between every
-two robots' tags, the node pairs of the online biases, and the smoother's points (a robot's
-tags, fitted to its lever arms)."""
+two robots' tags, the node pairs of the online biases, the smoother's and multilateration's
+points (a robot's tags, fitted to its lever arms) and the score of a published heading."""
 
 from __future__ import annotations
 
@@ -16,7 +16,11 @@ from numpy.typing import NDArray
 from relloc import geometry
 from relloc.config import ConfigError, TeamConfig
 from relloc.engine import Engine
-from relloc.events import RangeEvent
+from relloc.estimate import BODY_FRAME, Estimate
+from relloc.evaluation.metric import MethodRun
+from relloc.evaluation.metrics import GroundTruth
+from relloc.evaluation.yaw_scores import YawError
+from relloc.events import GroundTruthEvent, RangeEvent
 from relloc.filter.state import StateLayout
 from relloc.filter.tag_points import TagPoints
 from relloc.localizers.priors import bias_layout
@@ -192,3 +196,24 @@ def test_a_robots_pose_is_the_rigid_fit_of_its_lever_arms_to_its_tags(tmp_path: 
     world[2] = ahead
     assert np.allclose(points.published(world)[:2], [3.0, 0.0])
     assert published.size == 4  # two robots' positions, no multi-tag one among them
+
+
+def test_a_published_yaw_is_scored_against_the_motion_capture_in_its_frame() -> None:
+    truth = GroundTruth("r0")
+    for k in range(21):
+        t = 0.1 * k
+        truth.add(GroundTruthEvent(t, "r0", (0.0, 0.0), 0.5))
+        truth.add(GroundTruthEvent(t, "r1", (1.0, 0.0), 0.5 + 0.3))
+    # r1's heading in r0's body frame is 0.3 rad; the estimates say 0.3 + 2 deg, then 0.3 - 4
+    yaws = [math.radians(2.0)] * 14 + [math.radians(-4.0)] * 7
+    estimates = [
+        Estimate(
+            0.1 * k, "pf", "r0", {"r1": (1.0, 0.0)}, frame=BODY_FRAME, yaws={"r1": (0.3 + e, 0.05)}
+        )
+        for k, e in enumerate(yaws)
+    ]
+    run = MethodRun("pf", estimates, truth, ["r1"], 0.0, 0.5, {})
+    result = YawError().compute(run)
+    assert len(result.errors_deg["r1"]) == 16  # after the warm-up
+    assert result.robot_json() == {"r1": {"yaw_error_median_deg": 2.0}}
+    assert result.cells("r1") == {"yaw err. (deg)": "2.0"}

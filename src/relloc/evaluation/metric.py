@@ -104,6 +104,8 @@ class Column:
     """Position among the table's columns, lowest first (the shipped ones use 10-61)."""
     per_method: bool = False
     """Printed on the method's first row only (a figure of the method, not of a robot)."""
+    optional: bool = False
+    """Left out of a table in which no row has it (a figure few runs have)."""
 
 
 class MetricResult:

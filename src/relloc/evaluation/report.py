@@ -25,7 +25,12 @@ from rich.table import Table
 
 from relloc.engine import Engine
 from relloc.estimate import BODY_FRAME, HEADING_FRAME
-from relloc.evaluation import aligned_scores, scores, selfcal_scores  # noqa: F401 (registers)
+from relloc.evaluation import (  # noqa: F401 (registers)
+    aligned_scores,
+    scores,
+    selfcal_scores,
+    yaw_scores,
+)
 from relloc.evaluation.consistency import Consistency
 from relloc.evaluation.metric import METRICS, Column, MethodRun, MetricResult
 from relloc.evaluation.metrics import ApeStats, GroundTruth, Paired, align, associate
@@ -251,16 +256,27 @@ def print_table(report: ScenarioReport, console: Console | None = None) -> None:
         title += f", positions relative to {report.reference}" + (
             " in its body frame" if body else ""
         )
-    columns = sorted((c for metric in METRICS for c in metric.columns), key=lambda c: c.rank)
+    rows = {
+        (method, robot): {k: v for r in m.results.values() for k, v in r.cells(robot).items()}
+        for method, m in report.methods.items()
+        for robot in m.robots
+    }
+    columns = sorted(
+        (
+            c
+            for metric in METRICS
+            for c in metric.columns
+            if not c.optional or any(c.header in cells for cells in rows.values())
+        ),
+        key=lambda c: c.rank,
+    )
     captions = [metric.caption for metric in METRICS if metric.caption]
     table = Table(title=title, caption=captions[0] if captions else None, caption_justify="left")
     for col in ("method", "robot", *(c.header for c in columns)):
         table.add_column(col, justify="left" if col in ("method", "robot") else "right")
     for method, m in report.methods.items():
         for k, robot in enumerate(sorted(m.robots)):
-            cells: dict[str, str] = {}
-            for result in m.results.values():
-                cells.update(result.cells(robot))
+            cells = rows[(method, robot)]
             table.add_row(
                 method if k == 0 else "", robot, *(_cell(c, cells, k) for c in columns),
                 end_section=k == len(m.robots) - 1,
