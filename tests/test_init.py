@@ -264,16 +264,17 @@ def test_tiers_shortbag_mapping(shared_data: Path, tmp_path: Path) -> None:
 def test_tiers_case4_mapping(shared_data: Path, tmp_path: Path) -> None:
     rc, cfg, text = _draft(shared_data, "tiers_uwb_rel/case4_test1_static", tmp_path)
     assert rc == 0
-    assert {r.name: r.uwb_node for r in cfg.robots} == {
-        f"turtlebot{k}": f"n_{k}" for k in range(1, 8)
+    assert {r.name: r.nodes for r in cfg.robots} == {
+        f"turtlebot{k}": (f"n_{k}", "n_8") if k == 5 else (f"n_{k}",) for k in range(1, 8)
     }
     assert all(not r.odom_topic for r in cfg.robots)
-    assert "left out" in text and "n_8" in text
-    assert len(cfg.uwb.pairs) == 21 and all(
+    assert "second tag: n_8 on turtlebot5" in text and "left out" not in text
+    assert len(cfg.uwb.pairs) == 27 and all(
         p.source == "case4_test1_static" for p in cfg.uwb.pairs.values()
     )
     rc, cfg, _ = _draft(shared_data, "tiers_uwb_rel/case4_test1_static", tmp_path, "--no-calibrate")
     assert rc == 0 and not cfg.uwb.pairs
+    assert cfg.robot("turtlebot5").nodes == ("n_5", "n_8") and not cfg.has_lever_arms
 
 
 SEEDS = (0, 1, 2)

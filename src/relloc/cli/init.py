@@ -7,6 +7,9 @@ topic naming (``/<body>/world``, ``/vrpn_client_node/<body>/pose``, ``/mocap/<bo
 topic pattern with the body in one name part, not a robot's own odometry (``/<robot>/odom``);
 ``--mocap-topic '/{body}/world'`` gives the pattern where that cannot tell. The draft carries it as
 ``mocap_topic``. ``--node ROBOT=NODE`` pins a robot's node, ``--reference`` the reference robot.
+A node that moves with a body already mapped is a second tag on it: the robot gets ``tags = [...]``
+with each extra tag's lever arm estimated from the motion capture (standard errors in the
+comment; :mod:`relloc.drafting.tags`), or zeros to be measured with ``--no-calibrate``.
 
 With the mapping decided, what ``relloc calibrate BAG --headings`` estimates is estimated from
 the same bag's motion capture (:func:`relloc.drafting.calibrate.calibrate`, written in by
@@ -22,6 +25,7 @@ readable, file exists, bad ``--node``, too few motion-capture bodies).
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 from typing import Any
@@ -42,7 +46,7 @@ def _cmd_init(args: argparse.Namespace) -> int:
         raise UserError(f"{out} exists; --force overwrites it")
     try:
         inv, d = draft(bag, args.node or [], args.reference, args.mocap_topic)
-        text = to_toml(inv, d, recording_name(bag))
+        text = to_toml(inv, d, recording_name(bag), lever_arms=not args.no_calibrate)
         cal_notes: list[str] = []
         if not args.no_calibrate and inv.ranges:
             cal, cal_notes = calibrate_draft(bag, text, d)
@@ -58,7 +62,14 @@ def _cmd_init(args: argparse.Namespace) -> int:
     print(f"relloc init: {bag} -> {out}")
     for r in d.robots:
         extra = f", odometry {r.odom}" if r.odom else ""
-        print(f"  {r.name}: mocap {r.body}, UWB {r.node or '-'}{extra}")
+        nodes = "+".join([r.node, *(t.node for t in d.tags_of(r))]) if r.node else "-"
+        print(f"  {r.name}: mocap {r.body}, UWB {nodes}{extra}")
+        for t in d.tags_of(r) if not args.no_calibrate else ():
+            (x, y), (sx, sy) = t.lever_arm, t.stderr
+            print(
+                f"    {t.node} lever arm ({x:+.3f} +- {sx:.3f}, {y:+.3f} +- {sy:.3f}) m "
+                f"from {r.node}, |{math.hypot(x, y):.3f}| m"
+            )
     print(f"  area {list(d.area)}, ros_distro {distro(inv.range_layout)}")
     for line in [d.reference_note, *d.notes, *cal_notes, *quirks(inv)]:
         print(f"  {line}")

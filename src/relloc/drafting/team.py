@@ -8,7 +8,9 @@ whatever the topic naming (:mod:`relloc.sources.inspect_bag`: a ``PoseStamped``,
 in one name part, not a robot's own odometry), or given as a pattern (``mocap_topic``); the
 draft carries the pattern as the config's ``mocap_topic``. Which UWB node is on which robot
 comes from :func:`relloc.sources.inspect_bag.assign_nodes` (ranges against mocap distances);
-``node_args`` (``ROBOT=NODE``) pin a robot's node. The reference is the robot whose node takes
+``node_args`` (``ROBOT=NODE``) pin a robot's node. A node left over that moves with one body is a
+second tag on it (:func:`relloc.drafting.tags.find_tags`: the body, and the tag's lever arm by
+least squares against the body's mocap poses). The reference is the robot whose node takes
 part in the most range messages (ties by name; ``reference`` picks another). The area is the
 project's default prior box (:class:`~relloc.config.TeamConfig` ``area``) centred on the
 robots' mocap extent, or that extent plus :data:`MARGIN_M` where it is larger: a short
@@ -25,11 +27,12 @@ import math
 import re
 import time
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from relloc.config import TeamConfig
 from relloc.drafting.calibrate import Calibration, calibrate
+from relloc.drafting.tags import TagFit, find_tags, mocap_poses
 from relloc.ros.messages import MOCAP_TYPES
 from relloc.sources.inspect_bag import (
     Assignment,
@@ -80,6 +83,13 @@ class Draft:
     notes: list[str]
     """Lines for the summary and the file's comments (what was decided, how sure)."""
     seconds: float
+    tags: list[TagFit] = field(default_factory=list)
+    """Second tags: nodes the mapping leaves out that move with one body
+    (:func:`relloc.drafting.tags.find_tags`), with their lever arms."""
+
+    def tags_of(self, robot: Robot) -> list[TagFit]:
+        """The extra tags on ``robot`` (its first is :attr:`Robot.node`)."""
+        return [t for t in self.tags if t.body == robot.body]
 
 
 def _odom_robot(topic: str) -> str:
@@ -225,6 +235,7 @@ def draft(
     ranked = assign_nodes(inv, [r.body for r in robots], fixed=fixed, keep=2) if inv.ranges else []
     seconds = time.perf_counter() - start
     decided = False
+    tags: list[TagFit] = []
     if ranked:
         best = ranked[0]
         for r in robots:
@@ -260,6 +271,22 @@ def draft(
                 f"  pinned by --node: {', '.join(sorted(f'{r.name}={fixed[r.body]}' for r in robots if r.body in fixed))}"
             )
         extra = sorted(set(inv.nodes) - set(best.nodes.values()))
+        if extra and decided:
+            poses = mocap_poses(bag, inv, [r.body for r in robots])
+            name = {r.body: r.name for r in robots}
+            tags, tag_notes = find_tags(inv, poses, best.nodes, best.pair_bias, name)
+            for t in tags:
+                runner = (
+                    f", next best {name[t.runner_up]} {t.runner_up_rms:.3f} m"
+                    if t.runner_up
+                    else "; no other body fits"
+                )
+                notes.append(
+                    f"second tag: {t.node} on {name[t.body]} (moves with its mocap body: residual "
+                    f"{t.rms:.3f} m over ranges to {t.partners} nodes{runner})"
+                )
+            notes += [f"  {line}" for line in tag_notes]
+            extra = sorted(set(extra) - {t.node for t in tags})
         if extra:
             notes.append(f"UWB nodes left out (on no robot, or a second tag): {', '.join(extra)}")
     else:
@@ -270,7 +297,7 @@ def draft(
     ys = [v for r in robots for v in inv.tracks[r.body][:, 2]]
     dx0, dx1, dy0, dy1 = DEFAULT_AREA
     area = (*_axis(min(xs), max(xs), dx1 - dx0), *_axis(min(ys), max(ys), dy1 - dy0))
-    return inv, Draft(robots, chosen, area, ranked, decided, reference_note, notes, seconds)
+    return inv, Draft(robots, chosen, area, ranked, decided, reference_note, notes, seconds, tags)
 
 
 def calibrate_draft(bag: Path, text: str, d: Draft) -> tuple[Calibration | None, list[str]]:

@@ -4,9 +4,11 @@ decided and how sure, the clock quirks seen in the bag."""
 from __future__ import annotations
 
 import tomlkit
+from tomlkit.items import Item
 
 from relloc.config import TeamConfig
-from relloc.drafting.team import MARGIN_M, Draft
+from relloc.drafting.tags import TagFit
+from relloc.drafting.team import MARGIN_M, Draft, Robot
 from relloc.sources.inspect_bag import BagInventory
 
 __all__ = ["distro", "quirks", "to_toml"]
@@ -16,9 +18,41 @@ def distro(layout: str) -> str:
     return "humble" if layout == "humble" else "jazzy"
 
 
-def to_toml(inv: BagInventory, d: Draft, name: str, calibrated: list[str] | None = None) -> str:
+def _tags(r: Robot, fits: list[TagFit], lever_arms: bool) -> Item:
+    """``tags = [...]`` of a robot with extra tags: its first node at the body origin, each
+    extra one at its estimated lever arm (standard errors in the comment), or at the origin to be
+    measured when ``lever_arms`` is false."""
+    arr = tomlkit.array()
+    first = tomlkit.inline_table()
+    first.update({"node": r.node, "lever_arm": [0.0, 0.0]})
+    arr.append(first)
+    for f in fits:
+        tag = tomlkit.inline_table()
+        arm = [round(v, 3) + 0.0 for v in f.lever_arm] if lever_arms else [0.0, 0.0]
+        tag.update({"node": f.node, "lever_arm": arm})
+        arr.append(tag)
+    if lever_arms:
+        errs = "; ".join(f"{f.node} +- {f.stderr[0]:.3f}, {f.stderr[1]:.3f} m" for f in fits)
+        arr.comment(f"lever arms from this bag's mocap, {errs} (x, y); {r.node} at the body origin")
+    else:
+        arr.comment(
+            f"lever arms not estimated (--no-calibrate): measure {', '.join(f.node for f in fits)} "
+            f"from {r.node} (x forward, y left, m)"
+        )
+    return arr
+
+
+def to_toml(
+    inv: BagInventory,
+    d: Draft,
+    name: str,
+    calibrated: list[str] | None = None,
+    *,
+    lever_arms: bool = True,
+) -> str:
     """The drafted config as TOML text with comments; ``calibrated`` (the robots that get a
-    heading offset) marks the draft as one that :func:`calibrate_draft` will fill in."""
+    heading offset) marks the draft as one that :func:`calibrate_draft` will fill in;
+    ``lever_arms`` writes the extra tags' estimated lever arms (else zeros, to be measured)."""
     doc = tomlkit.document()
     doc.add(
         tomlkit.comment(
@@ -60,7 +94,10 @@ def to_toml(inv: BagInventory, d: Draft, name: str, calibrated: list[str] | None
     for r in d.robots:
         t = tomlkit.table()
         t.add("name", r.name)
-        if r.node:
+        fits = d.tags_of(r)
+        if r.node and fits:
+            t.add("tags", _tags(r, fits, lever_arms))
+        elif r.node:
             t.add("uwb_node", r.node)
             if not d.decided:
                 t["uwb_node"].comment("UNDECIDED: give it with --node")
