@@ -206,7 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument(
         "--scenarios",
         default="multi,single,nav",
-        help="comma-separated: multi, single, nav, static, static_then_move, grid (the scaling scenario: --robots N on a grid, all pairs ranging)",
+        help="comma-separated: multi, single, nav, static, static_then_move, grid (the scaling scenario: --robots N on a grid, all pairs ranging), tags and tags_odometry (two UWB tags a robot, without and with odometry)",
     )
     demo.add_argument(
         "--robots",

@@ -155,6 +155,10 @@ class UwbPair:
     noise: FloatArray
     spike: FloatArray
     keep: NDArray[np.bool_]
+    arm_a: tuple[float, float] = (0.0, 0.0)
+    """Lever arm of node a on robot a (body frame, m)."""
+    arm_b: tuple[float, float] = (0.0, 0.0)
+    """Lever arm of node b on robot b."""
 
     def orientation_term(
         self, pa: tuple[FloatArray, ...], pb: tuple[FloatArray, ...]

@@ -53,6 +53,14 @@ class RobotMotion:
     commanded: bool = False
     pattern: str = ""
     """Name of the pattern, for display only."""
+    tags: tuple[tuple[str, tuple[float, float]], ...] = ()
+    """The robot's UWB tags, ``(node, lever arm in the body frame)``; empty: one, ``node`` at
+    the body origin."""
+
+    @property
+    def tag_list(self) -> tuple[tuple[str, tuple[float, float]], ...]:
+        """The robot's tags: ``tags``, or ``node`` at the body origin."""
+        return self.tags or ((self.node, (0.0, 0.0)),)
 
 
 class Trajectory:

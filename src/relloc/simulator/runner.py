@@ -24,11 +24,13 @@ from operator import attrgetter
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from relloc import geometry
 from relloc.config import (
     CameraConfig,
     FilterConfig,
     PairCalibration,
     RobotConfig,
+    TagConfig,
     TeamConfig,
     UwbConfig,
 )
@@ -120,7 +122,9 @@ class Simulation:
         camera_config: CameraConfig | None = None,
         area: tuple[float, float, float, float] = ARENA,
         sightings: Sequence[SightingSensorModel] = (),
+        odometry_topics: bool = True,
     ) -> None:
+        """``odometry_topics`` False: the robots report no odometry (a UWB-only team)."""
         if duration <= 0:
             raise ValueError(f"duration must be positive, got {duration}")
         self.seed = int(seed)
@@ -129,6 +133,7 @@ class Simulation:
         self.robots: tuple[str, ...] = tuple(m.name for m in self.motions)
         self.commanded: tuple[str, ...] = tuple(m.name for m in self.motions if m.commanded)
         self.reference = reference
+        self.odometry_topics = odometry_topics
         self.uwb_model = uwb or UwbErrorModel()
         self.odometry_model = odometry or OdometryErrorModel()
         self.detection_model = camera or DetectionErrorModel()
@@ -174,8 +179,9 @@ class Simulation:
         robot_cfgs = tuple(
             RobotConfig(
                 name=m.name,
-                uwb_node=m.node,
-                odom_topic=f"/{m.name}/odom",  # what sim-robots publishes it on
+                uwb_node="" if m.tags else m.node,
+                tags=tuple(TagConfig(node, arm) for node, arm in m.tags),
+                odom_topic=f"/{m.name}/odom" if odometry_topics else "",  # sim-robots' topic
                 odom_mode="pose",
                 heading_offset_deg=math.degrees(self.true_heading_offsets[m.name]),
                 camera=self.camera,
@@ -346,6 +352,8 @@ class _Runner:
             )
 
     def _odometry(self, t0: float, t1: float, out: list[Event]) -> None:
+        if not self.sim.odometry_topics:
+            return
         om = self.sim.odometry_model
         for name in self.sim.robots:
             od = self.sim._odom[name]
@@ -399,7 +407,8 @@ class _Runner:
             tm = np.maximum(times - latency, 0.0)
             pa = self.traj[pair.robot_a].evaluate(tm)
             pb = self.traj[pair.robot_b].evaluate(tm)
-            dist = np.hypot(pb[0] - pa[0], pb[1] - pa[1])
+            ta, tb = _tag(pa, pair.arm_a), _tag(pb, pair.arm_b)
+            dist = np.hypot(tb[0] - ta[0], tb[1] - ta[1])
             rng = (
                 dist
                 + pair.bias
@@ -488,3 +497,12 @@ def _window(times: FloatArray, t0: float, t1: float) -> FloatArray:
     """The sorted ``times`` in ``(t0, t1]``."""
     i0, i1 = np.searchsorted(times, [t0, t1], side="right")
     return times[i0:i1]
+
+
+def _tag(pose: tuple[FloatArray, ...], arm: tuple[float, float]) -> tuple[FloatArray, ...]:
+    """Where a tag at ``arm`` (body frame) is at ``pose`` ``(x, y, yaw)``: the pose itself for
+    a tag at the body origin (one-tag teams' ranges stay as they were, to the bit)."""
+    if arm == (0.0, 0.0):
+        return pose
+    x, y = geometry.tag_position(np.stack([pose[0], pose[1]], axis=-1), pose[2], arm).T
+    return x, y, pose[2]

@@ -12,10 +12,11 @@ observable from ranges, and these scenarios test that the estimate says so.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import replace
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 
@@ -90,8 +91,15 @@ def multi_scenario(
     camera: DetectionErrorModel | None = None,
     actuation: ActuationModel | None = None,
     sightings: Sequence[SightingSensorModel] = (),
+    tags: float = 0.0,
+    odometry_topics: bool = True,
+    name: str | None = None,
 ) -> Simulation:
     """The paper's five-robot experiment in the 8 m x 9 m arena.
+
+    ``tags`` > 0: every robot carries two UWB tags that far apart, either side of its centre
+    on its x axis (``n_<i>a`` ahead, ``n_<i>b`` behind), instead of one at its centre;
+    ``odometry_topics`` False: the robots report no odometry.
 
     ``sightings``: sensors that see teammates (UWB angle of arrival beside the ranges, a
     camera; :mod:`relloc.simulator.error_models`), drawn from their own streams.
@@ -152,12 +160,21 @@ def multi_scenario(
                 commanded=name in commanded,
             )
         )
+    if tags > 0.0:
+        motions = [
+            dataclasses.replace(
+                m,
+                tags=((f"{m.node}a", (tags / 2, 0.0)), (f"{m.node}b", (-tags / 2, 0.0))),
+            )
+            for m in motions
+        ]
     return Simulation(
         motions,
         reference="r0",
         seed=seed,
         duration=duration,
-        name="sim_multi" if not commanded else "sim_nav",
+        odometry_topics=odometry_topics,
+        name=name or ("sim_multi" if not commanded else "sim_nav"),
         objects=_place_objects(seed, MULTI_OBJECTS),
         detections=detections,
         uwb=uwb,
@@ -419,8 +436,26 @@ def grid_scenario(
     )
 
 
+TAG_BASELINE = 0.3
+"""Distance between the two tags of each robot of the ``tags`` scenarios (m)."""
+
+
+def tags_scenario(seed: int = 0, *, odometry: bool = False, **options: Any) -> Simulation:
+    """The multi team with two UWB tags on every robot, ``TAG_BASELINE`` apart (every two
+    robots' tags ranging), without odometry (``tags``) or with it (``tags_odometry``)."""
+    name = "sim_tags_odometry" if odometry else "sim_tags"
+    return multi_scenario(seed, tags=TAG_BASELINE, odometry_topics=odometry, name=name, **options)
+
+
+def tags_odometry_scenario(seed: int = 0, **options: Any) -> Simulation:
+    """:func:`tags_scenario` with odometry."""
+    return tags_scenario(seed, odometry=True, **options)
+
+
 SCENARIOS: dict[str, Callable[..., Simulation]] = {
     "multi": multi_scenario,
+    "tags": tags_scenario,
+    "tags_odometry": tags_odometry_scenario,
     "single": single_scenario,
     "static": static_scenario,
     "static_then_move": static_then_move_scenario,
@@ -428,4 +463,5 @@ SCENARIOS: dict[str, Callable[..., Simulation]] = {
 }
 """The open-loop scenarios by name, each called as ``scenario(seed, **options)`` (``nav`` is
 closed-loop and run apart). ``static`` and ``static_then_move`` show how the estimate reports an
-unobservable orientation; ``grid`` is the scaling scenario (``robots=N``)."""
+unobservable orientation; ``grid`` is the scaling scenario (``robots=N``); ``tags`` and
+``tags_odometry`` give every robot two UWB tags."""

@@ -68,12 +68,14 @@ def draw_uwb(
     orientation amplitudes, antenna offsets, jittered sample times, noise, NLOS spikes and
     dropouts."""
     period = 1.0 / model.rate_hz
-    nodes = [m.node for m in motions]
-    antenna = {n: float(stream(seed, "uwb-antenna", n).uniform(-0.5, 0.5)) for n in nodes}
+    tags = [(m, node, arm) for m in motions for node, arm in m.tag_list]
+    antenna = {n: float(stream(seed, "uwb-antenna", n).uniform(-0.5, 0.5)) for _, n, _ in tags}
     biases: dict[str, float] = {}
     pairs: list[UwbPair] = []
-    for ma, mb in combinations(motions, 2):
-        key = pair_key(ma.node, mb.node)
+    for (ma, na, arm_a), (mb, nb, arm_b) in combinations(tags, 2):
+        if ma is mb:
+            continue  # two tags of one robot: their distance is a constant of its body
+        key = pair_key(na, nb)
         bias = float(stream(seed, "uwb-bias", key).uniform(*model.bias_range))
         biases[key] = bias
         amp = stream(seed, "uwb-orient", key).uniform(0.5, 1.5, size=2)
@@ -91,17 +93,19 @@ def draw_uwb(
             UwbPair(
                 robot_a=ma.name,
                 robot_b=mb.name,
-                node_a=ma.node,
-                node_b=mb.node,
+                node_a=na,
+                node_b=nb,
                 bias=bias,
                 amplitude=amp * model.orientation_amplitude,
-                antenna=np.array([antenna[ma.node], antenna[mb.node]]),
+                antenna=np.array([antenna[na], antenna[nb]]),
                 t=times[mask],
                 noise=(stream(seed, "uwb-noise", key).standard_normal(n) * model.sigma)[mask],
                 spike=np.where(nlos, lo + spikes[:, 1] * (hi - lo), 0.0)[mask],
                 keep=(
                     stream(seed, "uwb-dropout", key).uniform(size=n) >= model.dropout_probability
                 )[mask],
+                arm_a=arm_a,
+                arm_b=arm_b,
             )
         )
     return biases, pairs

@@ -12,6 +12,10 @@ iSAM2 over a ``LAG`` window) gets one key per robot and:
   (sightings with a range and a bearing, in the shared frame by the observer's yaw; detections'
   relative observations): the step's median vector, its noise undivided.
 
+**Tags**: a robot with several UWB tags is a point per tag, held at its lever arms' distance,
+each moved by its robot's odometry and its arm turned by the odometry's turn; the published
+robot is their rigid fit (:mod:`relloc.filter.tag_points`).
+
 **Start** (:mod:`.start`): the range graph's shape; with
 odometry ``start.ROTATIONS`` rotations times two reflections each start a smoother, pruned by cost
 (``PRUNE_COST``, then the best after ``HYPOTHESIS_TIME``); without, the rotation/reflection is
@@ -80,9 +84,6 @@ MOTION_TO_RESOLVE = 0.3
 observed (:mod:`relloc.filter.summary`)."""
 RESTART_WINDOW = 2.0
 """Seconds of ranges a restart builds its start from."""
-TURN_RATE = 1.0
-"""Turn rate (rad/s) of a robot with odometry that a step's displacement leaves out of its tags'
-motion (the lever arm turning with the robot): a ground robot's turns stay under it."""
 
 
 @dataclasses.dataclass
@@ -365,11 +366,12 @@ class SmootherLocalizer(SteppedLocalizer):
 
     def _own_motion(self, t: float) -> tuple[FloatArray, FloatArray]:
         """Each point's displacement since the last step ``(P, 2)`` and its per-axis std
-        ``(P,)``: its robot's odometry's (module docstring), or none with ``UNKNOWN_SPEED``;
-        a tag's widened by its lever arm turning at ``TURN_RATE``."""
+        ``(P,)``: its robot's odometry's (module docstring), or none with ``UNKNOWN_SPEED``; a
+        tag's plus its lever arm turned by the odometry's turn."""
         known = np.array(
             [not math.isnan(self._anchor.get(r, (math.nan,))[0]) for r in self.layout.robots]
         )
+        yaw0 = np.array([self._anchor.get(r, (0.0, 0.0, 0.0))[2] for r in self.layout.robots])
         disp, own, dt = self._motion_to(t)
         known &= np.array([math.isfinite(self.odometry.pose(r, t)[0]) for r in self.layout.robots])
         walk = np.where(known, PROCESS_NOISE**2 * dt + ODOMETRY_FLOOR**2, (UNKNOWN_SPEED * dt) ** 2)
@@ -381,12 +383,10 @@ class SmootherLocalizer(SteppedLocalizer):
         disp = np.where(known[:, None], disp, 0.0)
         if self._points.identity:
             return disp, sigma
-        # a tag moves with its robot, and by its lever arm as the robot turns
-        robot = self._points.robot
-        arm = np.hypot(self._points.arm[:, 0], self._points.arm[:, 1])
-        return disp[robot], np.hypot(
-            sigma[robot], np.where(known[robot], arm * TURN_RATE * dt, 0.0)
-        )
+        robot, arm = self._points.robot, self._points.arm
+        yaw1 = np.array([self._anchor.get(r, (0.0, 0.0, 0.0))[2] for r in self.layout.robots])
+        turned = _turned(arm, yaw1[robot]) - _turned(arm, yaw0[robot])
+        return disp[robot] + np.where(known[robot][:, None], turned, 0.0), sigma[robot]
 
     def _per_pair(
         self, ia: NDArray[np.intp], ib: NDArray[np.intp], z: FloatArray, s: FloatArray
@@ -561,3 +561,9 @@ class SmootherLocalizer(SteppedLocalizer):
                 )
             )
         return out
+
+
+def _turned(arm: FloatArray, yaw: FloatArray) -> FloatArray:
+    """Each lever arm ``(P, 2)`` turned by its robot's yaw ``(P,)``."""
+    c, s = np.cos(yaw), np.sin(yaw)
+    return np.stack([c * arm[:, 0] - s * arm[:, 1], s * arm[:, 0] + c * arm[:, 1]], axis=1)
