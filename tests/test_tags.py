@@ -5,6 +5,7 @@ points (a robot's tags, fitted to its lever arms) and the score of a published h
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 from itertools import combinations
 from pathlib import Path
 from typing import Any
@@ -14,7 +15,7 @@ import pytest
 from numpy.typing import NDArray
 
 from relloc import geometry
-from relloc.config import ConfigError, TeamConfig
+from relloc.config import ConfigError, RobotConfig, TagConfig, TeamConfig
 from relloc.engine import Engine
 from relloc.estimate import BODY_FRAME, Estimate
 from relloc.evaluation.metric import MethodRun
@@ -269,3 +270,34 @@ def test_with_odometry_the_smoother_publishes_the_tags_headings_in_the_reference
     # measured: 4.4 / 4.7 / 2.5 / 10.5 deg; without the simulator's antenna pattern (its
     # heading-dependent range error on a 0.3 m baseline) 1.3-3.5 (docs/explanation/tags.md)
     assert max(medians) < 15.0
+
+
+def test_calibration_scores_a_tag_pair_against_the_tags_positions(shared_data: Path) -> None:
+    """On the seven-robot team, n_8 at a lever arm on turtlebot5: the motion-capture distance of
+    its pairs is to the tag, not to the body (turtlebot5's yaw turns the arm into the world)."""
+    from relloc.evaluation.calibration import pair_samples_from_bag
+
+    bag = shared_data / "tiers_uwb_rel" / "case4_test1_static"
+    base = TeamConfig.load(Path(__file__).resolve().parents[1] / "configs/tiers_uwb_rel/case4.toml")
+    arm = (0.0, 0.3)
+    robots = tuple(
+        replace(r, uwb_node="", tags=(TagConfig("n_5"), TagConfig("n_8", arm)))
+        if r.name == "turtlebot5"
+        else r
+        for r in base.robots
+    )
+    config = replace(base, robots=robots)
+    span = (0.0, 5.0)
+    with_arm = pair_samples_from_bag(bag, config, span=span)
+    at_body = pair_samples_from_bag(
+        bag, replace(config, robots=tuple(_no_arm(r) for r in robots)), span=span
+    )
+    assert "n_1-n_8" in with_arm and "n_1-n_5" in with_arm
+    # n_5 sits at the body origin: its pairs do not move
+    assert np.array_equal(with_arm["n_1-n_5"][2], at_body["n_1-n_5"][2])
+    moved = float(np.median(with_arm["n_1-n_8"][2] - at_body["n_1-n_8"][2]))
+    assert 0.05 < abs(moved) <= 0.3  # the arm's projection on the pair's direction
+
+
+def _no_arm(robot: RobotConfig) -> RobotConfig:
+    return replace(robot, tags=tuple(replace(t, lever_arm=(0.0, 0.0)) for t in robot.tags))

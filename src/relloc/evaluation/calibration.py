@@ -124,7 +124,8 @@ def pair_samples_from_bag(
     lag: float = 0.0,
     span: tuple[float, float] | None = None,
 ) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Matched samples per node pair: ``pair_key -> (t, measured range, mocap distance)``.
+    """Matched samples per node pair: ``pair_key -> (t, measured range, mocap distance)``, the
+    distance between the two tags where a config's tags have lever arms.
 
     ``lag`` (s) compares each range with the mocap distance ``lag`` seconds before its header
     stamp (UWB ranges can trail the geometry by up to about 0.2 s). Ranges without two valid
@@ -134,17 +135,19 @@ def pair_samples_from_bag(
     bag = RosbagSource(path, config, ground_truth=True, detections=False, odometry=False)
     source: Iterable[Event] = bag if span is None else SpanSource(bag, span)
     robots = set(config.robot_names)
-    tracks: dict[str, list[tuple[float, float, float]]] = defaultdict(list)
-    ranges: dict[str, list[tuple[float, str, str, float]]] = defaultdict(list)
+    tracks: dict[str, list[tuple[float, float, float, float]]] = defaultdict(list)
+    ranges: dict[str, list[tuple[float, str, str, float, str, str]]] = defaultdict(list)
     for ev in source:
         if isinstance(ev, GroundTruthEvent) and ev.robot in robots:
-            tracks[ev.robot].append((ev.t, ev.position[0], ev.position[1]))
+            tracks[ev.robot].append((ev.t, ev.position[0], ev.position[1], ev.yaw))
         elif isinstance(ev, RangeEvent):
-            ranges[ev.node_pair].append((ev.t, ev.robot_a, ev.robot_b, ev.distance))
-    arrays = {r: np.array(v, dtype=float).reshape(-1, 3) for r, v in tracks.items()}
+            na, nb = config.range_nodes(ev)
+            ranges[ev.node_pair].append((ev.t, ev.robot_a, ev.robot_b, ev.distance, na, nb))
+    arrays = {r: np.array(v, dtype=float).reshape(-1, 4) for r, v in tracks.items()}
+    arms = config.has_lever_arms
     out: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     for key, rows in ranges.items():
-        robot_a, robot_b = rows[0][1], rows[0][2]
+        robot_a, robot_b, node_a, node_b = rows[0][1], rows[0][2], rows[0][4], rows[0][5]
         if robot_a not in arrays or robot_b not in arrays:
             continue
         t = np.array([r[0] for r in rows])
@@ -152,6 +155,9 @@ def pair_samples_from_bag(
         a, b = arrays[robot_a], arrays[robot_b]
         xa, ya, va = interpolate_track(a[:, 0], a[:, 1], a[:, 2], t - lag, max_gap=max_gap)
         xb, yb, vb = interpolate_track(b[:, 0], b[:, 1], b[:, 2], t - lag, max_gap=max_gap)
+        if arms:  # the tags' positions: each at its lever arm in its body's frame
+            xa, ya = _tag(a, t - lag, max_gap, xa, ya, config.lever_arm(node_a))
+            xb, yb = _tag(b, t - lag, max_gap, xb, yb, config.lever_arm(node_b))
         ok = va & vb
         if ok.any():
             out[key] = (
@@ -160,6 +166,26 @@ def pair_samples_from_bag(
                 geometry.norm(np.stack([xa - xb, ya - yb], axis=-1))[ok],
             )
     return out
+
+
+def _tag(
+    track: np.ndarray,
+    t: np.ndarray,
+    max_gap: float,
+    x: np.ndarray,
+    y: np.ndarray,
+    arm: tuple[float, ...],
+) -> tuple[np.ndarray, np.ndarray]:
+    """A tag at ``arm`` on a body at ``(x, y)``, its heading interpolated from ``track``'s
+    ``(t, x, y, yaw)`` rows as a unit vector."""
+    if not any(arm[:2]):
+        return x, y
+    c, s, _ = interpolate_track(
+        track[:, 0], np.cos(track[:, 3]), np.sin(track[:, 3]), t, max_gap=max_gap
+    )
+    n = np.maximum(np.hypot(c, s), 1e-9)
+    c, s = c / n, s / n
+    return x + c * arm[0] - s * arm[1], y + s * arm[0] + c * arm[1]
 
 
 def pair_biases_from_bag(

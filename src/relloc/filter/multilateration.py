@@ -19,6 +19,8 @@ gauge; evaluation fits one rotation/reflection for a whole run (see :mod:`relloc
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
@@ -63,6 +65,12 @@ def can_determine(n_robots: int, pairs: IntArray) -> bool:
     return bool(np.all(degree >= 2))
 
 
+FOLDED_RMS = 0.3
+"""RMS range residual (m) above which a solve from the previous solution is taken for a folded
+formation (a local minimum it cannot leave) and the cold starts are tried as well: several times
+a range's noise, below a pair bias left uncorrected."""
+
+
 def solve(
     n_robots: int,
     reference: int,
@@ -70,8 +78,14 @@ def solve(
     distances: FloatArray,
     initial: FloatArray | None = None,
     rng: np.random.Generator | None = None,
+    *,
+    unfold: bool = False,
 ) -> FloatArray | None:
-    """Positions (N, 2) relative to ``reference``, or ``None`` when the ranges cannot fix them."""
+    """Positions (N, 2) relative to ``reference``, or ``None`` when the ranges cannot fix them.
+
+    ``initial``: the previous solution, where the solve starts. ``unfold``: where that start
+    leaves the ranges more than ``FOLDED_RMS`` unexplained, try the cold starts too (a team with
+    several tags on a robot: a tag a few decimetres from its sibling folds over easily)."""
     pairs = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
     distances = np.asarray(distances, dtype=float)
     if not can_determine(n_robots, pairs):
@@ -106,34 +120,58 @@ def solve(
         vals = np.concatenate([(sign * u[ok]).ravel() for _, sign, ok in ends])
         return csr_matrix((vals, (jac_rows, jac_cols)), shape=(len(pairs), 2 * free.size))
 
-    starts: list[FloatArray] = []
-    if initial is not None:
-        starts.append(initial - initial[reference])
-    else:
-        full = np.full((n_robots, n_robots), np.nan)
-        full[pairs[:, 0], pairs[:, 1]] = distances
-        full[pairs[:, 1], pairs[:, 0]] = distances
-        np.fill_diagonal(full, 0.0)
-        if not np.any(np.isnan(full)):
-            x = classical_mds(full)
-            starts.append(x - x[reference])
-        rng = rng or np.random.default_rng(0)
-        scale = float(np.median(distances))
-        starts += [rng.normal(scale=scale, size=(n_robots, 2)) for _ in range(5)]
-    best: FloatArray | None = None
-    best_cost = np.inf
-    for start in starts:
-        s = start - start[reference]
-        result = least_squares(
-            residuals, s[free].ravel(), jac=jacobian, method="trf", tr_solver="lsmr"
-        )
-        if result.cost < best_cost:
-            best, best_cost = unpack(result.x), result.cost
+    def fit(starts: list[FloatArray]) -> tuple[FloatArray | None, float]:
+        best: FloatArray | None = None
+        best_cost = np.inf
+        for start in starts:
+            s = start - start[reference]
+            result = least_squares(
+                residuals, s[free].ravel(), jac=jacobian, method="trf", tr_solver="lsmr"
+            )
+            if result.cost < best_cost:
+                best, best_cost = unpack(result.x), result.cost
+        return best, best_cost
+
+    best, best_cost = (None, np.inf) if initial is None else fit([initial - initial[reference]])
+    cold = False
+    if best is None or (unfold and math.sqrt(2.0 * best_cost / len(pairs)) > FOLDED_RMS):
+        found, cost = fit(_cold_starts(n_robots, reference, pairs, distances, rng))
+        if cost < best_cost:
+            best, best_cost, cold = found, cost, True
     if best is None or rigidity_rank(best, pairs) < 2 * n_robots - 3:
         return None
     if initial is not None:
-        best = _rotate_onto(best, initial - initial[reference])
+        target = initial - initial[reference]
+        turned = _rotate_onto(best, target)
+        if cold:  # a new solution may be the mirror image of the last: keep the gauge's side
+            mirrored = _rotate_onto(best * np.array([1.0, -1.0]), target)
+            if np.sum((mirrored - target) ** 2) < np.sum((turned - target) ** 2):
+                turned = mirrored
+        best = turned
     return best
+
+
+def _cold_starts(
+    n_robots: int,
+    reference: int,
+    pairs: IntArray,
+    distances: FloatArray,
+    rng: np.random.Generator | None,
+) -> list[FloatArray]:
+    """Where a solve starts without a previous solution: classical MDS where every pair is
+    ranged, and five random formations of the ranges' scale."""
+    starts: list[FloatArray] = []
+    full = np.full((n_robots, n_robots), np.nan)
+    full[pairs[:, 0], pairs[:, 1]] = distances
+    full[pairs[:, 1], pairs[:, 0]] = distances
+    np.fill_diagonal(full, 0.0)
+    if not np.any(np.isnan(full)):
+        x = classical_mds(full)
+        starts.append(x - x[reference])
+    rng = rng or np.random.default_rng(0)
+    scale = float(np.median(distances))
+    starts += [rng.normal(scale=scale, size=(n_robots, 2)) for _ in range(5)]
+    return starts
 
 
 def _rotate_onto(points: FloatArray, target: FloatArray) -> FloatArray:

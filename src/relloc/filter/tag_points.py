@@ -161,16 +161,17 @@ class TagPoints:
             yaw[r] = th
         return pos, yaw
 
-    def published(self, points: FloatArray) -> FloatArray:
+    def published(self, points: FloatArray, body: bool = True) -> FloatArray:
         """The published vector of the points ``(P, 2)``: each non-reference robot's position
-        relative to the reference (in its body frame where :attr:`oriented`), then each
-        multi-tag non-reference robot's heading (relative to the reference's where
-        :attr:`oriented`)."""
+        relative to the reference (in its body frame where :attr:`oriented` and ``body``), then
+        each multi-tag non-reference robot's heading (relative to the reference's there).
+        ``body`` False: in the points' own frame (the orientation is a gauge: a frame that
+        follows the reference's short baseline would jitter with it)."""
         pos, yaw = self.poses(points)
         ref = self.reference
         rel = pos - pos[ref]
         turn = 0.0
-        if self.oriented:
+        if self.oriented and body:
             turn = -float(yaw[ref])
             c, s = math.cos(turn), math.sin(turn)
             rel = rel @ np.array([[c, s], [-s, c]])
@@ -179,13 +180,13 @@ class TagPoints:
         return np.concatenate([rel[others].reshape(-1), np.array(headings, float)])
 
     def moments(
-        self, points: FloatArray, joint: FloatArray
+        self, points: FloatArray, joint: FloatArray, body: bool = True
     ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray]:
         """Positions ``(N-1, 2)`` and covariances ``(N-1, 2, 2)`` of the non-reference robots
         and the headings ``(H,)`` and their stds ``(H,)`` of the multi-tag ones
         (:meth:`published`), from the points ``(P, 2)`` and their joint covariance
-        ``(2P, 2P)`` (module docstring)."""
-        f0 = self.published(points)
+        ``(2P, 2P)``, in the frame :meth:`published` says for ``body`` (module docstring)."""
+        f0 = self.published(points, body)
         flat = points.reshape(-1)
         jac = np.empty((f0.size, flat.size))
         eps = 1e-6
@@ -193,7 +194,9 @@ class TagPoints:
             up, down = flat.copy(), flat.copy()
             up[k] += eps
             down[k] -= eps
-            diff = self.published(up.reshape(-1, 2)) - self.published(down.reshape(-1, 2))
+            diff = self.published(up.reshape(-1, 2), body) - self.published(
+                down.reshape(-1, 2), body
+            )
             k_heads = slice(2 * (self.first.size - 1), None)
             diff[k_heads] = np.remainder(diff[k_heads] + math.pi, math.tau) - math.pi
             jac[:, k] = diff / (2.0 * eps)

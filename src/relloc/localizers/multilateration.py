@@ -67,6 +67,7 @@ class MultilaterationLocalizer(Localizer):
             np.concatenate([np.array(list(fresh.values())), rigid_d]),
             self._previous,
             self.rng,
+            unfold=not pts.identity,
         )
         if sol is None:
             self.stats["no_estimate"] += 1

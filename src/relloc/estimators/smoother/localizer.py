@@ -481,7 +481,7 @@ class SmootherLocalizer(SteppedLocalizer):
         the multi-tag robots' headings relative to the reference's
         (:mod:`relloc.filter.tag_points`)."""
         pts = self._points
-        rel, cov, heads, stds = pts.moments(points, joint)
+        rel, cov, heads, stds = pts.moments(points, joint, body=self._observable)
         if not self._observable:  # a heading's sign flips with the formation's mirror image
             return rel, cov, {}
         robots = self.layout.robots
