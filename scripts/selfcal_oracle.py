@@ -27,7 +27,9 @@ heading (the formation as estimated in the reference's odometry frame, turned by
 heading instead).
 
 Every robot should be at most ``BOUND`` m or within ``MARGIN`` m of the oracle
-(docs/explanation/self-calibration.md, "The floor").
+(docs/explanation/self-calibration.md, "The floor"). ``--reference-rate`` runs all three with
+the reference's heading drift rate as a state of the filter
+(``SelfCalibratingLocalizer.reference_rate``, not yet a config option).
 """
 
 from __future__ import annotations
@@ -43,6 +45,7 @@ import numpy as np
 
 from relloc.config import TeamConfig
 from relloc.engine import Engine
+from relloc.estimators.gaussian_sum.localizer import SelfCalibratingLocalizer
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
 from relloc.evaluation.selfcal_metrics import odometry_frame_rotation
@@ -183,7 +186,13 @@ def parse_seeds(text: str) -> list[int]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0-4", help="0-4 or 0,3 (default: 0-4)")
+    parser.add_argument(
+        "--reference-rate",
+        action="store_true",
+        help="the reference's heading drift rate as a state (SelfCalibratingLocalizer)",
+    )
     args = parser.parse_args(argv)
+    SelfCalibratingLocalizer.reference_rate = args.reference_rate
     print(
         "| seed | robot | self-calibrating (m) | oracle (m) | gyro oracle (m) | excess (m) "
         "| passes | self-calibrating, true reference heading (m) |"

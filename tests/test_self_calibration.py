@@ -256,6 +256,33 @@ def test_prediction_rotates_odometry_by_the_heading_and_propagates_covariance() 
     np.testing.assert_allclose(gsf.cov[0], f @ before_cov[0] @ f.T, atol=1e-12)
 
 
+def test_the_reference_drift_rate_turns_its_heading_and_propagates_covariance() -> None:
+    layout = CalibrationLayout(("a", "b"), "a", heading=True, reference_rate=True)
+    assert layout.rate_column == layout.width - 1 == 6  # b's position, two u, the rate
+    gsf = GaussianSumFilter(
+        layout,
+        2,
+        (-4, 4, -4, 4),
+        rng=np.random.default_rng(0),
+        noise=CalibrationNoise(heading_walk=0.0, reference_heading_walk=0.0),
+        motion=OdometryMotion(process_noise=0.0),
+    )
+    a = np.random.default_rng(1).normal(size=(layout.width, layout.width))
+    gsf.cov = np.stack([a @ a.T * 0.01] * 2)
+    r0, r1 = layout.u_columns("a")
+    rate, dt, w = layout.rate_column, 0.5, 0.02
+    gsf.mean[:, r0], gsf.mean[:, r1], gsf.mean[:, rate] = 0.9, 0.1, w
+    before_mean, before_cov = gsf.mean.copy(), gsf.cov.copy()
+    gsf.predict(np.zeros((2, 2)), np.zeros(2), dt)
+    c, s = math.cos(w * dt), math.sin(w * dt)
+    turned = np.array([[c, -s], [s, c]]) @ before_mean[0, r0 : r1 + 1]
+    np.testing.assert_allclose(gsf.mean[0, r0 : r1 + 1], turned)
+    f = np.eye(layout.width)
+    f[r0 : r1 + 1, r0 : r1 + 1] = [[c, -s], [s, c]]
+    f[r0 : r1 + 1, rate] = dt * np.array([-turned[1], turned[0]])
+    np.testing.assert_allclose(gsf.cov[0], f @ before_cov[0] @ f.T, atol=1e-12)
+
+
 def test_range_update_is_the_kalman_update_and_the_weight_its_predictive_density() -> None:
     layout = CalibrationLayout(("a", "b"), "a", bias_pairs=("n_1-n_2",))
     assert layout.width == 4  # position of b, the pair's bias, its time-correlated error

@@ -45,6 +45,10 @@ class CalibrationLayout(TeamLayout):
     heading-dependent part of the UWB error (antenna pattern, body occlusion), which a white
     range noise cannot: without it that error moves the bias estimate (through its random
     walk) or the positions. The published bias is the constant part."""
+    reference_rate: bool = False
+    """Heading mode: a last column holding the constant rate at which the reference's odometry
+    heading drifts (its gyro bias, rad/s), which turns its ``u`` at every step
+    (:class:`CalibrationNoise` ``reference_rate_sigma``)."""
 
     @property
     def dim(self) -> int:
@@ -81,8 +85,18 @@ class CalibrationLayout(TeamLayout):
         return self.bias_start + len(self.bias_pairs)
 
     @property
-    def width(self) -> int:
+    def colored_end(self) -> int:
+        """One past the last time-correlated range error column."""
         return self.colored_start + (len(self.bias_pairs) if self.colored_bias else 0)
+
+    @property
+    def rate_column(self) -> int:
+        """Column of the reference's heading drift rate (-1 without ``reference_rate``)."""
+        return self.colored_end if self.reference_rate and self.heading else -1
+
+    @property
+    def width(self) -> int:
+        return self.colored_end + (1 if self.rate_column >= 0 else 0)
 
     def u_columns(self, robot: str) -> tuple[int, int]:
         """Columns of ``robot``'s heading vector ``u`` (heading mode). The reference has one
@@ -148,6 +162,9 @@ class CalibrationNoise:
     """The physical interval of an odometry scale (``[filter.self_calibration] scale_min``,
     ``scale_max``): each Gaussian's scale is held inside it
     (:meth:`relloc.estimators.gaussian_sum.filter.GaussianSumFilter.constrain_scales`)."""
+    reference_rate_sigma: float = 0.002
+    """Prior standard deviation of the reference's heading drift rate (rad/s; layout
+    ``reference_rate``): a gyro bias of a few degrees a minute."""
     magnitude_gate: float = 0.25
     """Apply the ``|u|`` pseudo-measurement once the angular std of ``u`` is below this (rad)."""
 
@@ -224,6 +241,9 @@ def calibration_prior(
         if lay.colored_bias:
             c = lay.colored_start + k - off
             cov[c, c] = nz.colored_sigma**2  # zero mean, stationary
+    if lay.rate_column >= 0:
+        c = lay.rate_column - off
+        cov[c, c] = nz.reference_rate_sigma**2
     return mean, cov
 
 

@@ -245,7 +245,7 @@ class GaussianSumFilter(WeightedFilter):
                 c = lay.bias_start + k
                 q[c, c] += nz.bias_walk**2 * dt
             if lay.colored_bias:
-                idx = np.arange(lay.colored_start, width)
+                idx = np.arange(lay.colored_start, lay.colored_end)
                 q[idx, idx] += nz.colored_sigma**2 * (1.0 - math.exp(-2.0 * dt / nz.colored_time))
         rows_g = np.flatnonzero(np.any(g != 0.0, axis=1))
         if rows_g.size:
@@ -261,16 +261,43 @@ class GaussianSumFilter(WeightedFilter):
             # first-order Gauss-Markov: c' = rho c + w, stationary variance colored_sigma^2
             # (its columns are outside G's rows and columns: the two steps commute)
             rho = math.exp(-dt / nz.colored_time)
-            cs = slice(lay.colored_start, width)
+            cs = slice(lay.colored_start, lay.colored_end)
             self.mean[:, cs] *= rho
             self.cov[:, cs, :] *= rho
             self.cov[:, :, cs] *= rho
         self.mean += shift
         self.cov += q
+        if lay.rate_column >= 0 and dt > 0.0:
+            self._turn_reference(dt)
         if lay.heading and dt > 0.0:
             self._heading_walk(dt)
             if self.split_heading_std > 0.0:
                 self.split_count += self.split_headings(self.split_heading_std)
+
+    def _turn_reference(self, dt: float) -> None:
+        """Turn the reference's ``u`` by its drift rate over ``dt`` (layout ``reference_rate``):
+        ``u' = R(w dt) u``, linearised per Gaussian (``du'/du = R(w dt)``, ``du'/dw = dt J u'``,
+        ``J`` the quarter turn), ``P' = F P F^T``."""
+        lay = self.layout
+        c0, c1 = lay.u_columns(lay.reference)
+        rc = lay.rate_column
+        uc = np.array([c0, c1])
+        angle = self.mean[:, rc] * dt
+        c, s = np.cos(angle), np.sin(angle)
+        rot = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # (M, 2, 2)
+        u = np.einsum("mab,mb->ma", rot, self.mean[:, c0 : c1 + 1])
+        self.mean[:, c0 : c1 + 1] = u
+        du_dw = dt * np.stack([-u[:, 1], u[:, 0]], -1)  # (M, 2)
+        cov = self.cov
+        rows = (
+            np.einsum("mab,mbd->mad", rot, cov[:, uc, :]) + du_dw[:, :, None] * cov[:, None, rc, :]
+        )
+        cov[:, uc, :] = rows
+        cols = (
+            np.einsum("mdb,mab->mda", cov[:, :, uc], rot) + cov[:, :, rc, None] * du_dw[:, None, :]
+        )
+        cov[:, :, uc] = cols
+        self.cov = cov
 
     def _heading_walk(self, dt: float) -> None:
         """Random walk of each ``u``: ``heading_walk`` along the circle (turning ``u``, scaled by

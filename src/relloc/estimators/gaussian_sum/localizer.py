@@ -15,6 +15,7 @@ no compass frame, so detection vectors cannot be fused; every range uses the sym
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 
@@ -54,11 +55,17 @@ class SelfCalibratingLocalizer(FilterLocalizer):
     method = "pf"
     range_model = "symmetric"
     filter: GaussianSumFilter
+    reference_rate = False
+    """Heading mode: carry the reference's heading drift rate as a state
+    (:attr:`CalibrationLayout.reference_rate`). Off: not yet a config option, because on
+    MRCLAM it cost more than it gained (docs/explanation/self-calibration.md, "The floor")."""
 
     def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
         # independent pair priors: a pair's columns already hold its time-correlated error
         layout, prior = bias_layout(config, team=False, nodes=False)
         self.calibration = calibration_layout(config)
+        if self.reference_rate and self.calibration.heading:
+            self.calibration = replace(self.calibration, reference_rate=True)
         super().__init__(config, layout, seed=seed)
         self.method = method
         self.watchdog.range_model = self.range_model  # judged with the noise this filter assumes
