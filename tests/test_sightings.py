@@ -265,11 +265,13 @@ def test_odometry_integration_follows_arcs() -> None:
 def test_the_first_300_s_of_mrclam_dataset_6_from_the_uniform_prior(shared_data: Path) -> None:
     """The shipped config (headings and scales estimated) on the real data, cut to 300 s and
     200 Gaussians after a 5 000-particle start, without the heading split, seed 0: every
-    robot's body-frame median within 0.21 m (measured 0.13-0.20 m), and the odometry scales
-    below 1 on average (measured 0.982; Vicon says 0.94, the Creates drive 4-9 % less than
-    their commands; reading a sighting's range as scale times distance gave 1.023; with the
-    split's resampling 1.011, so this check of the rows runs without it). Figures of the whole
-    run: docs/explanation/mrclam.md."""
+    robot's body-frame median within 0.24 m and their mean within 0.18 m (measured
+    0.125-0.229 m, mean 0.172; seeds 1-2 alike; before the scales were held to their interval
+    and heading corrections turned them 0.126-0.198, mean 0.171: robot1 lost what robot4
+    gained), and the odometry scales below 1 on average (measured 0.951; Vicon says 0.94, the
+    Creates drive 4-9 % less than their commands; before 0.984; reading a sighting's range as
+    scale times distance gave 1.023; with the split's resampling 1.011, so this check of the
+    rows runs without it). Figures of the whole run: docs/explanation/mrclam.md."""
     import itertools
 
     from relloc.engine import Engine
@@ -295,9 +297,10 @@ def test_the_first_300_s_of_mrclam_dataset_6_from_the_uniform_prior(shared_data:
     )
     body = report.methods["pf"].body_frame
     assert set(body) == {"robot1", "robot3", "robot4", "robot5"}
-    assert all(s.n > 900 and s.median < 0.21 for s in body.values()), {
+    assert all(s.n > 900 and s.median < 0.24 for s in body.values()), {
         r: (s.n, s.median) for r, s in body.items()
     }
+    assert float(np.mean([s.median for s in body.values()])) < 0.18
     scales = [v[0] for v in pipeline.estimates[-1].scales.values()]
     assert float(np.mean(scales)) < 1.0
 
