@@ -170,3 +170,34 @@ def test_a_shift_is_scored_against_what_the_data_could_move_it() -> None:
     assert shift_score(0.0, 0.05**2, 0.03, 0.04) == pytest.approx(0.03 / 0.03)
     # a posterior as wide as its prior moved by nothing the data said: floored, not infinite
     assert shift_score(0.0, 0.05**2, 0.01, 0.05) == pytest.approx(0.01 / 0.005)
+
+
+def test_a_restart_keeps_what_the_run_taught_of_the_biases() -> None:
+    """The smoother restarted mid-run (as on an inconsistency) starts from the biases'
+    posterior, not from their prior."""
+    from relloc.engine import Engine
+    from relloc.estimators.smoother.localizer import SmootherLocalizer
+    from relloc.events import OdometryEvent
+    from relloc.methods import build_pipeline
+
+    sim = multi_scenario(seed=0, duration=20.0)
+    config = dataclasses.replace(sim.config, uwb=dataclasses.replace(sim.config.uwb, pairs={}))
+    for robot in config.robot_names:
+        config = config.with_robot(robot, odom_topic="")
+    config = config.with_filter(kind="smoother").with_modes(bias="online")
+    pipeline = build_pipeline("pf", config)
+    Engine([pipeline]).run(e for e in sim.events() if not isinstance(e, OdometryEvent))
+    loc = pipeline.localizer
+    assert isinstance(loc, SmootherLocalizer) and loc.smoother is not None
+    before = loc.smoother.biases.copy()
+    std = loc.smoother.bias_std()
+    prior = loc._bias_prior
+    assert np.sqrt(prior.variance).min() > 0.3  # the team offset's width is in every pair
+    loc._recover(loc.t)
+    assert loc.stats["smoother_biases_carried"] == 1
+    carried = loc._bias_prior
+    assert np.allclose(carried.marginal_mean, before)
+    # each pair's carried width is its posterior's order, not the prior's 0.34 m
+    assert np.all(np.sqrt(carried.variance) < 2.0 * std + 0.01)
+    assert loc.smoother is not None
+    assert np.abs(loc.smoother.biases - before).max() < 0.05

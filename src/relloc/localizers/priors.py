@@ -52,6 +52,37 @@ class BiasPrior:
     """``A`` ``(B, L)``: 1 where pair ``j`` shares offset ``l``."""
     latent_sigma: FloatArray
     """Each shared offset's prior std ``(L,)``."""
+    latent_mean: FloatArray | None = None
+    """Each shared offset's prior mean ``(L,)`` (``None``: 0; a carried posterior has one)."""
+
+    @property
+    def offset_mean(self) -> FloatArray:
+        """Each shared offset's prior mean ``(L,)``."""
+        return np.zeros(self.latent_sigma.size) if self.latent_mean is None else self.latent_mean
+
+    @property
+    def marginal_mean(self) -> FloatArray:
+        """Each bias's prior mean ``(B,)``: ``mean + A offset_mean``."""
+        return self.mean + self.loading @ self.offset_mean
+
+    def carried(self, biases: FloatArray, offsets: FloatArray, joint: FloatArray) -> BiasPrior:
+        """The posterior of the biases ``(B,)`` and shared offsets ``(L,)`` with their joint
+        covariance ``(B + L, B + L)`` as the prior of a restart, so that what the run taught is
+        not forgotten: each offset at its estimate, each pair's deviation ``b - A v`` at its
+        estimate, with their marginal stds (their correlations dropped)."""
+        nb = self.mean.size
+        pick = np.hstack([np.eye(nb), -self.loading])  # d + mean = b - A v
+        dev_var = np.einsum("ij,jk,ik->i", pick, joint, pick)
+        off_var = np.diag(joint)[nb:]
+        return BiasPrior(
+            self.pairs,
+            biases - self.loading @ offsets,
+            np.sqrt(np.maximum(dev_var, 1e-12)),
+            self.latents,
+            self.loading,
+            np.sqrt(np.maximum(off_var, 1e-12)),
+            np.asarray(offsets, float),
+        )
 
     @property
     def covariance(self) -> FloatArray:
@@ -69,7 +100,7 @@ class BiasPrior:
     def flat(self) -> list[float]:
         """(mean, marginal variance) per pair, the columns of a belief at the prior."""
         out = np.empty(2 * self.mean.size)
-        out[0::2], out[1::2] = self.mean, self.variance
+        out[0::2], out[1::2] = self.marginal_mean, self.variance
         return out.tolist()
 
     def beliefs(self, rng: np.random.Generator, m: int) -> FloatArray:
@@ -77,7 +108,7 @@ class BiasPrior:
         offsets; its beliefs are the pairs' own deviations about them (mean, variance)."""
         out = np.empty((m, 2 * self.mean.size))
         v = rng.standard_normal((m, self.latent_sigma.size)) * self.latent_sigma
-        out[:, 0::2] = self.mean + v @ self.loading.T
+        out[:, 0::2] = self.mean + (self.offset_mean + v) @ self.loading.T
         out[:, 1::2] = self.sigma**2
         return out
 

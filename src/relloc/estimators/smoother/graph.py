@@ -246,23 +246,27 @@ class GraphSmoother:
         prior = self.prior
         if prior is None:
             return
-        for key, sd in zip(self.offset_keys, prior.latent_sigma.tolist(), strict=True):
+        rows_v = zip(
+            self.offset_keys, prior.offset_mean.tolist(), prior.latent_sigma.tolist(), strict=True
+        )
+        for key, m0, sd in rows_v:
             noise = gtsam.noiseModel.Isotropic.Sigma(1, sd)
-            graph.add(gtsam.PriorFactorVector(key, np.zeros(1), noise))
-            values.insert(key, np.zeros(1))
+            graph.add(gtsam.PriorFactorVector(key, np.array([m0]), noise))
+            values.insert(key, np.array([m0]))
             stamps.insert((key, t))
         rows = zip(
             self.bias_keys,
             prior.mean.tolist(),
+            prior.marginal_mean.tolist(),
             prior.sigma.tolist(),
             prior.loading > 0,
             strict=True,
         )
-        for key, m, sd, shares in rows:
+        for key, m, start, sd, shares in rows:
             noise = gtsam.noiseModel.Isotropic.Sigma(1, sd)
             offsets = [k for k, on in zip(self.offset_keys, shares.tolist(), strict=True) if on]
             graph.add(gtsam.CustomFactor(noise, [key, *offsets], _deviation(m)))
-            values.insert(key, np.array([m]))
+            values.insert(key, np.array([start]))
             stamps.insert((key, t))
 
     def _ranges(
@@ -356,6 +360,11 @@ class GraphSmoother:
         """Std of each online bias (the window's marginal), ``(B,)``."""
         tail = np.diag(self._window_joint())[2 * self.n : 2 * self.n + len(self.bias_keys)]
         return np.sqrt(np.maximum(tail, 0.0))
+
+    def bias_joint(self) -> FloatArray:
+        """The joint covariance of the online biases and then the shared offsets (the
+        window's marginal) ``(B + L, B + L)``."""
+        return self._window_joint()[2 * self.n :, 2 * self.n :]
 
     def offset_estimates(self) -> tuple[list[float], list[float]]:
         """Each shared offset's estimate and std (the window's marginal)."""

@@ -26,11 +26,12 @@ the smoother's own frame). Without ranges: the relative positions chained from t
 the median time of the step's ranges, since nothing carries the motion past them.
 
 **Estimate**: each robot's latest key less the reference's, covariance from their joint
-marginal; online biases (a constant key per node pair and a team offset, the sampled
-filter's prior) from their marginals. GTSAM's ``RuntimeError`` or the watchdog's alarm restarts from the last
-``RESTART_WINDOW`` of ranges. Headings and odometry scales are not estimated. **Smoothed**
-(:meth:`SmootherLocalizer.smoothed_estimates`, after a run): each segment between restarts
-optimised at once, scored as the row ``<method>_smoothed``.
+marginal; online biases (a constant key per node pair, shared offsets:
+:class:`~relloc.localizers.priors.BiasPrior`) from their marginals. GTSAM's ``RuntimeError``
+or the watchdog's alarm restarts from the last ``RESTART_WINDOW`` of ranges, the online
+biases' posterior carried as their prior. Headings and odometry scales are not estimated.
+**Smoothed** (:meth:`SmootherLocalizer.smoothed_estimates`, after a run): each segment between
+restarts optimised at once, scored as the row ``<method>_smoothed``.
 """
 
 from __future__ import annotations
@@ -279,7 +280,7 @@ class SmootherLocalizer(SteppedLocalizer):
                 n,
                 self._ref_point,
                 self._points.with_rigid(terms),
-                self._bias_prior.mean,
+                self._bias_prior.marginal_mean,
                 odometry=self._framed(t),
             )
             if terms.size
@@ -356,6 +357,7 @@ class SmootherLocalizer(SteppedLocalizer):
         self.stats["smoother_restarts"] += 1
         self.watchdog.restart(t)
         if self._open is not None:
+            self._carry_biases(self._open.smoother)
             self._segments.append(self._open)
             self._open = None
         if not self._start_from(t, list(self._recent), [o for _, o in self._recent_rel]):
@@ -363,6 +365,22 @@ class SmootherLocalizer(SteppedLocalizer):
             return None
         self._started(t)
         return self._emit(t, self._estimate())
+
+    def _carry_biases(self, best: GraphSmoother) -> None:
+        """What the run taught of the online biases, kept across a restart: the last best
+        hypothesis's posterior becomes the prior (:meth:`BiasPrior.carried`); the prior stays
+        where that posterior cannot be had (the graph that failed)."""
+        if not self._bias_prior.pairs:
+            return
+        try:
+            offsets = np.array(best.offset_estimates()[0], float)
+            joint = best.bias_joint()
+        except (RuntimeError, ValueError, np.linalg.LinAlgError):
+            return
+        if not np.all(np.isfinite(joint)):
+            return
+        self._bias_prior = self._bias_prior.carried(best.biases, offsets, joint)
+        self.stats["smoother_biases_carried"] += 1
 
     def _own_motion(self, t: float) -> tuple[FloatArray, FloatArray]:
         """Each point's displacement since the last step ``(P, 2)`` and its per-axis std
