@@ -177,6 +177,10 @@ class RangeBatch(MeasurementModel):
     nodes: tuple[tuple[str, str], ...] = ()
     """Per range the tags (node ids) on robots ``index_a`` and ``index_b`` (a robot with
     several tags has a range per tag pair); ``()``: not known."""
+    arms: FloatArray | None = None
+    """Per range ``R(yaw_a) l_a - R(yaw_b) l_b`` ``(2, K)``: where the two tags sit off their
+    robots' positions in the shared heading frame (lever arms turned by the odometry yaws at
+    the batch), added to ``p_a - p_b``; ``None``: none, or the yaws are not known."""
 
     def __len__(self) -> int:
         return len(self.distance)
@@ -222,6 +226,7 @@ class RangeBatch(MeasurementModel):
             model_sigma.append(_model_sigma(group))
         idx = np.array(pairs, dtype=np.intp)
         dist_a, bias_a, sigma_a = np.array(dist), np.array(bias), np.array(sigma)
+        arms = _arms(context, idx, tags)
         online = [k in layout.bias_pairs for k in keys]
         belief = np.array(
             [
@@ -274,6 +279,7 @@ class RangeBatch(MeasurementModel):
                     state_columns=tuple(state[i] for i in rows) if any(state) else (),
                     layout=layout,
                     nodes=tuple(tags[i] for i in rows),
+                    arms=None if arms is None else arms[:, sel],
                 )
             )
         return out
@@ -325,8 +331,10 @@ class RangeBatch(MeasurementModel):
 
     # ---------------------------------------------------------------- sampled filter
     def predicted(self, positions: FloatArray) -> FloatArray:
-        """True distances of each particle's pairs, shape ``(K, M)``."""
+        """True distances of each particle's pairs (between their tags), shape ``(K, M)``."""
         d = np.take(positions, self.index_a, axis=1) - np.take(positions, self.index_b, axis=1)
+        if self.arms is not None:
+            d += self.arms[:, :, None]
         return geometry.norm(d, axis=0, overwrite=True)
 
     def _residual_and_sigma(
@@ -411,7 +419,8 @@ class RangeBatch(MeasurementModel):
         sb = self.layout.slot_of(int(self.index_b[k]))
         pa = mean[:, 2 * sa : 2 * sa + 2] if sa >= 0 else np.zeros((n, 2))
         pb = mean[:, 2 * sb : 2 * sb + 2] if sb >= 0 else np.zeros((n, 2))
-        dist, e = geometry.direction(pa - pb)
+        diff = pa - pb if self.arms is None else pa - pb + self.arms[:, k]
+        dist, e = geometry.direction(diff)
         cols: list[int] = []
         coefs: list[FloatArray] = []
         if sa >= 0:
@@ -433,3 +442,28 @@ class RangeBatch(MeasurementModel):
             self.outlier_fraction,
             self.max_range,
         )
+
+
+def _arms(context: ModelContext, pairs: IntArray, tags: list[tuple[str, str]]) -> FloatArray | None:
+    """Per range (team index pair, its tags) where the tags sit off the robots' positions in
+    the shared heading frame (:attr:`RangeBatch.arms`), from the odometry yaws of the batch;
+    ``None`` where no tag has a lever arm, the filter has no shared heading frame, or a robot
+    with an arm has no yaw (its tags are then taken at its position)."""
+    config = context.config
+    yaws = context.yaws
+    if not config.has_lever_arms or not context.shared_heading or yaws is None:
+        return None
+    robots = context.layout.robots
+    out = np.zeros((2, len(tags)))
+    for k, ((ia, ib), (na, nb)) in enumerate(zip(pairs.tolist(), tags, strict=True)):
+        for robot, node, sign in ((robots[ia], na, 1.0), (robots[ib], nb, -1.0)):
+            arm = config.lever_arm(node)
+            if arm[0] == 0.0 and arm[1] == 0.0:
+                continue
+            yaw = yaws.get(robot)
+            if yaw is None or not math.isfinite(yaw):
+                return None
+            c, s = math.cos(yaw), math.sin(yaw)
+            out[0, k] += sign * (c * arm[0] - s * arm[1])
+            out[1, k] += sign * (s * arm[0] + c * arm[1])
+    return out
