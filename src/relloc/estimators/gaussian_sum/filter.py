@@ -40,7 +40,7 @@ from relloc.filter.heading_split import split_headings
 from relloc.filter.measurement import MeasurementModel, robust_gaussian
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.resampling import mixture_moments
-from relloc.filter.summary import Evidence, summarize
+from relloc.filter.summary import Evidence, ModeSummary, summarize
 
 __all__ = ["CalibrationLayout", "CalibrationNoise", "GaussianSumFilter"]
 
@@ -558,18 +558,23 @@ class GaussianSumFilter(WeightedFilter):
             idx[:, None, None] + np.arange(2)[None, :, None],
             idx[:, None, None] + np.arange(2)[None, None, :],
         ]
-        summary = summarize(
-            rel,
-            self.weights(),
-            covs,
-            can_resolve=self.evidence.can_resolve,
-            floor=self.covariance_floor,
-        )
+        summary = self._summary(rel, covs)
         headings = {robot: self.heading(robot) for robot in lay.robots} if lay.heading else {}
         biases = {pair: self.bias(pair) for pair in lay.bias_pairs}
         scales = {robot: self.scale(robot) for robot in lay.robots} if lay.scale else {}
         return FilterEstimate(
             summary.mean, summary.cov, self.ess(), headings, biases, scales, summary
+        )
+
+    def _summary(self, rel: FloatArray, covs: FloatArray) -> ModeSummary:
+        """The mixture's honest summary of relative positions ``rel`` with covariances
+        ``covs`` (:func:`relloc.filter.summary.summarize`), in whichever frame they are."""
+        return summarize(
+            rel,
+            self.weights(),
+            covs,
+            can_resolve=self.evidence.can_resolve,
+            floor=self.covariance_floor,
         )
 
     def body_estimate(self, reference_yaw: float) -> FilterEstimate | None:
@@ -584,13 +589,7 @@ class GaussianSumFilter(WeightedFilter):
         rel, covs = to_body_frame(
             self.mean, self.cov, lay.n_others, lay.u_columns(lay.reference), reference_yaw
         )
-        summary = summarize(
-            rel,
-            self.weights(),
-            covs,
-            can_resolve=self.evidence.can_resolve,
-            floor=self.covariance_floor,
-        )
+        summary = self._summary(rel, covs)
         ref_mean, ref_std = self.heading(lay.reference)
         headings = {}
         for robot in lay.robots:
