@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 
 from relloc import geometry
 from relloc.config import ConfigError, RobotConfig, TagConfig, TeamConfig
-from relloc.engine import Engine
+from relloc.engine import Engine, Pipeline
 from relloc.estimate import BODY_FRAME, Estimate
 from relloc.evaluation.metric import MethodRun
 from relloc.evaluation.metrics import GroundTruth
@@ -153,13 +153,19 @@ def _shape_error(shape: dict[str, tuple[float, ...]], pos: FloatArray) -> float:
     return best
 
 
+def _ran(method: str, seed: int, tags: bool) -> tuple[Pipeline, FloatArray]:
+    """``method`` over :func:`_two_tag_team`, and the true positions."""
+    config, events, pos = _two_tag_team(seed, tags)
+    pipeline = build_pipeline(method, config)
+    Engine([pipeline]).run(iter(events))
+    return pipeline, pos
+
+
 def test_the_smoother_fits_each_robot_to_its_tags_and_never_claims_the_mirror_image() -> None:
     for seed in range(3):
         errors = {}
         for tags in (True, False):
-            config, events, pos = _two_tag_team(seed, tags)
-            pipeline = build_pipeline("pf", config)
-            Engine([pipeline]).run(iter(events))
+            pipeline, pos = _ran("pf", seed, tags)
             est = pipeline.estimates[-1]
             # ranges are the same for the formation and its mirror image: two tags per robot
             # turn it, not flip it, so nothing here may claim the orientation (or a heading)
@@ -175,9 +181,7 @@ def test_multilateration_solves_for_the_tags_and_fits_each_robot_to_them() -> No
     for seed in range(3):
         errors = {}
         for tags in (True, False):
-            config, events, pos = _two_tag_team(seed, tags)
-            pipeline = build_pipeline("multilateration", config)
-            Engine([pipeline]).run(iter(events))
+            pipeline, pos = _ran("multilateration", seed, tags)
             errors[tags] = np.median([_shape_error(e.positions, pos) for e in pipeline.estimates])
         # measured: 0.028 / 0.025 / 0.027 m with two tags a robot, 0.058 / 0.047 / 0.052 m with
         # one at each centre (the median over the run's estimates)

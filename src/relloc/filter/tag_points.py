@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from numpy.typing import NDArray
@@ -89,9 +90,14 @@ class TagPoints:
     def reference_point(self) -> int:
         return int(self.first[self.reference])
 
+    @cached_property
+    def _several(self) -> NDArray[np.bool_]:
+        """``(N,)``: each robot's having several points (tags)."""
+        return np.bincount(self.robot, minlength=self.first.size) >= 2
+
     def multi(self, robot: int) -> bool:
         """Whether ``robot`` has several points (tags)."""
-        return bool(np.count_nonzero(self.robot == robot) >= 2)
+        return bool(self._several[robot])
 
     @property
     def oriented(self) -> bool:
@@ -117,7 +123,7 @@ class TagPoints:
     def with_rigid(self, terms: RangeTerms) -> RangeTerms:
         """``terms`` (point indices) and the ranges that hold each robot's tags at their lever
         arms' distance."""
-        a, b, d = self.rigid()
+        a, b, d = self.rigid
         if not a.size:
             return terms
         return RangeTerms(
@@ -128,8 +134,10 @@ class TagPoints:
             np.concatenate([terms.bias, np.full(a.size, -1, np.intp)]),
         )
 
+    @cached_property
     def rigid(self) -> tuple[IntArray, IntArray, FloatArray]:
-        """Every two points of one robot and the distance of their lever arms."""
+        """Every two points of one robot and the distance of their lever arms (computed once:
+        every step of the smoother and of multilateration adds them)."""
         a, b, d = [], [], []
         for i in range(self.size):
             for j in range(i + 1, self.size):

@@ -58,7 +58,7 @@ class MultilaterationLocalizer(Localizer):
         if not fresh:
             self.stats["no_estimate"] += 1
             return None
-        rigid_a, rigid_b, rigid_d = pts.rigid()
+        rigid_a, rigid_b, rigid_d = pts.rigid
         keys = np.array([*fresh, *zip(rigid_a.tolist(), rigid_b.tolist(), strict=True)], np.intp)
         sol = multilateration.solve(
             pts.size,

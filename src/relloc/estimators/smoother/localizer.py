@@ -389,7 +389,7 @@ class SmootherLocalizer(SteppedLocalizer):
         known = np.array(
             [not math.isnan(self._anchor.get(r, (math.nan,))[0]) for r in self.layout.robots]
         )
-        yaw0 = np.array([self._anchor.get(r, (0.0, 0.0, 0.0))[2] for r in self.layout.robots])
+        yaw0 = None if self._points.identity else self._anchor_yaws()  # before the step
         disp, own, dt = self._motion_to(t)
         known &= np.array([math.isfinite(self.odometry.pose(r, t)[0]) for r in self.layout.robots])
         walk = np.where(known, PROCESS_NOISE**2 * dt + ODOMETRY_FLOOR**2, (UNKNOWN_SPEED * dt) ** 2)
@@ -399,12 +399,15 @@ class SmootherLocalizer(SteppedLocalizer):
         both = known[self._others] & known[ref]
         self._moved += np.where(both, np.hypot(rel[:, 0], rel[:, 1]), 0.0)
         disp = np.where(known[:, None], disp, 0.0)
-        if self._points.identity:
+        if yaw0 is None:
             return disp, sigma
         robot, arm = self._points.robot, self._points.arm
-        yaw1 = np.array([self._anchor.get(r, (0.0, 0.0, 0.0))[2] for r in self.layout.robots])
-        turned = _turned(arm, yaw1[robot]) - _turned(arm, yaw0[robot])
+        turned = _turned(arm, self._anchor_yaws()[robot]) - _turned(arm, yaw0[robot])
         return disp[robot] + np.where(known[robot][:, None], turned, 0.0), sigma[robot]
+
+    def _anchor_yaws(self) -> FloatArray:
+        """Each robot's odometry yaw at the last step (0 before its first odometry)."""
+        return np.array([self._anchor.get(r, (0.0, 0.0, 0.0))[2] for r in self.layout.robots])
 
     def _per_pair(
         self, ia: NDArray[np.intp], ib: NDArray[np.intp], z: FloatArray, s: FloatArray
