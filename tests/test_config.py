@@ -72,11 +72,21 @@ def test_the_minimal_team_loads(tmp_path: Path) -> None:
         ("[uwb]\ndefault_bias = inf", "default_bias: expected a finite number"),
         ("uwb = 3", "malformed config"),
         ('[[robots]]\nname = "c"\nodom_mode = "wheels"', "odom_mode: expected one of"),
+        ("dimension = 4", "dimension must be 2 or 3"),
+        ("dimension = 2.5", "dimension: expected an integer"),
     ],
 )
 def test_bad_values_are_config_errors(tmp_path: Path, extra: str, message: str) -> None:
     with pytest.raises(ConfigError, match=message.replace("[", r"\[").replace("+", r"\+")):
         _load(tmp_path, extra)
+
+
+def test_a_flying_team_says_so_and_a_ground_team_writes_no_dimension(tmp_path: Path) -> None:
+    flying = _load(tmp_path, "dimension = 3")
+    assert flying.dimension == 3
+    assert TeamConfig.from_dict(flying.to_dict()).dimension == 3
+    ground = _load(tmp_path, "")
+    assert ground.dimension == 2 and "dimension" not in ground.to_dict()
 
 
 def test_a_folder_is_not_a_config(tmp_path: Path) -> None:

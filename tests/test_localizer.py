@@ -11,7 +11,13 @@ from relloc.engine import Engine
 from relloc.estimators.particle.localizer import ParticleFilterLocalizer
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
-from relloc.events import GroundTruthEvent, OdometryEvent, RangeEvent, RelativeObservation
+from relloc.events import (
+    GroundTruthEvent,
+    HeightEvent,
+    OdometryEvent,
+    RangeEvent,
+    RelativeObservation,
+)
 from relloc.filter.measurement import ModelContext
 from relloc.filter.ranges import NLOS_FRACTION, RangeBatch
 from relloc.filter.state import StateLayout
@@ -86,14 +92,17 @@ def test_unknown_robots_and_bad_odometry_are_rejected_and_counted() -> None:
     loc.process(RangeEvent(1.0, "r0", "ghost", 2.0))
     loc.process(OdometryEvent(1.0, "ghost", 0.0, 0.0, 0.0))
     loc.process(OdometryEvent(1.0, "r1", math.nan, 0.0, 0.0))
+    loc.process(OdometryEvent(1.0, "r1", 0.0, 0.0, 0.0, z=math.inf))
+    loc.process(HeightEvent(1.0, "r1", 1.2))  # a 2D filter has no height: ignored, counted
     loc.process(RelativeObservation(1.0, "r0", "r1", (1.0, math.nan), 0.1))
     loc.process(RangeEvent(1.0, "r1", "r1", 2.0))
     assert loc.rejected == {
         "unknown_robot": 2,
-        "invalid_odometry": 1,
+        "invalid_odometry": 2,
         "invalid_relative_observation": 1,
         "self_range": 1,
     }
+    assert loc.stats["ignored_HeightEvent"] == 1
 
 
 def test_time_going_backwards_is_rejected_and_counted_without_crash() -> None:

@@ -17,6 +17,7 @@ Frames
 * ``SightingEvent`` carries a teammate seen in the observer's body frame (x forward, bearing
   counter-clockwise from x): a camera reading a teammate's marker, or a UWB radio's angle of
   arrival. Its noise is the source's (each sensor sets its own).
+* ``HeightEvent`` is a robot's height above the ground (a flying robot's range finder).
 * ``GroundTruthEvent`` is motion capture in the world frame, for evaluation only: the localizer
   ignores it.
 """
@@ -42,6 +43,9 @@ class OdometryEvent:
     """Forward speed along the body x axis (m/s)."""
     w: float = 0.0
     """Yaw rate (rad/s)."""
+    z: float = 0.0
+    """Height in the odometry frame (m, z up): a flying robot's odometry (VIO, a flight
+    controller's); 0 for a ground robot's."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -107,6 +111,19 @@ class GroundTruthEvent:
 
 
 @dataclass(frozen=True, slots=True)
+class HeightEvent:
+    """``robot``'s body origin at height ``z`` (m) above the team's ground plane (world z, up):
+    a downward range finder or a barometer referenced to the ground. Only a 3D estimator
+    fuses it; a 2D one counts it as ignored."""
+
+    t: float
+    robot: str
+    z: float
+    sigma: float = 0.05
+    """The sensor's noise (m)."""
+
+
+@dataclass(frozen=True, slots=True)
 class RelativeObservation:
     """A measured relative position ``p_target - p_observer`` in the shared heading frame.
 
@@ -145,6 +162,7 @@ Event = (
     | RangeEvent
     | DetectionEvent
     | GroundTruthEvent
+    | HeightEvent
     | RelativeObservation
     | SightingEvent
 )

@@ -87,6 +87,9 @@ class TeamConfig(Checked):
     """The robots' ROS 2 distribution (``humble``, ``iron``, ``jazzy``, ``kilted``, ``lyrical``,
     ``rolling``; ``--ros-distro`` overrides it): the message layouts and type hashes relloc
     publishes live (``relloc.ros.distros``; received messages of any known layout are read)."""
+    dimension: int = 2
+    """The space the robots move in: 2 (ground robots, ``x, y``) or 3 (flying robots,
+    ``x, y, z``: positions in 3D, yaw about z, roll and pitch taken as level)."""
     sensors: dict[str, dict[str, Any]] = field(default_factory=dict)
     """One raw ``[sensors.<kind>]`` table per sensor plug-in, parsed and checked by the plug-in's
     descriptor (:mod:`relloc.sensors`; a table of no registered sensor is a ``ConfigError``)."""
@@ -113,6 +116,8 @@ class TeamConfig(Checked):
         arms = {len(t.lever_arm) for r in self.robots for t in r.tags}
         if len(arms) > 1:
             raise ConfigError("every tag's lever_arm has the same dimension (2 or 3)")
+        if self.dimension not in (2, 3):
+            raise ConfigError(f"dimension must be 2 or 3, got {self.dimension!r}")
 
     @property
     def robot_names(self) -> tuple[str, ...]:
@@ -291,6 +296,8 @@ class TeamConfig(Checked):
         d["uwb"]["pairs"] = {k: drop_none(asdict(v)) for k, v in self.uwb.pairs.items()}
         if not self.sensors:
             del d["sensors"]
+        if self.dimension == 2:  # the default: configs of ground teams stay as they were
+            del d["dimension"]
         return drop_none(d)
 
     def to_toml(self) -> str:

@@ -34,7 +34,14 @@ from typing import Any
 
 from relloc.config import TeamConfig
 from relloc.estimate import Estimate
-from relloc.events import DetectionEvent, Event, GroundTruthEvent, OdometryEvent, WakeRule
+from relloc.events import (
+    DetectionEvent,
+    Event,
+    GroundTruthEvent,
+    HeightEvent,
+    OdometryEvent,
+    WakeRule,
+)
 from relloc.filter.measurement import MeasurementModel, finite
 from relloc.filter.registry import model_for
 from relloc.filter.state import StateLayout, TeamLayout
@@ -50,9 +57,10 @@ Measurement = Any
 ESTIMATE_PERIOD = 0.1
 """Estimates are emitted at this period (s), the grid's."""
 
-_UNFUSED = (GroundTruthEvent, DetectionEvent)
-"""Events of the vocabulary no localizer fuses: ground truth (for evaluation), raw detections
-(the association stage's input). Ignored and counted, never rejected."""
+_UNFUSED = (GroundTruthEvent, DetectionEvent, HeightEvent)
+"""Events of the vocabulary no localizer fuses through a measurement model: ground truth (for
+evaluation), raw detections (the association stage's input), heights (a 3D estimator takes
+them itself; a 2D one has no height). Ignored and counted, never rejected."""
 
 
 class Localizer:
@@ -250,7 +258,7 @@ class Localizer:
         assert isinstance(event, OdometryEvent)  # the only event without a model
         if event.robot not in self.layout.robots:
             return "unknown_robot"
-        if not all(map(finite, (event.x, event.y, event.yaw, event.v, event.w))):
+        if not all(map(finite, (event.x, event.y, event.yaw, event.v, event.w, event.z))):
             return "invalid_odometry"
         return None  # the time checks come after (the team clock, then the track's order)
 

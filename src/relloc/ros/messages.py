@@ -176,6 +176,7 @@ def odometry_to_event(msg: Any, robot: str, *, t: float | None = None) -> Odomet
         yaw=yaw_from_quaternion(pose.orientation),
         v=float(twist.linear.x),
         w=float(twist.angular.z),
+        z=float(pose.position.z),
     )
 
 
