@@ -27,6 +27,7 @@ from relloc.simulator.error_models import (
     SightingSensorModel,
     UwbErrorModel,
 )
+from relloc.simulator.flight import drones_scenario, drones_uwb_scenario
 from relloc.simulator.kinematics import (
     RobotMotion,
     SimObject,
@@ -460,8 +461,11 @@ SCENARIOS: dict[str, Callable[..., Simulation]] = {
     "static": static_scenario,
     "static_then_move": static_then_move_scenario,
     "grid": grid_scenario,
+    "drones": drones_scenario,
+    "drones_uwb": drones_uwb_scenario,
 }
 """The open-loop scenarios by name, each called as ``scenario(seed, **options)`` (``nav`` is
 closed-loop and run apart). ``static`` and ``static_then_move`` show how the estimate reports an
 unobservable orientation; ``grid`` is the scaling scenario (``robots=N``); ``tags`` and
-``tags_odometry`` give every robot two UWB tags."""
+``tags_odometry`` give every robot two UWB tags; ``drones`` and ``drones_uwb`` are a flying team
+in 3D, with and without odometry and heights (:mod:`relloc.simulator.flight`)."""
