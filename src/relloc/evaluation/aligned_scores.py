@@ -9,6 +9,9 @@ Two metrics, JSON only, for every unaligned method (the filters, the smoother):
   orientation is observable and on the published shape where it is not;
   ``step_aligned_ape_median``. Where nothing observes the formation's orientation it is a gauge
   at every instant: this compares estimators of such a team without charging that gauge's drift.
+
+For a flying team's 3D estimates both fit a rotation/reflection about z only (the x-y gauge;
+heights are measured, z is up for all): :func:`relloc.evaluation.metrics.orthogonal_procrustes`.
 """
 
 from __future__ import annotations

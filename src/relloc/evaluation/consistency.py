@@ -2,7 +2,8 @@
 
 Each estimate that carries a covariance is scored in its own frame (as
 :func:`relloc.evaluation.metrics.associate` pairs it): ``NEES = e^T C^-1 e`` of its position
-error ``e`` and covariance ``C``, 2 degrees of freedom.
+error ``e`` and covariance ``C``, as many degrees of freedom as the position has dimensions
+(2, or 3 for a flying team's estimates).
 """
 
 from __future__ import annotations
@@ -19,21 +20,27 @@ from relloc.evaluation.metrics import FloatArray, GroundTruth, truth_in_frame
 CHI2_2D_95 = 5.991464547107979
 """95 % quantile of the chi-square distribution with 2 degrees of freedom: the squared
 Mahalanobis radius of a 2D 95 % ellipse."""
+CHI2_3D_95 = 7.814727903251179
+"""The same with 3 degrees of freedom: a 3D 95 % ellipsoid."""
+CHI2_95 = {2: CHI2_2D_95, 3: CHI2_3D_95}
+"""The 95 % quantile by degrees of freedom (the positions' dimension)."""
 
 
 @dataclass
 class Consistency:
     """Whether the published covariances cover the error: per estimate the normalised
-    estimation error squared ``NEES = e^T C^-1 e`` (2 degrees of freedom: mean 2 for a
-    consistent filter) and whether the truth lies in the 95 % ellipse (``NEES <= 5.99``)."""
+    estimation error squared ``NEES = e^T C^-1 e`` (``dof`` degrees of freedom, the positions'
+    dimension: mean ``dof`` for a consistent filter) and whether the truth lies in the 95 %
+    ellipse (``NEES <= 5.99`` in 2D) or ellipsoid (``NEES <= 7.81`` in 3D)."""
 
     t: FloatArray
     nees: FloatArray
+    dof: int = 2
 
     @property
     def coverage(self) -> float:
-        """Fraction of the estimates whose 95 % ellipse holds the truth."""
-        return float(np.mean(self.nees <= CHI2_2D_95)) if self.nees.size else math.nan
+        """Fraction of the estimates whose 95 % ellipse (ellipsoid) holds the truth."""
+        return float(np.mean(self.nees <= CHI2_95[self.dof])) if self.nees.size else math.nan
 
     @property
     def nees_median(self) -> float:
@@ -56,7 +63,7 @@ def consistency(
     Methods without covariances (multilateration) get none."""
     out: dict[str, Consistency] = {}
     for robot in robots:
-        t, nees = [], []
+        t, nees, dof = [], [], 2
         for est in estimates:
             if est.t < t_start or robot not in est.positions or robot not in est.covariances:
                 continue
@@ -69,6 +76,7 @@ def consistency(
                 continue
             t.append(est.t)
             nees.append(float(e @ np.linalg.solve(cov, e)))
+            dof = len(e)
         if t:
-            out[robot] = Consistency(np.array(t), np.array(nees))
+            out[robot] = Consistency(np.array(t), np.array(nees), dof)
     return out

@@ -40,7 +40,8 @@ def body_frame_paired(
     reference_yaws: Iterable[tuple[float, float]],
 ) -> dict[str, Paired]:
     """Every robot's estimated position in the *reference robot's body frame* (where robot j
-    is as the reference would see it: x forward, y left) paired with the same in the truth.
+    is as the reference would see it: x forward, y left; in 3D its yaw-only frame, z up, the
+    height difference kept) paired with the same in the truth.
 
     This is the gauge-free relative position: no shared heading frame, no alignment. The
     estimate's frame turns into the body frame by the reference's heading in it, its odometry
@@ -58,7 +59,7 @@ def body_frame_paired(
             body = est.frame == BODY_FRAME  # already in the body frame
             if robot not in est.positions or (est.t not in yaw_at and not body):
                 continue
-            truth = gt.relative_at(robot, est.t)
+            truth = gt.relative_at(robot, est.t, est.dimension)
             pose = gt.pose_at(ref, est.t)
             if truth is None or pose is None:
                 continue
@@ -71,7 +72,8 @@ def body_frame_paired(
             e.append(_to_body(est.positions[robot], heading))
             g.append(_to_body(truth, pose[2]))
             s.append(est.std(robot))
+        dim = len(e[0]) if e else 2
         out[robot] = Paired(
-            np.array(t), np.array(e).reshape(-1, 2), np.array(g).reshape(-1, 2), np.array(s)
+            np.array(t), np.array(e).reshape(-1, dim), np.array(g).reshape(-1, dim), np.array(s)
         )
     return out

@@ -4,11 +4,14 @@ Definitions follow evo (MichaelGrupp/evo), applied to *relative* positions:
 
 * **APE** of robot ``i`` at an estimate time ``t``: ``|| p_hat_i(t) - (g_i(t) - g_ref(t)) ||``
   where ``g`` is the motion-capture position interpolated at ``t`` (linear, only across gaps
-  shorter than ``max_gap``), in the frame the estimate names (the shared heading frame, or the reference's body frame). Reported as median, mean, RMSE, std
+  shorter than ``max_gap``), in the frame the estimate names (the shared heading frame, or the
+  reference's body frame: yaw-only in 3D) and of its dimension (the height difference too for
+  3D estimates, a Euclidean 3D error). Reported as median, mean, RMSE, std
   and max over the estimates after a warm-up window. The particle filter is never aligned.
 * **ATE** of a trajectory: the APE RMSE after aligning the whole estimated relative trajectory
   of one robot to ground truth with one rigid 2-D transform (rotation + translation, Umeyama /
-  Kabsch, no scale): it measures the shape of the path, forgiving a constant offset.
+  Kabsch, no scale): it measures the shape of the path, forgiving a constant offset. In 3D
+  (a flying team's estimates, z up) the rotation is a yaw about z and the translation 3D.
 * **Multilateration** knows the formation only up to rotation and reflection: its fair figure
   uses *one* orthogonal transform (rotation or reflection about the reference) fitted to the
   whole run (``align="run"``); the per-step fit (``align="step"``) is an oracle that uses
@@ -45,17 +48,20 @@ class GroundTruth:
         self.max_gap = max_gap
         self._t: dict[str, list[float]] = {}
         self._xy: dict[str, list[tuple[float, float, float]]] = {}
+        self._z: dict[str, list[float]] = {}
         self._sorted = True
 
     def add(self, ev: GroundTruthEvent) -> None:
-        """Add one motion-capture pose; the evaluation is planar: a position's height (its
-        third entry, where the source keeps it) is not used."""
+        """Add one motion-capture pose; its height (a position's third entry, where the source
+        keeps it) is kept apart, read only for 3D estimates (:meth:`relative_at`); a track
+        without heights lies in the ground plane (height 0)."""
         ts = self._t.setdefault(ev.robot, [])
         if ts and ev.t < ts[-1]:
             self._sorted = False
         ts.append(ev.t)
         x, y = ev.position[0], ev.position[1]
         self._xy.setdefault(ev.robot, []).append((x, y, ev.yaw))
+        self._z.setdefault(ev.robot, []).append(ev.position[2] if len(ev.position) > 2 else 0.0)
 
     def _sort(self) -> None:
         if self._sorted:
@@ -64,34 +70,59 @@ class GroundTruth:
             order = np.argsort(self._t[r], kind="stable")
             self._t[r] = [self._t[r][i] for i in order]
             self._xy[r] = [self._xy[r][i] for i in order]
+            self._z[r] = [self._z[r][i] for i in order]
         self._sorted = True
 
     @property
     def robots(self) -> list[str]:
         return list(self._t)
 
-    def pose_at(self, robot: str, t: float) -> tuple[float, float, float] | None:
-        """World pose ``(x, y, yaw)`` at ``t``, or None outside the track or across a long gap."""
+    def _bracket(self, robot: str, t: float) -> tuple[int, int, float] | None:
+        """The samples ``(a, b)`` around ``t`` and the fraction of the way from ``a`` to ``b``;
+        None outside the track or across a gap over ``max_gap``."""
         self._sort()
         ts = self._t.get(robot)
         if not ts or t < ts[0] or t > ts[-1]:
             return None
         i = bisect.bisect_left(ts, t)
         if ts[i] == t:
-            return self._xy[robot][i]
+            return i, i, 0.0
         a, b = i - 1, i
         if ts[b] - ts[a] > self.max_gap:
             return None
-        f = (t - ts[a]) / (ts[b] - ts[a])
+        return a, b, (t - ts[a]) / (ts[b] - ts[a])
+
+    def pose_at(self, robot: str, t: float) -> tuple[float, float, float] | None:
+        """World pose ``(x, y, yaw)`` at ``t``, or None outside the track or across a long gap."""
+        found = self._bracket(robot, t)
+        if found is None:
+            return None
+        a, b, f = found
+        if a == b:
+            return self._xy[robot][a]
         (xa, ya, wa), (xb, yb, wb) = self._xy[robot][a], self._xy[robot][b]
         return xa + f * (xb - xa), ya + f * (yb - ya), wa + f * math.remainder(wb - wa, math.tau)
 
-    def relative_at(self, robot: str, t: float) -> tuple[float, float] | None:
-        """``g_robot(t) - g_reference(t)`` in the world frame, or None if either is unknown."""
+    def height_at(self, robot: str, t: float) -> float | None:
+        """World height ``z`` at ``t`` (0 for a track without heights), or None as :meth:`pose_at`."""
+        found = self._bracket(robot, t)
+        if found is None:
+            return None
+        a, b, f = found
+        za, zb = self._z[robot][a], self._z[robot][b]
+        return za if a == b else za + f * (zb - za)
+
+    def relative_at(self, robot: str, t: float, dimension: int = 2) -> tuple[float, ...] | None:
+        """``g_robot(t) - g_reference(t)`` in the world frame, ``(dx, dy)`` or, for
+        ``dimension`` 3, ``(dx, dy, dz)``; None if either is unknown."""
         p, q = self.pose_at(robot, t), self.pose_at(self.reference, t)
         if p is None or q is None:
             return None
-        return p[0] - q[0], p[1] - q[1]
+        if dimension == 2:
+            return p[0] - q[0], p[1] - q[1]
+        zp, zq = self.height_at(robot, t), self.height_at(self.reference, t)
+        assert zp is not None and zq is not None  # known wherever the pose is
+        return p[0] - q[0], p[1] - q[1], zp - zq
 
     def trajectory(self, robot: str) -> tuple[FloatArray, FloatArray]:
         self._sort()
@@ -124,7 +155,8 @@ class ApeStats:
 
 @dataclass
 class Paired:
-    """Estimates of one robot associated with ground truth: times, estimates, truths (K, 2)."""
+    """Estimates of one robot associated with ground truth: times, estimates, truths (K, D),
+    ``D`` the estimates' dimension (2, or 3 for a flying team)."""
 
     t: FloatArray
     est: FloatArray
@@ -143,7 +175,8 @@ def associate(
     rotation: float = 0.0,
 ) -> dict[str, Paired]:
     """Pair every estimate of every robot with interpolated relative ground truth, in the
-    estimate's frame (:func:`truth_in_frame`; ``rotation``: that of its heading frame)."""
+    estimate's frame (:func:`truth_in_frame`; ``rotation``: that of its heading frame) and of
+    its dimension."""
     out: dict[str, Paired] = {}
     for robot in robots:
         t, e, g, s = [], [], [], []
@@ -157,20 +190,22 @@ def associate(
             e.append(est.positions[robot])
             g.append(truth)
             s.append(est.std(robot))
+        dim = len(e[0]) if e else 2
         out[robot] = Paired(
-            np.array(t), np.array(e).reshape(-1, 2), np.array(g).reshape(-1, 2), np.array(s)
+            np.array(t), np.array(e).reshape(-1, dim), np.array(g).reshape(-1, dim), np.array(s)
         )
     return out
 
 
 def truth_in_frame(
     est: Estimate, gt: GroundTruth, robot: str, rotation: float = 0.0
-) -> tuple[float, float] | None:
+) -> tuple[float, ...] | None:
     """``robot``'s true position relative to the reference at ``est.t`` in the frame the
-    estimate is in (:attr:`Estimate.frame`): the reference's body frame (turned by its
-    motion-capture yaw then), or the heading frame, the world turned by ``rotation`` (rad; the
-    compass frame: 0). ``None`` where the truth is unknown."""
-    truth = gt.relative_at(robot, est.t)
+    estimate is in (:attr:`Estimate.frame`) and of its dimension: the reference's body frame
+    (turned by its motion-capture yaw then; in 3D the yaw-only frame, z up, the height
+    difference kept), or the heading frame, the world turned by ``rotation`` (rad; the compass
+    frame: 0). ``None`` where the truth is unknown."""
+    truth = gt.relative_at(robot, est.t, est.dimension)
     if truth is None:
         return None
     if est.frame == BODY_FRAME:
@@ -180,28 +215,40 @@ def truth_in_frame(
         rotation = pose[2]
     if rotation == 0.0:
         return truth
-    x, y = _to_body(truth, rotation)
-    return x, y
+    return _to_body(truth, rotation)
 
 
 def orthogonal_procrustes(src: FloatArray, dst: FloatArray) -> FloatArray:
-    """The 2x2 orthogonal matrix (rotation or reflection) minimising ``||src R^T - dst||``."""
-    u, _, vt = np.linalg.svd(dst.T @ src)
-    return u @ vt
+    """The orthogonal matrix minimising ``||src R^T - dst||`` of points ``(K, D)``: in 2D any
+    rotation or reflection; in 3D one about z only (a yaw, or a mirror of x-y), z kept, since
+    heights are measured (z is up for the whole team) and only the x-y gauge is free."""
+    u, _, vt = np.linalg.svd(dst[:, :2].T @ src[:, :2])
+    return _about_z(u @ vt, src.shape[1])
 
 
 def umeyama_se2(src: FloatArray, dst: FloatArray) -> tuple[FloatArray, FloatArray]:
-    """Rotation R (proper) and translation t minimising ``||src R^T + t - dst||``."""
+    """Rotation R (proper) and translation t minimising ``||src R^T + t - dst||`` of points
+    ``(K, D)``: in 3D R is a yaw about z (the x-y fit, z kept) and t is 3D."""
     mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
-    h = (dst - mu_d).T @ (src - mu_s)
+    h = (dst - mu_d)[:, :2].T @ (src - mu_s)[:, :2]
     u, _, vt = np.linalg.svd(h)
     d = np.sign(np.linalg.det(u @ vt))
-    r = u @ np.diag([1.0, d]) @ vt
+    r = _about_z(u @ np.diag([1.0, d]) @ vt, src.shape[1])
     return r, mu_d - r @ mu_s
 
 
+def _about_z(r2: FloatArray, dimension: int) -> FloatArray:
+    """The 2x2 ``r2`` acting on x-y of a ``dimension``-D point (itself in 2D), z kept."""
+    if dimension == 2:
+        return r2
+    r = np.eye(dimension)
+    r[:2, :2] = r2
+    return r
+
+
 def align(paired: dict[str, Paired], mode: str) -> dict[str, Paired]:
-    """Align estimates about the reference: ``"run"`` one orthogonal map, ``"step"`` one per time."""
+    """Align estimates about the reference: ``"run"`` one orthogonal map, ``"step"`` one per
+    time (:func:`orthogonal_procrustes`: about z only in 3D)."""
     if mode == "none":
         return paired
     if mode == "run":
@@ -228,7 +275,8 @@ def align(paired: dict[str, Paired], mode: str) -> dict[str, Paired]:
 
 
 def ate(p: Paired) -> float:
-    """ATE (RMSE) of one robot's relative trajectory after one SE(2) alignment."""
+    """ATE (RMSE) of one robot's relative trajectory after one SE(2) alignment (in 3D a yaw
+    about z and a 3D translation: :func:`umeyama_se2`)."""
     if len(p.t) < 2:
         return math.nan
     r, t = umeyama_se2(p.est, p.gt)

@@ -99,7 +99,9 @@ def _draw_panel(
     ax: Axes, pairs: dict[str, Paired], colors: dict[str, tuple[float, ...]], name: str
 ) -> None:
     """The truth (thick lines), the estimates inside the limits (dots, gid ``estimate``) and
-    those outside at the edge (crosses, gid ``estimate_clipped``) with a count per robot."""
+    those outside at the edge (crosses, gid ``estimate_clipped``) with a count per robot; 3D
+    pairs in plan view (x, y)."""
+    pairs = {r: Paired(p.t, p.est[:, :2], p.gt[:, :2], p.std) for r, p in pairs.items()}
     finite = {r: np.all(np.isfinite(p.est), axis=1) for r, p in pairs.items()}
     truth = np.concatenate([np.zeros((1, 2)), *(p.gt for p in pairs.values())])
     lo, hi = _limits(truth, np.concatenate([p.est[finite[r]] for r, p in pairs.items()]))

@@ -17,14 +17,16 @@ from __future__ import annotations
 
 import math
 import sys
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+import numpy as np
 from rich.console import Console
 from rich.table import Table
 
 from relloc.engine import Engine
-from relloc.estimate import BODY_FRAME, HEADING_FRAME
+from relloc.estimate import BODY_FRAME, HEADING_FRAME, Estimate
 from relloc.evaluation import (  # noqa: F401 (registers)
     aligned_scores,
     scores,
@@ -33,7 +35,14 @@ from relloc.evaluation import (  # noqa: F401 (registers)
 )
 from relloc.evaluation.consistency import Consistency
 from relloc.evaluation.metric import METRICS, Column, MethodRun, MetricResult
-from relloc.evaluation.metrics import ApeStats, GroundTruth, Paired, align, associate
+from relloc.evaluation.metrics import (
+    ApeStats,
+    FloatArray,
+    GroundTruth,
+    Paired,
+    align,
+    associate,
+)
 from relloc.evaluation.selfcal_metrics import HeadingPaired, odometry_frame_rotation
 
 R = TypeVar("R", bound=MetricResult)
@@ -61,6 +70,9 @@ class MethodReport:
     hold it; an aligned method's (multilateration) as scored."""
     published_frames: tuple[str, ...] = ()
     """The ROS frame ids of what the method published, in order of first use."""
+    published_yaws: dict[str, FloatArray] = field(default_factory=dict, repr=False)
+    """Per robot, the yaw (rad) published at each time of :attr:`published` (NaN where none):
+    of 3D estimates only (:func:`published_yaws`), what their TUM files' quaternions carry."""
 
     def result(self, kind: type[R]) -> R | None:
         """The result of type ``kind``, if a metric produced one."""
@@ -237,8 +249,27 @@ def evaluate(
                 frame=estimates[-1].frame if estimates else HEADING_FRAME,
                 published=run.published,
                 published_frames=tuple(dict.fromkeys(e.frame_id for e in run.shown)),
+                published_yaws=published_yaws(run.shown, run.published),
             )
     return ScenarioReport(name, warmup, duration, methods, t0, truth.reference, truth_name)
+
+
+def published_yaws(
+    shown: Sequence[Estimate], published: dict[str, Paired]
+) -> dict[str, FloatArray]:
+    """Per robot with any, the yaw of the 3D estimates among ``shown`` (:attr:`Estimate.yaws`,
+    its mean) at each time of its ``published`` pairs, NaN where the estimate has none. A 2D
+    estimate gives none: its TUM files stay positions only, as they always were."""
+    by_time = {e.t: e for e in shown if e.dimension == 3 and e.yaws}
+    out: dict[str, FloatArray] = {}
+    if not by_time:
+        return out
+    for robot, q in published.items():
+        found = (by_time.get(t) for t in q.t.tolist())
+        yaws = [e.yaws.get(robot, (math.nan, 0.0))[0] if e else math.nan for e in found]
+        if any(math.isfinite(y) for y in yaws):
+            out[robot] = np.array(yaws, dtype=float)
+    return out
 
 
 def make_console() -> Console:

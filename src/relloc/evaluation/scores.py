@@ -193,7 +193,8 @@ class BodyFrameApe(Metric):
 # ---------------------------------------------------------------------------- consistency
 NEES_CAPTION = (
     "NEES: median normalised estimation error squared of the published covariance after the "
-    "warm-up (2 when consistent); 95 % cov.: estimates whose 95 % ellipse holds the truth"
+    "warm-up (its dimension when consistent: 2, 3 in 3D); 95 % cov.: estimates whose 95 % "
+    "ellipse (ellipsoid in 3D) holds the truth"
 )
 
 
@@ -341,7 +342,7 @@ class FinalShape(Metric):
                 "mode_weight": num(last.mode_weight),
                 "n_modes": last.n_modes,
                 "gauge": last.shape_gauge,
-                "shape": {r: [num(x), num(y)] for r, (x, y) in last.shape.items()},
+                "shape": {r: [num(v) for v in p] for r, p in last.shape.items()},
                 "distances": {p: [num(m), num(s)] for p, (m, s) in last.distances.items()},
                 "status": last.status,
             }

@@ -5,7 +5,8 @@ in the frame of the estimate, the reference's body frame where the reference has
 :class:`YawError` pairs every published yaw after the warm-up with the truth in the same frame
 (the robot's motion-capture yaw less the reference's in the body frame, less the frame's
 rotation in the heading frame) and reports the median absolute error per robot in degrees:
-``yaw_error_median_deg`` in the JSON, a column of the run table.
+``yaw_error_median_deg`` in the JSON, a column of the run table. A flying team's 3D estimates
+publish every robot's yaw in the reference's yaw-only body frame (z up): scored the same way.
 """
 
 from __future__ import annotations

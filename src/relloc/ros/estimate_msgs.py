@@ -10,16 +10,18 @@ same ``geometry_msgs/msg/PoseWithCovarianceStamped`` whichever way it came:
   heading frame, ``<reference>/base_link`` for the reference's body frame,
   ``<reference>/formation`` for the formation in its gauge where the orientation is not
   observable, :meth:`Estimate.published <relloc.estimate.Estimate.published>`).
-* **Pose.** The estimate's position: ``(x, y)``, and ``z`` where it is 3D (else 0); the orientation a pure rotation about z by
-  the robot's heading mean where the estimate has a heading for it, else the identity.
+* **Pose.** The estimate's position: ``(x, y)``, and ``z`` where it is 3D (else 0); the
+  orientation a pure rotation about z by the robot's published yaw (:func:`published_yaw`:
+  its yaw in a 3D estimate, its heading in a 2D one) where there is one, else the identity.
 * **Covariance.** ROS's row-major 6x6 over ``(x, y, z, roll, pitch, yaw)``, built by
   :func:`pose_covariance`: the estimate's position covariance in the x, y (and z) block (the
   "not estimated" value on its diagonal where the estimate has none for the robot); the
-  heading's variance (its circular std squared) as yaw's where there is a heading; every other
+  published yaw's variance (its circular std squared) at (5, 5) where there is one; every other
   diagonal entry :data:`NOT_ESTIMATED` (1e6), every other off-diagonal entry 0. Why 1e6 and
-  not 0 for z, roll and pitch: relloc measures none of them (its model is planar, and a floor
-  is not), so a zero variance would claim a certainty nobody has, and a filter fusing the pose
-  (``robot_localization``) would trust the z = 0 and identity roll/pitch absolutely; a large
+  not 0 for roll, pitch and a 2D estimate's z: relloc measures none of them (a ground team's
+  model is planar, and a floor is not), so a zero variance would claim a certainty nobody
+  has, and a filter fusing the pose (``robot_localization``) would trust the z = 0 and
+  identity roll/pitch absolutely; a large
   variance is what users of ROS tools (``robot_localization``, RViz, Foxglove) read as "not
   estimated", so the published pose claims what relloc knows and nothing more.
 
@@ -48,6 +50,7 @@ __all__ = [
     "estimate_pose_cdr",
     "estimate_pose_msg",
     "pose_covariance",
+    "published_yaw",
 ]
 
 NOT_ESTIMATED = 1e6
@@ -75,6 +78,14 @@ def pose_covariance(
     return cov
 
 
+def published_yaw(est: Estimate, robot: str) -> tuple[float, float] | None:
+    """``robot``'s yaw ``(mean, std)`` (rad) that its pose carries, ``None`` where there is none:
+    in a 3D estimate its yaw in the estimate's frame (:attr:`Estimate.yaws`), what a flying
+    team's estimator publishes for every robot; in a 2D one the heading estimate
+    (:attr:`Estimate.headings`), as 2D poses have always carried."""
+    return (est.yaws if est.dimension == 3 else est.headings).get(robot)
+
+
 @dataclass(frozen=True)
 class EstimatePose:
     """What one robot's pose message carries (the fields of a ``PoseWithCovarianceStamped``)."""
@@ -95,7 +106,7 @@ def estimate_pose(est: Estimate, robot: str) -> EstimatePose:
     the convention of the module docstring."""
     est = est.published()
     position = est.positions[robot]
-    heading = est.headings.get(robot)
+    heading = published_yaw(est, robot)
     return EstimatePose(
         t=est.t,
         frame_id=est.frame_id,

@@ -93,8 +93,8 @@ def _truth_records(report: ScenarioReport, engine: Engine) -> list[Record]:
         frames = {e.t: e.frame_id for e in p.estimates}
         out: list[Record] = []
         for robot, q in m.paired.items():
-            for t, (x, y) in zip(q.t.tolist(), q.gt.tolist(), strict=True):
-                truth = GroundTruthEvent(t, robot, (x, y), 0.0)
+            for t, position in zip(q.t.tolist(), q.gt.tolist(), strict=True):
+                truth = GroundTruthEvent(t, robot, tuple(position), 0.0)  # z too, in 3D
                 msg = pose_stamped_msg(truth, frame_id=frames[t])
                 out.append((t, f"/relloc/truth/{robot}/pose", POSE_STAMPED, msg))
         return out

@@ -23,7 +23,7 @@ from rosbags.rosbag2 import Reader
 from rosbags.typesys import get_types_from_msg
 
 from relloc.config import ConfigError, TeamConfig
-from relloc.events import Event
+from relloc.events import Event, GroundTruthEvent
 from relloc.ros.distros import Layout, layout_of_definition, layouts
 from relloc.ros.messages import MessageDecodeError, decode, header_stamp_from_cdr, typestore
 from relloc.ros.stores import register_types
@@ -227,7 +227,8 @@ class RosbagSource:
     :attr:`stats`. ``ground_truth``, ``detections``, ``ranges`` and ``odometry`` switch those
     topics off (they are then not required to exist); ``objects`` names extra motion-capture
     bodies (e.g. ``"chair2"``) whose poses are emitted as ``GroundTruthEvent`` with the body
-    name as ``robot``. ``max_lag`` bounds how late (s, header time behind the newest receive
+    name as ``robot`` (with their height, ``(x, y, z)``, for a team of ``dimension`` 3; planar
+    for a ground team). ``max_lag`` bounds how late (s, header time behind the newest receive
     time) a message may arrive and still be put in order.
     """
 
@@ -448,13 +449,34 @@ class RosbagSource:
             self._damaged(line)
             stats.rejected["bag_damaged"] += 1
 
+        heights = self.config.dimension == 3
         with _open_reader(self.path, damaged) as reader:
             for conn, recv_ns, raw in _messages(reader, self.path, self._routes, damaged):
                 recv = recv_ns * 1e-9
+                layout = layouts.get(conn.topic)
                 for event in converter.events(
-                    self._routes[conn.topic], conn.topic, raw, recv, layouts.get(conn.topic)
+                    self._routes[conn.topic], conn.topic, raw, recv, layout
                 ):
+                    if heights and isinstance(event, GroundTruthEvent):
+                        event = _with_height(event, raw, conn.msgtype, layout)
                     buffer.push(event.t, event)
                 buffer.advance(recv + self.clock_offset)
                 yield from released(buffer.pop_ready())
         yield from released(buffer.flush())
+
+
+def _with_height(
+    event: GroundTruthEvent, raw: bytes, msgtype: str, layout: Layout | None
+) -> GroundTruthEvent:
+    """``event`` (motion capture, planar as converted) with its message's height: the full
+    pose ``(x, y, z)`` and yaw a flying team is scored against (a ground team's stays planar).
+    A message that does not decode keeps the planar pose."""
+    try:
+        msg = decode(raw, msgtype, layout)
+    except MessageDecodeError:
+        return event
+    if hasattr(msg, "transform"):  # TransformStamped; the other MOCAP_TYPES nest a pose
+        position = msg.transform.translation
+    else:
+        position = (msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose).position
+    return replace(event, position=(event.position[0], event.position[1], float(position.z)))
