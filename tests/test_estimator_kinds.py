@@ -71,6 +71,7 @@ def test_unregistered_it_is_gone() -> None:
         "gaussian_sum",
         "range_graph",
         "smoother",
+        "smoother3d",
     }
 
 

@@ -34,6 +34,17 @@ class MethodError(ValueError):
     """A method name is unknown or its requirements (e.g. a models directory) are missing."""
 
 
+PLANAR_METHODS: frozenset[str] = frozenset({"multilateration", "ekf_oracle"})
+"""Methods that estimate in the plane only: a flying team (``dimension = 3``) cannot run them."""
+
+
+def cannot_run(method: str, config: TeamConfig) -> str | None:
+    """Why ``method`` cannot run for ``config``'s team (``None``: it can)."""
+    if config.dimension == 3 and method in PLANAR_METHODS:
+        return f"{method} estimates in 2D only; the team flies (dimension = 3)"
+    return None
+
+
 def parse_methods(text: str) -> list[str]:
     names = [m.strip() for m in text.split(",") if m.strip()]
     unknown = [m for m in names if m not in METHODS]
@@ -54,6 +65,8 @@ def build_pipeline(
 ) -> Pipeline:
     """The pipeline (stages + localizer) of one named method. ``oracle_start``: every robot's
     true start pose (world frame), which only ``ekf_oracle`` takes."""
+    if (why := cannot_run(method, config)) is not None:
+        raise MethodError(why)
     if method == "ekf_oracle":
         if oracle_start is None:
             raise MethodError(

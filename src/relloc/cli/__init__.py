@@ -206,7 +206,7 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument(
         "--scenarios",
         default="multi,single,nav",
-        help="comma-separated: multi, single, nav, static, static_then_move, grid (the scaling scenario: --robots N on a grid, all pairs ranging), tags and tags_odometry (two UWB tags a robot, without and with odometry)",
+        help="comma-separated: multi, single, nav, static, static_then_move, grid (the scaling scenario: --robots N on a grid, all pairs ranging), tags and tags_odometry (two UWB tags a robot, without and with odometry), drones and drones_uwb (five quadrotors in 3D, two tags each, with velocity odometry and heights, and with UWB only)",
     )
     demo.add_argument(
         "--robots",

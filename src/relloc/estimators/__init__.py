@@ -2,13 +2,13 @@
 
 Each kind registers itself (:mod:`.registry`) with what it can do; importing this package
 registers the built-in ones: :mod:`.particle`, :mod:`.gaussian_sum`, :mod:`.range_graph`,
-:mod:`.smoother`. A kind of one's own is one module that calls :func:`register` with a
+:mod:`.smoother`, :mod:`.smoother3d`. A kind of one's own is one module that calls :func:`register` with a
 :class:`Kind` (docs/howto/extending.md).
 """
 
 from __future__ import annotations
 
-from relloc.estimators import gaussian_sum, particle, range_graph, smoother
+from relloc.estimators import gaussian_sum, particle, range_graph, smoother, smoother3d
 from relloc.estimators.registry import (
     KINDS,
     Capabilities,
@@ -36,5 +36,6 @@ __all__ = [
     "range_graph",
     "register",
     "smoother",
+    "smoother3d",
     "unregister",
 ]

@@ -96,6 +96,8 @@ class Kind:
 
     def cannot(self, config: TeamConfig) -> str | None:
         """What of the config's modes this kind cannot do (``None``: it can do all)."""
+        if config.dimension not in self.capabilities.dimensions:
+            return f"estimate in {config.dimension}D (dimension = {config.dimension})"
         modes = config.filter.self_calibration
         for key, (value, capability, what) in MODE_NEEDS.items():
             if getattr(modes, key) == value and not getattr(self.capabilities, capability):

@@ -28,7 +28,7 @@ from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.faults import Faults, inject
-from relloc.methods import DETECTION_METHODS, build_pipeline, filter_header
+from relloc.methods import DETECTION_METHODS, build_pipeline, cannot_run, filter_header
 from relloc.runs.checks import check_warmup, check_writable
 from relloc.runs.progress import run_with_progress
 from relloc.simulator import Simulation
@@ -117,8 +117,12 @@ def run_scenario(name: str, opts: DemoOptions, console: Console) -> ScenarioRepo
             f"{name}: headings estimated; reference {config.reference} (a moving robot: the "
             "estimates are in its odometry frame, which a static reference would leave unobservable)"
         )
-    pipelines = [build_pipeline(m, config, seed=opts.seed) for m in opts.methods]
-    if (header := filter_header(list(opts.methods), config)) is not None:
+    methods = [m for m in opts.methods if cannot_run(m, config) is None]
+    for m in opts.methods:
+        if (why := cannot_run(m, config)) is not None:
+            console.print(f"{name}: {why}: not run", soft_wrap=True, highlight=False, markup=False)
+    pipelines = [build_pipeline(m, config, seed=opts.seed) for m in methods]
+    if (header := filter_header(methods, config)) is not None:
         console.print(f"{name}: {header}", soft_wrap=True, highlight=False, markup=False)
     gt = GroundTruth(config.reference)
     engine = Engine(pipelines, truth_sinks=[gt.add])

@@ -7,7 +7,8 @@ own, for a quadrotor is holonomic) and whose events are 3D:
 * ground truth ``(x, y, z)`` and yaw in the world frame at 20 Hz;
 * UWB ranges at 10 Hz between every two drones' tags (no intra-drone pair): the 3D distance of
   the tags at their 3D lever arms plus the pair's bias, drawn as the 2D scenarios draw them
-  (:func:`~relloc.simulator.schedules.draw_uwb`), plus white noise (:data:`DRONE_UWB`);
+  (:func:`~relloc.simulator.schedules.draw_uwb`), plus white noise and NLOS spikes
+  (:data:`DRONE_UWB`);
 * velocity odometry at 20 Hz in each drone's own odometry frame (its start pose, z from its
   start height): the body-frame velocity, scaled horizontally by the drone's scale factor, with
   white noise on each axis, and the yaw rate with the drone's gyro bias and noise, integrated
@@ -121,9 +122,10 @@ HEIGHT_SENSOR = HeightSensorModel()
 """The drones' height sensor: 10 Hz, 4 cm."""
 
 
-DRONE_UWB = UwbErrorModel(orientation_amplitude=0.0, nlos_probability=0.0)
-"""The drones' UWB: the tag scenarios' rate, noise, bias draws and dropouts, without the ground
-robots' body-occlusion (heading) term and NLOS spikes (pass ``uwb=`` to add them back)."""
+DRONE_UWB = UwbErrorModel(orientation_amplitude=0.0)
+"""The drones' UWB: the tag scenarios' rate, noise, bias draws, NLOS spikes and dropouts,
+without the ground robots' body-occlusion (heading) term: a drone's tags sit clear of its
+body, above it (pass ``uwb=`` to add the term back)."""
 
 
 class FlightSimulation(Simulation):

@@ -119,6 +119,39 @@ def _biased_range(
     return error
 
 
+def add_bias_prior(
+    graph: gtsam.NonlinearFactorGraph,
+    values: gtsam.Values,
+    stamps: gtsam.FixedLagSmootherKeyTimestampMap,
+    t: float,
+    prior: BiasPrior,
+    bias_keys: list[int],
+    offset_keys: list[int],
+) -> None:
+    """``prior`` on the online biases' keys ``bias_keys`` and its shared offsets'
+    ``offset_keys`` (module docstring): every key inserted at its prior mean, stamped ``t``."""
+    rows_v = zip(offset_keys, prior.offset_mean.tolist(), prior.latent_sigma.tolist(), strict=True)
+    for key, m0, sd in rows_v:
+        noise = gtsam.noiseModel.Isotropic.Sigma(1, sd)
+        graph.add(gtsam.PriorFactorVector(key, np.array([m0]), noise))
+        values.insert(key, np.array([m0]))
+        stamps.insert((key, t))
+    rows = zip(
+        bias_keys,
+        prior.mean.tolist(),
+        prior.marginal_mean.tolist(),
+        prior.sigma.tolist(),
+        prior.loading > 0,
+        strict=True,
+    )
+    for key, m, start, sd, shares in rows:
+        noise = gtsam.noiseModel.Isotropic.Sigma(1, sd)
+        offsets = [k for k, on in zip(offset_keys, shares.tolist(), strict=True) if on]
+        graph.add(gtsam.CustomFactor(noise, [key, *offsets], _deviation(m)))
+        values.insert(key, np.array([start]))
+        stamps.insert((key, t))
+
+
 class GraphSmoother:
     """A fixed-lag smoother of ``n`` robots' positions, ``reference`` the pinned one (module
     docstring)."""
@@ -243,31 +276,8 @@ class GraphSmoother:
         t: float,
     ) -> None:
         """The online biases' prior (module docstring), every key at its prior mean."""
-        prior = self.prior
-        if prior is None:
-            return
-        rows_v = zip(
-            self.offset_keys, prior.offset_mean.tolist(), prior.latent_sigma.tolist(), strict=True
-        )
-        for key, m0, sd in rows_v:
-            noise = gtsam.noiseModel.Isotropic.Sigma(1, sd)
-            graph.add(gtsam.PriorFactorVector(key, np.array([m0]), noise))
-            values.insert(key, np.array([m0]))
-            stamps.insert((key, t))
-        rows = zip(
-            self.bias_keys,
-            prior.mean.tolist(),
-            prior.marginal_mean.tolist(),
-            prior.sigma.tolist(),
-            prior.loading > 0,
-            strict=True,
-        )
-        for key, m, start, sd, shares in rows:
-            noise = gtsam.noiseModel.Isotropic.Sigma(1, sd)
-            offsets = [k for k, on in zip(self.offset_keys, shares.tolist(), strict=True) if on]
-            graph.add(gtsam.CustomFactor(noise, [key, *offsets], _deviation(m)))
-            values.insert(key, np.array([start]))
-            stamps.insert((key, t))
+        if self.prior is not None:
+            add_bias_prior(graph, values, stamps, t, self.prior, self.bias_keys, self.offset_keys)
 
     def _ranges(
         self, graph: gtsam.NonlinearFactorGraph, keys: list[int], ranges: RangeTerms

@@ -1,0 +1,312 @@
+"""One fixed-lag smoother of a flying team's poses, in GTSAM's ``Pose3``.
+
+The state is one ``Pose3`` per robot per step, in a frame whose x-y origin and yaw are the
+reference's first pose and whose z is up (the height above the ground where heights are
+measured, else the reference's first height). Roll and pitch are taken as known and level
+(the flight controller's attitude): every key's prior and every motion factor holds them at
+zero within ``LEVEL_SIGMA``, so a key has four free coordinates, the 4-DoF state of a drone.
+
+* **Motion**: per robot a native ``BetweenFactorPose3``, its odometry's displacement in its
+  own body frame and its turn (:class:`Motion`), or, without odometry, a random walk.
+* **Ranges**: per tag pair ranged in the step one Huber-robust factor
+  ``|X_a arm_a - X_b arm_b| + b - z`` between the two tags (a Python ``CustomFactor``: GTSAM's
+  ``RangeFactorWithTransform`` carries one lever arm, a tag pair has two), the pair's online
+  bias ``b`` where it has one, else the bias already removed from ``z``.
+* **Heights**: ``z(X) - h`` per robot with a height in the step.
+* **Online biases**: the 2D smoother's prior (:func:`~relloc.estimators.smoother.graph.add_bias_prior`),
+  the keys kept in the window for the whole run.
+
+The published pose of a robot is ``X_ref^-1 X_k``, its covariance from the window's joint
+marginal of the two keys through the Jacobians of ``between`` (docs/explanation/flying.md).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+from numpy.typing import NDArray
+
+from relloc.estimators.smoother.graph import HUBER_K, add_bias_prior
+from relloc.localizers.priors import BiasPrior
+
+FloatArray = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+Error = Callable[[gtsam.CustomFactor, gtsam.Values, list[FloatArray] | None], FloatArray]
+
+LEVEL_SIGMA = 1e-3
+"""Std (rad) of roll and pitch about level in every prior and motion factor."""
+REFERENCE_SIGMA = 1e-4
+"""Std (m, rad) of the prior that pins the reference's first key (x, y, yaw)."""
+FREE_HEIGHT_SIGMA = 100.0
+"""Std (m) of the reference's first height where heights are measured (they place it)."""
+
+
+@dataclass(frozen=True)
+class TagRanges:
+    """One range per tag pair: the tags ``tag_a``/``tag_b``, their robots ``index_a``/``index_b``
+    (team order) and lever arms ``arm_a``/``arm_b`` ``(K, 3)``, the distance less any fixed
+    bias, its std, and the pair's online bias (its index among the smoother's bias keys, -1:
+    none)."""
+
+    tag_a: IntArray
+    tag_b: IntArray
+    index_a: IntArray
+    index_b: IntArray
+    arm_a: FloatArray
+    arm_b: FloatArray
+    distance: FloatArray
+    sigma: FloatArray
+    bias: IntArray
+
+    @property
+    def size(self) -> int:
+        return int(self.index_a.size)
+
+
+@dataclass(frozen=True)
+class Motion:
+    """Each robot's motion over a step: ``delta`` ``(N, 4)`` its displacement in its own body
+    frame at the step's start and its turn ``(dx, dy, dz, dyaw)``, ``sigma`` ``(N, 4)`` their
+    stds."""
+
+    delta: FloatArray
+    sigma: FloatArray
+
+
+def pose_of(row: FloatArray) -> gtsam.Pose3:
+    """A level ``Pose3`` from ``(x, y, z, yaw)``."""
+    return gtsam.Pose3(gtsam.Rot3.Yaw(float(row[3])), np.asarray(row[:3], float))
+
+
+def row_of(pose: gtsam.Pose3) -> FloatArray:
+    """``(x, y, z, yaw)`` of a ``Pose3``."""
+    return np.array([*pose.translation(), pose.rotation().yaw()])
+
+
+def _sigmas(sigma: FloatArray) -> gtsam.noiseModel.Base:
+    """A ``Pose3`` noise (tangent ``[roll, pitch, yaw, x, y, z]``) from ``(sx, sy, sz, syaw)``."""
+    return gtsam.noiseModel.Diagonal.Sigmas(
+        np.array([LEVEL_SIGMA, LEVEL_SIGMA, sigma[3], sigma[0], sigma[1], sigma[2]], float)
+    )
+
+
+def _tag_range(distance: float, arm_a: FloatArray, arm_b: FloatArray) -> Error:
+    """The error of a range between the tags at ``arm_a`` on key ``X_a`` and ``arm_b`` on
+    ``X_b`` (keys ``(X_a, X_b)`` or ``(X_a, X_b, b)``): ``|t_a - t_b| + b - z``, ``t = X arm``.
+    A right perturbation ``[w, v]`` of ``X`` moves its tag by ``R (v + w x arm)``, so with
+    ``u`` the unit vector from ``t_b`` to ``t_a`` and ``c = R^T u`` the range's Jacobian is
+    ``[arm x c, c]`` (called per factor per linearisation: plain floats, no small arrays)."""
+    ax, ay, az = (float(v) for v in arm_a)
+    bx, by, bz = (float(v) for v in arm_b)
+
+    def error(
+        factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None
+    ) -> FloatArray:
+        keys = factor.keys()
+        xa, xb = values.atPose3(keys[0]), values.atPose3(keys[1])
+        dx, dy, dz = (xa.transformFrom(arm_a) - xb.transformFrom(arm_b)).tolist()
+        dist = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if jacobians is not None:
+            u = np.array([dx, dy, dz]) / dist if dist > 1e-9 else np.array([1.0, 0.0, 0.0])
+            c1, c2, c3 = xa.rotation().unrotate(u).tolist()
+            d1, d2, d3 = xb.rotation().unrotate(u).tolist()
+            jacobians[0] = np.array(
+                [[ay * c3 - az * c2, az * c1 - ax * c3, ax * c2 - ay * c1, c1, c2, c3]]
+            )
+            jacobians[1] = -np.array(
+                [[by * d3 - bz * d2, bz * d1 - bx * d3, bx * d2 - by * d1, d1, d2, d3]]
+            )
+            if len(keys) > 2:
+                jacobians[2] = _ONE
+        bias = values.atVector(keys[2])[0] if len(keys) > 2 else 0.0
+        return np.array([dist + bias - distance])
+
+    return error
+
+
+_ONE = np.ones((1, 1))
+
+
+def _height(h: float) -> Error:
+    """The error of a height ``h`` of key ``X``: ``z(X) - h``."""
+
+    def error(
+        factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None
+    ) -> FloatArray:
+        x = values.atPose3(factor.keys()[0])
+        if jacobians is not None:
+            jacobians[0] = np.concatenate([np.zeros(3), x.rotation().matrix()[2]]).reshape(1, 6)
+        return np.array([x.translation()[2] - h])
+
+    return error
+
+
+class PoseWindow:
+    """A fixed-lag smoother of ``n`` robots' level poses, ``reference`` the pinned one (module
+    docstring)."""
+
+    def __init__(self, n: int, reference: int, lag: float, biases: BiasPrior | None) -> None:
+        self.n = n
+        self.reference = reference
+        self.others = np.array([i for i in range(n) if i != reference], dtype=np.intp)
+        self.smoother = gtsam.IncrementalFixedLagSmoother(lag)
+        self.step = -1
+        self.prior = biases
+        self.bias_mean = np.zeros(0) if biases is None else biases.mean
+        self.bias_keys = [gtsam.symbol("b", j) for j in range(self.bias_mean.size)]
+        latents = 0 if biases is None else biases.latent_sigma.size
+        self.offset_keys = [gtsam.symbol("o", j) for j in range(latents)]
+        self.poses: FloatArray = np.zeros((n, 4))
+        """Each robot's latest ``(x, y, z, yaw)``."""
+        self.biases: FloatArray = self.bias_mean.copy()
+        self._estimate = gtsam.Values()
+        self._joint: FloatArray | None = None
+
+    def keys(self, step: int | None = None) -> list[int]:
+        """The robots' keys at ``step`` (default: the latest), team order."""
+        s = self.step if step is None else step
+        return [gtsam.symbol("x", s * self.n + i) for i in range(self.n)]
+
+    def start(
+        self,
+        t: float,
+        poses: FloatArray,
+        sigma: FloatArray,
+        *,
+        ranges: TagRanges,
+        heights: dict[int, tuple[float, float]],
+    ) -> None:
+        """The first step at ``t``: robot ``i`` with a prior at ``poses[i]`` ``(x, y, z, yaw)``
+        of stds ``sigma[i]`` (the reference's x, y and yaw pinned, its height free where
+        heights are measured), the biases at their prior, the start's ranges and heights."""
+        self.step = 0
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        keys = self.keys()
+        for i, key in enumerate(keys):
+            s = np.asarray(sigma[i], float)
+            if i == self.reference:
+                free = FREE_HEIGHT_SIGMA if heights else REFERENCE_SIGMA
+                s = np.array([REFERENCE_SIGMA, REFERENCE_SIGMA, free, REFERENCE_SIGMA])
+            graph.add(gtsam.PriorFactorPose3(key, pose_of(poses[i]), _sigmas(s)))
+            values.insert(key, pose_of(poses[i]))
+            stamps.insert((key, t))
+        if self.prior is not None:
+            add_bias_prior(graph, values, stamps, t, self.prior, self.bias_keys, self.offset_keys)
+        self._measurements(graph, keys, ranges, heights)
+        self._update(graph, values, stamps)
+
+    def advance(
+        self,
+        t: float,
+        motion: Motion,
+        *,
+        ranges: TagRanges,
+        heights: dict[int, tuple[float, float]],
+    ) -> None:
+        """The next step at ``t``: every robot moved by ``motion``, the step's ranges (one per
+        tag pair) and heights (robot -> (median height, std))."""
+        prev = self.keys()
+        self.step += 1
+        new = self.keys()
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        stamps = gtsam.FixedLagSmootherKeyTimestampMap()
+        for i in range(self.n):
+            delta = pose_of(motion.delta[i])
+            graph.add(gtsam.BetweenFactorPose3(prev[i], new[i], delta, _sigmas(motion.sigma[i])))
+            values.insert(new[i], pose_of(self.poses[i]).compose(delta))
+            stamps.insert((new[i], t))
+        for key in [*self.bias_keys, *self.offset_keys]:
+            stamps.insert((key, t))  # constant: kept in the window
+        self._measurements(graph, new, ranges, heights)
+        self._update(graph, values, stamps)
+
+    def _measurements(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        keys: list[int],
+        ranges: TagRanges,
+        heights: dict[int, tuple[float, float]],
+    ) -> None:
+        huber = gtsam.noiseModel.mEstimator.Huber.Create(HUBER_K)
+        for k in range(ranges.size):
+            noise = gtsam.noiseModel.Robust.Create(
+                huber, gtsam.noiseModel.Isotropic.Sigma(1, float(ranges.sigma[k]))
+            )
+            a, b, j = int(ranges.index_a[k]), int(ranges.index_b[k]), int(ranges.bias[k])
+            factor_keys = [keys[a], keys[b], *([self.bias_keys[j]] if j >= 0 else [])]
+            error = _tag_range(float(ranges.distance[k]), ranges.arm_a[k], ranges.arm_b[k])
+            graph.add(gtsam.CustomFactor(noise, factor_keys, error))
+        for i, (h, s) in heights.items():
+            height_noise = gtsam.noiseModel.Isotropic.Sigma(1, s)
+            graph.add(gtsam.CustomFactor(height_noise, [keys[i]], _height(h)))
+
+    def _update(
+        self,
+        graph: gtsam.NonlinearFactorGraph,
+        values: gtsam.Values,
+        stamps: gtsam.FixedLagSmootherKeyTimestampMap,
+    ) -> None:
+        self.smoother.update(graph, values, stamps)
+        self._joint = None
+        self._estimate = est = self.smoother.calculateEstimate()
+        self.poses = np.array([row_of(est.atPose3(k)) for k in self.keys()])
+        self.biases = np.array([est.atVector(k)[0] for k in self.bias_keys], float)
+
+    def _window_joint(self) -> FloatArray:
+        """The window's joint marginal covariance of ``[X_ref, X_others..., biases...,
+        offsets...]`` (6 tangent rows per pose, ``[w, v]``; 1 per bias), once per update, from
+        iSAM2's Bayes tree (no factor linearised again)."""
+        if self._joint is None:
+            keys = self.keys()
+            order = [
+                keys[self.reference],
+                *(keys[i] for i in self.others),
+                *self.bias_keys,
+                *self.offset_keys,
+            ]
+            self._joint = self.smoother.getISAM2().jointMarginalCovariance(order).fullMatrix()
+        return self._joint
+
+    def relative(self) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Each non-reference robot in the reference's level body frame: ``(x, y, z, yaw)``
+        ``(N-1, 4)``, the position's covariance ``(N-1, 3, 3)`` and the yaw's variance
+        ``(N-1,)``. ``T = X_ref^-1 X_k`` perturbs as ``-Ad(T^-1) d_ref + d_k`` in its tangent;
+        its position moves by ``R_T v``."""
+        joint = self._window_joint()
+        xr = self._estimate.atPose3(self.keys()[self.reference])
+        rel = np.empty((self.others.size, 4))
+        cov = np.empty((self.others.size, 3, 3))
+        yaw_var = np.empty(self.others.size)
+        for slot, i in enumerate(self.others.tolist(), start=1):
+            t = xr.between(self._estimate.atPose3(self.keys()[i]))
+            j = np.hstack([-t.inverse().AdjointMap(), np.eye(6)])
+            rows = np.r_[0:6, 6 * slot : 6 * slot + 6]
+            sigma = j @ joint[np.ix_(rows, rows)] @ j.T
+            rot = t.rotation().matrix()
+            rel[slot - 1] = row_of(t)
+            cov[slot - 1] = rot @ sigma[3:, 3:] @ rot.T
+            yaw_var[slot - 1] = sigma[2, 2]
+        return rel, 0.5 * (cov + cov.transpose(0, 2, 1)), yaw_var
+
+    def bias_std(self) -> FloatArray:
+        """Std of each online bias (the window's marginal)."""
+        start = 6 * self.n
+        tail = np.diag(self._window_joint())[start : start + len(self.bias_keys)]
+        return np.sqrt(np.maximum(tail, 0.0))
+
+    def offset_estimates(self) -> tuple[list[float], list[float]]:
+        """Each shared offset's estimate and std (the window's marginal)."""
+        if not self.offset_keys:
+            return [], []
+        mean = [float(self._estimate.atVector(k)[0]) for k in self.offset_keys]
+        tail = np.diag(self._window_joint())[6 * self.n + len(self.bias_keys) :]
+        return mean, np.sqrt(np.maximum(tail, 0.0)).tolist()
+
+    def cost(self) -> float:
+        """The graph's error at the estimate: compares hypotheses over the same measurements."""
+        return float(self.smoother.getFactors().error(self._estimate))

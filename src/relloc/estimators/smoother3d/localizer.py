@@ -1,0 +1,410 @@
+"""The 3D smoother (``[filter] kind = "smoother3d"``): a flying team's level poses in a
+fixed-lag factor graph.
+
+Every ``STEP_PERIOD`` one ``Pose3`` key per robot (:class:`.graph.PoseWindow`) gets:
+
+* its odometry since the last step (pose messages in the robot's own frame, with their z) as
+  a displacement in its body frame and a turn, with stds that grow with the motion; without
+  odometry a random walk of ``UNKNOWN_SPEED`` and ``UNKNOWN_TURN_RATE``;
+* per tag pair ranged in the step, the median of its bias-corrected ranges, its noise
+  undivided (a step's ranges share their error);
+* per robot with heights in the step (:class:`~relloc.events.HeightEvent`), their median.
+
+**Start** (:mod:`.start`): level poses from the start window's ranges and heights, one
+hypothesis per handedness (and per reference yaw where the reference has one tag), each its
+own smoother, pruned by graph cost (``PRUNE_COST``; the best after ``HYPOTHESIS_TIME``).
+Ranges never tell a formation from its mirror image; odometry does once the robots moved
+``MOTION_TO_RESOLVE`` relative to the reference: the orientation is observable then, not
+before (nor ever without odometry).
+
+**Estimate**: every other robot's position ``(x, y, z)`` and yaw in the reference's level
+body frame with their covariances (:meth:`.graph.PoseWindow.relative`), the online biases
+(:class:`~relloc.localizers.priors.BiasPrior`, as the 2D smoother's). Sightings and detections
+are counted as ``smoother3d_<stat>_unused``. GTSAM's ``RuntimeError`` restarts from the last
+``RESTART_WINDOW`` of ranges.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+import math
+from collections import deque
+
+import numpy as np
+from numpy.typing import NDArray
+
+from relloc.config import TeamConfig
+from relloc.estimate import BODY_FRAME, OWN_FRAME, Estimate, covariance_of, position_of
+from relloc.estimators.smoother3d.graph import Motion, PoseWindow, TagRanges, pose_of
+from relloc.estimators.smoother3d.start import level_start
+from relloc.events import Event, HeightEvent, OdometryEvent, RangeEvent
+from relloc.filter.measurement import ModelContext, finite
+from relloc.filter.ranges import RangeBatch
+from relloc.filter.registry import model_for
+from relloc.localizers.base import Localizer, Measurement
+from relloc.localizers.priors import bias_layout
+from relloc.odometry import wrap_angle
+
+FloatArray = NDArray[np.float64]
+log = logging.getLogger(__name__)
+
+STEP_PERIOD = 0.5
+"""Seconds between smoother steps."""
+LAG = 10.0
+"""Seconds of keys the smoother keeps."""
+UNKNOWN_SPEED = 1.0
+"""Std (m/s per axis) of the motion of a robot without odometry: what a small drone stays
+under indoors."""
+UNKNOWN_TURN_RATE = 1.0
+"""Std (rad/s) of the turn of a robot without odometry."""
+ODOMETRY_RELATIVE = 0.05
+"""Std of an odometry displacement per metre moved."""
+TURN_RELATIVE = 0.01
+"""Std of an odometry turn per radian turned (a gyro's scale error)."""
+ODOMETRY_WALK = 0.02
+"""Std (m/sqrt(s) per axis) of the odometry's drift while hovering."""
+YAW_WALK = 0.003
+"""Std (rad/sqrt(s)) of the odometry yaw's drift (a gyro's)."""
+ODOMETRY_FLOOR = 0.01
+"""Smallest std (m per axis) of a step's odometry displacement."""
+TURN_FLOOR = 0.002
+"""Smallest std (rad) of a step's odometry turn."""
+HEIGHT_FLOOR = 0.02
+"""Smallest std (m) of a step's height."""
+PRUNE_COST = 10.0
+"""A hypothesis whose graph error exceeds the best's by this much is dropped."""
+HYPOTHESIS_TIME = 15.0
+"""Seconds after the start after which only the best hypothesis is kept."""
+MOTION_TO_RESOLVE = 0.3
+"""Odometry displacement (m) relative to the reference after which the mirror image is
+resolved."""
+RESTART_WINDOW = 2.0
+"""Seconds of ranges a restart builds its start from."""
+
+
+class PoseSmootherLocalizer(Localizer):
+    """Odometry, heights and tag ranges of a flying team in a fixed-lag smoother of level
+    poses (module docstring)."""
+
+    method = "pf"
+
+    def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
+        layout, prior = bias_layout(config, uncalibrated_sigma=config.uwb.default_bias_sigma)
+        super().__init__(config, layout)
+        self.method = method
+        self._prior = prior
+        self._bias_of_column = {
+            layout.bias_belief_column(p): j for j, p in enumerate(layout.bias_pairs)
+        }
+        self._context = ModelContext(config, layout, range_model="symmetric", shared_heading=False)
+        robots = self.layout.robots
+        tags = [(i, t) for i, r in enumerate(robots) for t in config.robot(r).tag_list]
+        self._tag_robot = np.array([i for i, _ in tags], dtype=np.intp)
+        self._arms = np.array([(*t.lever_arm, 0.0)[:3] for _, t in tags], float).reshape(-1, 3)
+        self._tag_of = {t.node: k for k, (_, t) in enumerate(tags)}
+        self._first_tag = {robots[i]: k for k, (i, _) in reversed(list(enumerate(tags)))}
+        self._ref = self.layout.index(self.layout.reference)
+        self._has_odometry = any(r.odom_topic for r in config.robots)
+        self._heights: dict[str, deque[tuple[float, float, float]]] = {r: deque() for r in robots}
+        self._odom_z: dict[str, deque[tuple[float, float]]] = {r: deque() for r in robots}
+        self.hypotheses: list[PoseWindow] = []
+        self.initialized = False
+        self.t = math.nan
+        self._t_start = math.nan
+        self._init: list[RangeEvent] = []
+        self._recent: deque[RangeEvent] = deque()
+        self._pending: list[RangeEvent] = []
+        self._anchor: dict[str, tuple[float, float, float, float]] = {}
+        self._moved = 0.0
+        self._observable = False
+
+    def _track_frame(self, robot: str) -> tuple[float, float]:
+        """Each robot's odometry in its own frame (its heading is estimated), at its scale."""
+        return 0.0, self.config.robot(robot).odom_scale
+
+    # ---------------------------------------------------------------- events
+    def process(self, event: Event) -> list[Estimate]:
+        """Heights are kept for the steps; odometry's z beside its track; the rest as every
+        localizer's."""
+        if isinstance(event, HeightEvent):
+            reason = self._height_rejection(event)
+            if reason is not None:
+                self._reject(reason, event)
+            else:
+                self._heights[event.robot].append((event.t, event.z, event.sigma))
+                self.stats["height"] += 1
+            return []
+        out = super().process(event)
+        if isinstance(event, OdometryEvent) and event.robot in self._odom_z:
+            track = self.odometry.tracks[event.robot]
+            if track.last_event is event:
+                zs = self._odom_z[event.robot]
+                zs.append((event.t, event.z))
+                while len(zs) > 2 and zs[1][0] < event.t - 2.0 * LAG:
+                    zs.popleft()
+        return out
+
+    def _height_rejection(self, event: HeightEvent) -> str | None:
+        if event.robot not in self.layout.robots:
+            return "unknown_robot"
+        if not (finite(event.t) and finite(event.z) and finite(event.sigma)) or event.sigma <= 0:
+            return "invalid_height"
+        return None
+
+    # ---------------------------------------------------------------- the cycle
+    def _step(self, t: float, batch: list[Measurement]) -> Estimate | None:
+        ranges = [m for m in batch if model_for(m) is RangeBatch]
+        for m in batch:
+            cls = model_for(m)
+            if cls is not None and cls is not RangeBatch:
+                self.stats[f"smoother3d_{cls.stat}_unused"] += 1
+        self._recent.extend(ranges)
+        while self._recent and self._recent[0].t < t - RESTART_WINDOW:
+            self._recent.popleft()
+        if not self.initialized:
+            self._init += ranges
+            if not self._init or t - self._init[0].t < self.config.filter.init_window:
+                return None
+            start, self._init = self._init, []
+            return self._start(t, start)
+        self._pending += ranges
+        if t - self.t < STEP_PERIOD:
+            return None
+        return self._advance(t)
+
+    def _start(self, t: float, ranges: list[RangeEvent]) -> Estimate | None:
+        terms = self._tag_ranges(ranges, t, prior_bias=True)
+        if terms.size == 0:
+            return None
+        heights = np.array([self._height_at(r, t - 2.0 * RESTART_WINDOW, t) for r in self._names])
+        known = {i: (float(h), HEIGHT_FLOOR) for i, h in enumerate(heights) if np.isfinite(h)}
+        heights = np.where(np.isfinite(heights), heights, 0.0)
+        started = level_start(
+            self._tag_robot,
+            self._arms,
+            heights,
+            (terms.tag_a, terms.tag_b, terms.distance),
+            self._ref,
+        )
+        if started is None:
+            return None
+        poses, sigma, rms = started
+        terms = self._tag_ranges(ranges, t, prior_bias=False)
+        self.hypotheses = []
+        for m in range(poses.shape[0]):
+            window = PoseWindow(len(self._names), self._ref, LAG, self._prior)
+            window.start(t, poses[m], sigma[m], ranges=terms, heights=known)
+            self.hypotheses.append(window)
+        self.initialized = True
+        self.t = self._t_start = t
+        self._anchor = {r: self._odometry(r, t) for r in self._names}
+        self._moved = 0.0
+        self._observable = False
+        self.stats["smoother_hypotheses"] = len(self.hypotheses)
+        self.stats["smoother_start_rms_mm"] = round(1000.0 * rms)
+        return self._estimate(t)
+
+    def _advance(self, t: float) -> Estimate | None:
+        motion = self._motion(t)
+        pending, self._pending = self._pending, []
+        terms = self._tag_ranges(pending, t, prior_bias=False)
+        heights = self._step_heights(self.t, t)
+        self.t = t
+        survivors = []
+        for window in self.hypotheses:
+            try:
+                window.advance(t, motion, ranges=terms, heights=heights)
+            except RuntimeError:
+                self.stats["smoother_indeterminate"] += 1
+                continue
+            survivors.append(window)
+        self.hypotheses = survivors
+        if not survivors:
+            return self._restart(t)
+        self._prune(t)
+        return self._estimate(t)
+
+    def _restart(self, t: float) -> Estimate | None:
+        self.stats["smoother_restarts"] += 1
+        self.initialized = False
+        return self._start(t, list(self._recent))
+
+    def _prune(self, t: float) -> None:
+        if len(self.hypotheses) > 1:
+            costs = np.array([h.cost() for h in self.hypotheses])
+            order = np.argsort(costs)
+            keep = [int(i) for i in order if costs[i] <= costs[order[0]] + PRUNE_COST]
+            if t - self._t_start >= HYPOTHESIS_TIME:
+                keep = keep[:1]
+            self.hypotheses = [self.hypotheses[i] for i in keep]
+            self.stats["smoother_hypotheses"] = len(self.hypotheses)
+        self._observable = (
+            len(self.hypotheses) == 1 and self._has_odometry and self._moved >= MOTION_TO_RESOLVE
+        )
+
+    # ---------------------------------------------------------------- measurements
+    @property
+    def _names(self) -> tuple[str, ...]:
+        return self.layout.robots
+
+    def _tag_ranges(self, events: list[RangeEvent], at: float, *, prior_bias: bool) -> TagRanges:
+        """One range per tag pair of ``events`` (their median, :meth:`RangeBatch.build`), the
+        fixed bias removed; an online bias as the window's key, or with ``prior_bias`` its
+        prior mean removed (the start's shape). Each tag's arm is where the tag was at the
+        median time of its pair's ranges in the robot's body frame at ``at`` (moved by the
+        odometry between the two times), so that a step's key at ``at`` explains ranges
+        taken before it."""
+        models = [b for b in RangeBatch.build(events, self._context) if isinstance(b, RangeBatch)]
+        times: dict[tuple[str, str], list[float]] = {}
+        for m in events:
+            na, nb = self.config.range_nodes(m)
+            times.setdefault((min(na, nb), max(na, nb)), []).append(m.t)
+        rows: list[tuple[int, int, float, float, int, float]] = []
+        names = self._names
+        for b in models:
+            cols = b.bias_columns if b.bias_columns is not None else np.full(len(b), -1)
+            for k in range(len(b)):
+                na, nb = b.nodes[k]
+                ta = self._tag_of.get(na, self._first_tag[names[int(b.index_a[k])]])
+                tb = self._tag_of.get(nb, self._first_tag[names[int(b.index_b[k])]])
+                j = self._bias_of_column.get(int(cols[k]), -1)
+                z = float(b.distance[k] - b.bias[k])
+                if prior_bias and j >= 0:
+                    z -= float(self._prior.marginal_mean[j])
+                    j = -1
+                stamps = times[(min(na, nb), max(na, nb))]
+                sigma = float(b.sigma[k])
+                rows.append((ta, tb, max(z, 0.0), sigma, j, float(np.median(stamps))))
+        tag_a = np.array([r[0] for r in rows], dtype=np.intp)
+        tag_b = np.array([r[1] for r in rows], dtype=np.intp)
+        when_a = np.array([r[5] for r in rows], float)
+        return TagRanges(
+            tag_a,
+            tag_b,
+            self._tag_robot[tag_a],
+            self._tag_robot[tag_b],
+            self._moved_arms(tag_a, when_a, at),
+            self._moved_arms(tag_b, when_a, at),
+            np.array([r[2] for r in rows], float),
+            np.array([r[3] for r in rows], float),
+            np.array([r[4] for r in rows], dtype=np.intp),
+        )
+
+    def _moved_arms(self, tags: NDArray[np.intp], when: FloatArray, at: float) -> FloatArray:
+        """Each tag's lever arm moved to where its robot's odometry had it at ``when`` in its
+        body frame at ``at`` (the arm itself where the robot has no odometry then)."""
+        arms = self._arms[tags].copy()
+        for k, (tag, t) in enumerate(zip(tags.tolist(), when.tolist(), strict=True)):
+            robot = self._names[int(self._tag_robot[tag])]
+            now, then = self._odometry(robot, at), self._odometry(robot, t)
+            if math.isnan(now[0]) or math.isnan(then[0]) or t == at:
+                continue
+            moved = pose_of(np.array(now)).between(pose_of(np.array(then)))
+            arms[k] = moved.transformFrom(arms[k])
+        return arms
+
+    def _height_at(self, robot: str, lo: float, hi: float) -> float:
+        """The median height of ``robot`` measured in ``(lo, hi]`` (NaN: none)."""
+        values = [z for t, z, _ in self._heights[robot] if lo < t <= hi]
+        return float(np.median(values)) if values else math.nan
+
+    def _step_heights(self, lo: float, hi: float) -> dict[int, tuple[float, float]]:
+        """Per robot with heights in ``(lo, hi]``: their median and its std (at least
+        ``HEIGHT_FLOOR``); older ones dropped."""
+        out: dict[int, tuple[float, float]] = {}
+        for i, robot in enumerate(self._names):
+            queue = self._heights[robot]
+            taken = [(z, s) for t, z, s in queue if lo < t <= hi]
+            while queue and queue[0][0] <= hi:
+                queue.popleft()
+            if taken:  # a range finder's noise is white: the median of n has std ~ s / sqrt(n)
+                z = float(np.median([z for z, _ in taken]))
+                s = float(np.median([s for _, s in taken])) / math.sqrt(len(taken))
+                out[i] = (z, max(HEIGHT_FLOOR, s))
+        return out
+
+    def _odometry(self, robot: str, t: float) -> tuple[float, float, float, float]:
+        """``robot``'s odometry pose ``(x, y, z, yaw)`` in its own frame at ``t`` (NaN: none)."""
+        x, y, yaw = self.odometry.pose(robot, t)
+        zs = self._odom_z[robot]
+        if math.isnan(x) or not zs:
+            return (math.nan,) * 4
+        times = [s[0] for s in zs]
+        k = bisect.bisect_right(times, t)
+        if k == 0:
+            z = zs[0][1]
+        elif k == len(zs):
+            z = zs[-1][1]
+        else:
+            (t0, z0), (t1, z1) = zs[k - 1], zs[k]
+            z = z0 + (t - t0) / (t1 - t0) * (z1 - z0)
+        return (x, y, z, yaw)
+
+    def _motion(self, t: float) -> Motion:
+        """Every robot's displacement in its body frame and turn since the last step, and
+        their stds (module docstring)."""
+        n = len(self._names)
+        dt = max(t - self.t, 0.0)
+        delta = np.zeros((n, 4))
+        sigma = np.tile(
+            [UNKNOWN_SPEED * dt, UNKNOWN_SPEED * dt, UNKNOWN_SPEED * dt, UNKNOWN_TURN_RATE * dt],
+            (n, 1),
+        )
+        sigma = np.maximum(sigma, ODOMETRY_FLOOR)
+        for i, robot in enumerate(self._names):
+            now = self._odometry(robot, t)
+            before = self._anchor.get(robot, (math.nan,) * 4)
+            self._anchor[robot] = now
+            if math.isnan(now[0]) or math.isnan(before[0]):
+                continue
+            c, s = math.cos(before[3]), math.sin(before[3])
+            dx, dy, dz = now[0] - before[0], now[1] - before[1], now[2] - before[2]
+            turn = float(wrap_angle(now[3] - before[3]))
+            delta[i] = (c * dx + s * dy, -s * dx + c * dy, dz, turn)
+            moved = math.sqrt(dx * dx + dy * dy + dz * dz)
+            walk = ODOMETRY_WALK**2 * dt + ODOMETRY_FLOOR**2
+            sigma[i, :3] = math.sqrt((ODOMETRY_RELATIVE * moved) ** 2 + walk)
+            sigma[i, 3] = math.sqrt(
+                (TURN_RELATIVE * abs(turn)) ** 2 + YAW_WALK**2 * dt + TURN_FLOOR**2
+            )
+            if i != self._ref:
+                self._moved += moved
+        return Motion(delta, sigma)
+
+    # ---------------------------------------------------------------- the estimate
+    def _estimate(self, t: float) -> Estimate:
+        best = self.hypotheses[0]
+        rel, cov, yaw_var = best.relative()
+        others = self.layout.others
+        positions = {r: position_of(rel[k, :3]) for k, r in enumerate(others)}
+        covariances = {r: covariance_of(cov[k]) for k, r in enumerate(others)}
+        yaws = {
+            r: (float(rel[k, 3]), math.sqrt(max(float(yaw_var[k]), 0.0)))
+            for k, r in enumerate(others)
+        }
+        biases = {
+            pair: (float(m), float(sd))
+            for pair, m, sd in zip(
+                self.layout.bias_pairs, best.biases.tolist(), best.bias_std().tolist(), strict=True
+            )
+        }
+        observable = self._observable
+        est = Estimate(
+            t,
+            self.method,
+            self.layout.reference,
+            positions,
+            covariances,
+            biases=biases,
+            orientation_observable=observable,
+            n_modes=len(self.hypotheses),
+            particles=len(self.hypotheses),
+            frame=BODY_FRAME,
+            yaws=yaws,
+            shape={} if observable else dict(positions),
+            shape_covariances={} if observable else dict(covariances),
+            shape_gauge="" if observable else OWN_FRAME,
+        )
+        self.last_estimate = est
+        return est
