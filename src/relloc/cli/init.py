@@ -10,6 +10,9 @@ topic pattern with the body in one name part, not a robot's own odometry (``/<ro
 A node that moves with a body already mapped is a second tag on it: the robot gets ``tags = [...]``
 with each extra tag's lever arm estimated from the motion capture (standard errors in the
 comment; :mod:`relloc.drafting.tags`), or zeros to be measured with ``--no-calibrate``.
+Bodies whose mocap heights spread over :data:`~relloc.drafting.team.FLYING_SPREAD_M` fly: the
+draft gets ``dimension = 3`` and 3D lever arms. UWB ranges are ``Range`` topics per node pair or
+LinkTrack node frames per node (:mod:`relloc.drafting.frames`, ``/n<k>/range``).
 
 With the mapping decided, what ``relloc calibrate BAG --headings`` estimates is estimated from
 the same bag's motion capture (:func:`relloc.drafting.calibrate.calibrate`, written in by
@@ -64,11 +67,14 @@ def _cmd_init(args: argparse.Namespace) -> int:
         extra = f", odometry {r.odom}" if r.odom else ""
         nodes = "+".join([r.node, *(t.node for t in d.tags_of(r))]) if r.node else "-"
         print(f"  {r.name}: mocap {r.body}, UWB {nodes}{extra}")
-        for t in d.tags_of(r) if not args.no_calibrate else ():
-            (x, y), (sx, sy) = t.lever_arm, t.stderr
+        first = d.first_fit(r)
+        for t in [*([first] if first else []), *d.tags_of(r)] if not args.no_calibrate else ():
+            arm = ", ".join(
+                f"{v:+.3f} +- {e:.3f}" for v, e in zip(t.lever_arm, t.stderr, strict=True)
+            )
+            origin = "the mocap origin" if first else r.node
             print(
-                f"    {t.node} lever arm ({x:+.3f} +- {sx:.3f}, {y:+.3f} +- {sy:.3f}) m "
-                f"from {r.node}, |{math.hypot(x, y):.3f}| m"
+                f"    {t.node} lever arm ({arm}) m from {origin}, |{math.hypot(*t.lever_arm):.3f}| m"
             )
     print(f"  area {list(d.area)}, ros_distro {distro(inv.range_layout)}")
     for line in [d.reference_note, *d.notes, *cal_notes, *quirks(inv)]:

@@ -10,7 +10,9 @@ draft carries the pattern as the config's ``mocap_topic``. Which UWB node is on 
 comes from :func:`relloc.sources.inspect_bag.assign_nodes` (ranges against mocap distances);
 ``node_args`` (``ROBOT=NODE``) pin a robot's node. A node left over that moves with one body is a
 second tag on it (:func:`relloc.drafting.tags.find_tags`: the body, and the tag's lever arm by
-least squares against the body's mocap poses). The reference is the robot whose node takes
+least squares against the body's mocap poses; in 3D when the bodies fly,
+:data:`FLYING_SPREAD_M`). Ranges of a driver's node frames are read by
+:mod:`relloc.drafting.frames`. The reference is the robot whose node takes
 part in the most range messages (ties by name; ``reference`` picks another). The area is the
 project's default prior box (:class:`~relloc.config.TeamConfig` ``area``) centred on the
 robots' mocap extent, or that extent plus :data:`MARGIN_M` where it is larger: a short
@@ -30,9 +32,12 @@ import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from relloc.config import TeamConfig
 from relloc.drafting.calibrate import Calibration, calibrate
-from relloc.drafting.tags import TagFit, find_tags, mocap_poses
+from relloc.drafting.frames import with_node_frames
+from relloc.drafting.tags import Poses, TagFit, find_tags, mocap_poses
 from relloc.ros.messages import MOCAP_TYPES
 from relloc.sources.inspect_bag import (
     Assignment,
@@ -57,6 +62,11 @@ REFERENCE_TIE = 0.05
 """Range counts within this fraction of the most are called a near tie in the reference note."""
 TIE_M = 0.02
 """Two assignments whose scores differ by less than this (m, RMS) are a tie."""
+FLYING_SPREAD_M = 0.5
+"""The team flies (``dimension = 3``) when its bodies' mocap heights, all samples together,
+spread over more than this (m, 2nd to 98th percentile): bodies at different heights or one
+climbing. A ground team's markers sit within a few decimetres of one another, and below this a
+planar range model errs by at most ``h**2 / (2 d)``: 6 cm at 2 m, under the UWB noise."""
 
 
 @dataclass
@@ -85,11 +95,27 @@ class Draft:
     seconds: float
     tags: list[TagFit] = field(default_factory=list)
     """Second tags: nodes the mapping leaves out that move with one body
-    (:func:`relloc.drafting.tags.find_tags`), with their lever arms."""
+    (:func:`relloc.drafting.tags.find_tags`), with their lever arms (in 3D, the first tags of
+    their bodies too, marked ``first``)."""
+    dimension: int = 2
+    height_spread: float = 0.0
+    """Spread of the bodies' mocap heights (m; :data:`FLYING_SPREAD_M`)."""
 
     def tags_of(self, robot: Robot) -> list[TagFit]:
         """The extra tags on ``robot`` (its first is :attr:`Robot.node`)."""
-        return [t for t in self.tags if t.body == robot.body]
+        return [t for t in self.tags if t.body == robot.body and not t.first]
+
+    def first_fit(self, robot: Robot) -> TagFit | None:
+        """Where ``robot``'s first tag sits, where it was placed from the mocap origin (3D)."""
+        return next((t for t in self.tags if t.body == robot.body and t.first), None)
+
+
+def height_spread(poses: Poses) -> float:
+    """Spread (m) of every body's mocap heights together: 2nd to 98th percentile, so that a few
+    wild samples do not make a ground team fly."""
+    z = np.concatenate([p[:, 3] for p in poses.values()] or [np.zeros(1)])
+    lo, hi = np.percentile(z, [2.0, 98.0]) if z.size else (0.0, 0.0)
+    return float(hi - lo)
 
 
 def _odom_robot(topic: str) -> str:
@@ -220,6 +246,7 @@ def draft(
         raise DraftError(f"--mocap-topic: {exc}") from None
     if len(inv.tracks) < 2:
         raise _no_mocap(bag, inv, mocap_topic)
+    inv = with_node_frames(bag, inv)
     robots, notes = _robots(inv)
     how = "given" if mocap_topic is not None else "found by type"
     notes.insert(0, f"motion capture: {inv.mocap_pattern} ({inv.mocap_type}, {how})")
@@ -231,6 +258,14 @@ def draft(
     if len(robots) < 2:
         raise DraftError(f"{bag}: fewer than two robots found: {[r.name for r in robots]}")
     fixed = _parse_nodes(node_args, robots, inv.nodes)
+    poses = mocap_poses(bag, inv, [r.body for r in robots])
+    spread = height_spread(poses)
+    dimension = 3 if spread > FLYING_SPREAD_M else 2
+    if dimension == 3:
+        notes.append(
+            f"dimension 3: the bodies' mocap heights spread over {spread:.2f} m (more than "
+            f"{FLYING_SPREAD_M:g} m: they fly)"
+        )
     start = time.perf_counter()
     ranked = assign_nodes(inv, [r.body for r in robots], fixed=fixed, keep=2) if inv.ranges else []
     seconds = time.perf_counter() - start
@@ -272,10 +307,9 @@ def draft(
             )
         extra = sorted(set(inv.nodes) - set(best.nodes.values()))
         if extra and decided:
-            poses = mocap_poses(bag, inv, [r.body for r in robots])
             name = {r.body: r.name for r in robots}
-            tags, tag_notes = find_tags(inv, poses, best.nodes, best.pair_bias, name)
-            for t in tags:
+            tags, tag_notes = find_tags(inv, poses, best.nodes, best.pair_bias, name, dimension)
+            for t in (t for t in tags if not t.first):
                 runner = (
                     f", next best {name[t.runner_up]} {t.runner_up_rms:.3f} m"
                     if t.runner_up
@@ -297,7 +331,19 @@ def draft(
     ys = [v for r in robots for v in inv.tracks[r.body][:, 2]]
     dx0, dx1, dy0, dy1 = DEFAULT_AREA
     area = (*_axis(min(xs), max(xs), dx1 - dx0), *_axis(min(ys), max(ys), dy1 - dy0))
-    return inv, Draft(robots, chosen, area, ranked, decided, reference_note, notes, seconds, tags)
+    return inv, Draft(
+        robots,
+        chosen,
+        area,
+        ranked,
+        decided,
+        reference_note,
+        notes,
+        seconds,
+        tags,
+        dimension,
+        spread,
+    )
 
 
 def calibrate_draft(bag: Path, text: str, d: Draft) -> tuple[Calibration | None, list[str]]:

@@ -7,8 +7,9 @@ import tomlkit
 from tomlkit.items import Item
 
 from relloc.config import TeamConfig
+from relloc.drafting.frames import frame_fields
 from relloc.drafting.tags import TagFit
-from relloc.drafting.team import MARGIN_M, Draft, Robot
+from relloc.drafting.team import FLYING_SPREAD_M, MARGIN_M, Draft, Robot
 from relloc.sources.inspect_bag import BagInventory
 
 __all__ = ["distro", "quirks", "to_toml"]
@@ -18,26 +19,35 @@ def distro(layout: str) -> str:
     return "humble" if layout == "humble" else "jazzy"
 
 
-def _tags(r: Robot, fits: list[TagFit], lever_arms: bool) -> Item:
-    """``tags = [...]`` of a robot with extra tags: its first node at the body origin, each
-    extra one at its estimated lever arm (standard errors in the comment), or at the origin to be
-    measured when ``lever_arms`` is false."""
+def _tags(r: Robot, first: TagFit | None, fits: list[TagFit], lever_arms: bool, dim: int) -> Item:
+    """``tags = [...]`` of a robot with extra tags: its first node at the body origin (in 3D at
+    its own estimated lever arm, ``first``), each extra one at its estimated lever arm (standard
+    errors in the comment), or at the origin to be measured when ``lever_arms`` is false."""
     arr = tomlkit.array()
-    first = tomlkit.inline_table()
-    first.update({"node": r.node, "lever_arm": [0.0, 0.0]})
-    arr.append(first)
-    for f in fits:
+    placed = [first] if first is not None else []
+    zero = [0.0] * dim
+    for node, fit in [(r.node, first), *((f.node, f) for f in fits)]:
         tag = tomlkit.inline_table()
-        arm = [round(v, 3) + 0.0 for v in f.lever_arm] if lever_arms else [0.0, 0.0]
-        tag.update({"node": f.node, "lever_arm": arm})
+        arm = [round(v, 3) + 0.0 for v in fit.lever_arm] if lever_arms and fit else zero
+        tag.update({"node": node, "lever_arm": arm})
         arr.append(tag)
+    axes = "x, y, z" if dim == 3 else "x, y"
     if lever_arms:
-        errs = "; ".join(f"{f.node} +- {f.stderr[0]:.3f}, {f.stderr[1]:.3f} m" for f in fits)
-        arr.comment(f"lever arms from this bag's mocap, {errs} (x, y); {r.node} at the body origin")
+        errs = "; ".join(
+            f"{f.node} +- {', '.join(f'{v:.3f}' for v in f.stderr)} m" for f in [*placed, *fits]
+        )
+        origin = (
+            "from the mocap origin, z relative to the tags' mean height (ranges cannot tell it)"
+            if first is not None
+            else f"{r.node} at the body origin"
+        )
+        arr.comment(f"lever arms from this bag's mocap, {errs} ({axes}); {origin}")
     else:
+        where = "the mocap origin" if dim == 3 else r.node
+        nodes = [f.node for f in fits] if dim == 2 else [r.node, *(f.node for f in fits)]
         arr.comment(
-            f"lever arms not estimated (--no-calibrate): measure {', '.join(f.node for f in fits)} "
-            f"from {r.node} (x forward, y left, m)"
+            f"lever arms not estimated (--no-calibrate): measure {', '.join(nodes)} "
+            f"from {where} (x forward, y left{', z up' if dim == 3 else ''}, m)"
         )
     return arr
 
@@ -62,6 +72,14 @@ def to_toml(
     for line in d.notes:
         doc.add(tomlkit.comment(line))
     doc.add("name", name)
+    if d.dimension == 3:
+        doc.add(
+            tomlkit.comment(
+                f"dimension: the bodies fly, their mocap heights spread over {d.height_spread:.2f} m "
+                f"(more than {FLYING_SPREAD_M:g} m)"
+            )
+        )
+        doc.add("dimension", d.dimension)
     doc.add(tomlkit.comment(d.reference_note))
     doc.add("reference", d.reference)
     doc.add(
@@ -96,7 +114,7 @@ def to_toml(
         t.add("name", r.name)
         fits = d.tags_of(r)
         if r.node and fits:
-            t.add("tags", _tags(r, fits, lever_arms))
+            t.add("tags", _tags(r, d.first_fit(r), fits, lever_arms, d.dimension))
         elif r.node:
             t.add("uwb_node", r.node)
             if not d.decided:
@@ -123,6 +141,11 @@ def to_toml(
     uwb.add("range_topic", inv.range_pattern or "/uwb/tof/{a}/{b}/distance")
     if inv.range_type and inv.range_type != "sensor_msgs/msg/Range":
         uwb.add("range_type", inv.range_type)
+    frames = frame_fields(inv)
+    if frames is not None:
+        uwb["range_type"].comment("node frames: one topic per node, listing its peers")
+        uwb.add("distance_field", frames.distance_field)
+        uwb.add("peer_field", frames.peer_field)
     doc.add(tomlkit.nl())
     if calibrated is None:
         doc.add(
