@@ -220,10 +220,16 @@ def truth_in_frame(
 
 def orthogonal_procrustes(src: FloatArray, dst: FloatArray) -> FloatArray:
     """The orthogonal matrix minimising ``||src R^T - dst||`` of points ``(K, D)``: in 2D any
-    rotation or reflection; in 3D one about z only (a yaw, or a mirror of x-y), z kept, since
-    heights are measured (z is up for the whole team) and only the x-y gauge is free."""
+    rotation or reflection; in 3D one about z (a yaw, or a mirror of x-y), z kept or flipped:
+    the robots are level, so z is the team's one axis, but ranges alone never tell up from
+    down (with heights measured the flip never fits better)."""
     u, _, vt = np.linalg.svd(dst[:, :2].T @ src[:, :2])
-    return _about_z(u @ vt, src.shape[1])
+    r = _about_z(u @ vt, src.shape[1])
+    if src.shape[1] == 3:
+        flipped = r @ np.diag([1.0, 1.0, -1.0])
+        if np.sum((src @ flipped.T - dst) ** 2) < np.sum((src @ r.T - dst) ** 2):
+            return flipped
+    return r
 
 
 def umeyama_se2(src: FloatArray, dst: FloatArray) -> tuple[FloatArray, FloatArray]:

@@ -29,6 +29,7 @@ from relloc.engine import Engine
 from relloc.estimate import BODY_FRAME, HEADING_FRAME, Estimate
 from relloc.evaluation import (  # noqa: F401 (registers)
     aligned_scores,
+    distance_scores,
     scores,
     selfcal_scores,
     yaw_scores,

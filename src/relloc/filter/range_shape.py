@@ -74,13 +74,14 @@ def shortest_paths(d: FloatArray, known: BoolArray) -> FloatArray:
     return g
 
 
-def classical_mds(d: FloatArray) -> FloatArray:
-    """Torgerson's classical scaling of a complete distance matrix into the plane ``(n, 2)``."""
+def classical_mds(d: FloatArray, dims: int = 2) -> FloatArray:
+    """Torgerson's classical scaling of a complete distance matrix into ``dims`` dimensions
+    ``(n, dims)`` (the plane by default)."""
     n = d.shape[0]
     j = np.eye(n) - 1.0 / n
     b = -0.5 * j @ (d * d) @ j
     vals, vecs = np.linalg.eigh(b)
-    top = np.argsort(vals)[::-1][:2]
+    top = np.argsort(vals)[::-1][:dims]
     return vecs[:, top] * np.sqrt(np.maximum(vals[top], 0.0))[None, :]
 
 

@@ -1,5 +1,8 @@
 """What would make a run useless, checked before it starts: :class:`RunError` says which.
 
+:func:`runnable` keeps the methods a team can run (a flying team runs no planar method) and
+says which it skips.
+
 A run of minutes must not fail on its outputs at the end, nor score nothing because its
 warm-up covers the whole source; both are errors before the first event.
 """
@@ -7,9 +10,15 @@ warm-up covers the whole source; both are errors before the first event.
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["RunError", "check_warmup", "check_writable"]
+from rich.console import Console
+
+from relloc.config import TeamConfig
+from relloc.methods import cannot_run
+
+__all__ = ["RunError", "check_warmup", "check_writable", "runnable"]
 
 
 class RunError(Exception):
@@ -34,3 +43,19 @@ def check_warmup(warmup: float, duration: float, name: str) -> None:
             f"--warmup {warmup:g} s is not shorter than {name} ({duration:.1f} s): every estimate "
             "would fall in the warm-up and no APE would be scored"
         )
+
+
+def runnable(methods: Sequence[str], config: TeamConfig, console: Console, name: str) -> list[str]:
+    """The ``methods`` the team can run (:func:`relloc.methods.cannot_run`: a planar method
+    for a flying team), each other one said on ``console`` and skipped; a :class:`RunError`
+    where none is left."""
+    out = []
+    for method in methods:
+        why = cannot_run(method, config)
+        if why is None:
+            out.append(method)
+        else:
+            console.print(f"{name}: {why}: not run", soft_wrap=True, highlight=False, markup=False)
+    if not out:
+        raise RunError(f"{name}: none of the methods {', '.join(methods)} can run for this team")
+    return out

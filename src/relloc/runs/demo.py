@@ -28,8 +28,8 @@ from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.plots import plot_ape, plot_ape_over_time, plot_trajectories
 from relloc.evaluation.report import ScenarioReport, evaluate, make_console, print_table
 from relloc.faults import Faults, inject
-from relloc.methods import DETECTION_METHODS, build_pipeline, cannot_run, filter_header
-from relloc.runs.checks import check_warmup, check_writable
+from relloc.methods import DETECTION_METHODS, build_pipeline, filter_header
+from relloc.runs.checks import check_warmup, check_writable, runnable
 from relloc.runs.progress import run_with_progress
 from relloc.simulator import Simulation
 from relloc.simulator.scenarios import SCENARIOS
@@ -117,10 +117,7 @@ def run_scenario(name: str, opts: DemoOptions, console: Console) -> ScenarioRepo
             f"{name}: headings estimated; reference {config.reference} (a moving robot: the "
             "estimates are in its odometry frame, which a static reference would leave unobservable)"
         )
-    methods = [m for m in opts.methods if cannot_run(m, config) is None]
-    for m in opts.methods:
-        if (why := cannot_run(m, config)) is not None:
-            console.print(f"{name}: {why}: not run", soft_wrap=True, highlight=False, markup=False)
+    methods = runnable(opts.methods, config, console, name)
     pipelines = [build_pipeline(m, config, seed=opts.seed) for m in methods]
     if (header := filter_header(methods, config)) is not None:
         console.print(f"{name}: {header}", soft_wrap=True, highlight=False, markup=False)

@@ -34,7 +34,7 @@ from relloc.evaluation.report import ScenarioReport, evaluate, make_console, pri
 from relloc.events import Event, RangeEvent
 from relloc.faults import Faults, inject
 from relloc.methods import DETECTION_METHODS, build_pipeline, filter_header
-from relloc.runs.checks import check_warmup
+from relloc.runs.checks import check_warmup, runnable
 from relloc.runs.progress import run_with_progress
 from relloc.runs.rejections import rejection_lines
 from relloc.sinks.mcap import write_mcap
@@ -91,12 +91,13 @@ def run_recording(
     config = source.config if config is not None else _with_options(source.config, opts)
     name = source.name
     oracle = source.initial_poses()
+    methods = runnable(opts.methods, config, console, name)
     pipelines = [
         build_pipeline(m, config, seed=opts.seed, models=opts.models, oracle_start=oracle)
-        for m in opts.methods
+        for m in methods
     ]
     check_warmup(opts.warmup, source.duration, name)
-    if (header := filter_header(list(opts.methods), config)) is not None:
+    if (header := filter_header(methods, config)) is not None:
         console.print(f"{name}: {header}", soft_wrap=True, highlight=False, markup=False)
     for warning in source.warnings:
         console.print(f"[yellow]warning:[/] {escape(warning)}", soft_wrap=True)
@@ -185,7 +186,11 @@ def write_outputs(report: ScenarioReport, engine: Engine, out: Path) -> None:
             if len(p.t):
                 shown = m.published.get(robot, p)
                 write_tum(
-                    out / "tum" / f"{method}_{robot}.txt", shown.t, shown.est, m.published_frames
+                    out / "tum" / f"{method}_{robot}.txt",
+                    shown.t,
+                    shown.est,
+                    m.published_frames,
+                    yaws=m.published_yaws.get(robot),
                 )
                 if method == next(iter(report.methods)):
                     write_tum(out / "tum" / f"groundtruth_{robot}.txt", p.t, p.gt)

@@ -186,7 +186,10 @@ class FlightSimulation(Simulation):
             replace(r, tags=tuple(TagConfig(t.node, self.lever_arms[t.node]) for t in r.tags))
             for r in self.config.robots
         )
-        self.config = replace(self.config, robots=robots, dimension=3)
+        # the config states the simulated sensor's white noise (the 2D scenarios' default also
+        # covers their heading-dependent term, which drones do not have)
+        uwb_config = replace(self.config.uwb, sigma=uwb.sigma, los_sigma=uwb.sigma)
+        self.config = replace(self.config, robots=robots, dimension=3, uwb=uwb_config)
         self._runner = _FlightRunner(self)
 
     def events(self) -> Iterator[Event]:

@@ -6,8 +6,10 @@ measured, else the reference's first height). Roll and pitch are taken as known 
 (the flight controller's attitude): every key's prior and every motion factor holds them at
 zero within ``LEVEL_SIGMA``, so a key has four free coordinates, the 4-DoF state of a drone.
 
-* **Motion**: per robot a native ``BetweenFactorPose3``, its odometry's displacement in its
-  own body frame and its turn (:class:`Motion`), or, without odometry, a random walk.
+* **Motion**: per robot its odometry's displacement in its own body frame and its turn
+  (:class:`Motion`), the turn less a constant gyro bias (a ``Vector1`` key per robot with
+  odometry, kept in the window like the biases: a gyro's bias turns the whole formation in the
+  robot's view); without odometry a random walk (a native ``BetweenFactorPose3``).
 * **Ranges**: per tag pair ranged in the step one Huber-robust factor
   ``|X_a arm_a - X_b arm_b| + b - z`` between the two tags (a Python ``CustomFactor``: GTSAM's
   ``RangeFactorWithTransform`` carries one lever arm, a tag pair has two), the pair's online
@@ -43,6 +45,9 @@ REFERENCE_SIGMA = 1e-4
 """Std (m, rad) of the prior that pins the reference's first key (x, y, yaw)."""
 FREE_HEIGHT_SIGMA = 100.0
 """Std (m) of the reference's first height where heights are measured (they place it)."""
+GYRO_BIAS_SIGMA = 0.003
+"""Std (rad/s) of the prior of a robot's gyro bias: what a MEMS gyro's is after its start-up
+calibration, at most (about 0.6 deg/s)."""
 
 
 @dataclass(frozen=True)
@@ -69,12 +74,15 @@ class TagRanges:
 
 @dataclass(frozen=True)
 class Motion:
-    """Each robot's motion over a step: ``delta`` ``(N, 4)`` its displacement in its own body
-    frame at the step's start and its turn ``(dx, dy, dz, dyaw)``, ``sigma`` ``(N, 4)`` their
-    stds."""
+    """Each robot's motion over a step of ``dt`` seconds: ``delta`` ``(N, 4)`` its displacement
+    in its own body frame at the step's start and its turn ``(dx, dy, dz, dyaw)``, ``sigma``
+    ``(N, 4)`` their stds, ``measured`` ``(N,)`` whether odometry measured it (its turn then
+    less the robot's gyro bias times ``dt``), else a random walk."""
 
     delta: FloatArray
     sigma: FloatArray
+    measured: NDArray[np.bool_]
+    dt: float
 
 
 def pose_of(row: FloatArray) -> gtsam.Pose3:
@@ -131,6 +139,36 @@ def _tag_range(distance: float, arm_a: FloatArray, arm_b: FloatArray) -> Error:
 _ONE = np.ones((1, 1))
 
 
+def _odometry(delta: FloatArray, dt: float) -> Error:
+    """The error of an odometry step between keys ``(X_prev, X_new, g)``: the measured
+    displacement and turn ``delta`` ``(dx, dy, dz, dyaw)``, the turn less the gyro bias ``g``
+    times ``dt``, against ``X_prev^-1 X_new`` (GTSAM's between factor's error, in its tangent;
+    the Jacobians are GTSAM's, the bias's ``d Delta / d g = [0, 0, -dt, 0, 0, 0]``)."""
+    translation = np.asarray(delta[:3], float)
+    turn = float(delta[3])
+    d_bias = np.array([[0.0], [0.0], [-dt], [0.0], [0.0], [0.0]])
+
+    def error(
+        factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None
+    ) -> FloatArray:
+        k_prev, k_new, k_gyro = factor.keys()
+        measured = gtsam.Pose3(gtsam.Rot3.Yaw(turn - values.atVector(k_gyro)[0] * dt), translation)
+        if jacobians is None:
+            return np.asarray(
+                measured.localCoordinates(values.atPose3(k_prev).between(values.atPose3(k_new)))
+            )
+        h1, h2 = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
+        j1, j2 = np.zeros((6, 6), order="F"), np.zeros((6, 6), order="F")
+        moved = values.atPose3(k_prev).between(values.atPose3(k_new), h1, h2)
+        out = np.asarray(measured.localCoordinates(moved, j1, j2))
+        jacobians[0] = j2 @ h1
+        jacobians[1] = j2 @ h2
+        jacobians[2] = j1 @ d_bias
+        return out
+
+    return error
+
+
 def _height(h: float) -> Error:
     """The error of a height ``h`` of key ``X``: ``z(X) - h``."""
 
@@ -149,7 +187,16 @@ class PoseWindow:
     """A fixed-lag smoother of ``n`` robots' level poses, ``reference`` the pinned one (module
     docstring)."""
 
-    def __init__(self, n: int, reference: int, lag: float, biases: BiasPrior | None) -> None:
+    def __init__(
+        self,
+        n: int,
+        reference: int,
+        lag: float,
+        biases: BiasPrior | None,
+        gyros: NDArray[np.bool_] | None = None,
+    ) -> None:
+        """``gyros``: which robots' odometry turns carry a gyro bias to estimate (none by
+        default)."""
         self.n = n
         self.reference = reference
         self.others = np.array([i for i in range(n) if i != reference], dtype=np.intp)
@@ -160,6 +207,11 @@ class PoseWindow:
         self.bias_keys = [gtsam.symbol("b", j) for j in range(self.bias_mean.size)]
         latents = 0 if biases is None else biases.latent_sigma.size
         self.offset_keys = [gtsam.symbol("o", j) for j in range(latents)]
+        self.gyro_keys = {
+            int(i): gtsam.symbol("g", int(i))
+            for i in np.flatnonzero(np.zeros(n, bool) if gyros is None else gyros)
+        }
+        """Each gyro bias's key, by robot."""
         self.poses: FloatArray = np.zeros((n, 4))
         """Each robot's latest ``(x, y, z, yaw)``."""
         self.biases: FloatArray = self.bias_mean.copy()
@@ -197,6 +249,11 @@ class PoseWindow:
             stamps.insert((key, t))
         if self.prior is not None:
             add_bias_prior(graph, values, stamps, t, self.prior, self.bias_keys, self.offset_keys)
+        gyro_noise = gtsam.noiseModel.Isotropic.Sigma(1, GYRO_BIAS_SIGMA)
+        for key in self.gyro_keys.values():
+            graph.add(gtsam.PriorFactorVector(key, np.zeros(1), gyro_noise))
+            values.insert(key, np.zeros(1))
+            stamps.insert((key, t))
         self._measurements(graph, keys, ranges, heights)
         self._update(graph, values, stamps)
 
@@ -217,10 +274,16 @@ class PoseWindow:
         stamps = gtsam.FixedLagSmootherKeyTimestampMap()
         for i in range(self.n):
             delta = pose_of(motion.delta[i])
-            graph.add(gtsam.BetweenFactorPose3(prev[i], new[i], delta, _sigmas(motion.sigma[i])))
+            noise = _sigmas(motion.sigma[i])
+            gyro = self.gyro_keys.get(i)
+            if motion.measured[i] and gyro is not None:
+                error = _odometry(motion.delta[i], motion.dt)
+                graph.add(gtsam.CustomFactor(noise, [prev[i], new[i], gyro], error))
+            else:
+                graph.add(gtsam.BetweenFactorPose3(prev[i], new[i], delta, noise))
             values.insert(new[i], pose_of(self.poses[i]).compose(delta))
             stamps.insert((new[i], t))
-        for key in [*self.bias_keys, *self.offset_keys]:
+        for key in [*self.bias_keys, *self.offset_keys, *self.gyro_keys.values()]:
             stamps.insert((key, t))  # constant: kept in the window
         self._measurements(graph, new, ranges, heights)
         self._update(graph, values, stamps)
@@ -298,6 +361,19 @@ class PoseWindow:
         start = 6 * self.n
         tail = np.diag(self._window_joint())[start : start + len(self.bias_keys)]
         return np.sqrt(np.maximum(tail, 0.0))
+
+    def bias_joint(self) -> FloatArray:
+        """The joint covariance of the online biases and then the shared offsets (the
+        window's marginal) ``(B + L, B + L)``."""
+        return self._window_joint()[6 * self.n :, 6 * self.n :]
+
+    def positions_at(self, step: int) -> FloatArray | None:
+        """Every robot's ``(x, y, z)`` at ``step`` if the window still holds its keys."""
+        est = self.smoother.calculateEstimate()
+        keys = self.keys(step)
+        if not all(est.exists(k) for k in keys):
+            return None
+        return np.array([est.atPose3(k).translation() for k in keys])
 
     def offset_estimates(self) -> tuple[list[float], list[float]]:
         """Each shared offset's estimate and std (the window's marginal)."""

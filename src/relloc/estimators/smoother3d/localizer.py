@@ -7,7 +7,8 @@ Every ``STEP_PERIOD`` one ``Pose3`` key per robot (:class:`.graph.PoseWindow`) g
   a displacement in its body frame and a turn, with stds that grow with the motion; without
   odometry a random walk of ``UNKNOWN_SPEED`` and ``UNKNOWN_TURN_RATE``;
 * per tag pair ranged in the step, the median of its bias-corrected ranges, its noise
-  undivided (a step's ranges share their error);
+  undivided (a step's ranges share their error); in a team without odometry the step's keys
+  are stamped at the median time of its ranges, since nothing carries the motion past them;
 * per robot with heights in the step (:class:`~relloc.events.HeightEvent`), their median.
 
 **Start** (:mod:`.start`): level poses from the start window's ranges and heights, one
@@ -37,8 +38,13 @@ from numpy.typing import NDArray
 from relloc.config import TeamConfig
 from relloc.estimate import BODY_FRAME, OWN_FRAME, Estimate, covariance_of, position_of
 from relloc.estimators.smoother3d.graph import Motion, PoseWindow, TagRanges, pose_of
-from relloc.estimators.smoother3d.start import level_start
-from relloc.events import Event, HeightEvent, OdometryEvent, RangeEvent
+from relloc.estimators.smoother3d.start import (
+    YAW_TRUST,
+    in_reference_frame,
+    level_start,
+    yaws_from_motion,
+)
+from relloc.events import Event, HeightEvent, OdometryEvent, RangeEvent, pair_key
 from relloc.filter.measurement import ModelContext, finite
 from relloc.filter.ranges import RangeBatch
 from relloc.filter.registry import model_for
@@ -58,7 +64,7 @@ UNKNOWN_SPEED = 1.0
 under indoors."""
 UNKNOWN_TURN_RATE = 1.0
 """Std (rad/s) of the turn of a robot without odometry."""
-ODOMETRY_RELATIVE = 0.05
+ODOMETRY_RELATIVE = 0.02
 """Std of an odometry displacement per metre moved."""
 TURN_RELATIVE = 0.01
 """Std of an odometry turn per radian turned (a gyro's scale error)."""
@@ -79,6 +85,13 @@ HYPOTHESIS_TIME = 15.0
 MOTION_TO_RESOLVE = 0.3
 """Odometry displacement (m) relative to the reference after which the mirror image is
 resolved."""
+MOTION_YAW_SIGMA = 0.2
+"""Std (rad) of a yaw taken from motion."""
+POSITION_SIGMA = 0.3
+"""Std (m per axis) of a robot's position when its yaws from motion restart the window."""
+MOTION_TO_PRUNE = 2.0
+"""Odometry displacement (m) of every robot with odometry before hypotheses are pruned by cost:
+enough for a turn of the formation to show against the pair biases' prior."""
 RESTART_WINDOW = 2.0
 """Seconds of ranges a restart builds its start from."""
 
@@ -106,8 +119,11 @@ class PoseSmootherLocalizer(Localizer):
         self._first_tag = {robots[i]: k for k, (i, _) in reversed(list(enumerate(tags)))}
         self._ref = self.layout.index(self.layout.reference)
         self._has_odometry = any(r.odom_topic for r in config.robots)
+        self._gyros = np.array([bool(config.robot(r).odom_topic) for r in robots])
+        """Robots whose odometry turns carry a gyro bias the window estimates."""
         self._heights: dict[str, deque[tuple[float, float, float]]] = {r: deque() for r in robots}
         self._odom_z: dict[str, deque[tuple[float, float]]] = {r: deque() for r in robots}
+        self._yaw_sigma = self._tag_yaw_sigma()
         self.hypotheses: list[PoseWindow] = []
         self.initialized = False
         self.t = math.nan
@@ -117,7 +133,11 @@ class PoseSmootherLocalizer(Localizer):
         self._pending: list[RangeEvent] = []
         self._anchor: dict[str, tuple[float, float, float, float]] = {}
         self._moved = 0.0
+        self._moved_each = np.zeros(len(robots))
         self._observable = False
+        self._finding = False
+        """Whether ranges alone place the robots while their yaws are sought from motion."""
+        self._track: list[tuple[int, FloatArray]] = []
 
     def _track_frame(self, robot: str) -> tuple[float, float]:
         """Each robot's odometry in its own frame (its heading is estimated), at its scale."""
@@ -171,6 +191,8 @@ class PoseSmootherLocalizer(Localizer):
         self._pending += ranges
         if t - self.t < STEP_PERIOD:
             return None
+        if self._pending and not self._has_odometry:  # nothing carries the motion to t
+            t = max(float(np.median([m.t for m in self._pending])), self.t + 1e-3)
         return self._advance(t)
 
     def _start(self, t: float, ranges: list[RangeEvent]) -> Estimate | None:
@@ -179,34 +201,113 @@ class PoseSmootherLocalizer(Localizer):
             return None
         heights = np.array([self._height_at(r, t - 2.0 * RESTART_WINDOW, t) for r in self._names])
         known = {i: (float(h), HEIGHT_FLOOR) for i, h in enumerate(heights) if np.isfinite(h)}
-        heights = np.where(np.isfinite(heights), heights, 0.0)
         started = level_start(
             self._tag_robot,
             self._arms,
             heights,
             (terms.tag_a, terms.tag_b, terms.distance),
             self._ref,
+            self._yaw_sigma,
         )
         if started is None:
             return None
         poses, sigma, rms = started
         terms = self._tag_ranges(ranges, t, prior_bias=False)
-        self.hypotheses = []
-        for m in range(poses.shape[0]):
-            window = PoseWindow(len(self._names), self._ref, LAG, self._prior)
-            window.start(t, poses[m], sigma[m], ranges=terms, heights=known)
-            self.hypotheses.append(window)
+        # tags that fix no yaw well, and odometry to fix them: the reference's odometry and
+        # the ranges place the others first, their motion then gives their yaws
+        self._finding = bool(self._gyros[self._ref]) and bool(
+            np.any(self._yaw_sigma[self._gyros] > YAW_TRUST)
+        )
+        self._start_windows(t, poses, sigma, terms, known)
+        self._track = []
+        if self._finding:
+            self._record(t)
         self.initialized = True
         self.t = self._t_start = t
         self._anchor = {r: self._odometry(r, t) for r in self._names}
         self._moved = 0.0
+        self._moved_each[:] = 0.0
         self._observable = False
         self.stats["smoother_hypotheses"] = len(self.hypotheses)
         self.stats["smoother_start_rms_mm"] = round(1000.0 * rms)
         return self._estimate(t)
 
+    def _start_windows(
+        self,
+        t: float,
+        poses: FloatArray,
+        sigma: FloatArray,
+        terms: TagRanges,
+        heights: dict[int, tuple[float, float]],
+    ) -> None:
+        """One window per hypothesis ``poses`` ``(M, N, 4)`` (stds ``sigma``), started at ``t``
+        with ``terms`` and ``heights``; without odometry's turns while the yaws are sought."""
+        gyros = None if self._finding else self._gyros
+        self.hypotheses = []
+        for m in range(poses.shape[0]):
+            window = PoseWindow(len(self._names), self._ref, LAG, self._prior, gyros)
+            window.start(t, poses[m], sigma[m], ranges=terms, heights=heights)
+            self.hypotheses.append(window)
+
+    def _record(self, t: float) -> None:
+        """Keep every robot's odometry ``(x, y, yaw)`` at the window's latest step (the yaws
+        from motion)."""
+        odometry = np.array([np.array(self._odometry(r, t))[[0, 1, 3]] for r in self._names])
+        self._track.append((self.hypotheses[0].step, odometry))
+
+    def _from_motion(
+        self, t: float, terms: TagRanges, heights: dict[int, tuple[float, float]]
+    ) -> None:
+        """The yaws from motion (:func:`yaws_from_motion`): the window of ranges alone ends,
+        one of poses starts at ``t`` with the yaws its placements and the odometry give, its
+        biases' prior the posterior so far."""
+        window = self.hypotheses[0]
+        rows = [(window.positions_at(step), odometry) for step, odometry in self._track]
+        kept = [(p[:, :2], o) for p, o in rows if p is not None]
+        positions = np.array([p for p, _ in kept])
+        odometry = np.array([o for _, o in kept])
+        moving = self._gyros & np.all(np.isfinite(odometry), axis=(0, 2))
+        moving[self._ref] = False  # its odometry holds the window's frame
+        yaws, mirror, rms = yaws_from_motion(positions, odometry, moving)
+        now = window.poses.copy()
+        if mirror:
+            now[:, 1] *= -1.0
+            now[:, 3] *= -1.0
+        now[moving, 3] = yaws[moving]
+        poses = in_reference_frame(now, self._ref)
+        sigma = np.tile(
+            [POSITION_SIGMA, POSITION_SIGMA, POSITION_SIGMA, MOTION_YAW_SIGMA],
+            (len(self._names), 1),
+        )
+        sigma[~moving, 3] = np.minimum(self._yaw_sigma[~moving], math.pi)
+        self._carry_biases(window)
+        self._finding = False
+        self._track = []
+        self._start_windows(t, poses[None], sigma[None], terms, heights)
+        self._moved_each[:] = 0.0
+        self.stats["smoother_yaws_from_motion_rms_mm"] = round(1000.0 * rms)
+
+    def _carry_biases(self, window: PoseWindow) -> None:
+        """The online biases' posterior so far becomes their prior (as the 2D smoother's
+        restarts keep it)."""
+        if not self._prior.pairs:
+            return
+        try:
+            offsets = np.array(window.offset_estimates()[0], float)
+            joint = window.bias_joint()
+        except (RuntimeError, ValueError, np.linalg.LinAlgError):
+            return
+        if np.all(np.isfinite(joint)):
+            self._prior = self._prior.carried(window.biases, offsets, joint)
+
     def _advance(self, t: float) -> Estimate | None:
         motion = self._motion(t)
+        if self._finding:  # the others walk while their yaws are sought
+            walk = self._walk(motion.dt)
+            others = np.arange(len(self._names)) != self._ref
+            motion.delta[others] = walk.delta[others]
+            motion.sigma[others] = walk.sigma[others]
+            motion.measured[others] = False
         pending, self._pending = self._pending, []
         terms = self._tag_ranges(pending, t, prior_bias=False)
         heights = self._step_heights(self.t, t)
@@ -223,6 +324,13 @@ class PoseSmootherLocalizer(Localizer):
         if not survivors:
             return self._restart(t)
         self._prune(t)
+        if self._finding:
+            self._record(t)
+            moved = self._moved_each[self._gyros].min() >= MOTION_TO_PRUNE
+            late = t - self._t_start >= 2.0 * HYPOTHESIS_TIME
+            if len(self.hypotheses) == 1 and (moved or late):
+                self._from_motion(t, terms, heights)
+                self._observable = self._moved >= MOTION_TO_RESOLVE
         return self._estimate(t)
 
     def _restart(self, t: float) -> Estimate | None:
@@ -231,7 +339,12 @@ class PoseSmootherLocalizer(Localizer):
         return self._start(t, list(self._recent))
 
     def _prune(self, t: float) -> None:
-        if len(self.hypotheses) > 1:
+        """Keep the hypotheses within ``PRUNE_COST`` of the best once every robot with
+        odometry moved ``MOTION_TO_PRUNE`` (before, the pair biases' prior, not the
+        orientation, orders their costs), the best alone after ``HYPOTHESIS_TIME``."""
+        moved = self._moved_each[[self._ref] if self._finding else self._gyros]
+        enough = moved.size == 0 or moved.min() >= MOTION_TO_PRUNE
+        if len(self.hypotheses) > 1 and (enough or t - self._t_start >= HYPOTHESIS_TIME):
             costs = np.array([h.cost() for h in self.hypotheses])
             order = np.argsort(costs)
             keep = [int(i) for i in order if costs[i] <= costs[order[0]] + PRUNE_COST]
@@ -240,8 +353,41 @@ class PoseSmootherLocalizer(Localizer):
             self.hypotheses = [self.hypotheses[i] for i in keep]
             self.stats["smoother_hypotheses"] = len(self.hypotheses)
         self._observable = (
-            len(self.hypotheses) == 1 and self._has_odometry and self._moved >= MOTION_TO_RESOLVE
+            len(self.hypotheses) == 1
+            and self._has_odometry
+            and not self._finding
+            and self._moved >= MOTION_TO_RESOLVE
         )
+
+    def _tag_yaw_sigma(self) -> FloatArray:
+        """Per robot, the std of the yaw its tags give at the start: the std of the difference
+        of its two farthest tags' ranges to another tag (the range noise, and the bias prior
+        where the biases are online) over their span; ``pi`` for a robot with one tag."""
+        out = np.full(len(self._names), math.pi)
+        prior = self._prior
+        cov = np.diag(prior.sigma**2) + (prior.loading * prior.latent_sigma**2) @ prior.loading.T
+        column = {p: j for j, p in enumerate(prior.pairs)}
+        nodes = list(self._tag_of)
+        noise = self.config.uwb.sigma
+        for r in range(len(self._names)):
+            mine = np.flatnonzero(self._tag_robot == r)
+            if mine.size < 2:
+                continue
+            flat = self._arms[mine, :2]
+            gaps = np.linalg.norm(flat[:, None] - flat[None], axis=2)
+            i, j = np.unravel_index(int(np.argmax(gaps)), gaps.shape)
+            span = float(gaps[i, j])
+            variances = []
+            for x in np.flatnonzero(self._tag_robot != r).tolist():
+                ja = column.get(pair_key(nodes[mine[i]], nodes[x]))
+                jb = column.get(pair_key(nodes[mine[j]], nodes[x]))
+                bias = (
+                    0.0 if ja is None or jb is None else cov[ja, ja] + cov[jb, jb] - 2 * cov[ja, jb]
+                )
+                variances.append(2.0 * noise**2 + bias)
+            if span > 0.0 and variances:
+                out[r] = min(math.sqrt(float(np.median(variances))) / span, math.pi)
+        return out
 
     # ---------------------------------------------------------------- measurements
     @property
@@ -341,17 +487,19 @@ class PoseSmootherLocalizer(Localizer):
             z = z0 + (t - t0) / (t1 - t0) * (z1 - z0)
         return (x, y, z, yaw)
 
+    def _walk(self, dt: float) -> Motion:
+        """Every robot's random walk over ``dt`` (no odometry)."""
+        n = len(self._names)
+        step = [UNKNOWN_SPEED * dt] * 3 + [UNKNOWN_TURN_RATE * dt]
+        sigma = np.maximum(np.tile(step, (n, 1)), ODOMETRY_FLOOR)
+        return Motion(np.zeros((n, 4)), sigma, np.zeros(n, bool), dt)
+
     def _motion(self, t: float) -> Motion:
         """Every robot's displacement in its body frame and turn since the last step, and
         their stds (module docstring)."""
-        n = len(self._names)
         dt = max(t - self.t, 0.0)
-        delta = np.zeros((n, 4))
-        sigma = np.tile(
-            [UNKNOWN_SPEED * dt, UNKNOWN_SPEED * dt, UNKNOWN_SPEED * dt, UNKNOWN_TURN_RATE * dt],
-            (n, 1),
-        )
-        sigma = np.maximum(sigma, ODOMETRY_FLOOR)
+        random = self._walk(dt)
+        delta, sigma, measured = random.delta, random.sigma.copy(), random.measured.copy()
         for i, robot in enumerate(self._names):
             now = self._odometry(robot, t)
             before = self._anchor.get(robot, (math.nan,) * 4)
@@ -368,9 +516,11 @@ class PoseSmootherLocalizer(Localizer):
             sigma[i, 3] = math.sqrt(
                 (TURN_RELATIVE * abs(turn)) ** 2 + YAW_WALK**2 * dt + TURN_FLOOR**2
             )
+            measured[i] = True
+            self._moved_each[i] += moved
             if i != self._ref:
                 self._moved += moved
-        return Motion(delta, sigma)
+        return Motion(delta, sigma, measured, dt)
 
     # ---------------------------------------------------------------- the estimate
     def _estimate(self, t: float) -> Estimate:
