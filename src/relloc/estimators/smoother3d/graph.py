@@ -16,7 +16,7 @@ zero within ``LEVEL_SIGMA``, so a key has four free coordinates, the 4-DoF state
   bias ``b`` where it has one, else the bias already removed from ``z``.
 * **Heights**: ``z(X) - h`` per robot with a height in the step.
 * **Online biases**: the 2D smoother's prior (:func:`~relloc.estimators.smoother.graph.add_bias_prior`),
-  the keys kept in the window for the whole run.
+  the keys stamped far in the future: kept in the window for the whole run.
 
 The published pose of a robot is ``X_ref^-1 X_k``, its covariance from the window's joint
 marginal of the two keys through the Jacobians of ``between`` (docs/explanation/flying.md).
@@ -45,9 +45,17 @@ REFERENCE_SIGMA = 1e-4
 """Std (m, rad) of the prior that pins the reference's first key (x, y, yaw)."""
 FREE_HEIGHT_SIGMA = 100.0
 """Std (m) of the reference's first height where heights are measured (they place it)."""
+MARGINALISE_EVERY = 0.25
+"""The fraction of the lag whose pose keys are marginalised together (:meth:`PoseWindow._stamp`):
+the window then holds between the lag and 1.25 times it."""
+RESTAMP_FRACTION = 0.4
+"""The constant keys (biases, offsets, gyro biases) are re-stamped every this fraction of the
+lag, so that the lag never marginalises them; not every step: a re-stamp makes iSAM2 re-order
+and re-eliminate the window (every step: four times slower)."""
 GYRO_BIAS_SIGMA = 0.003
-"""Std (rad/s) of the prior of a robot's gyro bias: what a MEMS gyro's is after its start-up
-calibration, at most (about 0.6 deg/s)."""
+"""Std (rad/s) of the prior of a robot's gyro bias (0.17 deg/s): a flight controller's gyro
+after its start-up calibration, or a VIO's yaw drift. A broader prior lets the reference's yaw
+bend within the window (0.01 rad/s: the formation 3-5 deg off for tens of seconds)."""
 
 
 @dataclass(frozen=True)
@@ -202,6 +210,8 @@ class PoseWindow:
         self.others = np.array([i for i in range(n) if i != reference], dtype=np.intp)
         self.smoother = gtsam.IncrementalFixedLagSmoother(lag)
         self.step = -1
+        self._lag = lag
+        self._stamped = -np.inf
         self.prior = biases
         self.bias_mean = np.zeros(0) if biases is None else biases.mean
         self.bias_keys = [gtsam.symbol("b", j) for j in range(self.bias_mean.size)]
@@ -246,14 +256,17 @@ class PoseWindow:
                 s = np.array([REFERENCE_SIGMA, REFERENCE_SIGMA, free, REFERENCE_SIGMA])
             graph.add(gtsam.PriorFactorPose3(key, pose_of(poses[i]), _sigmas(s)))
             values.insert(key, pose_of(poses[i]))
-            stamps.insert((key, t))
+            stamps.insert((key, self._stamp(t)))
         if self.prior is not None:
-            add_bias_prior(graph, values, stamps, t, self.prior, self.bias_keys, self.offset_keys)
+            add_bias_prior(
+                graph, values, stamps, self._stamp(t), self.prior, self.bias_keys, self.offset_keys
+            )
         gyro_noise = gtsam.noiseModel.Isotropic.Sigma(1, GYRO_BIAS_SIGMA)
         for key in self.gyro_keys.values():
             graph.add(gtsam.PriorFactorVector(key, np.zeros(1), gyro_noise))
             values.insert(key, np.zeros(1))
-            stamps.insert((key, t))
+            stamps.insert((key, self._stamp(t)))
+        self._stamped = t
         self._measurements(graph, keys, ranges, heights)
         self._update(graph, values, stamps)
 
@@ -282,11 +295,20 @@ class PoseWindow:
             else:
                 graph.add(gtsam.BetweenFactorPose3(prev[i], new[i], delta, noise))
             values.insert(new[i], pose_of(self.poses[i]).compose(delta))
-            stamps.insert((new[i], t))
-        for key in [*self.bias_keys, *self.offset_keys, *self.gyro_keys.values()]:
-            stamps.insert((key, t))  # constant: kept in the window
+            stamps.insert((new[i], self._stamp(t)))
+        if t - self._stamped >= RESTAMP_FRACTION * self._lag:  # constant keys kept in the lag
+            for key in [*self.bias_keys, *self.offset_keys, *self.gyro_keys.values()]:
+                stamps.insert((key, self._stamp(t)))
+            self._stamped = t
         self._measurements(graph, new, ranges, heights)
         self._update(graph, values, stamps)
+
+    def _stamp(self, t: float) -> float:
+        """A pose key's stamp: ``t`` rounded up to ``MARGINALISE_EVERY`` of the lag, so that
+        the lag marginalises the window's oldest keys in blocks, not every step (each
+        marginalisation re-eliminates the window from the marginalised keys to the root)."""
+        block = MARGINALISE_EVERY * self._lag
+        return math.ceil(t / block) * block
 
     def _measurements(
         self,

@@ -122,7 +122,8 @@ class PoseSmootherLocalizer(Localizer):
         self._gyros = np.array([bool(config.robot(r).odom_topic) for r in robots])
         """Robots whose odometry turns carry a gyro bias the window estimates."""
         self._heights: dict[str, deque[tuple[float, float, float]]] = {r: deque() for r in robots}
-        self._odom_z: dict[str, deque[tuple[float, float]]] = {r: deque() for r in robots}
+        self._odom_z: dict[str, tuple[list[float], list[float]]] = {r: ([], []) for r in robots}
+        """Each robot's odometry heights: their times and values (the last ``2 LAG``)."""
         self._yaw_sigma = self._tag_yaw_sigma()
         self.hypotheses: list[PoseWindow] = []
         self.initialized = False
@@ -159,10 +160,12 @@ class PoseSmootherLocalizer(Localizer):
         if isinstance(event, OdometryEvent) and event.robot in self._odom_z:
             track = self.odometry.tracks[event.robot]
             if track.last_event is event:
-                zs = self._odom_z[event.robot]
-                zs.append((event.t, event.z))
-                while len(zs) > 2 and zs[1][0] < event.t - 2.0 * LAG:
-                    zs.popleft()
+                times, values = self._odom_z[event.robot]
+                times.append(event.t)
+                values.append(event.z)
+                if len(times) > 64 and times[0] < event.t - 2.0 * LAG:
+                    cut = bisect.bisect_left(times, event.t - 2.0 * LAG)
+                    del times[:cut], values[:cut]
         return out
 
     def _height_rejection(self, event: HeightEvent) -> str | None:
@@ -473,18 +476,10 @@ class PoseSmootherLocalizer(Localizer):
     def _odometry(self, robot: str, t: float) -> tuple[float, float, float, float]:
         """``robot``'s odometry pose ``(x, y, z, yaw)`` in its own frame at ``t`` (NaN: none)."""
         x, y, yaw = self.odometry.pose(robot, t)
-        zs = self._odom_z[robot]
-        if math.isnan(x) or not zs:
+        times, values = self._odom_z[robot]
+        if math.isnan(x) or not times:
             return (math.nan,) * 4
-        times = [s[0] for s in zs]
-        k = bisect.bisect_right(times, t)
-        if k == 0:
-            z = zs[0][1]
-        elif k == len(zs):
-            z = zs[-1][1]
-        else:
-            (t0, z0), (t1, z1) = zs[k - 1], zs[k]
-            z = z0 + (t - t0) / (t1 - t0) * (z1 - z0)
+        z = float(np.interp(t, times, values))
         return (x, y, z, yaw)
 
     def _walk(self, dt: float) -> Motion:
