@@ -375,7 +375,8 @@ def pose_with_covariance_msg(
 def odometry_msg(
     event: OdometryEvent, *, frame_id: str = "odom", child_frame_id: str = "base_link"
 ) -> Any:
-    """An :class:`OdometryEvent` as ``nav_msgs/Odometry`` (covariances zero, like the recordings)."""
+    """An :class:`OdometryEvent` as ``nav_msgs/Odometry`` (covariances zero, like the recordings;
+    the position's z the event's, 0 for a ground robot)."""
     types = typestore().types
     vec = types["geometry_msgs/msg/Vector3"]
     zero36 = np.zeros(36, dtype=np.float64)
@@ -386,7 +387,7 @@ def odometry_msg(
         header=_header(event.t, frame_id),
         child_frame_id=child_frame_id,
         pose=types["geometry_msgs/msg/PoseWithCovariance"](
-            pose=_pose(event.x, event.y, event.yaw), covariance=zero36
+            pose=_pose(event.x, event.y, event.yaw, event.z), covariance=zero36
         ),
         twist=types["geometry_msgs/msg/TwistWithCovariance"](twist=twist, covariance=zero36.copy()),
     )
