@@ -40,6 +40,7 @@ from relloc.estimate import BODY_FRAME, OWN_FRAME, Estimate, covariance_of, posi
 from relloc.estimators.smoother3d.graph import Motion, PoseWindow, TagRanges, pose_of
 from relloc.estimators.smoother3d.start import (
     YAW_TRUST,
+    chiral,
     in_reference_frame,
     level_start,
     yaws_from_motion,
@@ -125,6 +126,9 @@ class PoseSmootherLocalizer(Localizer):
         self._odom_z: dict[str, tuple[list[float], list[float]]] = {r: ([], []) for r in robots}
         """Each robot's odometry heights: their times and values (the last ``2 LAG``)."""
         self._yaw_sigma = self._tag_yaw_sigma()
+        mine = self._tag_robot == self._ref
+        self._chiral = chiral(np.zeros(int(mine.sum()), np.intp), self._arms[mine])
+        """Whether the reference's own tags tell the formation from its mirror image."""
         self.hypotheses: list[PoseWindow] = []
         self.initialized = False
         self.t = math.nan
@@ -355,11 +359,9 @@ class PoseSmootherLocalizer(Localizer):
                 keep = keep[:1]
             self.hypotheses = [self.hypotheses[i] for i in keep]
             self.stats["smoother_hypotheses"] = len(self.hypotheses)
-        self._observable = (
-            len(self.hypotheses) == 1
-            and self._has_odometry
-            and not self._finding
-            and self._moved >= MOTION_TO_RESOLVE
+        self._observable = len(self.hypotheses) == 1 and (
+            self._chiral  # the reference's tags tell the mirror image
+            or (self._has_odometry and not self._finding and self._moved >= MOTION_TO_RESOLVE)
         )
 
     def _tag_yaw_sigma(self) -> FloatArray:

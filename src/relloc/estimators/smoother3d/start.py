@@ -127,6 +127,18 @@ def _shape_3d(
     return points, placed, float(np.sqrt(np.mean(res * res))) if res.size else 0.0
 
 
+def chiral(tag_robot: IntArray, arms: FloatArray) -> bool:
+    """Whether some robot's tags are three or more, not on one line in the plane: a mirror
+    image of the formation would need their mirror image, so they tell the handedness (once
+    the ranges have placed them well: the start keeps both hypotheses, the graph's cost
+    chooses)."""
+    for r in np.unique(tag_robot).tolist():
+        flat = arms[tag_robot == r, :2]
+        if flat.shape[0] >= 3 and np.linalg.matrix_rank(flat - flat.mean(axis=0), tol=1e-3) == 2:
+            return True
+    return False
+
+
 def _up(points: FloatArray, placed: NDArray[np.bool_], si: IntArray, sj: IntArray) -> FloatArray:
     """The unit direction across which the differences of every robot's tags (pairs ``si``,
     ``sj``) spread least: level tags lie across "up" (z for an unknown shape: no robot has
