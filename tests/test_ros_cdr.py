@@ -71,7 +71,7 @@ def test_odometry_fields_match_rosbags(little_endian: bool) -> None:
             assert got is not None
             ev = rm.odometry_to_event(rm.decode(raw, rm.ODOMETRY), "r")
             want = (rm.stamp_to_sec(rm.decode(raw, rm.ODOMETRY).header.stamp),
-                    ev.x, ev.y, ev.yaw, ev.v, ev.w)  # fmt: skip
+                    ev.x, ev.y, ev.yaw, ev.v, ev.w, ev.z)  # fmt: skip
             assert got == pytest.approx(want, rel=0, abs=1e-12)
 
 
@@ -138,7 +138,7 @@ def test_malformed_payloads_defer_to_the_full_decoder(msgtype: str, fast, distro
             assert got == (rm.stamp_to_sec(full.header.stamp), full.range)
         else:
             ev = rm.odometry_to_event(full, "a")
-            np.testing.assert_equal(got[1:], (ev.x, ev.y, ev.yaw, ev.v, ev.w))
+            np.testing.assert_equal(got[1:], (ev.x, ev.y, ev.yaw, ev.v, ev.w, ev.z))
     assert answered > 0  # flips in the float fields are still valid messages
 
 

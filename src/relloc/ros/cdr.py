@@ -86,8 +86,10 @@ def _header(raw: bytes) -> tuple[str, float, int] | None:
     return endian, sec + nanosec * 1e-9, end
 
 
-def decode_odometry(raw: bytes) -> tuple[float, float, float, float, float, float] | None:
-    """``nav_msgs/Odometry`` -> ``(stamp, x, y, yaw, v, w)``, or ``None`` (use the full decoder).
+def decode_odometry(
+    raw: bytes,
+) -> tuple[float, float, float, float, float, float, float] | None:
+    """``nav_msgs/Odometry`` -> ``(stamp, x, y, yaw, v, w, z)``, or ``None`` (use the full decoder).
 
     ``yaw`` is :func:`relloc.ros.messages.yaw_from_quaternion` of the orientation; ``v`` and
     ``w`` are ``twist.linear.x`` and ``twist.angular.z``.
@@ -104,7 +106,7 @@ def decode_odometry(raw: bytes) -> tuple[float, float, float, float, float, floa
     if pos + body.size != len(raw):
         return None
     f = body.unpack_from(raw, pos)
-    return stamp, f[0], f[1], yaw_from_xyzw(*f[3:7]), f[43], f[48]
+    return stamp, f[0], f[1], yaw_from_xyzw(*f[3:7]), f[43], f[48], f[2]
 
 
 def decode_range(raw: bytes, variance: bool | None = None) -> tuple[float, float] | None:

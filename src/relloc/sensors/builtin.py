@@ -107,8 +107,8 @@ class Odometry(Sensor):
         ingest: Conversion,
     ) -> Event | None:
         if fast is not None:
-            _, x, y, yaw, v, w = fast
-            return OdometryEvent(t=stamp, robot=route.robot, x=x, y=y, yaw=yaw, v=v, w=w)
+            _, x, y, yaw, v, w, z = fast
+            return OdometryEvent(t=stamp, robot=route.robot, x=x, y=y, yaw=yaw, v=v, w=w, z=z)
         return odometry_to_event(msg, route.robot, t=stamp)
 
     def message(self, event: OdometryEvent) -> Any:
