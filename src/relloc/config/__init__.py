@@ -292,7 +292,7 @@ class TeamConfig(Checked):
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["area"] = list(self.area)
-        d["robots"] = [asdict(r) for r in self.robots]
+        d["robots"] = [r.to_dict() for r in self.robots]
         d["uwb"]["pairs"] = {k: drop_none(asdict(v)) for k, v in self.uwb.pairs.items()}
         if not self.sensors:
             del d["sensors"]

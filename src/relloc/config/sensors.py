@@ -6,8 +6,8 @@ transceivers (topics, per-pair calibration, range noise) and the cooperative det
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
-from typing import Literal
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any, Literal
 
 from relloc.config.checks import Checked, ConfigError, require
 from relloc.events import pair_key
@@ -59,6 +59,10 @@ class TagConfig(Checked):
         object.__setattr__(self, "lever_arm", tuple(float(v) for v in arm))
 
 
+_QUIET_DEFAULTS = frozenset({"height_topic", "height_offset", "height_sigma"})
+"""Robot keys :meth:`RobotConfig.to_dict` writes only where they differ from the default."""
+
+
 @dataclass(frozen=True)
 class RobotConfig(Checked):
     """One robot of the team and where its data comes from."""
@@ -95,6 +99,14 @@ class RobotConfig(Checked):
     """Range noise of those sightings (m)."""
     sighting_sigma_bearing_deg: float = 1.0
     """Bearing noise of those sightings (deg)."""
+    height_topic: str = ""
+    """A downward range finder (``sensor_msgs/msg/Range``): the robot's height above the ground
+    (a flying robot; :mod:`relloc.sensors.height`). Empty: none."""
+    height_offset: float = 0.0
+    """Added to the range finder's reading to give the body origin's height (m): the origin's
+    height above the sensor, positive for a sensor mounted below the origin."""
+    height_sigma: float = 0.03
+    """Noise of those heights (m)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -109,6 +121,19 @@ class RobotConfig(Checked):
         if len(set(nodes)) != len(nodes):
             raise ConfigError(f"robot {self.name}: a node is listed twice in its tags: {nodes}")
         object.__setattr__(self, "tags", tags)
+        if not self.height_sigma > 0.0:
+            raise ConfigError(
+                f"robot {self.name}: height_sigma must be > 0, got {self.height_sigma}"
+            )
+
+    def to_dict(self) -> dict[str, Any]:
+        """The robot as a table of the config file. The height sensor's keys are left out at
+        their defaults, so a robot without one is written as before it existed."""
+        d = asdict(self)
+        for f in fields(self):
+            if f.name in _QUIET_DEFAULTS and d[f.name] == f.default:
+                del d[f.name]
+        return d
 
     @property
     def heading_offset(self) -> float:

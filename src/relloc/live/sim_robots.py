@@ -1,14 +1,14 @@
 """Simulated robots on Eclipse Zenoh (``relloc sim-robots``): a team that stands in for real ones.
 
 :class:`SimRobots` runs a simulated team (:mod:`relloc.simulator`) in real time (times
-``rate``) and publishes its odometry, UWB ranges and motion capture as real robots behind
-zenoh-bridge-ros2dds, or running rmw_zenoh, would: the same keys, attachments (and liveliness
-tokens, for a node ``relloc_sim_robots``) and ROS 2 CDR payloads, encoded by the
-:class:`~relloc.live.publish.EventEncoder` that also publishes recorded and simulated events
-for ``relloc replay`` and the benchmarks. Commanded robots obey ``geometry_msgs/Twist`` on their
-``cmd_vel`` key, and stop when no command has come for ``cmd_timeout`` simulated seconds, as a
-robot base does. With it, ``relloc serve`` and ``relloc navigate`` run the whole live system on
-one machine.
+``rate``) and publishes its odometry, UWB ranges, heights (flying robots' range finders) and
+motion capture as real robots behind zenoh-bridge-ros2dds, or running rmw_zenoh, would: the
+same keys, attachments (and liveliness tokens, for a node ``relloc_sim_robots``) and ROS 2 CDR
+payloads, encoded by the :class:`~relloc.live.publish.EventEncoder` that also publishes
+recorded and simulated events for ``relloc replay`` and the benchmarks. Commanded robots obey
+``geometry_msgs/Twist`` on their ``cmd_vel`` key, and stop when no command has come for
+``cmd_timeout`` simulated seconds, as a robot base does. With it, ``relloc serve`` and
+``relloc navigate`` run the whole live system on one machine.
 
 The simulation advances in fixed steps of simulated time, each published no earlier than its
 wall-clock schedule (``step / rate``); commands received during a step apply from the next.
@@ -41,8 +41,9 @@ def sim_team_config(
 
     The simulator's own config (truthful calibration) with ROS topics: odometry on
     ``/<robot>/odom``, velocity commands on ``/<robot>/cmd_vel``, motion capture body = robot
-    name. With ``base`` (a user's config for the same robot names) its topics, scopes and filter
-    settings are used instead.
+    name, heights on the simulator's height topics (robots it simulates a range finder for, at
+    their body origin). With ``base`` (a user's config for the same robot names) its topics,
+    scopes and filter settings are used instead.
     """
     config: TeamConfig = sim.config
     if base is not None:
@@ -69,6 +70,9 @@ def sim_team_config(
             ),
             zenoh_scope=own.zenoh_scope if own else "",
             mocap_body=(own.mocap_body if own and own.mocap_body else r.name),
+            height_topic=(
+                own.height_topic if own and own.height_topic and r.height_topic else r.height_topic
+            ),
         )
     if particles:
         config = config.with_filter(particles=particles)

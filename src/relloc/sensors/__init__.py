@@ -4,12 +4,14 @@ A :class:`Sensor` (:mod:`relloc.sensors.base`) bundles a sensor's event type, it
 types with decoder, fast path and replay encoder, its routes from the team config, its
 measurement model, its counters and its fault hooks; ingestion, bag resolution, replay
 encoding, message faults and the Zenoh source ask the :mod:`~relloc.sensors.registry` instead
-of comparing kind names. The built-in sensors (:mod:`relloc.sensors.builtin`) are registered
-here; a new sensor is one descriptor and one :func:`register` call (``docs/howto/extending.md``).
+of comparing kind names. The built-in sensors (:mod:`relloc.sensors.builtin`, and the range
+finder's heights, :mod:`relloc.sensors.height`) are registered here; a new sensor is one
+descriptor and one :func:`register` call (``docs/howto/extending.md``).
 """
 
 from relloc.sensors.base import Conversion, Route, Sensor, Switch
 from relloc.sensors.builtin import DETECTION, GROUND_TRUTH, ODOMETRY_SENSOR, RANGE_SENSOR, SIGHTING
+from relloc.sensors.height import HEIGHT_SENSOR
 from relloc.sensors.registry import (
     check_config,
     kind_of,
@@ -23,6 +25,7 @@ from relloc.sensors.registry import (
 __all__ = [
     "DETECTION",
     "GROUND_TRUTH",
+    "HEIGHT_SENSOR",
     "ODOMETRY_SENSOR",
     "RANGE_SENSOR",
     "SIGHTING",
@@ -39,5 +42,5 @@ __all__ = [
     "unregister",
 ]
 
-for _builtin in (ODOMETRY_SENSOR, SIGHTING, GROUND_TRUTH, DETECTION, RANGE_SENSOR):
+for _builtin in (ODOMETRY_SENSOR, SIGHTING, GROUND_TRUTH, DETECTION, RANGE_SENSOR, HEIGHT_SENSOR):
     register(_builtin)

@@ -183,7 +183,12 @@ class FlightSimulation(Simulation):
                 noise = stream(self.seed, "height-noise", robot).standard_normal(times.size)
                 self._heights[robot] = (times, noise * height.sigma)
         robots = tuple(
-            replace(r, tags=tuple(TagConfig(t.node, self.lever_arms[t.node]) for t in r.tags))
+            replace(
+                r,
+                tags=tuple(TagConfig(t.node, self.lever_arms[t.node]) for t in r.tags),
+                height_topic=f"/{r.name}/height" if height else "",  # its range finder's
+                height_sigma=height.sigma if height else r.height_sigma,
+            )
             for r in self.config.robots
         )
         # the config states the simulated sensor's white noise (the 2D scenarios' default also
