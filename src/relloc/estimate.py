@@ -164,6 +164,34 @@ class Estimate:
             frame=FORMATION_FRAME,
         )
 
+    def in_body_frame(self, yaw: float) -> Estimate:
+        """This estimate in the reference's body frame, the reference's heading in the
+        heading frame being ``yaw`` (rad): positions, covariances and yaws turned by ``-yaw``
+        about z (the heading frame's estimate of a compass team seen from the reference, as
+        an onboard view publishes it); itself where it is not in the heading frame or ``yaw``
+        is not finite. The shape stays in its own gauge; the headings stay odometry-frame
+        rotations (:attr:`headings`)."""
+        if self.frame != HEADING_FRAME or not math.isfinite(yaw):
+            return self
+        c, s = math.cos(yaw), math.sin(yaw)
+        turn = np.eye(self.dimension)
+        turn[:2, :2] = ((c, s), (-s, c))
+
+        def position(p: Position) -> Position:
+            return position_of(turn @ np.asarray(p, float))
+
+        def covariance(cov: Covariance) -> Covariance:
+            return covariance_of(turn @ np.asarray(cov, float) @ turn.T)
+
+        return replace(
+            self,
+            positions={r: position(p) for r, p in self.positions.items()},
+            covariances={r: covariance(c) for r, c in self.covariances.items()},
+            weighted_mean={r: position(p) for r, p in self.weighted_mean.items()},
+            yaws={r: (math.remainder(m - yaw, math.tau), sd) for r, (m, sd) in self.yaws.items()},
+            frame=BODY_FRAME,
+        )
+
     @property
     def status(self) -> str:
         """One line on what the estimate means: what would resolve the orientation, or that

@@ -182,6 +182,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.add_argument(
         "--out-prefix", default="relloc", help="key prefix of the estimates and status"
     )
+    serve.add_argument(
+        "--robot",
+        default="",
+        metavar="NAME",
+        help="run on board robot NAME: the team relative to it, in its body frame, on "
+        "<out-prefix>/NAME/<other>/pose and <out-prefix>/NAME/status (the config's reference "
+        "replaced by NAME)",
+    )
     serve.add_argument("--reorder-window", type=argtypes.non_negative, default=0.0, metavar="S",
                        help="hold events up to S s of header time to put them in order (adds S s of latency)")  # fmt: skip
     serve.add_argument("--clock-rate", type=argtypes.positive, default=1.0,

@@ -18,6 +18,7 @@ from typing import Any
 
 from relloc.config import TeamConfig
 from relloc.engine import Engine, Pipeline
+from relloc.estimate import Estimate
 from relloc.events import RangeEvent, WakeRule
 from relloc.faults import FaultInjector, Faults
 from relloc.methods import DETECTION_METHODS
@@ -61,6 +62,10 @@ class ServeOptions:
     record: Path | None = None
     """An MCAP file of every estimate published, its flags and the ranges fed to the methods
     (:class:`~relloc.sinks.mcap.McapWriter`), finished by :meth:`LiveServer.close`."""
+    robot: str = ""
+    """On board: the robot this server runs on (``relloc serve --robot``). It is the
+    reference, its teammates are published in its body frame below ``<out_prefix>/<robot>``
+    (:meth:`LiveServer.onboard`); empty: one central view from the config's reference."""
 
 
 class LiveServer:
@@ -82,7 +87,14 @@ class LiveServer:
             raise ValueError("serve needs at least one method")
         if opts.particles:
             config = config.with_filter(particles=opts.particles)
+        if opts.robot:
+            if opts.robot not in config.robot_names:
+                raise ValueError(
+                    f"--robot {opts.robot!r} is not one of the team: {list(config.robot_names)}"
+                )
+            config = config.with_modes(reference=opts.robot)
         self.config = config
+        out_prefix = "/".join(p for p in (opts.out_prefix.strip("/"), opts.robot) if p)
         self.session = session
         self.pipelines: list[Pipeline] = [
             build_pipeline(m, config, seed=opts.seed, models=opts.models) for m in opts.methods
@@ -96,18 +108,22 @@ class LiveServer:
                 clock_rate=opts.clock_rate,
                 detections=any(m in DETECTION_METHODS for m in opts.methods),
                 subscribe_all=opts.subscribe_all,
-                own_prefix=opts.out_prefix,
+                own_prefix=out_prefix,
             ),
         )
         self.sink = ZenohSink(
             session,
             config,
             interface=opts.interface,
-            prefix=opts.out_prefix,
+            prefix=out_prefix,
             primary_method=opts.methods[0],
             trace=opts.trace,
         )
-        self.engine = Engine(self.pipelines, [self.sink], keep_estimates=opts.keep_estimates)
+        self.engine = Engine(
+            self.pipelines,
+            [self.onboard if opts.robot else self.sink],
+            keep_estimates=opts.keep_estimates,
+        )
         self.faults = FaultInjector(opts.faults) if opts.faults.active else None
         """What the server injects into its events (``None``: nothing)."""
         self.wake_by_rule = (
@@ -131,6 +147,16 @@ class LiveServer:
         if opts.record is not None:
             self.recorder = McapWriter(opts.record, distro=opts.interface.distro)
             self.engine.sinks.append(self.recorder.estimate)
+
+    def onboard(self, estimate: Estimate) -> None:
+        """The onboard sink: ``estimate`` in the robot's body frame (its odometry heading in
+        the team's heading frame turns a compass team's estimate,
+        :meth:`Estimate.in_body_frame`), then published."""
+        pipeline = next((p for p in self.pipelines if p.name == estimate.method), None)
+        if pipeline is not None:
+            yaw = pipeline.localizer.odometry.pose(self.config.reference, estimate.t)[2]
+            estimate = estimate.in_body_frame(yaw)
+        self.sink(estimate)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -308,6 +334,10 @@ class LiveServer:
                 "buffer_depth": len(self.source.buffer),
             },
             "robots": robots,
+            "onboard": self.options.robot or None,
+            "hears": sorted(
+                r for r in self.config.robot_names if r not in self._quiet and r in st.last_received
+            ),
             "engine_errors": self.engine_errors,
             "injected_faults": {} if self.faults is None else dict(self.faults.counts),
         }
