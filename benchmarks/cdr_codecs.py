@@ -46,7 +46,7 @@ def _cases() -> dict[str, tuple[Callable[[], Any], Callable[[], Any]]]:
     def odom_rosbags() -> Any:
         msg = rm.decode(odom, rm.ODOMETRY)
         ev = rm.odometry_to_event(msg, "a")
-        return rm.stamp_to_sec(msg.header.stamp), ev.x, ev.y, ev.yaw, ev.v, ev.w
+        return rm.stamp_to_sec(msg.header.stamp), ev.x, ev.y, ev.yaw, ev.v, ev.w, ev.z
 
     def range_rosbags() -> Any:
         msg = rm.decode(rng, rm.RANGE)
