@@ -21,10 +21,9 @@ would absorb a static team's lever arms: not used in 2D. The first tag's lever a
 with the body's mocap origin and is not estimated. Standard errors are cluster-robust by pair
 (UWB multipath is a property of the geometry), with the factor ``G / (G - k)``.
 
-A flying team (``dimension`` 3): 3D positions and lever arms, level bodies, a bias per pair
-(moving, turning bodies keep it from the lever arms), every tag of a multi-tag body placed from
-the mocap origin, their mean height held at 0 (ranges see only height differences), clusters a
-pair's samples per :data:`BLOCK_S`.
+A flying team (``dimension`` 3): 3D arms, level bodies, a bias per pair (moving, turning bodies
+keep it from the arms), every tag placed from the mocap origin, their mean height held at 0
+(ranges see only height differences), a pair's samples clustered per :data:`BLOCK_S`.
 
 Which body: each candidate is fitted with its own lever arm (held to :data:`LEVER_MAX_M`) and
 constant, the other nodes' held; the smallest clipped residual wins if below :data:`FIT_MAX_M`. A
