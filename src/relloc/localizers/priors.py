@@ -9,6 +9,7 @@ imports another's localizer for them.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -29,6 +30,16 @@ longer bias, a nearer robot) (docs/explanation/self-calibration.md, "Online bias
 
 
 FloatArray = NDArray[np.float64]
+
+
+class BiasPosterior(Protocol):
+    """What a smoother's window says of the online biases (its latest estimates)."""
+
+    biases: FloatArray
+
+    def offset_estimates(self) -> tuple[list[float], list[float]]: ...
+
+    def bias_joint(self) -> FloatArray: ...
 
 
 @dataclass(frozen=True)
@@ -83,6 +94,21 @@ class BiasPrior:
             np.sqrt(np.maximum(off_var, 1e-12)),
             np.asarray(offsets, float),
         )
+
+    def carried_from(self, window: BiasPosterior) -> BiasPrior | None:
+        """:meth:`carried` of a smoother ``window``'s posterior (its biases, shared offsets and
+        their joint covariance); ``None`` where there are no online biases or that posterior
+        cannot be had (the graph that failed)."""
+        if not self.pairs:
+            return None
+        try:
+            offsets = np.array(window.offset_estimates()[0], float)
+            joint = window.bias_joint()
+        except (RuntimeError, ValueError, np.linalg.LinAlgError):
+            return None
+        if not np.all(np.isfinite(joint)):
+            return None
+        return self.carried(window.biases, offsets, joint)
 
     @property
     def covariance(self) -> FloatArray:

@@ -370,17 +370,10 @@ class SmootherLocalizer(SteppedLocalizer):
         """What the run taught of the online biases, kept across a restart: the last best
         hypothesis's posterior becomes the prior (:meth:`BiasPrior.carried`); the prior stays
         where that posterior cannot be had (the graph that failed)."""
-        if not self._bias_prior.pairs:
-            return
-        try:
-            offsets = np.array(best.offset_estimates()[0], float)
-            joint = best.bias_joint()
-        except (RuntimeError, ValueError, np.linalg.LinAlgError):
-            return
-        if not np.all(np.isfinite(joint)):
-            return
-        self._bias_prior = self._bias_prior.carried(best.biases, offsets, joint)
-        self.stats["smoother_biases_carried"] += 1
+        carried = self._bias_prior.carried_from(best)
+        if carried is not None:
+            self._bias_prior = carried
+            self.stats["smoother_biases_carried"] += 1
 
     def _own_motion(self, t: float) -> tuple[FloatArray, FloatArray]:
         """Each point's displacement since the last step ``(P, 2)`` and its per-axis std

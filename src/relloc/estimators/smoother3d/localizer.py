@@ -296,16 +296,10 @@ class PoseSmootherLocalizer(Localizer):
 
     def _carry_biases(self, window: PoseWindow) -> None:
         """The online biases' posterior so far becomes their prior (as the 2D smoother's
-        restarts keep it)."""
-        if not self._prior.pairs:
-            return
-        try:
-            offsets = np.array(window.offset_estimates()[0], float)
-            joint = window.bias_joint()
-        except (RuntimeError, ValueError, np.linalg.LinAlgError):
-            return
-        if np.all(np.isfinite(joint)):
-            self._prior = self._prior.carried(window.biases, offsets, joint)
+        restarts keep it: :meth:`BiasPrior.carried_from`)."""
+        carried = self._prior.carried_from(window)
+        if carried is not None:
+            self._prior = carried
 
     def _advance(self, t: float) -> Estimate | None:
         motion = self._motion(t)
@@ -370,7 +364,7 @@ class PoseSmootherLocalizer(Localizer):
         where the biases are online) over their span; ``pi`` for a robot with one tag."""
         out = np.full(len(self._names), math.pi)
         prior = self._prior
-        cov = np.diag(prior.sigma**2) + (prior.loading * prior.latent_sigma**2) @ prior.loading.T
+        cov = prior.covariance
         column = {p: j for j, p in enumerate(prior.pairs)}
         nodes = list(self._tag_of)
         noise = self.config.uwb.sigma
