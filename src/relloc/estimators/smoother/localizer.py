@@ -48,7 +48,12 @@ from relloc.config import TeamConfig
 from relloc.estimate import OWN_FRAME, Estimate, covariance_of, position_of
 from relloc.estimators.smoother.graph import GraphSmoother
 from relloc.estimators.smoother.moments import flatten, moments, per_pair
-from relloc.estimators.smoother.start import chained_start, merge_fixes, range_start
+from relloc.estimators.smoother.start import (
+    chained_start,
+    kept_by_cost,
+    merge_fixes,
+    range_start,
+)
 from relloc.events import RangeEvent
 from relloc.filter.base import FilterEstimate
 from relloc.filter.factors import RangeTerms, RelativeFix
@@ -440,10 +445,7 @@ class SmootherLocalizer(SteppedLocalizer):
         """Drop hypotheses the graph error has ruled out (module docstring)."""
         if len(self.hypotheses) > 1:
             costs = np.array([h.cost() for h in self.hypotheses])
-            order = np.argsort(costs)
-            keep = [int(i) for i in order if costs[i] <= costs[order[0]] + PRUNE_COST]
-            if t - self._t_start >= HYPOTHESIS_TIME:
-                keep = keep[:1]
+            keep = kept_by_cost(costs, PRUNE_COST, t - self._t_start >= HYPOTHESIS_TIME)
             self.hypotheses = [self.hypotheses[i] for i in keep]
             self.stats["smoother_hypotheses"] = len(self.hypotheses)
             if len(self.hypotheses) == 1:

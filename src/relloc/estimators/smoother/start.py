@@ -5,7 +5,8 @@ From ranges (:func:`range_start`): the range graph's shape
 angles times two reflections (a hypothesis each, pruned later by graph cost), without it one
 hypothesis whose rotation/reflection is a gauge. Without ranges (:func:`chained_start`): the
 relative positions chained from the reference. :func:`merge_fixes` merges a step's measured
-relative positions into one factor per observer and target.
+relative positions into one factor per observer and target; :func:`kept_by_cost` prunes the
+hypotheses (the 3D smoother's too).
 """
 
 from __future__ import annotations
@@ -31,6 +32,14 @@ ROTATIONS = 8
 Start = tuple[FloatArray, FloatArray, NDArray[np.bool_], float]
 """Hypotheses' means ``(M, N, 2)`` and covariances ``(M, N, 2, 2)`` (team order, relative to
 the reference), which robots are placed, the shape's RMS residual."""
+
+
+def kept_by_cost(costs: FloatArray, prune: float, only_best: bool) -> list[int]:
+    """The hypotheses to keep, best first: those whose graph error ``costs`` is within
+    ``prune`` of the best's (a likelihood ratio of ``e^-prune``), or the best alone."""
+    order = np.argsort(costs)
+    keep = [int(i) for i in order if costs[i] <= costs[order[0]] + prune]
+    return keep[:1] if only_best else keep
 
 
 def range_start(

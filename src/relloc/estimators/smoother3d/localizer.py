@@ -37,6 +37,7 @@ from numpy.typing import NDArray
 
 from relloc.config import TeamConfig
 from relloc.estimate import BODY_FRAME, OWN_FRAME, Estimate, covariance_of, position_of
+from relloc.estimators.smoother.start import kept_by_cost
 from relloc.estimators.smoother3d.graph import Motion, PoseWindow, TagRanges, pose_of
 from relloc.estimators.smoother3d.start import (
     YAW_TRUST,
@@ -347,10 +348,7 @@ class PoseSmootherLocalizer(Localizer):
         enough = moved.size == 0 or moved.min() >= MOTION_TO_PRUNE
         if len(self.hypotheses) > 1 and (enough or t - self._t_start >= HYPOTHESIS_TIME):
             costs = np.array([h.cost() for h in self.hypotheses])
-            order = np.argsort(costs)
-            keep = [int(i) for i in order if costs[i] <= costs[order[0]] + PRUNE_COST]
-            if t - self._t_start >= HYPOTHESIS_TIME:
-                keep = keep[:1]
+            keep = kept_by_cost(costs, PRUNE_COST, t - self._t_start >= HYPOTHESIS_TIME)
             self.hypotheses = [self.hypotheses[i] for i in keep]
             self.stats["smoother_hypotheses"] = len(self.hypotheses)
         self._observable = len(self.hypotheses) == 1 and (
