@@ -50,7 +50,7 @@ from typing import Any, cast
 
 import numpy as np
 
-from relloc.live.resources import CpuSampler, proc_memory_mb, round_finite, thread_cpu_seconds
+from relloc.live.resources import CpuSampler, proc_memory_mb, round_finite
 from relloc.live.session import free_tcp_port
 
 CHI2_95_2D = 5.991464547107979
@@ -523,7 +523,6 @@ def run_team(
         samplers = {me: CpuSampler(p.pid) for me, p in procs.items()}
         if bare_proc is not None:
             samplers["bare"] = CpuSampler(bare_proc.pid)
-        threads0 = {me: thread_cpu_seconds(p.pid) for me, p in procs.items()}
         if partition is not None:
             cut_links = mesh.links(partition.robot)
             _sleep_until(time_base + partition.start)
@@ -546,16 +545,12 @@ def run_team(
         t_end = time_base + opts.duration
         _sleep_until(t_end)
         t0 = time_base + opts.settle
-        cpu, rss, pub_cpu = {}, {}, {}
+        cpu, rss = {}, {}
         for me, p in procs.items():
             samplers[me].stop()
             cpu[me] = round_finite(samplers[me].percent_between(t0, t_end), 2)
             rss[me] = round(proc_memory_mb(p.pid).get("VmHWM", math.nan), 1)
-            spent = thread_cpu_seconds(p.pid).get("publisher", 0.0)
-            pub_cpu[me] = round(
-                100 * (spent - threads0[me].get("publisher", 0.0)) / opts.duration, 2
-            )
-        result.update({"cpu_percent": cpu, "rss_mb": rss, "publisher_cpu_percent": pub_cpu})
+        result.update({"cpu_percent": cpu, "rss_mb": rss})
         if bare_proc is not None:
             samplers["bare"].stop()
             result["bare_cpu_percent"] = round_finite(
@@ -638,7 +633,6 @@ def run(opts: Options, workdir: Path, say: Any = print) -> dict[str, Any]:
         "formation_skipped": {me: vs["formation_skipped"] for me, vs in base_views.items()},
         "cpu_percent": base["cpu_percent"],
         "rss_mb": base["rss_mb"],
-        "publisher_cpu_percent": base["publisher_cpu_percent"],
         "bare_cpu_percent": base.get("bare_cpu_percent"),
         "bare_rss_mb": base.get("bare_rss_mb"),
         "messages": {

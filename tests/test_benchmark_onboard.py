@@ -1,0 +1,76 @@
+"""benchmarks/onboard.py: its relay cuts and heals a link; a tiny team of onboard serve processes
+with one robot partitioned writes the figures, and the partition really held."""
+
+from __future__ import annotations
+
+import json
+import socket
+import threading
+from pathlib import Path
+
+import pytest
+from load_file import ROOT, load_module
+from waiting import wait_until
+
+bench = load_module(ROOT / "benchmarks" / "onboard.py", "bench_onboard")
+
+
+def test_the_relay_forwards_and_a_cut_closes_and_refuses_until_healed() -> None:
+    upstream = socket.create_server(("127.0.0.1", 0))
+    conns: list[socket.socket] = []
+    threading.Thread(
+        target=lambda: [conns.append(upstream.accept()[0]) for _ in range(2)], daemon=True
+    ).start()
+    relay = bench.Relay(upstream.getsockname()[1])
+    try:
+        client = socket.create_connection(("127.0.0.1", relay.port))
+        assert wait_until(lambda: len(conns) == 1, 5.0)
+        client.sendall(b"ping")
+        assert conns[0].recv(16) == b"ping"
+        relay.cut()
+        client.settimeout(5.0)
+        assert client.recv(16) == b""  # the link dropped
+        refused = socket.create_connection(("127.0.0.1", relay.port))
+        refused.settimeout(5.0)
+        assert refused.recv(16) == b""
+        assert wait_until(lambda: relay.refused == 1, 5.0)
+        relay.heal()
+        again = socket.create_connection(("127.0.0.1", relay.port))
+        assert wait_until(lambda: len(conns) == 2, 5.0)
+        again.sendall(b"pong")
+        assert conns[1].recv(16) == b"pong"
+        assert len(relay.accepted) == 2 and relay.bytes == 8
+    finally:
+        relay.close()
+        upstream.close()
+
+
+def test_bad_partitions_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    assert bench.main(["--partition", "r1:5:2"]) == 2
+    assert bench.main(["--duration", "10", "--partition", "r1:5:10"]) == 2
+    assert "END" in capsys.readouterr().err
+
+
+def test_three_onboard_serves_one_cut_off(tmp_path: Path) -> None:
+    out = tmp_path / "onboard.json"
+    assert bench.main(["--robots", "3", "--duration", "9", "--settle", "2",
+                       "--partition", "r1:2:6", "--json", str(out)]) == 0  # fmt: skip
+    d = json.loads(out.read_text())
+    robots = {"r0", "r1", "r2"}
+    assert set(d["views"]) == robots
+    for me, views in d["views"].items():
+        assert set(views) == robots - {me}
+        for v in views.values():
+            assert v["n"] > 0 and v["ape_median"] < 1.0 and 0.0 <= v["coverage95"] <= 1.0
+    for key in ("cpu_percent", "rss_mb", "formation_skipped", "views_partitioned"):
+        assert set(d[key]) == robots, key
+    assert d["bare_cpu_percent"] is not None and all(v > 0 for v in d["rss_mb"].values())
+    p = d["partition"]
+    assert p["robot"] == "r1" and p["relay_bytes_during"] == 0 and p["statuses_during"] >= 2
+    # nothing from the others reached r1 while cut: it hears only itself and r2, whom the
+    # ranges its own node measures name
+    assert p["cut_robot_foreign_messages_during"] == 0
+    assert "r0" not in p["hears_during"]["r1"]
+    assert p["rejoined_after_s"] is not None and p["rejoined_after_s"] < 2.0
+    assert d["partition_shift"]["n"] > 0 and d["partition_shift_m"] is not None
+    assert "recovery_s" in d and "recovery" in d
