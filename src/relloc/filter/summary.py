@@ -19,6 +19,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -405,6 +406,312 @@ class _Tail:
         return distances
 
 
+# ----------------------------------------------------------------------------- compiled particles
+def summarize_particles(
+    particles: FloatArray,
+    k: int,
+    w: FloatArray,
+    *,
+    can_resolve: bool = True,
+    floor: float = 0.0,
+    deferred: bool = False,
+) -> ModeSummary:
+    """:func:`summarize` of the particle rows ``particles`` ``(M, D)`` (robot ``j``'s relative
+    position in columns ``2j, 2j + 1``, ``j < k``; further columns ignored) with weights ``w``.
+
+    One compiled pass over the rows instead of dozens of NumPy calls over coordinate planes:
+    each particle's weighted moments are summed, and it is fitted to the template (made first
+    from the same even stride through the cloud) and binned by orientation. The same quantities to
+    round-off (sums in another order; the bin found by comparing the cosine of the fit with
+    the bins' edges, not through ``atan2``), the same stride for the shape and distances.
+    Only a posterior with more than one mode takes a second pass, for its dominant mode's
+    moments (accumulating them per bin in the first pass costs more than that pass)."""
+    m = particles.shape[0]
+    w = np.asarray(w, float)
+    total = float(w.sum())
+    if not total > 0.0:
+        w, total = np.full(m, 1.0 / m), 1.0
+    step = max(1, m // SUMMARY_SAMPLE)
+    sample = np.ascontiguousarray(particles[::step, : 2 * k])
+    ws = _normalised(w[::step])
+    template = _template(sample, k, ws)
+    inv = 1.0 / total
+    cell, bins, sums = _fit_and_bin(particles, k, w, inv, template, _COS_EDGES)
+    label_of_cell, mode_w = _mode_labels(bins[:, 0].copy())
+    weighted_mean, all_cov = _moments(sums, w, None)
+    members = label_of_cell[cell] == 0 if len(mode_w) else np.ones(m, dtype=bool)
+    everything = bool(members.all())
+    # per bin: weight, weight * cos, weight * sin of the fit
+    dominant = bins[label_of_cell == 0].sum(axis=0) if len(mode_w) else bins.sum(axis=0)
+    n_modes = max(1, int(np.count_nonzero(mode_w >= MODE_MIN_WEIGHT)))
+    mode_weight = float(dominant[0])
+    scale = 1.0 / max(mode_weight, 1e-300)
+    rbar = min(math.hypot(dominant[1] * scale, dominant[2] * scale), 1.0)
+    orientation_std = (
+        math.pi
+        if rbar <= math.exp(-0.5 * math.pi**2)
+        else min(math.sqrt(-2.0 * math.log(rbar)), math.pi)
+    )
+    if can_resolve:
+        mean, cov = (
+            (weighted_mean, all_cov)
+            if everything
+            else _moments(_member_sums(particles, k, w, inv * scale, members), w, None)
+        )
+    else:
+        r2 = np.diagonal(all_cov, axis1=1, axis2=2).sum(axis=1) + np.sum(weighted_mean**2, axis=1)
+        mean = np.zeros((k, 2))
+        cov = 0.5 * r2[:, None, None] * np.eye(2)[None]
+    cov = cov + floor * np.eye(2)[None]
+    fields = (
+        mean,
+        cov,
+        weighted_mean,
+        mode_weight,
+        n_modes,
+        orientation_std,
+        bool(can_resolve and orientation_std < ORIENTATION_MAX_STD),
+    )
+    tail = _SampleTail(sample, k, ws, template, floor)
+    if deferred:
+        return DeferredSummary.of(fields, members, tail)
+    shape, shape_cov = tail.shape()
+    return ModeSummary(*fields, shape, shape_cov, tail.distances(), members)
+
+
+_COS_EDGES = np.cos(np.arange(1, MODE_BINS // 2) * (2.0 * np.pi / MODE_BINS))
+"""Cosines of the orientation bins' inner edges on a half circle (:func:`_orientation_bin`)."""
+
+
+class _SampleTail:
+    """:class:`_Tail` over the stride ``sample`` of particle rows ``(n, 2k)`` (a copy: the
+    filter moves its particles in place) and its fit to the template, compiled."""
+
+    def __init__(
+        self, sample: FloatArray, k: int, ws: FloatArray, template: FloatArray, floor: float
+    ) -> None:
+        self.sample, self.k, self.ws, self.template, self.floor = sample, k, ws, template, floor
+
+    def shape(self) -> tuple[FloatArray, FloatArray]:
+        """As :meth:`_Tail.shape`."""
+        k = self.k
+        sums = _shape_sums(self.sample, k, self.ws, self.template)
+        shape_mean, shape_cov = _moments(sums, self.ws, None)
+        g = gauge(shape_mean[None])[0]
+        a0 = math.atan2(shape_mean[0, 1], shape_mean[0, 0])
+        rot = np.array([[math.cos(a0), math.sin(a0)], [-math.sin(a0), math.cos(a0)]])
+        if k > 1 and (rot @ shape_mean[1])[1] < 0.0:
+            rot = np.diag([1.0, -1.0]) @ rot
+        return g, np.einsum("ab,kbc,dc->kad", rot, shape_cov, rot) + self.floor * np.eye(2)[None]
+
+    def distances(self) -> FloatArray:
+        """As :meth:`_Tail.distances`."""
+        return _distances(self.sample, self.k, self.ws)
+
+
+@numba.njit(cache=True)
+def _template(sample: FloatArray, k: int, ws: FloatArray) -> FloatArray:
+    """The ``ws``-weighted mean of the sample's formations in the declared gauge
+    (:func:`relloc.filter.gauge.gauge`: robot 0 on +x, robot 1 on the +y side), ``(k, 2)``."""
+    out = np.zeros((k, 2))
+    for i in range(sample.shape[0]):
+        x0, y0 = sample[i, 0], sample[i, 1]
+        r = math.hypot(x0, y0)
+        c, s = (x0 / r, y0 / r) if r > 0.0 else (1.0, 0.0)
+        flip = 1.0
+        if k > 1 and c * sample[i, 3] - s * sample[i, 2] < 0.0:
+            flip = -1.0
+        for j in range(k):
+            x, y = sample[i, 2 * j], sample[i, 2 * j + 1]
+            out[j, 0] += ws[i] * (c * x + s * y)
+            out[j, 1] += ws[i] * flip * (c * y - s * x)
+    return out
+
+
+@numba.njit(cache=True, inline="always")
+def _fit(row: FloatArray, k: int, template: FloatArray) -> tuple[float, float, float]:
+    """The Procrustes fit of one formation to ``template``: cosine, sine and handedness
+    (:func:`relloc.filter.gauge.procrustes_fit`)."""
+    h00 = h01 = h10 = h11 = 0.0
+    for j in range(k):
+        x, y = row[2 * j], row[2 * j + 1]
+        tx, ty = template[j, 0], template[j, 1]
+        h00 += tx * x
+        h01 += tx * y
+        h10 += ty * x
+        h11 += ty * y
+    hand = -1.0 if k > 1 and h00 * h11 - h01 * h10 < 0.0 else 1.0
+    c = h00 + hand * h11
+    s = h01 - hand * h10
+    norm = math.sqrt(c * c + s * s)
+    if norm == 0.0:
+        norm = 1.0
+    return c / norm, s / norm, hand
+
+
+@numba.njit(cache=True, inline="always")
+def _orientation_bin(c: float, s: float, hand: float, cos_edges: FloatArray) -> int:
+    """The bin of :func:`_modes` of the angle ``atan2(s, c)`` and handedness ``hand``: on the
+    upper half circle the count of inner edges at or before the angle (their cosines at or
+    above ``c``) past the middle bin, on the lower half mirrored."""
+    passed = 0
+    for j in range(cos_edges.shape[0]):
+        if cos_edges[j] >= c:
+            passed += 1
+    half = MODE_BINS // 2
+    b = half + passed if s >= 0.0 else half - 1 - passed
+    return b + MODE_BINS if hand < 0.0 else b
+
+
+@numba.njit(cache=True, inline="always")
+def _add_moments(out: FloatArray, row: FloatArray, k: int, wi: float) -> None:
+    """Add ``wi`` times ``x``, ``y``, ``x x``, ``y y``, ``x y`` of every robot of ``row`` to
+    ``out`` (:func:`_planes` order)."""
+    for j in range(k):
+        x, y = row[2 * j], row[2 * j + 1]
+        wx, wy = wi * x, wi * y
+        out[j] += wx
+        out[k + j] += wy
+        out[2 * k + j] += wx * x
+        out[3 * k + j] += wy * y
+        out[4 * k + j] += wx * y
+
+
+@numba.njit(cache=True)
+def _fit_and_bin(
+    p: FloatArray,
+    k: int,
+    w: FloatArray,
+    inv: float,
+    template: FloatArray,
+    cos_edges: FloatArray,
+) -> tuple[IntArray, FloatArray, FloatArray]:
+    """Per particle its orientation bin (:func:`_fit`, :func:`_orientation_bin`); per bin the
+    sums over its particles (weights ``w * inv``) of the weight and the weighted cosine and
+    sine of the fit ``(2 MODE_BINS, 3)``; and the weighted moments of all (:func:`_add_moments`)."""
+    m = p.shape[0]
+    cell = np.empty(m, dtype=np.intp)
+    bins = np.zeros((2 * MODE_BINS, 3))
+    sums = np.zeros(5 * k)
+    for i in range(m):
+        row = p[i]
+        c, s, hand = _fit(row, k, template)
+        b = _orientation_bin(c, s, hand, cos_edges)
+        cell[i] = b
+        wi = w[i] * inv
+        bins[b, 0] += wi
+        bins[b, 1] += wi * c
+        bins[b, 2] += wi * s
+        _add_moments(sums, row, k, wi)
+    return cell, bins, sums
+
+
+@numba.njit(cache=True)
+def _member_sums(
+    p: FloatArray, k: int, w: FloatArray, scale: float, members: NDArray[np.bool_]
+) -> FloatArray:
+    """The moments (:func:`_add_moments`) of the ``members`` under weights ``w * scale``."""
+    sums = np.zeros(5 * k)
+    for i in range(p.shape[0]):
+        if members[i]:
+            _add_moments(sums, p[i], k, w[i] * scale)
+    return sums
+
+
+@numba.njit(cache=True)
+def _mode_labels(hist: FloatArray) -> tuple[IntArray, FloatArray]:
+    """As :func:`_modes` from its histogram: each bin's mode label (-1: none; labels by
+    decreasing weight, ties in the order the runs are found) and each mode's weight."""
+    n = MODE_BINS
+    heavy = hist > MODE_MIN_BIN_WEIGHT
+    run_of = np.full(2 * n, -1, dtype=np.intp)
+    weights = np.zeros(2 * n)
+    runs = 0
+    for h in range(2):
+        occ = np.empty(n, dtype=np.bool_)
+        for i in range(n):
+            occ[i] = heavy[h * n + i] or heavy[h * n + (i - 1) % n] or heavy[h * n + (i + 1) % n]
+        if not occ.any():
+            continue
+        if occ.all():
+            for i in range(n):
+                run_of[h * n + i] = runs
+                weights[runs] += hist[h * n + i]
+            runs += 1
+            continue
+        start = 0
+        while occ[start]:
+            start += 1
+        open_run = False
+        for j in range(1, n + 1):
+            i = (start + j) % n
+            if occ[i]:
+                run_of[h * n + i] = runs
+                weights[runs] += hist[h * n + i]
+                open_run = True
+            elif open_run:
+                runs += 1
+                open_run = False
+        if open_run:
+            runs += 1
+    order = np.argsort(-weights[:runs], kind="mergesort")
+    rank = np.empty(runs, dtype=np.intp)
+    for r in range(runs):
+        rank[order[r]] = r
+    label = np.full(2 * n, -1, dtype=np.intp)
+    for b in range(2 * n):
+        if run_of[b] >= 0:
+            label[b] = rank[run_of[b]]
+    return label, weights[:runs][order]
+
+
+@numba.njit(cache=True)
+def _shape_sums(sample: FloatArray, k: int, ws: FloatArray, template: FloatArray) -> FloatArray:
+    """The ``ws``-weighted sums of ``x``, ``y``, ``x x``, ``y y``, ``x y`` (:func:`_planes`
+    order) of the sample's formations turned onto the template (:func:`_fit`, :func:`_onto`)."""
+    out = np.zeros(5 * k)
+    for i in range(sample.shape[0]):
+        wi = ws[i]
+        c, s, hand = _fit(sample[i], k, template)
+        for j in range(k):
+            x, y = sample[i, 2 * j], sample[i, 2 * j + 1]
+            ax = c * x + s * y
+            ay = hand * (c * y - s * x)
+            out[j] += wi * ax
+            out[k + j] += wi * ay
+            out[2 * k + j] += wi * ax * ax
+            out[3 * k + j] += wi * ay * ay
+            out[4 * k + j] += wi * ax * ay
+    return out
+
+
+@numba.njit(cache=True)
+def _distances(sample: FloatArray, k: int, ws: FloatArray) -> FloatArray:
+    """Weighted mean and std of every pair's distance over the sample, ``(k+1, k+1, 2)``,
+    the reference (the origin) index 0 (:meth:`_Tail.distances`)."""
+    n = k + 1
+    out = np.zeros((n, n, 2))
+    mean = np.zeros((n, n))
+    square = np.zeros((n, n))
+    for i in range(sample.shape[0]):
+        wi = ws[i]
+        for a in range(n):
+            ax = sample[i, 2 * (a - 1)] if a > 0 else 0.0
+            ay = sample[i, 2 * (a - 1) + 1] if a > 0 else 0.0
+            for b in range(a + 1, n):
+                dx = ax - sample[i, 2 * (b - 1)]
+                dy = ay - sample[i, 2 * (b - 1) + 1]
+                dd = dx * dx + dy * dy
+                mean[a, b] += wi * math.sqrt(dd)
+                square[a, b] += wi * dd
+    for a in range(n):
+        for b in range(a + 1, n):
+            std = math.sqrt(max(square[a, b] - mean[a, b] * mean[a, b], 0.0))
+            out[a, b, 0] = out[b, a, 0] = mean[a, b]
+            out[a, b, 1] = out[b, a, 1] = std
+    return out
+
+
 class _OnRead:
     """A field of :class:`DeferredSummary`: the value given, else computed on first read."""
 
@@ -437,14 +744,14 @@ class DeferredSummary(ModeSummary):
 
     @classmethod
     def of(
-        cls, fields: tuple[Any, ...], members: NDArray[np.bool_], tail: _Tail
+        cls, fields: tuple[Any, ...], members: NDArray[np.bool_], tail: _Tail | _SampleTail
     ) -> DeferredSummary:
         out = cls(*fields, None, None, None, members)  # type: ignore[call-arg]
         out.__dict__["_tail"] = tail
         return out
 
     def _materialize(self, name: str) -> None:
-        tail: _Tail = self.__dict__["_tail"]
+        tail: _Tail | _SampleTail = self.__dict__["_tail"]
         if name == "distances":
             self.__dict__["_distances"] = tail.distances()
         else:
