@@ -111,3 +111,37 @@ def test_the_report_and_the_live_status_show_the_unseen_robot() -> None:
     assert status["unseen"] == {"b": 4.2} and status["estimate_status"].startswith(
         "unseen: b for 4.2 s"
     )
+
+
+def test_a_robot_measured_without_its_odometry_moves_in_the_filter_and_is_found_after() -> None:
+    """Robot r1 on board cut from the others 10-20 s (the link dropped): it keeps its own
+    odometry and the ranges its node measures, so r2 and r3 are still ranged but their odometry
+    is gone, and r0 is silent. The ranged ones move at ``unseen_speed`` in the filter instead of
+    standing where their odometry stopped; every robot is back under 0.2 m 4 s after the link
+    returns (held where their odometry stopped, they were 3-9 m off then and did not recover)."""
+    from relloc.events import OdometryEvent, RangeEvent
+    from relloc.simulator.scenarios import grid_scenario
+
+    sim = grid_scenario(0, robots=4, duration=30.0)
+    loc = ParticleFilterLocalizer(sim.config.with_modes(reference="r1"), seed=0)
+
+    def kept(ev: object) -> bool:
+        if isinstance(ev, GroundTruthEvent):
+            return False
+        if not 10.0 <= ev.t < 20.0:  # type: ignore[attr-defined]
+            return True
+        if isinstance(ev, OdometryEvent):
+            return ev.robot == "r1"
+        return isinstance(ev, RangeEvent) and ev.robot_a == "r1"
+
+    after = []
+    for ev in sim.events():
+        if kept(ev):
+            after += [e for e in loc.process(ev) if e.t > 24.0]
+    assert after
+    for est in after:
+        t = np.array([est.t])
+        x0, y0, _ = sim.true_poses("r1", t)[0]
+        for robot, p in est.positions.items():
+            x, y, _ = sim.true_poses(robot, t)[0]
+            assert np.hypot(p[0] - (x - x0), p[1] - (y - y0)) < 0.2, (est.t, robot)

@@ -8,7 +8,9 @@ as ranged (``MeasurementModel.ranged``). From those times:
   had no measurement for ``_UNRANGED_AFTER``: from the later of the two, nothing says where it
   went. The filter holds it where it was last seen (spreading its hypotheses would thin out
   the whole formation's); the published covariances grow instead by what it may have driven
-  meanwhile, at ``unseen_speed`` in an unknown direction (:attr:`Estimate.unseen`);
+  meanwhile, at ``unseen_speed`` in an unknown direction (:attr:`Estimate.unseen`); a robot
+  still measured while its odometry is past the horizon moves at ``unseen_speed`` in the
+  filter, its measurements holding it (:meth:`Heard.moving_unknown`);
 * the formation is **split** while some robot has had no range for ``_UNRANGED_AFTER``, and
   as long again after every robot is ranged once more (the orientations are then still the
   split's mixture): a filter's orientation kernel treats the orientation as a static
@@ -79,6 +81,17 @@ class Heard:
             if t - measured > _UNRANGED_AFTER and t > odom:
                 out[robot] = round(t - max(odom, measured), 3)
         return out
+
+    def moving_unknown(self, robot: str, t: float, track: OdometryTrack) -> bool:
+        """Whether ``robot`` is measured after its odometry went past the horizon, and within
+        ``_UNRANGED_AFTER`` of ``t``: it is there, its motion is not told (its odometry's link
+        dropped, say), so the filter lets it move at ``unseen_speed``, its measurements holding
+        it. A robot nothing measures since is held instead (module docstring)."""
+        ended = track.last_time + self.horizon
+        if track.empty or t <= ended:
+            return False
+        measured = self.measured.get(robot, -math.inf)
+        return measured > ended and t - measured <= _UNRANGED_AFTER
 
     def widen(self, covs: Covariances, unseen: dict[str, float]) -> Covariances:
         """The covariances grown for what the unseen robots may have driven: ``(speed *

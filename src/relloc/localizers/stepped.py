@@ -134,6 +134,7 @@ class SteppedLocalizer(Localizer):
         n = len(self.layout.robots)
         disp = np.zeros((n, 2))
         sigma = np.zeros(n)
+        dt = max(t - self.t, 0.0)
         for i, robot in enumerate(self.layout.robots):
             now = self.odometry.pose(robot, t)
             before = self._anchor.get(robot, (math.nan,) * 3)
@@ -145,8 +146,9 @@ class SteppedLocalizer(Localizer):
             dist = math.hypot(*disp[i])
             turn = abs(math.remainder(now[2] - before[2], math.tau))
             sigma[i] = self.motion.step_sigma(dist, turn)
+            if self.heard.moving_unknown(robot, t, self.odometry.tracks[robot]):
+                sigma[i] = max(sigma[i], self.heard.unseen_speed * dt)
             self._anchor[robot] = now
-        dt = max(t - self.t, 0.0)
         self.t = t
         return disp, sigma, dt
 
