@@ -74,6 +74,4 @@ def test_online_bias_is_no_worse_than_the_default_on_a_new_session(
     default, _ = _ape(sim, config, seed)
     online, belief = _ape(sim, config.with_modes(bias="online"), seed)
     assert belief is not None
-    # one seed each: on the first session over seeds 0-7 the online bias is 0.003 m better on
-    # average (0.002 before the compiled particle filter), its worst seed 0.041 m worse (0.036)
-    assert online <= default + 0.045, (default, online, belief)
+    assert online <= default + 0.03, (default, online, belief)

@@ -72,20 +72,13 @@ class OdometryMotion:
         columns may follow; in place); ``others`` indexes disp/sigma rows.
 
         One compiled pass (module docstring): per particle the reference's shared draw, then
-        each relative position's own; one word of ``rng``'s bit generator seeds it per call."""
+        each relative position's own; one 64-bit seed is taken from ``rng`` per call."""
         own = np.sqrt(self.own_variance(sigma, others, dt))
+        step = np.ascontiguousarray((disp[others] - disp[reference]).reshape(-1), dtype=float)
+        seed = int(rng.integers(0, 2**63 - 1, dtype=np.int64))
         if particles.dtype != np.float64 or particles.strides[1] != particles.itemsize:
             raise ValueError("particles must be float64 rows with contiguous columns")
-        seed = int(rng.bit_generator.random_raw()) >> 1  # 63 bits: an int64 for the kernel
-        _propagate(
-            particles,
-            np.asarray(disp, dtype=float),
-            np.asarray(others, dtype=np.intp),
-            int(reference),
-            own,
-            float(sigma[reference]),
-            seed,
-        )
+        _propagate(particles, step, own, float(sigma[reference]), seed)
 
 
 @dataclass(frozen=True)
@@ -211,24 +204,13 @@ def standard_normal(seed: int, n: int) -> FloatArray:
 
 @numba.njit(cache=True)
 def _propagate(
-    particles: FloatArray,
-    disp: FloatArray,
-    others: IntArray,
-    reference: int,
-    own: FloatArray,
-    sigma_ref: float,
-    seed: int,
+    particles: FloatArray, step: FloatArray, own: FloatArray, sigma_ref: float, seed: int
 ) -> None:
-    """Per particle: ``x_j += step_j + own_{j//2} n_j - sigma_ref c_{j%2}``, with ``step`` the
-    displacements ``disp`` of the ``others`` less the ``reference``'s (flattened), ``c`` the
+    """Per particle: ``x_j += step_j + own_{j//2} n_j - sigma_ref c_{j%2}``, with ``c`` the
     reference's draw shared by the particle's relative positions (none when ``sigma_ref`` is
     0), every ``n`` and ``c`` a standard normal of the stream seeded by ``seed``."""
     state = np.full(1, np.uint64(seed), dtype=np.uint64)
-    cols = 2 * others.shape[0]
-    step = np.empty(cols)
-    for j in range(others.shape[0]):
-        step[2 * j] = disp[others[j], 0] - disp[reference, 0]
-        step[2 * j + 1] = disp[others[j], 1] - disp[reference, 1]
+    cols = step.shape[0]
     for i in range(particles.shape[0]):
         cx = cy = 0.0
         if sigma_ref > 0.0:

@@ -40,7 +40,6 @@ IntArray = NDArray[np.intp]
 
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 _LOGISTIC_PROBIT = 1.702
-_NO_ARMS = np.zeros((2, 0))
 """``Phi(x) ~ 1 / (1 + exp(-1.702 x))``: the logistic approximation of the normal CDF."""
 
 # The mixture of both models; the Gaussian noise is the sensor's (``[uwb] sigma``, ``los_sigma``).
@@ -387,18 +386,23 @@ class RangeBatch(MeasurementModel):
     ) -> None:
         """Add :meth:`log_likelihood` of every particle row (``(M, D)``: the position columns
         of ``layout`` first) to ``out`` ``(M,)``, in compiled passes (:func:`fused_loglik`);
-        only for a :attr:`fused` batch. Equal to the NumPy path to round-off (the sum of the
-        ranges' logs taken as the log of their product)."""
+        only for a :attr:`fused` batch. Equal to the NumPy path to round-off: the sum of the
+        ranges' logs is taken as the log of their product (a few products per particle,
+        flushed long before they could under- or overflow), one ``log`` instead of ``K``."""
         if not self.fused:
             raise ValueError("add_log_likelihood needs a batch without online biases")
-        column = layout.columns_of_robots
+        slot = np.array([layout.slot_of(i) for i in range(len(layout.robots))], dtype=np.intp)
+        ca, cb = 2 * slot[self.index_a], 2 * slot[self.index_b]  # -2: the reference (origin)
+        arms = np.zeros((2, len(self))) if self.arms is None else np.asarray(self.arms, float)
+        sigma = np.asarray(self.sigma, float)
         fused_loglik(
             particles,
-            column[self.index_a],
-            column[self.index_b],
-            np.asarray(self.distance - self.bias, dtype=float),
-            np.asarray(self.sigma, dtype=float),
-            _NO_ARMS if self.arms is None else np.asarray(self.arms, dtype=float),
+            np.where(ca < 0, -1, ca),
+            np.where(cb < 0, -1, cb),
+            np.asarray(self.distance - self.bias, float),
+            sigma,
+            np.ascontiguousarray(arms[0]),
+            np.ascontiguousarray(arms[1]),
             float(self.outlier_fraction),
             float(self.max_range),
             float(self.nlos_fraction),
@@ -479,55 +483,22 @@ class RangeBatch(MeasurementModel):
 _BLOCK = 1024
 """Particles per block of :func:`fused_loglik`: its coordinate planes and ``(K, block)``
 exponents stay in the cache."""
+_LOWEST = -700.0
+"""Floor of the Gaussians' exponents under a uniform floor: ``exp`` of less would be below
+``1e-304``, nothing next to the floor, and ``exp`` slows down on results that underflow."""
 _FLOAT_RANGE = 300.0
-"""Decades a product of densities may span in :func:`fused_loglik` before it could under- or
+"""Decades a product of densities may span in :func:`_combine` before it could under- or
 overflow float64 (``1e-308 .. 1e308``, less a margin)."""
-_LN2_HI, _LN2_LO = 6.93147180369123816490e-01, 1.90821492927058770002e-10
-_INV_LN2 = 1.44269504088896338700e00
-_C3, _C4, _C5, _C6, _C7, _C8, _C9, _C10, _C11, _C12 = (
-    1.0 / math.factorial(n) for n in range(3, 13)
-)
-"""Taylor coefficients ``1 / n!`` of ``exp`` on ``|r| <= ln 2 / 2`` (relative error below
-``1e-14``)."""
 
 
-@numba.njit(cache=True)
-def _exp_inplace(x: FloatArray, bits: NDArray[np.int64]) -> None:
-    """``x = exp(x)`` in place, to ``1e-14`` relative, zero below ``-708``: ``2^k exp(r)``, the
-    power of two written as the bits of a float (``bits``: scratch of ``x``'s size); loops
-    the compiler vectorises, unlike a call of ``math.exp`` per element."""
-    n = x.shape[0]
-    for i in range(n):
-        v = min(max(x[i], -708.0), 709.0)
-        k = math.floor(v * _INV_LN2 + 0.5)
-        r = v - k * _LN2_HI - k * _LN2_LO
-        p = r * _C12 + _C11  # Horner, written out: the compiler then vectorises the loop
-        p = p * r + _C10
-        p = p * r + _C9
-        p = p * r + _C8
-        p = p * r + _C7
-        p = p * r + _C6
-        p = p * r + _C5
-        p = p * r + _C4
-        p = p * r + _C3
-        p = p * r + 0.5
-        p = p * r + 1.0
-        p = p * r + 1.0
-        bits[i] = (np.int64(k) + 1023) << 52 if x[i] >= -708.0 else 0
-        x[i] = p
-    scale = bits.view(np.float64)
-    for i in range(n):
-        x[i] *= scale[i]
-
-
-@numba.njit(cache=True)
 def fused_loglik(
     particles: FloatArray,
     ca: IntArray,
     cb: IntArray,
     target: FloatArray,
     sigma: FloatArray,
-    arms: FloatArray,
+    arm_x: FloatArray,
+    arm_y: FloatArray,
     eps: float,
     support: float,
     nlos_fraction: float,
@@ -536,86 +507,142 @@ def fused_loglik(
 ) -> None:
     """``out[i] +=`` the log-likelihood of particle row ``i`` under ranges ``target`` (measured
     less bias) between position columns ``ca``/``cb`` (-1: the reference at the origin), plus
-    the tags' offsets ``arms`` ``(2, K)`` (``(2, 0)``: none): the symmetric model
-    (``nlos_fraction`` 0) or the NLOS-aware mixture (:func:`range_mixture`), the Gaussian alone
-    when both fractions are 0.
+    the tags' offsets ``arm``: the symmetric model (``nlos_fraction`` 0) or the NLOS-aware
+    mixture (:func:`range_mixture`), the Gaussian alone when both fractions are 0.
 
-    Per block of particles: the rows as coordinate planes, then range by range the exponents
-    of every particle, their ``exp`` (:func:`_exp_inplace`) and the product of the densities
-    (contiguous loops the compiler vectorises). The sum of the ranges' logs is the log of their
-    product: one ``log`` per particle for as many ranges as the uniform floor keeps the product
-    inside float64 (every range without a floor, where a density can be zero)."""
-    m, k_count = particles.shape[0], target.shape[0]
+    Per block of particles a compiled pass turns the rows into coordinate planes and writes
+    the exponents range by range (contiguous, vectorised loops), NumPy's vectorised ``exp``
+    takes them (several times faster than a compiled scalar one), and a second compiled pass
+    multiplies the densities: the sum of the ranges' logs is the log of their product, one
+    ``log`` per particle for as many ranges as the uniform floor keeps the product inside
+    float64 (every range without a floor, where a density can be zero)."""
+    k = target.shape[0]
     nlos = nlos_fraction > 0.0
+    w = np.sqrt(sigma * sigma + nlos_sigma * nlos_sigma)
+    a_los = (1.0 - nlos_fraction - eps) / (sigma * np.sqrt(2.0 * np.pi))
+    a_nlos = 2.0 * nlos_fraction / (w * np.sqrt(2.0 * np.pi))
     floor = eps / support
-    sqrt2pi = math.sqrt(2.0 * math.pi)
-    inv_s, inv_w = np.empty(k_count), np.empty(k_count)
-    a_los, a_nlos, log_norm = np.empty(k_count), np.empty(k_count), np.empty(k_count)
-    top = 0.0
-    for k in range(k_count):
-        w = math.sqrt(sigma[k] * sigma[k] + nlos_sigma * nlos_sigma)
-        inv_s[k], inv_w[k] = 1.0 / sigma[k], 1.0 / w
-        a_los[k] = (1.0 - nlos_fraction - eps) / (sigma[k] * sqrt2pi)
-        a_nlos[k] = 2.0 * nlos_fraction / (w * sqrt2pi) if nlos else 0.0
-        log_norm[k] = math.log(sigma[k] * sqrt2pi)
-        top = max(top, a_los[k] + a_nlos[k] + floor)
-    gaussian = eps <= 0.0 and not nlos
-    chunk = 1
-    if floor > 0.0:
+    if eps <= 0.0 and not nlos:
+        chunk = 0  # the Gaussian alone: sums of exponents, no exp
+    elif floor > 0.0:
+        top = float(np.max(a_los + a_nlos)) + floor
         decades = max(-math.log10(floor), math.log10(max(top, 1.0)), 1e-3)
         chunk = max(1, int(_FLOAT_RANGE / decades))
-    dim = 0
-    for k in range(k_count):
-        dim = max(dim, ca[k] + 2, cb[k] + 2)
+    else:
+        chunk = 1
+    m = particles.shape[0]
     size = min(m, _BLOCK)
+    dim = 2 * (int(max(ca.max(initial=-1), cb.max(initial=-1))) // 2 + 1)
     planes = np.zeros((dim + 2, size))  # the last two rows: the reference at the origin
-    e0, e1, e2 = np.empty(size), np.empty(size), np.empty(size)
-    bits = np.empty(size, dtype=np.int64)
-    prod = np.empty(size)
+    ra = np.where(ca < 0, dim, ca)
+    rb = np.where(cb < 0, dim, cb)
+    ex = np.empty((3 if nlos else 1, k, size))
+    log_norm = np.log(sigma) + _LOG_SQRT_2PI
     for start in range(0, m, _BLOCK):
-        n = min(_BLOCK, m - start)
-        for i in range(n):
-            for c in range(dim):
-                planes[c, i] = particles[start + i, c]
-        for i in range(n):
-            prod[i] = 1.0
-        for k in range(k_count):
-            ra = ca[k] if ca[k] >= 0 else dim
-            rb = cb[k] if cb[k] >= 0 else dim
-            pax, pay, pbx, pby = planes[ra], planes[ra + 1], planes[rb], planes[rb + 1]
-            ax = arms[0, k] if arms.shape[1] else 0.0
-            ay = arms[1, k] if arms.shape[1] else 0.0
-            t, s, v = target[k], inv_s[k], inv_w[k]
+        rows = particles[start : start + _BLOCK]
+        n = rows.shape[0]
+        e = ex[:, :, :n]
+        _exponents(
+            rows,
+            planes,
+            ra,
+            rb,
+            target,
+            arm_x,
+            arm_y,
+            1.0 / sigma,
+            1.0 / w,
+            nlos_sigma,
+            nlos,
+            _LOWEST if floor > 0.0 else -np.inf,
+            e,
+        )
+        if chunk == 0:
+            out[start : start + n] += (e[0] - log_norm[:, None]).sum(axis=0)
+            continue
+        np.exp(e, out=e)
+        _combine(e, a_los, a_nlos, floor, nlos, chunk, out[start : start + n])
+
+
+@numba.njit(cache=True)
+def _exponents(
+    rows: FloatArray,
+    planes: FloatArray,
+    ra: IntArray,
+    rb: IntArray,
+    target: FloatArray,
+    arm_x: FloatArray,
+    arm_y: FloatArray,
+    inv_s: FloatArray,
+    inv_w: FloatArray,
+    nlos_sigma: float,
+    nlos: bool,
+    lowest: float,
+    out: FloatArray,
+) -> None:
+    """The rows' coordinate planes (``planes[c, i] = rows[i, c]``; rows ``ra``/``rb`` index
+    them, the last two stay zero), then per range the residual ``r`` of every particle and
+    ``out[0] = -r^2 / 2 sigma^2``; with ``nlos`` also ``out[1] = -r^2 / 2 w^2`` and
+    ``out[2]`` the logistic's exponent (:func:`range_mixture`); the Gaussians' exponents no
+    lower than ``lowest``."""
+    n = rows.shape[0]
+    dim = planes.shape[0] - 2
+    for i in range(n):
+        for c in range(dim):
+            planes[c, i] = rows[i, c]
+    for k in range(target.shape[0]):
+        pax, pay = planes[ra[k]], planes[ra[k] + 1]
+        pbx, pby = planes[rb[k]], planes[rb[k] + 1]
+        ax, ay, t, s, v = arm_x[k], arm_y[k], target[k], inv_s[k], inv_w[k]
+        slope = -_LOGISTIC_PROBIT * nlos_sigma * s
+        e0 = out[0, k]
+        if not nlos:
             for i in range(n):
                 dx = pax[i] - pbx[i] + ax
                 dy = pay[i] - pby[i] + ay
-                r = t - math.sqrt(dx * dx + dy * dy)
-                e0[i] = -0.5 * (r * s) * (r * s)
-                e1[i] = r * v
-            if gaussian:
-                for i in range(n):
-                    out[start + i] += e0[i] - log_norm[k]
-                continue
-            _exp_inplace(e0[:n], bits[:n])
-            a, f = a_los[k], floor
-            if nlos:
-                slope = -_LOGISTIC_PROBIT * nlos_sigma * s
-                for i in range(n):
-                    u = e1[i]
-                    e2[i] = slope * u
-                    e1[i] = -0.5 * u * u
-                _exp_inplace(e1[:n], bits[:n])
-                _exp_inplace(e2[:n], bits[:n])
-                b = a_nlos[k]
-                for i in range(n):
-                    prod[i] *= a * e0[i] + b * e1[i] / (1.0 + e2[i]) + f
-            else:
-                for i in range(n):
-                    prod[i] *= a * e0[i] + f
-            if (k + 1) % chunk == 0 or k == k_count - 1:
-                for i in range(n):
-                    out[start + i] += math.log(prod[i])
-                    prod[i] = 1.0
+                z = (t - math.sqrt(dx * dx + dy * dy)) * s
+                e0[i] = max(-0.5 * z * z, lowest)
+            continue
+        e1, e2 = out[1, k], out[2, k]
+        for i in range(n):
+            dx = pax[i] - pbx[i] + ax
+            dy = pay[i] - pby[i] + ay
+            r = t - math.sqrt(dx * dx + dy * dy)
+            z, u = r * s, r * v
+            e0[i] = max(-0.5 * z * z, lowest)
+            e1[i] = max(-0.5 * u * u, lowest)
+            e2[i] = slope * u
+
+
+@numba.njit(cache=True)
+def _combine(
+    e: FloatArray,
+    a_los: FloatArray,
+    a_nlos: FloatArray,
+    floor: float,
+    nlos: bool,
+    chunk: int,
+    out: FloatArray,
+) -> None:
+    """``out[i] += sum_k log(a_los e0 [+ a_nlos e1 / (1 + e2)] + floor)`` over the ``exp`` of
+    :func:`_exponents`, as the log of products of ``chunk`` ranges each."""
+    n = e.shape[2]
+    prod = np.ones(n)
+    k_count = e.shape[1]
+    for k in range(k_count):
+        e0 = e[0, k]
+        a, f = a_los[k], floor
+        if nlos:
+            e1, e2, b = e[1, k], e[2, k], a_nlos[k]
+            for i in range(n):
+                prod[i] *= a * e0[i] + b * e1[i] / (1.0 + e2[i]) + f
+        else:
+            for i in range(n):
+                prod[i] *= a * e0[i] + f
+        if (k + 1) % chunk == 0 or k == k_count - 1:
+            for i in range(n):
+                out[i] += math.log(prod[i])
+                prod[i] = 1.0
 
 
 def _arms(context: ModelContext, pairs: IntArray, tags: list[tuple[str, str]]) -> FloatArray | None:

@@ -111,7 +111,7 @@ def systematic_take(weights: FloatArray, u: float, rows: FloatArray, out: FloatA
     every point ``(u + k) / n`` in its cumulative-weight interval, as
     :func:`systematic_resample` with the same ``u`` draws them (``weights`` non-negative, not
     necessarily normalised)."""
-    n, width = out.shape
+    n = out.shape[0]
     total = 0.0
     for i in range(weights.shape[0]):
         total += weights[i]
@@ -124,12 +124,10 @@ def systematic_take(weights: FloatArray, u: float, rows: FloatArray, out: FloatA
         edge = math.floor(min(cumulative * scale, n) - u)
         copies = int(edge - previous)
         previous = edge
-        for _ in range(min(copies, n - j)):
-            for c in range(width):  # element by element: a row slice per copy is slower
-                out[j, c] = rows[i, c]
-            j += 1
-    last = weights.shape[0] - 1
-    while j < n:  # round-off could leave the last point uncovered: the last row takes it
-        for c in range(width):
-            out[j, c] = rows[last, c]
+        for _ in range(copies):
+            if j < n:
+                out[j] = rows[i]
+                j += 1
+    while j < n:  # round-off: the last points fall on the last row with weight
+        out[j] = rows[weights.shape[0] - 1]
         j += 1

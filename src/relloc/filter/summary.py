@@ -62,7 +62,7 @@ class Evidence:
 
     def moved(self, disp: FloatArray) -> None:
         """Add one step's displacements ``(N, 2)``."""
-        d = disp if np.isfinite(disp).all() else np.nan_to_num(disp)
+        d = np.nan_to_num(disp)
         self.offset += d
         self.path += np.hypot(d[:, 0], d[:, 1])
         self.max_offset = max(
@@ -419,26 +419,50 @@ def summarize_particles(
     """:func:`summarize` of the particle rows ``particles`` ``(M, D)`` (robot ``j``'s relative
     position in columns ``2j, 2j + 1``, ``j < k``; further columns ignored) with weights ``w``.
 
-    Compiled (:func:`_summary_core`), one pass over the rows instead of dozens of NumPy calls
-    over coordinate planes: each particle's weighted moments are summed, and it is fitted to
-    the template (made first from the same even stride through the cloud) and binned by
-    orientation. The same quantities to round-off (sums in another order; the bin found by
-    comparing the cosine of the fit with the bins' edges, not through ``atan2``), the same
-    stride for the shape and distances. Only a posterior with more than one mode takes a
-    second pass, for its dominant mode's moments (accumulating them per bin in the first pass
-    costs more than that pass)."""
-    (
-        mean,
-        cov,
-        weighted_mean,
-        mode_weight,
-        n_modes,
-        orientation_std,
-        members,
-        sample,
-        ws,
-        template,
-    ) = _summary_core(particles, k, np.asarray(w, dtype=float), can_resolve, floor, _COS_EDGES)
+    One compiled pass over the rows instead of dozens of NumPy calls over coordinate planes:
+    each particle's weighted moments are summed, and it is fitted to the template (made first
+    from the same even stride through the cloud) and binned by orientation. The same quantities to
+    round-off (sums in another order; the bin found by comparing the cosine of the fit with
+    the bins' edges, not through ``atan2``), the same stride for the shape and distances.
+    Only a posterior with more than one mode takes a second pass, for its dominant mode's
+    moments (accumulating them per bin in the first pass costs more than that pass)."""
+    m = particles.shape[0]
+    w = np.asarray(w, float)
+    total = float(w.sum())
+    if not total > 0.0:
+        w, total = np.full(m, 1.0 / m), 1.0
+    step = max(1, m // SUMMARY_SAMPLE)
+    sample = np.ascontiguousarray(particles[::step, : 2 * k])
+    ws = _normalised(w[::step])
+    template = _template(sample, k, ws)
+    inv = 1.0 / total
+    cell, bins, sums = _fit_and_bin(particles, k, w, inv, template, _COS_EDGES)
+    label_of_cell, mode_w = _mode_labels(bins[:, 0].copy())
+    weighted_mean, all_cov = _moments(sums, w, None)
+    members = label_of_cell[cell] == 0 if len(mode_w) else np.ones(m, dtype=bool)
+    everything = bool(members.all())
+    # per bin: weight, weight * cos, weight * sin of the fit
+    dominant = bins[label_of_cell == 0].sum(axis=0) if len(mode_w) else bins.sum(axis=0)
+    n_modes = max(1, int(np.count_nonzero(mode_w >= MODE_MIN_WEIGHT)))
+    mode_weight = float(dominant[0])
+    scale = 1.0 / max(mode_weight, 1e-300)
+    rbar = min(math.hypot(dominant[1] * scale, dominant[2] * scale), 1.0)
+    orientation_std = (
+        math.pi
+        if rbar <= math.exp(-0.5 * math.pi**2)
+        else min(math.sqrt(-2.0 * math.log(rbar)), math.pi)
+    )
+    if can_resolve:
+        mean, cov = (
+            (weighted_mean, all_cov)
+            if everything
+            else _moments(_member_sums(particles, k, w, inv * scale, members), w, None)
+        )
+    else:
+        r2 = np.diagonal(all_cov, axis1=1, axis2=2).sum(axis=1) + np.sum(weighted_mean**2, axis=1)
+        mean = np.zeros((k, 2))
+        cov = 0.5 * r2[:, None, None] * np.eye(2)[None]
+    cov = cov + floor * np.eye(2)[None]
     fields = (
         mean,
         cov,
@@ -459,144 +483,6 @@ _COS_EDGES = np.cos(np.arange(1, MODE_BINS // 2) * (2.0 * np.pi / MODE_BINS))
 """Cosines of the orientation bins' inner edges on a half circle (:func:`_orientation_bin`)."""
 
 
-@numba.njit(cache=True)
-def _summary_core(
-    particles: FloatArray,
-    k: int,
-    w: FloatArray,
-    can_resolve: bool,
-    floor: float,
-    cos_edges: FloatArray,
-) -> tuple[
-    FloatArray,
-    FloatArray,
-    FloatArray,
-    float,
-    int,
-    float,
-    NDArray[np.bool_],
-    FloatArray,
-    FloatArray,
-    FloatArray,
-]:
-    """:func:`summarize_particles` but the summary's assembly: the published mean and
-    covariance, the weighted mean, the mode's weight, the count of modes, the orientation's
-    circular std, the members, and the stride sample with its weights and template."""
-    m = particles.shape[0]
-    total = 0.0
-    for i in range(m):
-        total += w[i]
-    wn = np.empty(m)
-    for i in range(m):
-        wn[i] = w[i] / total if total > 0.0 else 1.0 / m
-    step = max(1, m // SUMMARY_SAMPLE)
-    n_sample = (m + step - 1) // step
-    sample = np.empty((n_sample, 2 * k))
-    ws = np.empty(n_sample)
-    sample_total = 0.0
-    for i in range(n_sample):
-        sample[i] = particles[i * step, : 2 * k]
-        ws[i] = wn[i * step]
-        sample_total += ws[i]
-    for i in range(n_sample):
-        ws[i] = ws[i] / sample_total if sample_total > 0.0 else 1.0 / n_sample
-    template = _template(sample, k, ws)
-    cell, bins, sums = _fit_and_bin(particles, k, wn, 1.0, template, cos_edges)
-    label_of_cell, mode_w = _mode_labels(bins[:, 0].copy())
-    weighted_mean, all_cov = _moments_of(sums, k)
-    any_mode = mode_w.shape[0] > 0
-    members = np.empty(m, dtype=np.bool_)
-    everything = True
-    for i in range(m):
-        members[i] = label_of_cell[cell[i]] == 0 if any_mode else True
-        everything = everything and members[i]
-    dominant = np.zeros(3)  # weight, weight * cos, weight * sin of the fit
-    for b in range(bins.shape[0]):
-        if label_of_cell[b] == 0 or not any_mode:
-            dominant += bins[b]
-    n_modes = 0
-    for mw in mode_w:
-        n_modes += mw >= MODE_MIN_WEIGHT
-    n_modes = max(1, n_modes)
-    mode_weight = dominant[0]
-    scale = 1.0 / max(mode_weight, 1e-300)
-    rbar = min(math.hypot(dominant[1] * scale, dominant[2] * scale), 1.0)
-    orientation_std = math.pi
-    if rbar > math.exp(-0.5 * math.pi**2):
-        orientation_std = min(math.sqrt(-2.0 * math.log(rbar)), math.pi)
-    if can_resolve and everything:
-        mean, cov = weighted_mean.copy(), all_cov.copy()
-    elif can_resolve:
-        mean, cov = _moments_of(_member_sums(particles, k, wn, scale, members), k)
-    else:  # the exact posterior is invariant under rotations about the reference: its moments
-        mean = np.zeros((k, 2))
-        cov = np.zeros((k, 2, 2))
-        for j in range(k):
-            r2 = all_cov[j, 0, 0] + all_cov[j, 1, 1]
-            r2 += weighted_mean[j, 0] ** 2 + weighted_mean[j, 1] ** 2
-            cov[j, 0, 0] = cov[j, 1, 1] = 0.5 * r2
-    for j in range(k):
-        cov[j, 0, 0] += floor
-        cov[j, 1, 1] += floor
-    return (
-        mean,
-        cov,
-        weighted_mean,
-        mode_weight,
-        n_modes,
-        orientation_std,
-        members,
-        sample,
-        ws,
-        template,
-    )
-
-
-@numba.njit(cache=True)
-def _moments_of(sums: FloatArray, k: int) -> tuple[FloatArray, FloatArray]:
-    """:func:`_moments` without member covariances, compiled."""
-    mean = np.empty((k, 2))
-    cov = np.empty((k, 2, 2))
-    for j in range(k):
-        mx, my = sums[j], sums[k + j]
-        mean[j, 0], mean[j, 1] = mx, my
-        cov[j, 0, 0] = max(sums[2 * k + j] - mx * mx, 0.0)
-        cov[j, 1, 1] = max(sums[3 * k + j] - my * my, 0.0)
-        cov[j, 0, 1] = cov[j, 1, 0] = sums[4 * k + j] - mx * my
-    return mean, cov
-
-
-@numba.njit(cache=True)
-def _shape_of(
-    sample: FloatArray, k: int, ws: FloatArray, template: FloatArray, floor: float
-) -> tuple[FloatArray, FloatArray]:
-    """:meth:`_Tail.shape` of the sample, compiled: the moments of the formations turned onto
-    the template, the mean put in the gauge (:func:`relloc.filter.gauge.gauge`) and the
-    covariance turned with it."""
-    mean, cov = _moments_of(_shape_sums(sample, k, ws, template), k)
-    a0 = math.atan2(mean[0, 1], mean[0, 0])
-    c, s = math.cos(a0), math.sin(a0)
-    flip = 1.0
-    if k > 1 and c * mean[1, 1] - s * mean[1, 0] < 0.0:
-        flip = -1.0
-    g = np.empty((k, 2))
-    out = np.empty((k, 2, 2))
-    for j in range(k):
-        x, y = mean[j, 0], mean[j, 1]
-        g[j, 0] = c * x + s * y
-        g[j, 1] = flip * (c * y - s * x)
-        # rot = [[c, s], [-flip s, flip c]]; out = rot cov rot^T + floor
-        r00, r01, r10, r11 = c, s, -flip * s, flip * c
-        a, b, d = cov[j, 0, 0], cov[j, 0, 1], cov[j, 1, 1]
-        t00, t01 = r00 * a + r01 * b, r00 * b + r01 * d
-        t10, t11 = r10 * a + r11 * b, r10 * b + r11 * d
-        out[j, 0, 0] = t00 * r00 + t01 * r01 + floor
-        out[j, 0, 1] = t00 * r10 + t01 * r11
-        out[j, 1, 0] = t10 * r00 + t11 * r01
-        out[j, 1, 1] = t10 * r10 + t11 * r11 + floor
-    return g, out
-
-
 class _SampleTail:
     """:class:`_Tail` over the stride ``sample`` of particle rows ``(n, 2k)`` (a copy: the
     filter moves its particles in place) and its fit to the template, compiled."""
@@ -607,8 +493,16 @@ class _SampleTail:
         self.sample, self.k, self.ws, self.template, self.floor = sample, k, ws, template, floor
 
     def shape(self) -> tuple[FloatArray, FloatArray]:
-        """As :meth:`_Tail.shape` (:func:`_shape_of`)."""
-        return _shape_of(self.sample, self.k, self.ws, self.template, self.floor)
+        """As :meth:`_Tail.shape`."""
+        k = self.k
+        sums = _shape_sums(self.sample, k, self.ws, self.template)
+        shape_mean, shape_cov = _moments(sums, self.ws, None)
+        g = gauge(shape_mean[None])[0]
+        a0 = math.atan2(shape_mean[0, 1], shape_mean[0, 0])
+        rot = np.array([[math.cos(a0), math.sin(a0)], [-math.sin(a0), math.cos(a0)]])
+        if k > 1 and (rot @ shape_mean[1])[1] < 0.0:
+            rot = np.diag([1.0, -1.0]) @ rot
+        return g, np.einsum("ab,kbc,dc->kad", rot, shape_cov, rot) + self.floor * np.eye(2)[None]
 
     def distances(self) -> FloatArray:
         """As :meth:`_Tail.distances`."""
