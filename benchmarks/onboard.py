@@ -190,7 +190,8 @@ class Relay:
         try:
             while data := src.recv(65536):
                 dst.sendall(data)
-                self.bytes += len(data)  # one writer per direction; a lost count is harmless
+                with self._lock:  # two pumps a link: no lost count
+                    self.bytes += len(data)
         except OSError:
             pass
         for s in (src, dst):
