@@ -390,8 +390,9 @@ class PoseWindow:
         return self._window_joint()[6 * self.n :, 6 * self.n :]
 
     def positions_at(self, step: int) -> FloatArray | None:
-        """Every robot's ``(x, y, z)`` at ``step`` if the window still holds its keys."""
-        est = self.smoother.calculateEstimate()
+        """Every robot's ``(x, y, z)`` at ``step`` if the window still holds its keys (the
+        estimate of the last update: no new solve per step asked)."""
+        est = self._estimate
         keys = self.keys(step)
         if not all(est.exists(k) for k in keys):
             return None
