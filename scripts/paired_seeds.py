@@ -12,7 +12,9 @@ static team without odometry).
     M="--models out/models/stacked"; PYTHONPATH=src .venv/bin/python scripts/paired_seeds.py \
         --seeds 0-19 --b-method pf_ul --a-flags "$M" --b-flags "$M" --bound 0.01
 
-Equal flags run both methods in one ``relloc run``. Runs go in ``--jobs`` processes (one numpy
+``--a-env``/``--b-env KEY=VALUE`` set a variant's environment (``RELLOC_COMPILED=0``: the
+particle filter's NumPy step). Equal flags and environments run both methods in one
+``relloc run``. Runs go in ``--jobs`` processes (one numpy
 thread each); every run's JSON stays under ``--work`` and is reused (keyed by flags and methods
 only: empty it after changing the code or the models); a recording whose first two seeds agree
 exactly in both variants (the smoother draws no random numbers) is not run on the others. ``--page FILE --section NAME`` writes the table between the page's markers
@@ -72,9 +74,20 @@ ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THRE
 """Each run on one core: ``--jobs`` runs at once share the machine."""
 
 
-def _run(data: Path, name: str, flags: str, methods: list[str], seed: int, work: Path) -> Path:
+def _env(text: str) -> dict[str, str]:
+    """``KEY=VALUE ...`` as a mapping (a variant's ``--a-env``/``--b-env``)."""
+    pairs = [item.partition("=") for item in shlex.split(text)]
+    if any(not sep or not key for key, sep, _ in pairs):
+        raise SystemExit(f"--a-env/--b-env take KEY=VALUE words, not {text!r}")
+    return {key: value for key, _, value in pairs}
+
+
+def _run(
+    data: Path, name: str, flags: str, methods: list[str], seed: int, work: Path, env: str = ""
+) -> Path:
     folder, config, warmup = RECORDINGS[name]
-    key = hashlib.sha1(f"{flags}|{','.join(methods)}".encode()).hexdigest()[:10]
+    tag = f"{flags}|{','.join(methods)}" + (f"|{env}" if env else "")
+    key = hashlib.sha1(tag.encode()).hexdigest()[:10]
     out = work / name / f"{key}_s{seed}.json"
     if out.exists():
         return out
@@ -94,7 +107,7 @@ def _run(data: Path, name: str, flags: str, methods: list[str], seed: int, work:
             *shlex.split(flags),
         ],
         out,
-        env=ONE_THREAD,
+        env={**ONE_THREAD, **_env(env)},
     )
     result = run_job(job)
     if not result.ok:
@@ -123,6 +136,8 @@ def main() -> None:
     p.add_argument("--a-flags", default="")
     p.add_argument("--b-method", default="pf")
     p.add_argument("--b-flags", default="")
+    p.add_argument("--a-env", default="", help="KEY=VALUE ... in variant A's environment")
+    p.add_argument("--b-env", default="", help="KEY=VALUE ... in variant B's environment")
     p.add_argument("--bound", type=float, default=0.03, help="B may be this much worse than A (m)")
     p.add_argument("--jobs", type=int, default=2)
     p.add_argument(
@@ -138,7 +153,8 @@ def main() -> None:
     seeds = args.seeds
     names = args.recordings.split(",")
     lines = [
-        f"A: `{f'{args.a_method} {args.a_flags}'.strip()}`; B: `{f'{args.b_method} {args.b_flags}'.strip()}`"
+        f"A: `{f'{args.a_env} {args.a_method} {args.a_flags}'.strip()}`; "
+        f"B: `{f'{args.b_env} {args.b_method} {args.b_flags}'.strip()}`"
         + f"; seeds {_label(seeds)} ({len(seeds)}); `scripts/paired_seeds.py`",
         "",
         f"| recording | robot | A mean | B mean | B - A mean +- s.e. | worst seed B - A | seeds with B - A <= {args.bound} |",
@@ -173,19 +189,24 @@ def _paired(
     """Both variants' scores on ``name`` per seed, and the seeds run. A recording whose first
     two seeds give identical scores in both variants (a filter that draws no random numbers,
     such as the smoother) is not run on the rest."""
-    same = args.a_flags == args.b_flags
+    same = args.a_flags == args.b_flags and args.a_env == args.b_env
     methods_a = [args.a_method, args.b_method] if same else [args.a_method]
 
     def scores(batch: list[int]) -> tuple[list[dict[str, float]], list[dict[str, float]]]:
         runs_a = list(
-            pool.map(lambda s: _run(args.data, name, args.a_flags, methods_a, s, args.work), batch)
+            pool.map(
+                lambda s: _run(args.data, name, args.a_flags, methods_a, s, args.work, args.a_env),
+                batch,
+            )
         )
         runs_b = (
             runs_a
             if same
             else list(
                 pool.map(
-                    lambda s: _run(args.data, name, args.b_flags, [args.b_method], s, args.work),
+                    lambda s: _run(
+                        args.data, name, args.b_flags, [args.b_method], s, args.work, args.b_env
+                    ),
                     batch,
                 )
             )

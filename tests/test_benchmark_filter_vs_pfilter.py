@@ -55,7 +55,7 @@ def test_the_phases_time_a_whole_step_and_leave_the_filter_as_a_step_does() -> N
         stepped.step(s)
         phases = timed.phases(s, bench.time.perf_counter)
         assert list(phases) == list(bench.PHASES) and all(v >= 0.0 for v in phases.values())
-    # the extra likelihood is not fused, the noise drawn alone is another generator's
+    # the extra likelihood is kept nowhere, the noise drawn alone comes from a seed of its own
     assert np.array_equal(stepped.pf.particles, timed.pf.particles)
     table = bench.phase_table({"400": phases, "40000": phases}, "context")
     assert "| phase | M = 400 | M = 40 000 |" in table and "| noise draws alone |" in table

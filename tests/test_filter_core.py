@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import pytest
 
 from relloc.estimators.particle.filter import ParticleFilter
 from relloc.filter.motion import OdometryMotion
 from relloc.filter.ranges import RangeBatch
-from relloc.filter.resampling import ess, log_normalize, normalize, systematic_resample
+from relloc.filter.resampling import (
+    ess,
+    log_normalize,
+    normalize,
+    renormalize_into,
+    systematic_resample,
+    systematic_take,
+)
 from relloc.filter.state import StateLayout
 from relloc.filter.vectors import RelativePositionBatch
 
@@ -216,3 +225,109 @@ def test_robust_likelihood_matches_the_log_space_formula() -> None:
     gauss = np.exp(-0.5 * (r / s) ** 2) / (s * np.sqrt(2 * np.pi))
     expected = np.log(0.9 * gauss + 0.1 / 15.0).sum(axis=0)
     np.testing.assert_allclose(batch.log_likelihood(pos), expected)
+
+
+@pytest.mark.parametrize(
+    "model",
+    [
+        {},
+        {"outlier_fraction": 0.0},
+        {"outlier_fraction": 0.02, "nlos_fraction": 0.1},
+        {"outlier_fraction": 0.0, "nlos_fraction": 0.1},
+    ],
+)
+@pytest.mark.parametrize("arms", [False, True])
+@pytest.mark.parametrize("m", [5, 3000])
+def test_the_compiled_range_likelihood_is_the_numpy_one(
+    model: dict[str, float], arms: bool, m: int
+) -> None:
+    """``add_log_likelihood`` (the particle filter's compiled pass) adds what
+    ``log_likelihood`` gives, to round-off, with the reference in the middle of the team, tag
+    offsets, far particles (``-inf`` where no floor holds them) and blocks of particles."""
+    rng = np.random.default_rng(m)
+    layout = StateLayout(("a", "b", "r", "c"), "r")
+    ia, ib = (np.asarray(i, dtype=np.intp) for i in np.triu_indices(4, 1))
+    batch = RangeBatch(
+        ia,
+        ib,
+        rng.uniform(1.0, 6.0, 6),
+        rng.normal(0.0, 0.1, 6),
+        rng.uniform(0.05, 0.3, 6),
+        arms=rng.normal(0.0, 0.2, (2, 6)) if arms else None,
+        **model,
+    )
+    particles = rng.normal(0.0, 3.0, (m, 7))
+    particles[0, :6] = 300.0  # far from every range
+    with np.errstate(divide="ignore"):  # log(0) of the far particle without a floor
+        want = batch.log_likelihood(layout.positions(particles), particles)
+    got = np.full(m, 0.5)
+    batch.add_log_likelihood(particles, layout, got)
+    assert np.array_equal(np.isfinite(got), np.isfinite(want))
+    finite = np.isfinite(want)
+    np.testing.assert_allclose(got[finite], 0.5 + want[finite], rtol=1e-12, atol=1e-9)
+
+
+def test_systematic_take_copies_the_rows_systematic_resample_picks() -> None:
+    rng = np.random.default_rng(4)
+    for m in (1, 7, 1000):
+        w = rng.random(m) ** 4
+        w[rng.random(m) < 0.3] = 0.0
+        w[0] += 1e-3
+        rows = rng.normal(size=(m, 3))
+        u = np.random.default_rng(m).random()
+        idx = systematic_resample(w / w.sum(), np.random.default_rng(m))
+        out = np.empty_like(rows)
+        systematic_take(w, u, rows, out)
+        assert np.array_equal(out, rows[idx])
+
+
+def test_renormalize_into_is_log_normalize_and_its_exp() -> None:
+    logw = np.array([-3.0, np.nan, 2.0, -np.inf, np.inf, 0.5])
+    want = log_normalize(np.where(np.isfinite(logw), logw, -np.inf))
+    got, w = logw.copy(), np.empty(6)
+    assert renormalize_into(got, w)
+    np.testing.assert_allclose(got, want, rtol=1e-15)
+    np.testing.assert_allclose(w, np.exp(want), rtol=1e-15)
+    assert not renormalize_into(np.full(3, np.nan), np.empty(3))
+
+
+@pytest.mark.parametrize("enabled", [False, True])
+def test_both_steps_track_and_the_switch_picks_the_path(
+    enabled: bool, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``relloc.filter.compiled.ENABLED`` picks the compiled step or the NumPy one, read on
+    every step; each tracks a moving triangle from the same converged cloud, and the NumPy
+    predict draws from the filter's generator as it did before the compiled passes."""
+    from relloc.filter import compiled
+
+    if enabled and not compiled.AVAILABLE:
+        pytest.skip("numba is not installed")
+    monkeypatch.setattr(compiled, "ENABLED", enabled)
+    layout = StateLayout(("r", "a", "b"), "r")
+    truth = np.array([[2.0, 0.5], [0.5, 2.5]])
+    pf = ParticleFilter(layout, 2000, (-4, 4, -4.5, 4.5), rng=np.random.default_rng(1))
+    pf.particles[:, :4] = truth.reshape(-1) + np.random.default_rng(2).normal(0, 0.3, (2000, 4))
+    before = pf.particles.copy()
+    disp = np.array([[0.0, 0.0], [0.1, 0.0], [0.0, -0.1]])
+    sigma = np.full(3, 0.01)
+    rng = copy.deepcopy(pf.rng)
+    pf.predict(disp, sigma, 0.1)
+    if not enabled:  # the NumPy path: the generator's own normals, as drawn before
+        want = before.copy()
+        OdometryMotion()._propagate_numpy(
+            want, np.array([1, 2]), 0, disp, sigma,
+            np.sqrt(OdometryMotion().own_variance(sigma, [1, 2], 0.1)), rng, None,
+        )  # fmt: skip
+        np.testing.assert_array_equal(pf.particles[:, :4], want[:, :4])
+    ia, ib = (np.asarray(i, dtype=np.intp) for i in np.triu_indices(3, 1))
+    for step in range(20):
+        truth = truth + disp[1:] - disp[0]
+        full = np.vstack([[0.0, 0.0], truth])
+        d = np.linalg.norm(full[ia] - full[ib], axis=1)
+        batch = RangeBatch(ia, ib, d, np.zeros(3), np.full(3, 0.05))
+        assert pf.update([batch])
+        est = pf.estimate()
+        pf.resample()
+        if step < 19:
+            pf.predict(disp, sigma, 0.1)
+    assert np.linalg.norm(est.mean - truth, axis=1).max() < 0.3  # both within 0.15 m

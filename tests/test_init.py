@@ -298,7 +298,9 @@ def _mean_ape(bag: Path, config: Path, tmp_path: Path) -> dict[str, float]:
 
 def test_tiers_shortbag_draft_runs_as_well_as_shipped(shared_data: Path, tmp_path: Path) -> None:
     """The draft (biases and heading offsets calibrated from the bag's mocap) at the shipped
-    reference gives each robot's APE within 0.02 m of the shipped config's."""
+    reference gives each robot's APE no more than 0.02 m above the shipped config's, over
+    :data:`SEEDS` (a draft that does better also runs as well: with the compiled step turtle05
+    is 0.095 m drafted, 0.123 m shipped)."""
     shipped_path = Path(__file__).parents[1] / "configs/tiers/multi4_shortbag_20221011.toml"
     shipped = TeamConfig.load(shipped_path)
     rc, cfg, _ = _draft(
@@ -313,7 +315,7 @@ def test_tiers_shortbag_draft_runs_as_well_as_shipped(shared_data: Path, tmp_pat
     )
     assert drafted.keys() == expected.keys()
     for robot, ape in expected.items():
-        assert abs(drafted[robot] - ape) < 0.02, (robot, drafted, expected)
+        assert drafted[robot] - ape < 0.02, (robot, drafted, expected)
 
 
 def test_tiers_pair_is_ambiguous_without_node(shared_data: Path, tmp_path: Path) -> None:

@@ -1,5 +1,6 @@
 """The particle filter's summary at the rate it is used, and its predict's noise: the moments
-and modes every step, the shape and distances only where read, every figure as before."""
+and modes every step, the shape and distances only where read; the compiled summary is the
+NumPy one to round-off, the compiled predict's noise the motion model's."""
 
 from __future__ import annotations
 
@@ -10,50 +11,55 @@ import pytest
 
 import relloc.estimators.particle.filter as pf_module
 from relloc.estimators.particle.localizer import ParticleFilterLocalizer
-from relloc.filter.motion import OdometryMotion
-from relloc.filter.summary import DeferredSummary, summarize
+from relloc.filter.motion import OdometryMotion, standard_normal
+from relloc.filter.summary import DeferredSummary, summarize, summarize_particles
 from relloc.simulator import multi_scenario
-
-
-def _broadcast_propagate(
-    particles: np.ndarray,
-    others: np.ndarray,
-    reference: int,
-    disp: np.ndarray,
-    sigma: np.ndarray,
-    dt: float,
-    rng: np.random.Generator,
-    motion: OdometryMotion,
-) -> None:
-    """The noise model written plainly over ``(M, N-1, 2)`` with broadcasting."""
-    m, k = particles.shape[0], len(others)
-    rel = particles[:, : 2 * k].reshape(m, k, 2)
-    own = np.sqrt(motion.own_variance(sigma, others, dt))
-    noise = rng.standard_normal((m, k, 2)) * own[None, :, None] + (disp[others] - disp[reference])
-    if sigma[reference] > 0.0:
-        noise -= rng.standard_normal((m, 1, 2)) * sigma[reference]
-    rel += noise
 
 
 @pytest.mark.parametrize(
     ("width", "k", "sigma_ref"), [(8, 4, 0.02), (10, 4, 0.02), (8, 4, 0.0), (2, 1, 0.1)]
 )
-def test_predict_draws_the_same_numbers_as_the_plain_broadcast(
+def test_predict_moves_by_the_odometry_with_the_noise_model_and_is_reproducible(
     width: int, k: int, sigma_ref: float
 ) -> None:
+    """The compiled predict (its own normals, seeded from the filter's generator): the mean
+    move is the odometry's relative displacement, each coordinate's variance its own plus the
+    reference's, shared between robots (the same axis) and not between axes; further columns
+    untouched; the same generator state gives the same particles."""
     data = np.random.default_rng(5)
-    particles = data.normal(size=(700, width))
+    m = 200_000
+    particles = np.repeat(data.normal(size=(1, width)), m, axis=0)
     disp = data.normal(size=(k + 1, 2))
-    sigma = np.abs(data.normal(size=k + 1)) * 0.1
+    sigma = np.abs(data.normal(size=k + 1)) * 0.1 + 0.01
     sigma[0] = sigma_ref
     others = np.arange(1, k + 1)
     motion = OdometryMotion()
-    expected = particles.copy()
-    _broadcast_propagate(expected, others, 0, disp, sigma, 0.1, np.random.default_rng(3), motion)
-    for work in (None, np.full((700, k, 2), np.nan)):
-        got = particles.copy()
-        motion.propagate(got, others, 0, disp, sigma, 0.1, np.random.default_rng(3), work)
-        assert np.array_equal(got, expected)
+    got = particles.copy()
+    motion.propagate(got, others, 0, disp, sigma, 0.1, np.random.default_rng(3))
+    again = particles.copy()
+    motion.propagate(again, others, 0, disp, sigma, 0.1, np.random.default_rng(3))
+    assert np.array_equal(got, again)
+    moved = got[:, : 2 * k] - particles[:, : 2 * k]
+    own = np.repeat(motion.own_variance(sigma, others, 0.1), 2)
+    np.testing.assert_allclose(
+        moved.mean(axis=0), (disp[others] - disp[0]).reshape(-1), atol=4 * np.sqrt(own.max() / m)
+    )
+    cov = np.cov(moved, rowvar=False).reshape(2 * k, 2 * k)
+    expected = np.diag(own) + sigma_ref**2 * np.kron(np.ones((k, k)), np.eye(2))
+    np.testing.assert_allclose(cov, expected, atol=5 * expected.max() * np.sqrt(2 / m))
+    assert np.array_equal(got[:, 2 * k :], particles[:, 2 * k :])
+
+
+def test_the_compiled_normals_are_standard_normal() -> None:
+    from scipy import stats
+
+    x = standard_normal(11, 1_000_000)
+    assert abs(x.mean()) < 5e-3 and abs(x.var() - 1.0) < 5e-3
+    assert abs(stats.skew(x)) < 1e-2 and abs(stats.kurtosis(x)) < 2e-2
+    assert stats.kstest(x, "norm").pvalue > 1e-3
+    assert np.mean(np.abs(x) > 3.6541528853610088) == pytest.approx(
+        2 * stats.norm.sf(3.6541528853610088), rel=0.1
+    )  # the ziggurat's tail
 
 
 def _two_modes(m: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -93,19 +99,48 @@ def test_a_deferred_summary_computes_only_what_is_read_and_equals_the_eager_one(
     assert lazy.computed == {"shape", "distances"}
 
 
+@pytest.mark.parametrize("m", [7, 300, 5000])
+@pytest.mark.parametrize("can_resolve", [True, False])
+@pytest.mark.parametrize("k", [1, 3])
+def test_the_compiled_particle_summary_is_the_summary_to_round_off(
+    m: int, can_resolve: bool, k: int
+) -> None:
+    """:func:`summarize_particles` over particle rows (bias columns after the positions) is
+    :func:`summarize` of the same formations, deferred or not: two orientation modes, one of
+    them partly mirrored."""
+    rel, w = _two_modes(m, seed=m + k)
+    rel = rel[:, :k].copy()
+    rel[: m // 5, :, 1] *= -1.0
+    rows = np.concatenate([rel.reshape(m, 2 * k), np.ones((m, 2))], axis=1)
+    want = summarize(rel, w, can_resolve=can_resolve, floor=0.01)
+    for deferred in (False, True):
+        got = summarize_particles(
+            rows, k, w, can_resolve=can_resolve, floor=0.01, deferred=deferred
+        )
+        assert np.array_equal(got.members, want.members)
+        assert (got.n_modes, got.orientation_observable) == (
+            want.n_modes,
+            want.orientation_observable,
+        )
+        for name in ("mean", "cov", "weighted_mean", "mode_weight", "orientation_std"):
+            np.testing.assert_allclose(getattr(got, name), getattr(want, name), atol=1e-10)
+        for name in ("shape", "shape_cov", "distances"):
+            np.testing.assert_allclose(getattr(got, name), getattr(want, name), atol=1e-10)
+
+
 def _run(
     monkeypatch: pytest.MonkeyPatch, deferred: bool
 ) -> tuple[list[str], list[tuple[bool, frozenset[str]]]]:
     """Published estimates (reprs) of a short run with one estimate per 0.2 s (half the steps
     unpublished) and, per step, whether it published and what of its summary was computed."""
     if not deferred:
-        eager = summarize
+        eager = summarize_particles
 
         def forced(*args: Any, **kwargs: Any) -> Any:
             kwargs["deferred"] = False
             return eager(*args, **kwargs)
 
-        monkeypatch.setattr(pf_module, "summarize", forced)
+        monkeypatch.setattr(pf_module, "summarize_particles", forced)
     sim = multi_scenario(seed=1, duration=8.0)
     loc = ParticleFilterLocalizer(sim.config.with_filter(particles=600), seed=1)
     loc.estimate_period = 0.2

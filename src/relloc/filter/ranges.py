@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from relloc import geometry
 from relloc.config import TeamConfig, UwbConfig
 from relloc.events import RangeEvent, pair_key
+from relloc.filter import compiled
 from relloc.filter.measurement import (
     LinearRow,
     MeasurementModel,
@@ -39,6 +40,7 @@ IntArray = NDArray[np.intp]
 
 _LOG_SQRT_2PI = 0.5 * np.log(2.0 * np.pi)
 _LOGISTIC_PROBIT = 1.702
+_NO_ARMS = np.zeros((2, 0))
 """``Phi(x) ~ 1 / (1 + exp(-1.702 x))``: the logistic approximation of the normal CDF."""
 
 # The mixture of both models; the Gaussian noise is the sensor's (``[uwb] sigma``, ``los_sigma``).
@@ -375,6 +377,36 @@ class RangeBatch(MeasurementModel):
         return ll.sum(axis=0)
 
     @property
+    def fused(self) -> bool:
+        """Whether :meth:`add_log_likelihood` can take this batch: no online bias, no state
+        column (what every range of a team with calibrated or fixed biases is)."""
+        return not self.conditions and not self.state_columns
+
+    def add_log_likelihood(
+        self, particles: FloatArray, layout: TeamLayout, out: FloatArray
+    ) -> None:
+        """Add :meth:`log_likelihood` of every particle row (``(M, D)``: the position columns
+        of ``layout`` first) to ``out`` ``(M,)``, in compiled passes (:func:`fused_loglik`);
+        only for a :attr:`fused` batch. Equal to the NumPy path to round-off (the sum of the
+        ranges' logs taken as the log of their product)."""
+        if not self.fused:
+            raise ValueError("add_log_likelihood needs a batch without online biases")
+        column = layout.columns_of_robots
+        fused_loglik(
+            particles,
+            column[self.index_a],
+            column[self.index_b],
+            np.asarray(self.distance - self.bias, dtype=float),
+            np.asarray(self.sigma, dtype=float),
+            _NO_ARMS if self.arms is None else np.asarray(self.arms, dtype=float),
+            float(self.outlier_fraction),
+            float(self.max_range),
+            float(self.nlos_fraction),
+            float(self.nlos_sigma),
+            out,
+        )
+
+    @property
     def conditions(self) -> bool:
         return self.bias_columns is not None and bool(np.any(self.bias_columns >= 0))
 
@@ -442,6 +474,148 @@ class RangeBatch(MeasurementModel):
             self.outlier_fraction,
             self.max_range,
         )
+
+
+_BLOCK = 1024
+"""Particles per block of :func:`fused_loglik`: its coordinate planes and ``(K, block)``
+exponents stay in the cache."""
+_FLOAT_RANGE = 300.0
+"""Decades a product of densities may span in :func:`fused_loglik` before it could under- or
+overflow float64 (``1e-308 .. 1e308``, less a margin)."""
+_LN2_HI, _LN2_LO = 6.93147180369123816490e-01, 1.90821492927058770002e-10
+_INV_LN2 = 1.44269504088896338700e00
+_C3, _C4, _C5, _C6, _C7, _C8, _C9, _C10, _C11, _C12 = (
+    1.0 / math.factorial(n) for n in range(3, 13)
+)
+"""Taylor coefficients ``1 / n!`` of ``exp`` on ``|r| <= ln 2 / 2`` (relative error below
+``1e-14``)."""
+
+
+@compiled.njit(cache=True)
+def _exp_inplace(x: FloatArray, bits: NDArray[np.int64]) -> None:
+    """``x = exp(x)`` in place, to ``1e-14`` relative, zero below ``-708``: ``2^k exp(r)``, the
+    power of two written as the bits of a float (``bits``: scratch of ``x``'s size); loops
+    the compiler vectorises, unlike a call of ``math.exp`` per element."""
+    n = x.shape[0]
+    for i in range(n):
+        v = min(max(x[i], -708.0), 709.0)
+        k = math.floor(v * _INV_LN2 + 0.5)
+        r = v - k * _LN2_HI - k * _LN2_LO
+        p = r * _C12 + _C11  # Horner, written out: the compiler then vectorises the loop
+        p = p * r + _C10
+        p = p * r + _C9
+        p = p * r + _C8
+        p = p * r + _C7
+        p = p * r + _C6
+        p = p * r + _C5
+        p = p * r + _C4
+        p = p * r + _C3
+        p = p * r + 0.5
+        p = p * r + 1.0
+        p = p * r + 1.0
+        bits[i] = (np.int64(k) + 1023) << 52 if x[i] >= -708.0 else 0
+        x[i] = p
+    scale = bits.view(np.float64)
+    for i in range(n):
+        x[i] *= scale[i]
+
+
+@compiled.njit(cache=True)
+def fused_loglik(
+    particles: FloatArray,
+    ca: IntArray,
+    cb: IntArray,
+    target: FloatArray,
+    sigma: FloatArray,
+    arms: FloatArray,
+    eps: float,
+    support: float,
+    nlos_fraction: float,
+    nlos_sigma: float,
+    out: FloatArray,
+) -> None:
+    """``out[i] +=`` the log-likelihood of particle row ``i`` under ranges ``target`` (measured
+    less bias) between position columns ``ca``/``cb`` (-1: the reference at the origin), plus
+    the tags' offsets ``arms`` ``(2, K)`` (``(2, 0)``: none): the symmetric model
+    (``nlos_fraction`` 0) or the NLOS-aware mixture (:func:`range_mixture`), the Gaussian alone
+    when both fractions are 0.
+
+    Per block of particles: the rows as coordinate planes, then range by range the exponents
+    of every particle, their ``exp`` (:func:`_exp_inplace`) and the product of the densities
+    (contiguous loops the compiler vectorises). The sum of the ranges' logs is the log of their
+    product: one ``log`` per particle for as many ranges as the uniform floor keeps the product
+    inside float64 (every range without a floor, where a density can be zero)."""
+    m, k_count = particles.shape[0], target.shape[0]
+    nlos = nlos_fraction > 0.0
+    floor = eps / support
+    sqrt2pi = math.sqrt(2.0 * math.pi)
+    inv_s, inv_w = np.empty(k_count), np.empty(k_count)
+    a_los, a_nlos, log_norm = np.empty(k_count), np.empty(k_count), np.empty(k_count)
+    top = 0.0
+    for k in range(k_count):
+        w = math.sqrt(sigma[k] * sigma[k] + nlos_sigma * nlos_sigma)
+        inv_s[k], inv_w[k] = 1.0 / sigma[k], 1.0 / w
+        a_los[k] = (1.0 - nlos_fraction - eps) / (sigma[k] * sqrt2pi)
+        a_nlos[k] = 2.0 * nlos_fraction / (w * sqrt2pi) if nlos else 0.0
+        log_norm[k] = math.log(sigma[k] * sqrt2pi)
+        top = max(top, a_los[k] + a_nlos[k] + floor)
+    gaussian = eps <= 0.0 and not nlos
+    chunk = 1
+    if floor > 0.0:
+        decades = max(-math.log10(floor), math.log10(max(top, 1.0)), 1e-3)
+        chunk = max(1, int(_FLOAT_RANGE / decades))
+    dim = 0
+    for k in range(k_count):
+        dim = max(dim, ca[k] + 2, cb[k] + 2)
+    size = min(m, _BLOCK)
+    planes = np.zeros((dim + 2, size))  # the last two rows: the reference at the origin
+    e0, e1, e2 = np.empty(size), np.empty(size), np.empty(size)
+    bits = np.empty(size, dtype=np.int64)
+    prod = np.empty(size)
+    for start in range(0, m, _BLOCK):
+        n = min(_BLOCK, m - start)
+        for i in range(n):
+            for c in range(dim):
+                planes[c, i] = particles[start + i, c]
+        for i in range(n):
+            prod[i] = 1.0
+        for k in range(k_count):
+            ra = ca[k] if ca[k] >= 0 else dim
+            rb = cb[k] if cb[k] >= 0 else dim
+            pax, pay, pbx, pby = planes[ra], planes[ra + 1], planes[rb], planes[rb + 1]
+            ax = arms[0, k] if arms.shape[1] else 0.0
+            ay = arms[1, k] if arms.shape[1] else 0.0
+            t, s, v = target[k], inv_s[k], inv_w[k]
+            for i in range(n):
+                dx = pax[i] - pbx[i] + ax
+                dy = pay[i] - pby[i] + ay
+                r = t - math.sqrt(dx * dx + dy * dy)
+                e0[i] = -0.5 * (r * s) * (r * s)
+                e1[i] = r * v
+            if gaussian:
+                for i in range(n):
+                    out[start + i] += e0[i] - log_norm[k]
+                continue
+            _exp_inplace(e0[:n], bits[:n])
+            a, f = a_los[k], floor
+            if nlos:
+                slope = -_LOGISTIC_PROBIT * nlos_sigma * s
+                for i in range(n):
+                    u = e1[i]
+                    e2[i] = slope * u
+                    e1[i] = -0.5 * u * u
+                _exp_inplace(e1[:n], bits[:n])
+                _exp_inplace(e2[:n], bits[:n])
+                b = a_nlos[k]
+                for i in range(n):
+                    prod[i] *= a * e0[i] + b * e1[i] / (1.0 + e2[i]) + f
+            else:
+                for i in range(n):
+                    prod[i] *= a * e0[i] + f
+            if (k + 1) % chunk == 0 or k == k_count - 1:
+                for i in range(n):
+                    out[start + i] += math.log(prod[i])
+                    prod[i] = 1.0
 
 
 def _arms(context: ModelContext, pairs: IntArray, tags: list[tuple[str, str]]) -> FloatArray | None:

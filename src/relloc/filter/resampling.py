@@ -7,6 +7,10 @@ with the log-sum-exp trick; ``ess`` is the effective sample size ``1 / sum(w^2)`
 Systematic resampling draws one uniform ``u ~ U[0, 1/M)`` and takes the particles at the
 points ``u + k/M``: it is unbiased (each particle is copied ``M w_i`` times in expectation) and
 has the lowest variance of the classic schemes for the cost of one cumulative sum (no search).
+
+The particle filter's step uses compiled forms of both (:func:`renormalize_into`,
+:func:`systematic_take`): one or two passes each instead of a NumPy call per operation, which
+at a few hundred particles costs more than the arithmetic.
 """
 
 from __future__ import annotations
@@ -15,6 +19,8 @@ import math
 
 import numpy as np
 from numpy.typing import NDArray
+
+from relloc.filter import compiled
 
 FloatArray = NDArray[np.float64]
 
@@ -70,3 +76,61 @@ def systematic_resample(
     counts[0] = edges[0] - int(np.floor(-u))
     np.subtract(edges[1:], edges[:-1], out=counts[1:])
     return np.repeat(np.arange(len(weights)), counts)
+
+
+@compiled.njit(cache=True)
+def renormalize_into(logw: FloatArray, w: FloatArray) -> bool:
+    """In place: ``logw`` (unnormalised, non-finite entries taken as ``-inf``) normalised so
+    that ``exp`` sums to one, and ``w`` set to that ``exp``; False (``logw`` then holds the
+    ``-inf``-mapped values, ``w`` is undefined) when no entry is finite."""
+    top = -np.inf
+    for i in range(logw.shape[0]):
+        v = logw[i]
+        if not math.isfinite(v):
+            v = -np.inf
+            logw[i] = v
+        if v > top:
+            top = v
+    if top == -np.inf:
+        return False
+    total = 0.0
+    for i in range(logw.shape[0]):
+        e = math.exp(logw[i] - top)
+        w[i] = e
+        total += e
+    shift = top + math.log(total)
+    inv = 1.0 / total
+    for i in range(logw.shape[0]):
+        logw[i] -= shift
+        w[i] *= inv
+    return True
+
+
+@compiled.njit(cache=True)
+def systematic_take(weights: FloatArray, u: float, rows: FloatArray, out: FloatArray) -> None:
+    """Systematic resampling as one pass: ``out`` (``(n, D)``) gets row ``i`` of ``rows`` once for
+    every point ``(u + k) / n`` in its cumulative-weight interval, as
+    :func:`systematic_resample` with the same ``u`` draws them (``weights`` non-negative, not
+    necessarily normalised)."""
+    n, width = out.shape
+    total = 0.0
+    for i in range(weights.shape[0]):
+        total += weights[i]
+    scale = n / total
+    cumulative = 0.0
+    previous = math.floor(-u)
+    j = 0
+    for i in range(weights.shape[0]):
+        cumulative += weights[i]
+        edge = math.floor(min(cumulative * scale, n) - u)
+        copies = int(edge - previous)
+        previous = edge
+        for _ in range(min(copies, n - j)):
+            for c in range(width):  # element by element: a row slice per copy is slower
+                out[j, c] = rows[i, c]
+            j += 1
+    last = weights.shape[0] - 1
+    while j < n:  # round-off could leave the last point uncovered: the last row takes it
+        for c in range(width):
+            out[j, c] = rows[last, c]
+        j += 1

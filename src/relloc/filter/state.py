@@ -84,6 +84,17 @@ class TeamLayout:
         return out
 
     @cached_property
+    def columns_of_robots(self) -> NDArray[np.intp]:
+        """Per team index, the first of the robot's two position columns in a particle row
+        (``2 slot``), -1 for the reference (read-only)."""
+        out = np.array(
+            [-1 if r == self.reference else 2 * self.others.index(r) for r in self.robots],
+            dtype=np.intp,
+        )
+        out.flags.writeable = False
+        return out
+
+    @cached_property
     def _other_rows(self) -> NDArray[np.intp]:
         return np.array(
             [i for i, r in enumerate(self.robots) if r != self.reference], dtype=np.intp

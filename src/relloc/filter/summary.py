@@ -24,6 +24,7 @@ from numpy.typing import NDArray
 
 from relloc.estimate import covariance_of
 from relloc.events import pair_key
+from relloc.filter import compiled
 from relloc.filter.gauge import gauge, procrustes_fit
 from relloc.filter.measurement import MeasurementModel
 
@@ -61,7 +62,7 @@ class Evidence:
 
     def moved(self, disp: FloatArray) -> None:
         """Add one step's displacements ``(N, 2)``."""
-        d = np.nan_to_num(disp)
+        d = disp if np.isfinite(disp).all() else np.nan_to_num(disp)
         self.offset += d
         self.path += np.hypot(d[:, 0], d[:, 1])
         self.max_offset = max(
@@ -405,6 +406,418 @@ class _Tail:
         return distances
 
 
+# ----------------------------------------------------------------------------- compiled particles
+def summarize_particles(
+    particles: FloatArray,
+    k: int,
+    w: FloatArray,
+    *,
+    can_resolve: bool = True,
+    floor: float = 0.0,
+    deferred: bool = False,
+) -> ModeSummary:
+    """:func:`summarize` of the particle rows ``particles`` ``(M, D)`` (robot ``j``'s relative
+    position in columns ``2j, 2j + 1``, ``j < k``; further columns ignored) with weights ``w``.
+
+    Compiled (:func:`_summary_core`), one pass over the rows instead of dozens of NumPy calls
+    over coordinate planes: each particle's weighted moments are summed, and it is fitted to
+    the template (made first from the same even stride through the cloud) and binned by
+    orientation. The same quantities to round-off (sums in another order; the bin found by
+    comparing the cosine of the fit with the bins' edges, not through ``atan2``), the same
+    stride for the shape and distances. Only a posterior with more than one mode takes a
+    second pass, for its dominant mode's moments (accumulating them per bin in the first pass
+    costs more than that pass)."""
+    (
+        mean,
+        cov,
+        weighted_mean,
+        mode_weight,
+        n_modes,
+        orientation_std,
+        members,
+        sample,
+        ws,
+        template,
+    ) = _summary_core(particles, k, np.asarray(w, dtype=float), can_resolve, floor, _COS_EDGES)
+    fields = (
+        mean,
+        cov,
+        weighted_mean,
+        mode_weight,
+        n_modes,
+        orientation_std,
+        bool(can_resolve and orientation_std < ORIENTATION_MAX_STD),
+    )
+    tail = _SampleTail(sample, k, ws, template, floor)
+    if deferred:
+        return DeferredSummary.of(fields, members, tail)
+    shape, shape_cov = tail.shape()
+    return ModeSummary(*fields, shape, shape_cov, tail.distances(), members)
+
+
+_COS_EDGES = np.cos(np.arange(1, MODE_BINS // 2) * (2.0 * np.pi / MODE_BINS))
+"""Cosines of the orientation bins' inner edges on a half circle (:func:`_orientation_bin`)."""
+
+
+@compiled.njit(cache=True)
+def _summary_core(
+    particles: FloatArray,
+    k: int,
+    w: FloatArray,
+    can_resolve: bool,
+    floor: float,
+    cos_edges: FloatArray,
+) -> tuple[
+    FloatArray,
+    FloatArray,
+    FloatArray,
+    float,
+    int,
+    float,
+    NDArray[np.bool_],
+    FloatArray,
+    FloatArray,
+    FloatArray,
+]:
+    """:func:`summarize_particles` but the summary's assembly: the published mean and
+    covariance, the weighted mean, the mode's weight, the count of modes, the orientation's
+    circular std, the members, and the stride sample with its weights and template."""
+    m = particles.shape[0]
+    total = 0.0
+    for i in range(m):
+        total += w[i]
+    wn = np.empty(m)
+    for i in range(m):
+        wn[i] = w[i] / total if total > 0.0 else 1.0 / m
+    step = max(1, m // SUMMARY_SAMPLE)
+    n_sample = (m + step - 1) // step
+    sample = np.empty((n_sample, 2 * k))
+    ws = np.empty(n_sample)
+    sample_total = 0.0
+    for i in range(n_sample):
+        sample[i] = particles[i * step, : 2 * k]
+        ws[i] = wn[i * step]
+        sample_total += ws[i]
+    for i in range(n_sample):
+        ws[i] = ws[i] / sample_total if sample_total > 0.0 else 1.0 / n_sample
+    template = _template(sample, k, ws)
+    cell, bins, sums = _fit_and_bin(particles, k, wn, 1.0, template, cos_edges)
+    label_of_cell, mode_w = _mode_labels(bins[:, 0].copy())
+    weighted_mean, all_cov = _moments_of(sums, k)
+    any_mode = mode_w.shape[0] > 0
+    members = np.empty(m, dtype=np.bool_)
+    everything = True
+    for i in range(m):
+        members[i] = label_of_cell[cell[i]] == 0 if any_mode else True
+        everything = everything and members[i]
+    dominant = np.zeros(3)  # weight, weight * cos, weight * sin of the fit
+    for b in range(bins.shape[0]):
+        if label_of_cell[b] == 0 or not any_mode:
+            dominant += bins[b]
+    n_modes = 0
+    for mw in mode_w:
+        n_modes += mw >= MODE_MIN_WEIGHT
+    n_modes = max(1, n_modes)
+    mode_weight = dominant[0]
+    scale = 1.0 / max(mode_weight, 1e-300)
+    rbar = min(math.hypot(dominant[1] * scale, dominant[2] * scale), 1.0)
+    orientation_std = math.pi
+    if rbar > math.exp(-0.5 * math.pi**2):
+        orientation_std = min(math.sqrt(-2.0 * math.log(rbar)), math.pi)
+    if can_resolve and everything:
+        mean, cov = weighted_mean.copy(), all_cov.copy()
+    elif can_resolve:
+        mean, cov = _moments_of(_member_sums(particles, k, wn, scale, members), k)
+    else:  # the exact posterior is invariant under rotations about the reference: its moments
+        mean = np.zeros((k, 2))
+        cov = np.zeros((k, 2, 2))
+        for j in range(k):
+            r2 = all_cov[j, 0, 0] + all_cov[j, 1, 1]
+            r2 += weighted_mean[j, 0] ** 2 + weighted_mean[j, 1] ** 2
+            cov[j, 0, 0] = cov[j, 1, 1] = 0.5 * r2
+    for j in range(k):
+        cov[j, 0, 0] += floor
+        cov[j, 1, 1] += floor
+    return (
+        mean,
+        cov,
+        weighted_mean,
+        mode_weight,
+        n_modes,
+        orientation_std,
+        members,
+        sample,
+        ws,
+        template,
+    )
+
+
+@compiled.njit(cache=True)
+def _moments_of(sums: FloatArray, k: int) -> tuple[FloatArray, FloatArray]:
+    """:func:`_moments` without member covariances, compiled."""
+    mean = np.empty((k, 2))
+    cov = np.empty((k, 2, 2))
+    for j in range(k):
+        mx, my = sums[j], sums[k + j]
+        mean[j, 0], mean[j, 1] = mx, my
+        cov[j, 0, 0] = max(sums[2 * k + j] - mx * mx, 0.0)
+        cov[j, 1, 1] = max(sums[3 * k + j] - my * my, 0.0)
+        cov[j, 0, 1] = cov[j, 1, 0] = sums[4 * k + j] - mx * my
+    return mean, cov
+
+
+@compiled.njit(cache=True)
+def _shape_of(
+    sample: FloatArray, k: int, ws: FloatArray, template: FloatArray, floor: float
+) -> tuple[FloatArray, FloatArray]:
+    """:meth:`_Tail.shape` of the sample, compiled: the moments of the formations turned onto
+    the template, the mean put in the gauge (:func:`relloc.filter.gauge.gauge`) and the
+    covariance turned with it."""
+    mean, cov = _moments_of(_shape_sums(sample, k, ws, template), k)
+    a0 = math.atan2(mean[0, 1], mean[0, 0])
+    c, s = math.cos(a0), math.sin(a0)
+    flip = 1.0
+    if k > 1 and c * mean[1, 1] - s * mean[1, 0] < 0.0:
+        flip = -1.0
+    g = np.empty((k, 2))
+    out = np.empty((k, 2, 2))
+    for j in range(k):
+        x, y = mean[j, 0], mean[j, 1]
+        g[j, 0] = c * x + s * y
+        g[j, 1] = flip * (c * y - s * x)
+        # rot = [[c, s], [-flip s, flip c]]; out = rot cov rot^T + floor
+        r00, r01, r10, r11 = c, s, -flip * s, flip * c
+        a, b, d = cov[j, 0, 0], cov[j, 0, 1], cov[j, 1, 1]
+        t00, t01 = r00 * a + r01 * b, r00 * b + r01 * d
+        t10, t11 = r10 * a + r11 * b, r10 * b + r11 * d
+        out[j, 0, 0] = t00 * r00 + t01 * r01 + floor
+        out[j, 0, 1] = t00 * r10 + t01 * r11
+        out[j, 1, 0] = t10 * r00 + t11 * r01
+        out[j, 1, 1] = t10 * r10 + t11 * r11 + floor
+    return g, out
+
+
+class _SampleTail:
+    """:class:`_Tail` over the stride ``sample`` of particle rows ``(n, 2k)`` (a copy: the
+    filter moves its particles in place) and its fit to the template, compiled."""
+
+    def __init__(
+        self, sample: FloatArray, k: int, ws: FloatArray, template: FloatArray, floor: float
+    ) -> None:
+        self.sample, self.k, self.ws, self.template, self.floor = sample, k, ws, template, floor
+
+    def shape(self) -> tuple[FloatArray, FloatArray]:
+        """As :meth:`_Tail.shape` (:func:`_shape_of`)."""
+        return _shape_of(self.sample, self.k, self.ws, self.template, self.floor)
+
+    def distances(self) -> FloatArray:
+        """As :meth:`_Tail.distances`."""
+        return _distances(self.sample, self.k, self.ws)
+
+
+@compiled.njit(cache=True)
+def _template(sample: FloatArray, k: int, ws: FloatArray) -> FloatArray:
+    """The ``ws``-weighted mean of the sample's formations in the declared gauge
+    (:func:`relloc.filter.gauge.gauge`: robot 0 on +x, robot 1 on the +y side), ``(k, 2)``."""
+    out = np.zeros((k, 2))
+    for i in range(sample.shape[0]):
+        x0, y0 = sample[i, 0], sample[i, 1]
+        r = math.hypot(x0, y0)
+        c, s = (x0 / r, y0 / r) if r > 0.0 else (1.0, 0.0)
+        flip = 1.0
+        if k > 1 and c * sample[i, 3] - s * sample[i, 2] < 0.0:
+            flip = -1.0
+        for j in range(k):
+            x, y = sample[i, 2 * j], sample[i, 2 * j + 1]
+            out[j, 0] += ws[i] * (c * x + s * y)
+            out[j, 1] += ws[i] * flip * (c * y - s * x)
+    return out
+
+
+@compiled.njit(cache=True, inline="always")
+def _fit(row: FloatArray, k: int, template: FloatArray) -> tuple[float, float, float]:
+    """The Procrustes fit of one formation to ``template``: cosine, sine and handedness
+    (:func:`relloc.filter.gauge.procrustes_fit`)."""
+    h00 = h01 = h10 = h11 = 0.0
+    for j in range(k):
+        x, y = row[2 * j], row[2 * j + 1]
+        tx, ty = template[j, 0], template[j, 1]
+        h00 += tx * x
+        h01 += tx * y
+        h10 += ty * x
+        h11 += ty * y
+    hand = -1.0 if k > 1 and h00 * h11 - h01 * h10 < 0.0 else 1.0
+    c = h00 + hand * h11
+    s = h01 - hand * h10
+    norm = math.sqrt(c * c + s * s)
+    if norm == 0.0:
+        norm = 1.0
+    return c / norm, s / norm, hand
+
+
+@compiled.njit(cache=True, inline="always")
+def _orientation_bin(c: float, s: float, hand: float, cos_edges: FloatArray) -> int:
+    """The bin of :func:`_modes` of the angle ``atan2(s, c)`` and handedness ``hand``: on the
+    upper half circle the count of inner edges at or before the angle (their cosines at or
+    above ``c``) past the middle bin, on the lower half mirrored."""
+    passed = 0
+    for j in range(cos_edges.shape[0]):
+        if cos_edges[j] >= c:
+            passed += 1
+    half = MODE_BINS // 2
+    b = half + passed if s >= 0.0 else half - 1 - passed
+    return b + MODE_BINS if hand < 0.0 else b
+
+
+@compiled.njit(cache=True, inline="always")
+def _add_moments(out: FloatArray, row: FloatArray, k: int, wi: float) -> None:
+    """Add ``wi`` times ``x``, ``y``, ``x x``, ``y y``, ``x y`` of every robot of ``row`` to
+    ``out`` (:func:`_planes` order)."""
+    for j in range(k):
+        x, y = row[2 * j], row[2 * j + 1]
+        wx, wy = wi * x, wi * y
+        out[j] += wx
+        out[k + j] += wy
+        out[2 * k + j] += wx * x
+        out[3 * k + j] += wy * y
+        out[4 * k + j] += wx * y
+
+
+@compiled.njit(cache=True)
+def _fit_and_bin(
+    p: FloatArray,
+    k: int,
+    w: FloatArray,
+    inv: float,
+    template: FloatArray,
+    cos_edges: FloatArray,
+) -> tuple[IntArray, FloatArray, FloatArray]:
+    """Per particle its orientation bin (:func:`_fit`, :func:`_orientation_bin`); per bin the
+    sums over its particles (weights ``w * inv``) of the weight and the weighted cosine and
+    sine of the fit ``(2 MODE_BINS, 3)``; and the weighted moments of all (:func:`_add_moments`)."""
+    m = p.shape[0]
+    cell = np.empty(m, dtype=np.intp)
+    bins = np.zeros((2 * MODE_BINS, 3))
+    sums = np.zeros(5 * k)
+    for i in range(m):
+        row = p[i]
+        c, s, hand = _fit(row, k, template)
+        b = _orientation_bin(c, s, hand, cos_edges)
+        cell[i] = b
+        wi = w[i] * inv
+        bins[b, 0] += wi
+        bins[b, 1] += wi * c
+        bins[b, 2] += wi * s
+        _add_moments(sums, row, k, wi)
+    return cell, bins, sums
+
+
+@compiled.njit(cache=True)
+def _member_sums(
+    p: FloatArray, k: int, w: FloatArray, scale: float, members: NDArray[np.bool_]
+) -> FloatArray:
+    """The moments (:func:`_add_moments`) of the ``members`` under weights ``w * scale``."""
+    sums = np.zeros(5 * k)
+    for i in range(p.shape[0]):
+        if members[i]:
+            _add_moments(sums, p[i], k, w[i] * scale)
+    return sums
+
+
+@compiled.njit(cache=True)
+def _mode_labels(hist: FloatArray) -> tuple[IntArray, FloatArray]:
+    """As :func:`_modes` from its histogram: each bin's mode label (-1: none; labels by
+    decreasing weight, ties in the order the runs are found) and each mode's weight."""
+    n = MODE_BINS
+    heavy = hist > MODE_MIN_BIN_WEIGHT
+    run_of = np.full(2 * n, -1, dtype=np.intp)
+    weights = np.zeros(2 * n)
+    runs = 0
+    for h in range(2):
+        occ = np.empty(n, dtype=np.bool_)
+        for i in range(n):
+            occ[i] = heavy[h * n + i] or heavy[h * n + (i - 1) % n] or heavy[h * n + (i + 1) % n]
+        if not occ.any():
+            continue
+        if occ.all():
+            for i in range(n):
+                run_of[h * n + i] = runs
+                weights[runs] += hist[h * n + i]
+            runs += 1
+            continue
+        start = 0
+        while occ[start]:
+            start += 1
+        open_run = False
+        for j in range(1, n + 1):
+            i = (start + j) % n
+            if occ[i]:
+                run_of[h * n + i] = runs
+                weights[runs] += hist[h * n + i]
+                open_run = True
+            elif open_run:
+                runs += 1
+                open_run = False
+        if open_run:
+            runs += 1
+    order = np.argsort(-weights[:runs], kind="mergesort")
+    rank = np.empty(runs, dtype=np.intp)
+    for r in range(runs):
+        rank[order[r]] = r
+    label = np.full(2 * n, -1, dtype=np.intp)
+    for b in range(2 * n):
+        if run_of[b] >= 0:
+            label[b] = rank[run_of[b]]
+    return label, weights[:runs][order]
+
+
+@compiled.njit(cache=True)
+def _shape_sums(sample: FloatArray, k: int, ws: FloatArray, template: FloatArray) -> FloatArray:
+    """The ``ws``-weighted sums of ``x``, ``y``, ``x x``, ``y y``, ``x y`` (:func:`_planes`
+    order) of the sample's formations turned onto the template (:func:`_fit`, :func:`_onto`)."""
+    out = np.zeros(5 * k)
+    for i in range(sample.shape[0]):
+        wi = ws[i]
+        c, s, hand = _fit(sample[i], k, template)
+        for j in range(k):
+            x, y = sample[i, 2 * j], sample[i, 2 * j + 1]
+            ax = c * x + s * y
+            ay = hand * (c * y - s * x)
+            out[j] += wi * ax
+            out[k + j] += wi * ay
+            out[2 * k + j] += wi * ax * ax
+            out[3 * k + j] += wi * ay * ay
+            out[4 * k + j] += wi * ax * ay
+    return out
+
+
+@compiled.njit(cache=True)
+def _distances(sample: FloatArray, k: int, ws: FloatArray) -> FloatArray:
+    """Weighted mean and std of every pair's distance over the sample, ``(k+1, k+1, 2)``,
+    the reference (the origin) index 0 (:meth:`_Tail.distances`)."""
+    n = k + 1
+    out = np.zeros((n, n, 2))
+    mean = np.zeros((n, n))
+    square = np.zeros((n, n))
+    for i in range(sample.shape[0]):
+        wi = ws[i]
+        for a in range(n):
+            ax = sample[i, 2 * (a - 1)] if a > 0 else 0.0
+            ay = sample[i, 2 * (a - 1) + 1] if a > 0 else 0.0
+            for b in range(a + 1, n):
+                dx = ax - sample[i, 2 * (b - 1)]
+                dy = ay - sample[i, 2 * (b - 1) + 1]
+                dd = dx * dx + dy * dy
+                mean[a, b] += wi * math.sqrt(dd)
+                square[a, b] += wi * dd
+    for a in range(n):
+        for b in range(a + 1, n):
+            std = math.sqrt(max(square[a, b] - mean[a, b] * mean[a, b], 0.0))
+            out[a, b, 0] = out[b, a, 0] = mean[a, b]
+            out[a, b, 1] = out[b, a, 1] = std
+    return out
+
+
 class _OnRead:
     """A field of :class:`DeferredSummary`: the value given, else computed on first read."""
 
@@ -437,14 +850,14 @@ class DeferredSummary(ModeSummary):
 
     @classmethod
     def of(
-        cls, fields: tuple[Any, ...], members: NDArray[np.bool_], tail: _Tail
+        cls, fields: tuple[Any, ...], members: NDArray[np.bool_], tail: _Tail | _SampleTail
     ) -> DeferredSummary:
         out = cls(*fields, None, None, None, members)  # type: ignore[call-arg]
         out.__dict__["_tail"] = tail
         return out
 
     def _materialize(self, name: str) -> None:
-        tail: _Tail = self.__dict__["_tail"]
+        tail: _Tail | _SampleTail = self.__dict__["_tail"]
         if name == "distances":
             self.__dict__["_distances"] = tail.distances()
         else:

@@ -1,4 +1,14 @@
-"""The particle filter over relative positions: pure NumPy, no I/O, no knowledge of sensors.
+"""The particle filter over relative positions: NumPy and a few compiled passes, no I/O, no
+knowledge of sensors.
+
+One step (predict, update by ranges, estimate, resample) runs as a handful of compiled passes
+over the particle rows (:func:`relloc.filter.motion.OdometryMotion.propagate`,
+:meth:`relloc.filter.ranges.RangeBatch.add_log_likelihood`,
+:func:`relloc.filter.resampling.renormalize_into`,
+:func:`relloc.filter.summary.summarize_particles`,
+:func:`relloc.filter.resampling.systematic_take`): a NumPy call per operation cost more than
+the arithmetic at a few hundred particles, and a pass over memory per operation at tens of
+thousands. Other measurement models, online biases and an adaptive count take the NumPy path.
 
 The derivation: docs/explanation/internals.md, section ``relloc.estimators.particle.filter``.
 """
@@ -12,6 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from relloc.filter import compiled
 from relloc.filter.adaptive import KldSampling
 from relloc.filter.annealing import MCMC_STEPS, StartContext, annealed_start, orient_by
 from relloc.filter.base import (
@@ -23,9 +34,18 @@ from relloc.filter.base import (
 )
 from relloc.filter.measurement import MeasurementModel, stacked
 from relloc.filter.motion import OdometryMotion
-from relloc.filter.resampling import ess, log_normalize, mixture_moments, systematic_resample
+from relloc.filter.ranges import RangeBatch
+from relloc.filter.resampling import (
+    ess,
+    log_normalize,
+    mixture_moments,
+    reinjection_slots,
+    renormalize_into,
+    systematic_resample,
+    systematic_take,
+)
 from relloc.filter.state import StateLayout
-from relloc.filter.summary import Evidence, ModeSummary, summarize
+from relloc.filter.summary import Evidence, ModeSummary, summarize, summarize_particles
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -103,7 +123,8 @@ class ParticleFilter(WeightedFilter):
         self._others = np.array([layout.index(r) for r in layout.others], dtype=np.intp)
         self._reference = layout.index(layout.reference)
         self._noise = np.empty((0, layout.n_others, 2))
-        """The buffer ``predict`` draws the odometry noise into, reused while the count stays."""
+        """The buffer the NumPy ``predict`` draws the odometry noise into, reused while the
+        count stays."""
         self.particles = self.sample_prior(n_particles)
         self._weights: FloatArray = np.empty(0)
         self._weights_of: FloatArray | None = None
@@ -147,9 +168,10 @@ class ParticleFilter(WeightedFilter):
     def predict(self, disp: FloatArray, sigma: FloatArray, dt: float) -> None:
         """Move particles by every robot's displacement ``disp`` (N, 2) with std ``sigma`` (N,),
         turn each formation by ``rotation_noise`` and walk the online bias beliefs."""
-        m, k = self.particles.shape[0], self.layout.n_others
-        if self._noise.shape != (m, k, 2):
-            self._noise = np.empty((m, k, 2))
+        if not compiled.ENABLED:
+            m, k = self.particles.shape[0], self.layout.n_others
+            if self._noise.shape != (m, k, 2):
+                self._noise = np.empty((m, k, 2))
         self.motion.propagate(
             self.particles, self._others, self._reference, disp, sigma, dt, self.rng, self._noise
         )
@@ -166,6 +188,10 @@ class ParticleFilter(WeightedFilter):
         if not models:
             return True
         self.evidence.fused(models)
+        if compiled.ENABLED and all(
+            isinstance(model, RangeBatch) and model.fused for model in models
+        ):
+            return self._update_fused(models)  # type: ignore[arg-type]
         loglik = models[0].log_likelihood if len(models) == 1 else stacked(models)
         logw = renormalized(self.logw + self.log_likelihood(loglik, self.particles))
         if logw is not None:
@@ -176,6 +202,20 @@ class ParticleFilter(WeightedFilter):
                 positions = self.positions() if positions is None else positions
                 model.condition(positions, self.particles)
         return logw is not None
+
+    def _update_fused(self, batches: Sequence[RangeBatch]) -> bool:
+        """:meth:`update` by range batches without online biases: each batch's compiled pass
+        adds to a copy of the log-weights, one more normalises them and gives their ``exp``
+        (kept for the estimate and the resampling)."""
+        logw = self.logw.copy()
+        for batch in batches:
+            batch.add_log_likelihood(self.particles, self.layout, logw)
+        w = np.empty_like(logw)
+        if not renormalize_into(logw, w):
+            return False
+        self.logw = logw
+        self._weights, self._weights_of = w, logw
+        return True
 
     def log_likelihood(self, loglik: LogLikelihood, particles: FloatArray) -> FloatArray:
         """``loglik`` of every particle, evaluated in cache-sized blocks (non-finite -> -inf).
@@ -200,6 +240,23 @@ class ParticleFilter(WeightedFilter):
 
     def _select(self, idx: IntArray) -> None:
         self.particles = np.take(self.particles, idx, axis=0)  # several times faster than [idx]
+
+    def resample(self) -> None:
+        """:meth:`WeightedFilter.resample`; at a fixed count the systematic draw copies the
+        rows in one compiled pass (:func:`~relloc.filter.resampling.systematic_take`, the same
+        draw from the same uniform) instead of building the indices first."""
+        if self.count_rule is not None or not compiled.ENABLED:
+            super().resample()
+            return
+        out = np.empty_like(self.particles)
+        systematic_take(self._exp_logw(), float(self.rng.random()), self.particles, out)
+        self.particles = out
+        slots = reinjection_slots(self.n, self.reinject_fraction, self.rng)
+        if slots.size:
+            self._reinject(slots, self.prior.sample(self.rng, slots.size, self.layout.n_others))
+        self.logw = np.full(self.n, -math.log(self.n))
+        self.resample_count += 1
+        self._after_resample()
 
     def _reinject(self, slots: IntArray, positions: FloatArray) -> None:
         self.particles[slots, : self.layout.dim] = positions
@@ -321,14 +378,23 @@ class ParticleFilter(WeightedFilter):
         (:class:`~relloc.filter.summary.DeferredSummary`): a step nobody publishes skips them."""
         w = self._exp_logw()
         m = self.particles.shape[0]
-        rel = self.particles[:, : self.layout.dim].reshape(m, -1, 2)
-        summary = summarize(
-            rel,
-            w,
-            can_resolve=self.evidence.can_resolve,
-            floor=self.covariance_floor,
-            deferred=True,
-        )
+        if compiled.ENABLED:
+            summary = summarize_particles(
+                self.particles,
+                self.layout.n_others,
+                w,
+                can_resolve=self.evidence.can_resolve,
+                floor=self.covariance_floor,
+                deferred=True,
+            )
+        else:
+            summary = summarize(
+                self.particles[:, : self.layout.dim].reshape(m, -1, 2),
+                w,
+                can_resolve=self.evidence.can_resolve,
+                floor=self.covariance_floor,
+                deferred=True,
+            )
         self.last_summary = summary
         biases = {}
         for pair in self.layout.bias_pairs:
