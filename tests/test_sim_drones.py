@@ -24,8 +24,11 @@ from relloc.events import (
 from relloc.simulator.flight import (
     DRONE_UWB,
     HEIGHT_SENSOR,
+    SIX_TAG_ARMS,
+    SIX_TAG_UWB,
     FlightSimulation,
     drones_scenario,
+    drones_six_scenario,
     drones_uwb_scenario,
 )
 from relloc.simulator.scenarios import SCENARIOS
@@ -225,3 +228,35 @@ def test_random_heading_offsets_turn_the_odometry_frames() -> None:
         )
     with pytest.raises(ValueError, match="heading_offsets"):
         drones_scenario(0, heading_offsets="north")  # type: ignore[arg-type]
+
+
+def test_drones_six_ranges_every_tag_pair_at_1_hz_averaged_over_the_past_second() -> None:
+    """Three drones, six tags each, no odometry nor heights; each range the mean distance over
+    the second before its stamp (not the distance at the stamp) plus the bias and noise."""
+    sim = drones_six_scenario(0, duration=10.0)
+    assert SCENARIOS["drones_six"] is drones_six_scenario
+    config = sim.config
+    assert config.robot_names == ("d0", "d1", "d2") and config.dimension == 3
+    assert all(len(r.tags) == 6 and not r.odom_topic and not r.height_topic for r in config.robots)
+    events = list(sim.events())
+    assert not _of(events, OdometryEvent) and not _of(events, HeightEvent)
+    ranges = _of(events, RangeEvent)
+    assert len({e.node_pair for e in ranges}) == 3 * 36
+    assert len(ranges) == pytest.approx(3 * 36 * 10 * 0.95, rel=0.05)
+    averaged, instant = [], []
+    for e in ranges:
+        if e.t < 1.0:
+            continue
+        tt = np.linspace(e.t - 1.0, e.t, 41)
+        ends = []
+        for robot, node in ((e.robot_a, e.node_a), (e.robot_b, e.node_b)):
+            p = sim.true_positions(robot, tt)
+            yaw = sim.true_poses(robot, tt)[:, 2]
+            ends.append(geometry.tag_position(p, yaw, sim.config.lever_arm(node)))
+        dist = np.linalg.norm(ends[0] - ends[1], axis=1)
+        measured = e.distance - sim.true_biases[e.node_pair]
+        averaged.append(measured - dist.mean())
+        instant.append(measured - dist[-1])
+    assert np.std(averaged) == pytest.approx(SIX_TAG_UWB.sigma, rel=0.15)
+    assert np.std(instant) > 2.0 * SIX_TAG_UWB.sigma
+    assert max(math.dist(a, b) for a in SIX_TAG_ARMS for b in SIX_TAG_ARMS) <= 0.5

@@ -1,4 +1,4 @@
-"""A flying team: five quadrotors on smooth 3D paths (the ``drones`` and ``drones_uwb`` scenarios).
+"""A flying team: quadrotors on smooth 3D paths (``drones``, ``drones_uwb``, ``drones_six``).
 
 :class:`FlightSimulation` is a :class:`~relloc.simulator.runner.Simulation` whose robots follow
 closed-form paths (:class:`FlightPath`: a Lissajous figure in x-y, a slow bob in z, a yaw of its
@@ -8,7 +8,8 @@ own, for a quadrotor is holonomic) and whose events are 3D:
 * UWB ranges at 10 Hz between every two drones' tags (no intra-drone pair): the 3D distance of
   the tags at their 3D lever arms plus the pair's bias, drawn as the 2D scenarios draw them
   (:func:`~relloc.simulator.schedules.draw_uwb`), plus white noise and NLOS spikes
-  (:data:`DRONE_UWB`);
+  (:data:`DRONE_UWB`); or, ``range_average`` set, each range the mean true distance over the
+  past ``range_average`` seconds (a LinkTrack's averaged output, ``drones_six``);
 * velocity odometry at 20 Hz in each drone's own odometry frame (its start pose, z from its
   start height): the body-frame velocity, scaled horizontally by the drone's scale factor, with
   white noise on each axis, and the yaw rate with the drone's gyro bias and noise, integrated
@@ -49,12 +50,15 @@ __all__ = [
     "DRONE_TAG_ARMS",
     "DRONE_UWB",
     "HEIGHT_SENSOR",
+    "SIX_TAG_ARMS",
+    "SIX_TAG_UWB",
     "Drone",
     "FlightOdometryModel",
     "FlightPath",
     "FlightSimulation",
     "HeightSensorModel",
     "drones_scenario",
+    "drones_six_scenario",
     "drones_uwb_scenario",
 ]
 
@@ -148,8 +152,12 @@ class FlightSimulation(Simulation):
         odometry: FlightOdometryModel | None = None,
         height: HeightSensorModel | None = None,
         odometry_topics: bool = True,
+        range_average: float = 0.0,
     ) -> None:
-        """``height`` None: no height sensor; ``odometry_topics`` False: no odometry."""
+        """``height`` None: no height sensor; ``odometry_topics`` False: no odometry;
+        ``range_average`` > 0: each range is the mean distance over that many seconds before
+        its stamp (else the distance at its stamp less the model's latency)."""
+        self.range_average = float(range_average)
         self.flights = {d.name: d.path for d in drones}
         self.lever_arms: dict[str, Arm] = {n: arm for d in drones for n, arm in d.tags}
         self.flight_odometry = odometry or FlightOdometryModel()
@@ -350,8 +358,11 @@ class _FlightRunner(_Runner):
                 tag = geometry.tag_position(pos, yaw, sim.lever_arms[node])
                 ends.append((tag, (pos[:, 0], pos[:, 1], yaw)))
             (tag_a, pose_a), (tag_b, pose_b) = ends
+            distance = geometry.distance(tag_a, tag_b)
+            if sim.range_average > 0.0:
+                distance = self._averaged(pair, tm)
             rng = (
-                geometry.distance(tag_a, tag_b)
+                distance
                 + pair.bias
                 + pair.orientation_term(pose_a, pose_b)
                 + pair.noise[i0:i1][keep]
@@ -362,6 +373,18 @@ class _FlightRunner(_Runner):
                 RangeEvent(t, a, b, r, na, nb)
                 for t, r in zip(times.tolist(), np.maximum(rng, 0.0).tolist(), strict=True)
             )
+
+    def _averaged(self, pair: Any, tm: FloatArray) -> FloatArray:
+        """The mean tag distance of ``pair`` over ``range_average`` seconds before each of
+        ``tm`` (21 samples, none before the start)."""
+        sim = self.sim
+        lags = np.linspace(0.0, sim.range_average, 21)
+        at = np.maximum(np.subtract.outer(tm, lags), 0.0).ravel()
+        tags = []
+        for robot, node in ((pair.robot_a, pair.node_a), (pair.robot_b, pair.node_b)):
+            pos, yaw = sim.flights[robot].evaluate(at)
+            tags.append(geometry.tag_position(pos, yaw, sim.lever_arms[node]))
+        return np.asarray(geometry.distance(tags[0], tags[1])).reshape(tm.size, -1).mean(axis=1)
 
 
 DRONE_PATHS: tuple[FlightPath, ...] = (
@@ -435,4 +458,59 @@ def drones_uwb_scenario(seed: int = 0, **options: Any) -> FlightSimulation:
     """:func:`drones_scenario`, the same flight, with UWB only: no odometry, no heights."""
     return drones_scenario(
         seed, odometry_topics=False, height=None, name="sim_drones_uwb", **options
+    )
+
+
+SIX_TAG_ARMS: tuple[Arm, ...] = (
+    (0.2, 0.0, 0.05),
+    (-0.2, 0.0, 0.05),
+    (0.0, 0.2, 0.05),
+    (0.0, -0.2, 0.05),
+    (0.12, 0.12, -0.08),
+    (-0.12, -0.12, -0.08),
+)
+"""The six tags of a ``drones_six`` quadrotor (``n_<i>a``..``n_<i>f``): four at the ends of
+its 0.4 m cross, 5 cm above its centre, two on a diagonal 8 cm below: not coplanar, so the
+tags alone tell a drone's yaw and the formation from its mirror image."""
+
+SIX_TAG_UWB = replace(DRONE_UWB, sigma=0.03, rate_hz=1.0, nlos_probability=0.0, jitter=0.0)
+"""``drones_six``'s UWB: every tag pair at 1 Hz at its own random phase, 3 cm of white noise,
+no NLOS spikes (the ranges are averaged: :data:`SIX_TAG_AVERAGE`)."""
+
+SIX_TAG_AVERAGE = 1.0
+"""Seconds each ``drones_six`` range averages the distance over, up to its stamp."""
+
+
+def drones_six_scenario(
+    seed: int = 0,
+    *,
+    duration: float = 120.0,
+    uwb: UwbErrorModel = SIX_TAG_UWB,
+    detections: bool = False,
+    name: str = "sim_drones_six",
+) -> FlightSimulation:
+    """Three quadrotors ``d0``..``d2`` (``d0`` the reference) on the first three
+    :data:`DRONE_PATHS`, six tags each at :data:`SIX_TAG_ARMS`, ranges averaged over
+    :data:`SIX_TAG_AVERAGE` at 1 Hz per pair, no odometry, no heights (``drones_six``): a
+    simulated stand-in for a LinkTrack team under motion capture. The paths' phases are drawn
+    as :func:`drones_scenario` draws them."""
+    del detections
+    drones = []
+    for i, path in enumerate(DRONE_PATHS[:3]):
+        robot = f"d{i}"
+        phases = stream(seed, "flight", robot).uniform(0.0, 2.0 * math.pi, size=4)
+        flown = replace(path, phase=tuple(phases[:3].tolist()), phase_yaw=float(phases[3]))
+        tags = tuple((f"n_{i}{'abcdef'[k]}", arm) for k, arm in enumerate(SIX_TAG_ARMS))
+        drones.append(Drone(robot, flown, tags))
+    return FlightSimulation(
+        drones,
+        reference="d0",
+        seed=seed,
+        duration=duration,
+        name=name,
+        area=DRONE_AREA,
+        uwb=uwb,
+        height=None,
+        odometry_topics=False,
+        range_average=SIX_TAG_AVERAGE,
     )

@@ -27,7 +27,7 @@ from relloc.simulator.error_models import (
     SightingSensorModel,
     UwbErrorModel,
 )
-from relloc.simulator.flight import drones_scenario, drones_uwb_scenario
+from relloc.simulator.flight import drones_scenario, drones_six_scenario, drones_uwb_scenario
 from relloc.simulator.kinematics import (
     RobotMotion,
     SimObject,
@@ -463,6 +463,7 @@ SCENARIOS: dict[str, Callable[..., Simulation]] = {
     "grid": grid_scenario,
     "drones": drones_scenario,
     "drones_uwb": drones_uwb_scenario,
+    "drones_six": drones_six_scenario,
 }
 """The open-loop scenarios by name, each called as ``scenario(seed, **options)`` (``nav`` is
 closed-loop and run apart). ``static`` and ``static_then_move`` show how the estimate reports an
