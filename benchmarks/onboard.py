@@ -50,6 +50,9 @@ from typing import Any, cast
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/: the shared modules
+import bare_subscriber
+
 from relloc.live.resources import CpuSampler, proc_memory_mb, round_finite
 from relloc.live.session import free_tcp_port
 
@@ -66,27 +69,6 @@ RETRY_MS = 500
 TAIL = 1.5
 """Seconds a serve runs past the end of the stream (the last messages reach it)."""
 STATUS_PERIOD = 0.5
-
-_SUBSCRIBER = """
-import json, signal, sys, threading, zenoh
-conf = zenoh.Config()
-conf.insert_json5("mode", '"peer"')
-conf.insert_json5("connect/endpoints", sys.argv[1])
-conf.insert_json5("listen/endpoints", "[]")
-conf.insert_json5("scouting/multicast/enabled", "false")
-conf.insert_json5("scouting/gossip/enabled", "false")
-session = zenoh.open(conf)
-count = [0]
-def on_sample(sample):
-    count[0] += 1
-subs = [session.declare_subscriber(expr, on_sample) for expr in sys.argv[2:]]
-done = threading.Event()
-signal.signal(signal.SIGTERM, lambda *_: done.set())
-print("ready", flush=True)
-done.wait()
-print(count[0], flush=True)
-"""
-"""The bare subscriber (as in serve_vs_subscriber.py), a peer connected to every robot."""
 
 
 @dataclass(frozen=True)
@@ -504,12 +486,10 @@ def run_team(
         if bare:
             from relloc.sources.zenoh_source import ZenohSource
 
-            endpoints = json.dumps([e for me in names for e in mesh.listen(me)])
+            # a peer connected to every robot, listening nowhere, no gossip: it joins no one
+            endpoints = [e for me in names for e in mesh.listen(me)]
             exprs = ZenohSource(config).expressions
-            bare_proc = subprocess.Popen(
-                [sys.executable, "-c", _SUBSCRIBER, endpoints, *exprs],
-                stdout=subprocess.PIPE, text=True,
-            )  # fmt: skip
+            bare_proc = bare_subscriber.start(endpoints, exprs, listen=[], gossip=False)
         waiting = list(procs.items())
         if bare_proc is not None:
             waiting.append(("bare", bare_proc))

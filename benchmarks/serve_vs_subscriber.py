@@ -29,6 +29,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # benchmarks/: the shared modules
+import bare_subscriber
+
 from relloc.config import TeamConfig
 from relloc.evaluation.pages import write_between
 from relloc.live import (
@@ -50,26 +53,6 @@ SHORTBAG = "multi4_shortbag_20221011"
 REPO = Path(__file__).resolve().parents[1]
 LATE_REASONS = ("late_measurement", "out_of_order_odometry", "late")
 """Rejections that mean a message came too late for the filter (localizer and source)."""
-
-
-_SUBSCRIBER = """
-import signal, sys, threading, zenoh
-conf = zenoh.Config()
-conf.insert_json5("mode", '"peer"')
-conf.insert_json5("connect/endpoints", '["' + sys.argv[1] + '"]')
-conf.insert_json5("scouting/multicast/enabled", "false")
-session = zenoh.open(conf)
-count = [0]
-def on_sample(sample):
-    count[0] += 1
-subs = [session.declare_subscriber(expr, on_sample) for expr in sys.argv[2:]]
-done = threading.Event()
-signal.signal(signal.SIGTERM, lambda *_: done.set())
-print("ready", flush=True)
-done.wait()
-print(count[0], flush=True)
-"""
-"""The bare subscriber: the same keys, a callback that only counts (imports only zenoh)."""
 
 
 @dataclass(frozen=True)
@@ -133,9 +116,7 @@ def run_case(
     hog = subprocess.Popen([sys.executable, "-c", "while True: pass"]) if opts.hog else None
     with log_path.open("w") as log_fh:
         serve = subprocess.Popen(serve_cmd, stdout=log_fh, stderr=subprocess.STDOUT)
-    bare = subprocess.Popen(
-        [sys.executable, "-c", _SUBSCRIBER, endpoint, *exprs], stdout=subprocess.PIPE, text=True
-    )
+    bare = bare_subscriber.start([endpoint], exprs)
     samplers: dict[str, CpuSampler] = {}
     result: dict[str, Any] = {"scenario": scenario, "robots": len(config.robots), "hog": opts.hog}
     try:
@@ -189,7 +170,7 @@ def run_case(
         _stop(serve)
         _stop(bare)
         out, _ = bare.communicate(timeout=10)
-        result["bare_received"] = int(out.split()[-1]) if out.split() else None
+        result["bare_received"] = bare_subscriber.received(out)
         time.sleep(0.2)
         traces = [r for r in collector.traces() if r.get("trigger_sent") is not None]
         result["latency"] = percentiles(
