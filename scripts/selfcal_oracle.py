@@ -27,9 +27,9 @@ heading (the formation as estimated in the reference's odometry frame, turned by
 heading instead).
 
 Every robot should be at most ``BOUND`` m or within ``MARGIN`` m of the oracle
-(docs/explanation/self-calibration.md, "The floor"). ``--reference-rate`` runs all three with
-the reference's heading drift rate as a state of the filter
-(``SelfCalibratingLocalizer.reference_rate``, not yet a config option).
+(docs/explanation/self-calibration.md, "The floor"). ``--gyro-bias-sigma S`` runs all three
+with every robot's heading drift rate as a state of prior std ``S`` rad/s (``[filter.
+self_calibration] gyro_bias_sigma``; 0 without; default: the scenario's config).
 """
 
 from __future__ import annotations
@@ -45,7 +45,6 @@ import numpy as np
 
 from relloc.config import TeamConfig
 from relloc.engine import Engine
-from relloc.estimators.gaussian_sum.localizer import SelfCalibratingLocalizer
 from relloc.evaluation.metrics import GroundTruth
 from relloc.evaluation.report import evaluate
 from relloc.evaluation.selfcal_metrics import odometry_frame_rotation
@@ -160,13 +159,23 @@ def run_figures(sim: Simulation, config: TeamConfig, seed: int) -> RunFigures:
     )
 
 
-def seed_figures(seed: int) -> tuple[RunFigures, RunFigures, RunFigures]:
+def setup(seed: int, gyro_bias_sigma: float | None) -> tuple[Simulation, TeamConfig]:
+    """A fresh simulated run of the scenario and its config (``gyro_bias_sigma`` set if given)."""
+    sim, config, _ = scenario_setup(SCENARIO, demo_options(seed))
+    if gyro_bias_sigma is not None:
+        config = config.with_filter(gyro_bias_sigma=gyro_bias_sigma)
+    return sim, config
+
+
+def seed_figures(
+    seed: int, gyro_bias_sigma: float | None = None
+) -> tuple[RunFigures, RunFigures, RunFigures]:
     """The self-calibrating run's, the oracle's and the gyro oracle's figures."""
-    sim, config, _ = scenario_setup(SCENARIO, demo_options(seed))
+    sim, config = setup(seed, gyro_bias_sigma)
     own = run_figures(sim, config, seed)
-    sim, config, _ = scenario_setup(SCENARIO, demo_options(seed))  # a fresh event stream
+    sim, config = setup(seed, gyro_bias_sigma)  # a fresh event stream
     oracle = run_figures(sim, oracle_config(sim, config), seed)
-    sim, config, _ = scenario_setup(SCENARIO, demo_options(seed))
+    sim, config = setup(seed, gyro_bias_sigma)
     sim.true_gyro_biases = dict.fromkeys(sim.true_gyro_biases, 0.0)
     gyro = run_figures(sim, oracle_config(sim, config), seed)
     return own, oracle, gyro
@@ -187,12 +196,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="0-4", help="0-4 or 0,3 (default: 0-4)")
     parser.add_argument(
-        "--reference-rate",
-        action="store_true",
-        help="the reference's heading drift rate as a state (SelfCalibratingLocalizer)",
+        "--gyro-bias-sigma",
+        type=float,
+        default=None,
+        help="prior std of each robot's heading drift rate state, rad/s (0: none; "
+        "default: the scenario's config)",
     )
     args = parser.parse_args(argv)
-    SelfCalibratingLocalizer.reference_rate = args.reference_rate
     print(
         "| seed | robot | self-calibrating (m) | oracle (m) | gyro oracle (m) | excess (m) "
         "| passes | self-calibrating, true reference heading (m) |"
@@ -201,7 +211,7 @@ def main(argv: list[str] | None = None) -> int:
     failing = 0
     summary = []
     for seed in parse_seeds(args.seeds):
-        own, oracle, gyro = seed_figures(seed)
+        own, oracle, gyro = seed_figures(seed, args.gyro_bias_sigma)
         for robot in sorted(own.body):
             o = oracle.body.get(robot, math.nan)
             ok = passes(own.body[robot], o)

@@ -106,6 +106,10 @@ class SelfCalibrationConfig(Checked):
     reference_heading_walk: float = 0.003
     """Estimate mode: random walk of the reference robot's own odometry heading (rad per
     sqrt(s)); its drift turns the frame it defines, and only its motion tells it."""
+    gyro_bias_sigma: float = 0.0
+    """Estimate mode: > 0 holds each robot's constant heading drift rate (its gyro bias) as a
+    state with this prior standard deviation (rad/s), beside the heading's random walk; 0: the
+    walk alone follows the drift, with a lag (docs/explanation/self-calibration.md)."""
     heading_split_std: float = 0.0
     """Estimate mode: split a Gaussian of the self-calibrating filter into three along a
     heading whose angular std has grown past this (rad; 0: never), keeping the count
@@ -132,6 +136,7 @@ class SelfCalibrationConfig(Checked):
                 "bias_walk",
                 "heading_walk",
                 "reference_heading_walk",
+                "gyro_bias_sigma",
                 "heading_split_std",
                 "heading_prior_sigma_deg",
             ),

@@ -45,10 +45,11 @@ class CalibrationLayout(TeamLayout):
     heading-dependent part of the UWB error (antenna pattern, body occlusion), which a white
     range noise cannot: without it that error moves the bias estimate (through its random
     walk) or the positions. The published bias is the constant part."""
-    reference_rate: bool = False
-    """Heading mode: a last column holding the constant rate at which the reference's odometry
-    heading drifts (its gyro bias, rad/s), which turns its ``u`` at every step
-    (:class:`CalibrationNoise` ``reference_rate_sigma``)."""
+    rates: tuple[str, ...] = ()
+    """Heading mode: the robots whose odometry heading drifts at a constant rate held as a
+    state (their gyro bias, rad/s; one last column each, in this order), which turns their
+    ``u`` at every step (:class:`CalibrationNoise` ``rate_sigma``). A random walk follows a
+    constant rate only with a lag, and a lagging reference turns every body-frame position."""
 
     @property
     def dim(self) -> int:
@@ -90,13 +91,18 @@ class CalibrationLayout(TeamLayout):
         return self.colored_start + (len(self.bias_pairs) if self.colored_bias else 0)
 
     @property
-    def rate_column(self) -> int:
-        """Column of the reference's heading drift rate (-1 without ``reference_rate``)."""
-        return self.colored_end if self.reference_rate and self.heading else -1
+    def rate_robots(self) -> tuple[str, ...]:
+        """The robots with a drift-rate column (none outside heading mode)."""
+        return self.rates if self.heading else ()
+
+    def rate_column(self, robot: str) -> int:
+        """Column of ``robot``'s heading drift rate (-1 without one)."""
+        rates = self.rate_robots
+        return self.colored_end + rates.index(robot) if robot in rates else -1
 
     @property
     def width(self) -> int:
-        return self.colored_end + (1 if self.rate_column >= 0 else 0)
+        return self.colored_end + len(self.rate_robots)
 
     def u_columns(self, robot: str) -> tuple[int, int]:
         """Columns of ``robot``'s heading vector ``u`` (heading mode). The reference has one
@@ -162,9 +168,9 @@ class CalibrationNoise:
     """The physical interval of an odometry scale (``[filter.self_calibration] scale_min``,
     ``scale_max``): each Gaussian's scale is held inside it
     (:meth:`relloc.estimators.gaussian_sum.filter.GaussianSumFilter.constrain_scales`)."""
-    reference_rate_sigma: float = 0.002
-    """Prior standard deviation of the reference's heading drift rate (rad/s; layout
-    ``reference_rate``): a gyro bias of a few degrees a minute."""
+    rate_sigma: float = 0.002
+    """Prior standard deviation of a heading drift rate (rad/s; layout ``rates``): a gyro
+    bias of a few degrees a minute."""
     magnitude_gate: float = 0.25
     """Apply the ``|u|`` pseudo-measurement once the angular std of ``u`` is below this (rad)."""
 
@@ -241,9 +247,9 @@ def calibration_prior(
         if lay.colored_bias:
             c = lay.colored_start + k - off
             cov[c, c] = nz.colored_sigma**2  # zero mean, stationary
-    if lay.rate_column >= 0:
-        c = lay.rate_column - off
-        cov[c, c] = nz.reference_rate_sigma**2
+    for robot in lay.rate_robots:
+        c = lay.rate_column(robot) - off
+        cov[c, c] = nz.rate_sigma**2
     return mean, cov
 
 

@@ -78,6 +78,10 @@ ARENA: tuple[float, float, float, float] = (-4.0, 4.0, -4.5, 4.5)
 
 SIM_PARTICLES = 20000
 """Particle count of the simulated teams' filter (see ``Simulation.config``)."""
+GYRO_BIAS_SIGMA = 0.002
+"""Prior std of each robot's heading drift rate in the simulated teams' config (rad/s,
+``[filter.self_calibration] gyro_bias_sigma``): what a gyro's data sheet would say, above the
+simulator's uniform draw of at most ``OdometryErrorModel.gyro_bias_max``."""
 
 
 class Simulation:
@@ -205,9 +209,11 @@ class Simulation:
             # from the code").
             # The reference's odometry heading drifts as much as every other robot's (one
             # gyro model for the team): its heading walk is the others' (see SIM_PARTICLES
-            # for the particles, docs/explanation/self-calibration.md, "The floor").
+            # for the particles, docs/explanation/self-calibration.md, "The floor"); every
+            # simulated gyro has a constant bias, held as a state (GYRO_BIAS_SIGMA).
             filter=FilterConfig(particles=SIM_PARTICLES).with_changes(
-                reference_heading_walk=FilterConfig().self_calibration.heading_walk
+                reference_heading_walk=FilterConfig().self_calibration.heading_walk,
+                gyro_bias_sigma=GYRO_BIAS_SIGMA,
             ),
         )
         self._runner = _Runner(self)

@@ -267,20 +267,21 @@ class GaussianSumFilter(WeightedFilter):
             self.cov[:, :, cs] *= rho
         self.mean += shift
         self.cov += q
-        if lay.rate_column >= 0 and dt > 0.0:
-            self._turn_reference(dt)
+        if dt > 0.0:
+            for robot in lay.rate_robots:
+                self._turn_by_rate(robot, dt)
         if lay.heading and dt > 0.0:
             self._heading_walk(dt)
             if self.split_heading_std > 0.0:
                 self.split_count += self.split_headings(self.split_heading_std)
 
-    def _turn_reference(self, dt: float) -> None:
-        """Turn the reference's ``u`` by its drift rate over ``dt`` (layout ``reference_rate``):
+    def _turn_by_rate(self, robot: str, dt: float) -> None:
+        """Turn ``robot``'s ``u`` by its drift rate over ``dt`` (layout ``rates``):
         ``u' = R(w dt) u``, linearised per Gaussian (``du'/du = R(w dt)``, ``du'/dw = dt J u'``,
         ``J`` the quarter turn), ``P' = F P F^T``."""
         lay = self.layout
-        c0, c1 = lay.u_columns(lay.reference)
-        rc = lay.rate_column
+        c0, c1 = lay.u_columns(robot)
+        rc = lay.rate_column(robot)
         uc = np.array([c0, c1])
         angle = self.mean[:, rc] * dt
         c, s = np.cos(angle), np.sin(angle)

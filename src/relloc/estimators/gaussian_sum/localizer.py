@@ -15,7 +15,6 @@ no compass frame, so detection vectors cannot be fused; every range uses the sym
 from __future__ import annotations
 
 import math
-from dataclasses import replace
 
 import numpy as np
 
@@ -46,6 +45,7 @@ def calibration_layout(config: TeamConfig) -> CalibrationLayout:
         heading=fc.self_calibration.heading_mode == "estimate",
         scale=fc.self_calibration.odom_scale_mode == "online",
         bias_pairs=layout.bias_pairs,
+        rates=layout.robots if fc.self_calibration.gyro_bias_sigma > 0.0 else (),
     )
 
 
@@ -55,17 +55,11 @@ class SelfCalibratingLocalizer(FilterLocalizer):
     method = "pf"
     range_model = "symmetric"
     filter: GaussianSumFilter
-    reference_rate = False
-    """Heading mode: carry the reference's heading drift rate as a state
-    (:attr:`CalibrationLayout.reference_rate`). Off: not yet a config option, because on
-    MRCLAM it cost more than it gained (docs/explanation/self-calibration.md, "The floor")."""
 
     def __init__(self, config: TeamConfig, *, seed: int = 0, method: str = "pf") -> None:
         # independent pair priors: a pair's columns already hold its time-correlated error
         layout, prior = bias_layout(config, team=False, nodes=False)
         self.calibration = calibration_layout(config)
-        if self.reference_rate and self.calibration.heading:
-            self.calibration = replace(self.calibration, reference_rate=True)
         super().__init__(config, layout, seed=seed)
         self.method = method
         self.watchdog.range_model = self.range_model  # judged with the noise this filter assumes
@@ -118,6 +112,7 @@ class SelfCalibratingLocalizer(FilterLocalizer):
             heading_walk=fc.self_calibration.heading_walk,
             reference_heading_walk=fc.self_calibration.reference_heading_walk,
             bias_walk=fc.self_calibration.bias_walk,
+            rate_sigma=fc.self_calibration.gyro_bias_sigma,
             scale_bounds=(fc.self_calibration.scale_min, fc.self_calibration.scale_max),
         )
         return GaussianSumFilter(
