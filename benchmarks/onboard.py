@@ -18,7 +18,10 @@ estimates in the formation frame are skipped and counted) the median position er
 (``ape_median``) and the share of estimates whose 95 % ellipse holds the truth
 (``coverage95``), in a run without the partition (and in the run with it); each serve process's
 CPU (% of a core, after ``--settle`` s, from ``/proc``) and peak RSS, beside a bare Zenoh
-subscriber to the whole team's keys (callback that only counts) over the same minutes;
+subscriber to the whole team's keys (callback that only counts) over the same minutes, with
+the part of it the robot's own publisher thread took (``publisher_cpu_percent``: encoding and
+putting its topics, a robot's drivers' work) and its RSS at the end split into its own memory
+and mapped files (``rss_anon_mb``, ``rss_file_mb``: shared libraries, resident once per host);
 ``partition_shift_m``: the largest distance between a view of one uncut robot by another at the
 same stamp in the run with the partition and the run without it, the same seed, over the
 partition; ``recovery_s``: the first time after END from which, for ``RECOVERY_HOLD`` s, every
@@ -309,6 +312,8 @@ def robot_process(spec: dict[str, Any]) -> int:
     encoder = EventEncoder(config)
     stop = threading.Event()
 
+    publisher_cpu: list[tuple[float, float]] = []  # (wall, thread CPU) at most every 0.5 s
+
     def publish() -> None:
         for ev in own:
             if stop.wait(max(0.0, time_base[0] + ev.t - time.time())):
@@ -317,6 +322,9 @@ def robot_process(spec: dict[str, Any]) -> int:
             if out is not None:
                 pubs.put(*out)
                 sent[0] += 1
+            now = time.time()
+            if not publisher_cpu or now - publisher_cpu[-1][0] >= 0.5:
+                publisher_cpu.append((now, time.thread_time()))
 
     try:
         server.start()
@@ -340,6 +348,7 @@ def robot_process(spec: dict[str, Any]) -> int:
         "engine_errors": summary["engine_errors"],
         "views": tap.views,
         "statuses": tap.statuses,
+        "publisher_cpu": publisher_cpu,
     }
     Path(spec["out"]).write_text(json.dumps(out))
     return 0
@@ -526,12 +535,16 @@ def run_team(
         t_end = time_base + opts.duration
         _sleep_until(t_end)
         t0 = time_base + opts.settle
-        cpu, rss = {}, {}
+        cpu, rss, own, files = {}, {}, {}, {}
         for me, p in procs.items():
             samplers[me].stop()
             cpu[me] = round_finite(samplers[me].percent_between(t0, t_end), 2)
-            rss[me] = round(proc_memory_mb(p.pid).get("VmHWM", math.nan), 1)
+            mem = proc_memory_mb(p.pid)
+            rss[me] = round(mem.get("VmHWM", math.nan), 1)
+            own[me] = round(mem.get("RssAnon", math.nan), 1)
+            files[me] = round(mem.get("RssFile", math.nan), 1)
         result.update({"cpu_percent": cpu, "rss_mb": rss})
+        result.update({"rss_anon_mb": own, "rss_file_mb": files})
         if bare_proc is not None:
             samplers["bare"].stop()
             result["bare_cpu_percent"] = round_finite(
@@ -544,6 +557,9 @@ def run_team(
         robots = {me: json.loads((workdir / f"{tag}_{me}.json").read_text()) for me in names}
         result["robots"] = robots
         result["time_base"] = time_base
+        result["publisher_cpu_percent"] = {
+            me: _thread_percent(robots[me]["publisher_cpu"], t0, t_end) for me in names
+        }
         if partition is not None and "partition" in result:
             _partition_checks(result, robots, partition, time_base)
     finally:
@@ -569,6 +585,17 @@ def run_team(
             else None
         )
     return result
+
+
+def _thread_percent(samples: list[list[float]], t0: float, t1: float) -> float | None:
+    """A thread's CPU (% of a core) from ``t0`` to ``t1`` out of its ``(wall, thread CPU)``
+    samples: between the last samples at or before each (``None``: too few)."""
+    before = [s for s in samples if s[0] <= t0]
+    upto = [s for s in samples if s[0] <= t1]
+    if not before or not upto or upto[-1][0] <= before[-1][0]:
+        return None
+    (w0, c0), (w1, c1) = before[-1], upto[-1]
+    return round_finite(100.0 * (c1 - c0) / (w1 - w0), 2)
 
 
 def _partition_checks(
@@ -613,7 +640,10 @@ def run(opts: Options, workdir: Path, say: Any = print) -> dict[str, Any]:
         },
         "formation_skipped": {me: vs["formation_skipped"] for me, vs in base_views.items()},
         "cpu_percent": base["cpu_percent"],
+        "publisher_cpu_percent": base["publisher_cpu_percent"],
         "rss_mb": base["rss_mb"],
+        "rss_anon_mb": base["rss_anon_mb"],
+        "rss_file_mb": base["rss_file_mb"],
         "bare_cpu_percent": base.get("bare_cpu_percent"),
         "bare_rss_mb": base.get("bare_rss_mb"),
         "messages": {
@@ -672,7 +702,9 @@ def _line(out: dict[str, Any]) -> str:
     return (
         f"views: APE median {min(apes):.3f}-{max(apes):.3f} m, coverage95 "
         f"{min(covs):.0%}-{max(covs):.0%}; serve CPU {out['cpu_percent']} % of a core, bare "
-        f"{out['bare_cpu_percent']} %; peak RSS {out['rss_mb']} MB"
+        f"{out['bare_cpu_percent']} % (of serve's, its process's publisher of the robot's own "
+        f"topics {out['publisher_cpu_percent']} %); peak RSS {out['rss_mb']} MB (at the end "
+        f"{out['rss_anon_mb']} own + {out['rss_file_mb']} mapped files)"
     )
 
 

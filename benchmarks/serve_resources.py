@@ -190,6 +190,9 @@ def _bench_case(
                 "cpu_percent": round(100.0 * cpu_s / wall, 2),
                 "peak_rss_mb": round(mem.get("VmHWM", math.nan), 1),
                 "rss_mb": round(mem.get("VmRSS", math.nan), 1),
+                # of it: the process's own memory, and mapped files (shared libraries)
+                "rss_anon_mb": round(mem.get("RssAnon", math.nan), 1),
+                "rss_file_mb": round(mem.get("RssFile", math.nan), 1),
             }
         )
         proc.send_signal(signal.SIGTERM)
@@ -288,7 +291,8 @@ def _case_line(c: dict[str, Any]) -> str:
         f"{c['scenario']:>8} {c['robots']} robots {c['particles']:>6} particles"
         f"{' (adaptive, last ' + str(c.get('final_particles')) + ')' if c.get('adaptive') else ''}: "
         f"CPU {c['cpu_percent']:.1f} % of a core ({c['cpu_percent_converged']} % after "
-        f"{c['settle_s']:g} s), peak RSS {c['peak_rss_mb']:.0f} MB, "
+        f"{c['settle_s']:g} s), peak RSS {c['peak_rss_mb']:.0f} MB "
+        f"(at the end {c['rss_anon_mb']:.0f} own + {c['rss_file_mb']:.0f} mapped files), "
         f"latency p50 {lat['p50_ms']} ms p95 {lat['p95_ms']} ms (n={lat['n']}), "
         f"{c['message_rate_hz']} msg/s, APE {c['ape_mean_median_m']} m"
     )

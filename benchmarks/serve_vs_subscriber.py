@@ -165,7 +165,11 @@ def run_case(
         result["cpu_ratio"] = (
             round_finite(cpu["serve"] / cpu["bare"], 2) if cpu["bare"] > 0 else None
         )
-        result["serve_peak_rss_mb"] = round(proc_memory_mb(serve.pid).get("VmHWM", math.nan), 1)
+        mem = proc_memory_mb(serve.pid)
+        result["serve_peak_rss_mb"] = round(mem.get("VmHWM", math.nan), 1)
+        # the RSS now, split: the process's own memory, and mapped files (shared libraries)
+        result["serve_rss_anon_mb"] = round(mem.get("RssAnon", math.nan), 1)
+        result["serve_rss_file_mb"] = round(mem.get("RssFile", math.nan), 1)
         result["bare_peak_rss_mb"] = round(proc_memory_mb(bare.pid).get("VmHWM", math.nan), 1)
         _stop(serve)
         _stop(bare)
@@ -211,7 +215,8 @@ def _line(c: dict[str, Any]) -> str:
         f"{c['scenario']:>8}{' +hog' if c['hog'] else ''}: serve {c['serve_cpu_percent']} % vs bare "
         f"{c['bare_cpu_percent']} % of a core after convergence = {c['cpu_ratio']}x; latency after "
         f"it p95 {lat['p95_ms']} ms (p50 {lat['p50_ms']}, n={lat['n']}; whole run p95 "
-        f"{c['latency_all']['p95_ms']} ms); peak RSS {c['serve_peak_rss_mb']} MB; "
+        f"{c['latency_all']['p95_ms']} ms); peak RSS {c['serve_peak_rss_mb']} MB "
+        f"(at the end {c['serve_rss_anon_mb']} own + {c['serve_rss_file_mb']} mapped files); "
         f"{c['messages']} msgs, {c['out_of_order']} out of order, {c['late_drops']} late drops "
         f"({c['late_drop_percent']} %)"
     )
@@ -223,15 +228,16 @@ def figures_table(cases: list[dict[str, Any]], context: str) -> str:
         f"Written by `benchmarks/serve_vs_subscriber.py --readme` ({context}):",
         "",
         "| case | CPU serve / bare (after convergence) | ratio | latency p50 / p95 (after it) | "
-        "latency p95 (whole run) | peak RSS | messages | out of order | late drops |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "latency p95 (whole run) | peak RSS | RSS own + files (end) | messages | out of order | late drops |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for c in cases:
         lat = c["latency"]
         lines.append(
             f"| {c['scenario']}{' + 1 CPU hog' if c['hog'] else ''} | {c['serve_cpu_percent']} % / "
             f"{c['bare_cpu_percent']} % | {c['cpu_ratio']}x | {lat['p50_ms']} / {lat['p95_ms']} ms | "
-            f"{c['latency_all']['p95_ms']} ms | {c['serve_peak_rss_mb']:.0f} MB | {c['messages']} | {c['out_of_order']} | "
+            f"{c['latency_all']['p95_ms']} ms | {c['serve_peak_rss_mb']:.0f} MB | "
+            f"{c['serve_rss_anon_mb']:.0f} + {c['serve_rss_file_mb']:.0f} MB | {c['messages']} | {c['out_of_order']} | "
             f"{c['late_drops']} ({c['late_drop_percent']} %) |"
         )
     return "\n".join(lines)

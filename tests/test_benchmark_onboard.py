@@ -63,7 +63,8 @@ def test_three_onboard_serves_one_cut_off(tmp_path: Path) -> None:
         assert set(views) == robots - {me}
         for v in views.values():
             assert v["n"] > 0 and v["ape_median"] < 1.0 and 0.0 <= v["coverage95"] <= 1.0
-    for key in ("cpu_percent", "rss_mb", "formation_skipped", "views_partitioned"):
+    for key in ("cpu_percent", "publisher_cpu_percent", "rss_mb", "rss_anon_mb", "rss_file_mb",
+                "formation_skipped", "views_partitioned"):  # fmt: skip
         assert set(d[key]) == robots, key
     assert d["bare_cpu_percent"] is not None and all(v > 0 for v in d["rss_mb"].values())
     p = d["partition"]

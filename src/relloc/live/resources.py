@@ -32,11 +32,13 @@ def proc_cpu_seconds(pid: int) -> float:
 
 
 def proc_memory_mb(pid: int) -> dict[str, float]:
-    """``VmHWM`` (peak RSS) and ``VmRSS`` of a process in MB, from ``/proc/<pid>/status``."""
+    """``VmHWM`` (peak RSS), ``VmRSS`` and its parts ``RssAnon`` (the process's own memory) and
+    ``RssFile`` (mapped files: mostly shared libraries, resident once for all processes that map
+    them) of a process in MB, from ``/proc/<pid>/status``."""
     out: dict[str, float] = {}
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         name, _, value = line.partition(":")
-        if name in ("VmHWM", "VmRSS"):
+        if name in ("VmHWM", "VmRSS", "RssAnon", "RssFile"):
             out[name] = int(value.split()[0]) / 1024.0
     return out
 
