@@ -39,6 +39,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     config = TeamConfig.load(args.config)
     if args.record is not None:
         check_writable(args.record.parent, "--record")
+    if args.foxglove is not None:
+        _check_foxglove(args.foxglove)
     opts = options_from_args(
         ServeOptions,
         args,
@@ -58,6 +60,17 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps(summary, indent=2))
     return 0
+
+
+def _check_foxglove(address: str) -> None:
+    """``--foxglove`` names an address and the viewer extra is installed (else a clear error)."""
+    from relloc.sinks.foxglove import parse_address, require_sdk
+
+    try:
+        parse_address(address)
+        require_sdk()
+    except (ValueError, ImportError) as exc:
+        raise UserError(str(exc)) from None
 
 
 def _serve(
@@ -81,6 +94,9 @@ def _serve(
                 flush=True,
             )
             print(f"  zenoh session {security}", flush=True)
+            viewer = server.viewer
+            if viewer is not None:
+                print(f"  foxglove viewer on ws://{viewer.host}:{viewer.port}", flush=True)
             return server.run(args.duration)
     finally:
         server.close()
@@ -216,6 +232,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--record", type=Path, default=None, metavar="FILE",
         help="write every estimate published, its flags and the ranges used to the MCAP file "
         "FILE (as relloc run --mcap, without truth), finished when serve stops",
+    )  # fmt: skip
+    serve.add_argument(
+        "--foxglove", default=None, metavar="[HOST:]PORT",
+        help="also serve the team to Foxglove over WebSocket on HOST:PORT (HOST 127.0.0.1 unless "
+        "given; 0.0.0.0: every interface): poses, scene, flags, status (needs relloc[viewer])",
+    )  # fmt: skip
+    serve.add_argument(
+        "--foxglove-rate", type=argtypes.positive, default=10.0, metavar="HZ",
+        help="at most HZ messages a second on each Foxglove channel (default 10)",
     )  # fmt: skip
     add_zenoh_args(serve, "serve")
     serve.set_defaults(handler=_cmd_serve)

@@ -14,7 +14,7 @@ import time
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from relloc.config import TeamConfig
 from relloc.engine import Engine, Pipeline
@@ -26,6 +26,9 @@ from relloc.ros.interfaces import RosInterface
 from relloc.sinks.mcap import McapWriter
 from relloc.sinks.zenoh_sink import ZenohSink
 from relloc.sources.zenoh_source import Arrival, ZenohSource, ZenohSourceOptions
+
+if TYPE_CHECKING:
+    from relloc.sinks.foxglove import FoxgloveSink
 
 __all__ = ["LiveServer", "ServeOptions"]
 
@@ -66,6 +69,11 @@ class ServeOptions:
     """On board: the robot this server runs on (``relloc serve --robot``). It is the
     reference, its teammates are published in its body frame below ``<out_prefix>/<robot>``
     (:meth:`LiveServer.onboard`); empty: one central view from the config's reference."""
+    foxglove: str | None = None
+    """``[HOST:]PORT`` of a Foxglove WebSocket server showing the team
+    (:class:`~relloc.sinks.foxglove.FoxgloveSink`, the ``viewer`` extra); ``None``: none."""
+    foxglove_rate: float = 10.0
+    """At most this many messages a second on each Foxglove channel."""
 
 
 class LiveServer:
@@ -142,10 +150,28 @@ class LiveServer:
         self._stopping = False
         self._quiet: set[str] = set()
         self._last_counts: tuple[float, dict[str, int]] = (self.started, {})
+        self.viewer: FoxgloveSink | None = None
+        """The Foxglove server (``foxglove``), fed what the Zenoh sink is, ranges and truth."""
+        if opts.foxglove is not None:
+            from relloc.sinks.foxglove import FoxgloveSink
+
+            first = self.pipelines[0].localizer
+            self.viewer = FoxgloveSink(
+                config, opts.foxglove, prefix=out_prefix, method=opts.methods[0],
+                rate=opts.foxglove_rate, rejections=lambda: sum(first.rejected.values()),
+            )  # fmt: skip
+            if not opts.robot:
+                self.engine.sinks.append(self.viewer)
+            self.engine.truth_sinks.append(self.viewer.truth)
         self.recorder: McapWriter | None = None
         """The ``record`` file being written (opened last: nothing after it can fail)."""
         if opts.record is not None:
-            self.recorder = McapWriter(opts.record, distro=opts.interface.distro)
+            try:
+                self.recorder = McapWriter(opts.record, distro=opts.interface.distro)
+            except Exception:
+                if self.viewer is not None:
+                    self.viewer.close()
+                raise
             self.engine.sinks.append(self.recorder.estimate)
 
     def onboard(self, estimate: Estimate) -> None:
@@ -157,6 +183,8 @@ class LiveServer:
             yaw = pipeline.localizer.odometry.pose(self.config.reference, estimate.t)[2]
             estimate = estimate.in_body_frame(yaw)
         self.sink(estimate)
+        if self.viewer is not None:
+            self.viewer(estimate)
 
     # ------------------------------------------------------------------ lifecycle
     def start(self) -> None:
@@ -177,6 +205,8 @@ class LiveServer:
             self.source.detach()
             self.sink.close()
         finally:
+            if self.viewer is not None:
+                self.viewer.close()
             if self.recorder is not None:
                 self.recorder.close()
 
@@ -236,8 +266,11 @@ class LiveServer:
                 continue
             self.sink.set_trigger(arrival)
             try:
-                if self.recorder is not None and isinstance(event, RangeEvent):
-                    self.recorder.range(event)
+                if isinstance(event, RangeEvent):
+                    if self.recorder is not None:
+                        self.recorder.range(event)
+                    if self.viewer is not None:
+                        self.viewer.range(event)
                 self.engine.feed(event)
             except Exception:
                 self.engine_errors += 1
@@ -256,6 +289,8 @@ class LiveServer:
         status = self.status(now)
         try:
             self.sink.publish_status(status)
+            if self.viewer is not None:
+                self.viewer.publish_status(status)
         except Exception as exc:  # a closed session at shutdown: the status is not vital
             log.warning("could not publish the status: %s", exc)
 

@@ -1,0 +1,236 @@
+"""``relloc serve --foxglove``: a Foxglove WebSocket client (``tests/foxglove_client.py``) sees
+the team as the app would, during a live serve of a simulated team and of the replayed shortbag.
+
+serve, sim-robots and replay run as processes, Zenoh peers on 127.0.0.1 with multicast off; the
+test's own Zenoh session hears serve's poses, and the client decodes every Foxglove channel. The
+decoded poses must be the Zenoh ones (same estimate, same numbers); the shipped layout's topics
+must be advertised. Every wait is on a condition.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import Any
+
+import pytest
+from waiting import wait_until
+
+pytest.importorskip("foxglove")
+pytest.importorskip("websockets")
+
+from foxglove_client import FoxgloveClient
+
+from relloc.config import TeamConfig
+from relloc.live import ZenohOptions, free_tcp_port, open_session
+from relloc.ros.messages import POSE_WITH_COVARIANCE_STAMPED, decode
+
+REPO = Path(__file__).resolve().parents[1]
+LAYOUT = REPO / "layouts" / "relloc.foxglove-layout.json"
+SHORTBAG = "multi4_shortbag_20221011"
+
+
+def relloc(*args: str, log: Path) -> subprocess.Popen[bytes]:
+    with log.open("wb") as fh:
+        return subprocess.Popen(
+            [sys.executable, "-m", "relloc.cli", *args],
+            stdout=fh,
+            stderr=subprocess.STDOUT,
+            cwd=REPO,
+        )
+
+
+class ZenohPoses:
+    """Every pose serve publishes on Zenoh: ``(robot, sec, nanosec) -> (x, y, frame_id)``."""
+
+    def __init__(self, session: Any, robots: tuple[str, ...]) -> None:
+        self._lock = threading.Lock()
+        self.poses: dict[tuple[str, int, int], tuple[float, float, str]] = {}
+        self.status: list[dict[str, Any]] = []
+        self._subs = [
+            session.declare_subscriber(
+                f"relloc/{r}/pose", lambda s, r=r: self._on(r, s.payload.to_bytes())
+            )
+            for r in robots
+        ]
+        self._subs.append(
+            session.declare_subscriber(
+                "relloc/status", lambda s: self.status.append(json.loads(s.payload.to_bytes()))
+            )
+        )
+
+    def _on(self, robot: str, data: bytes) -> None:
+        msg = decode(data, POSE_WITH_COVARIANCE_STAMPED)
+        p = msg.pose.pose.position
+        key = (robot, int(msg.header.stamp.sec), int(msg.header.stamp.nanosec))
+        with self._lock:
+            self.poses[key] = (float(p.x), float(p.y), str(msg.header.frame_id))
+
+
+def layout_topics(path: Path) -> set[str]:
+    """Every topic a Foxglove layout's panels name (3D topics, plot paths, table topics)."""
+    config = json.loads(path.read_text())["configById"]
+    topics: set[str] = set()
+    for panel in config.values():
+        topics |= set(panel.get("topics", {}))
+        for series in panel.get("paths", []):
+            topics.add(series["value"].split(".", 1)[0])
+        if "topicPath" in panel:
+            topics.add(panel["topicPath"].split(".", 1)[0])
+    return topics
+
+
+def serve_with_viewer(
+    tmp_path: Path, team: Path, feed: list[str], *, rate: float, foxglove_rate: float = 10.0
+) -> tuple[FoxgloveClient, ZenohPoses, dict[str, Any]]:
+    """Start serve with ``--foxglove``, connect a client and a Zenoh session, run ``feed``
+    (``relloc`` arguments of the source, connected to serve) to its end, stop serve."""
+    config = TeamConfig.load(team)
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
+    port = free_tcp_port()
+    summary = tmp_path / "serve.json"
+    serve = relloc(
+        "serve", "--config", str(team), "--clock-rate", str(rate), "--json", str(summary),
+        "--foxglove", f"127.0.0.1:{port}", "--foxglove-rate", str(foxglove_rate),
+        "--listen", endpoint, "--no-multicast", log=tmp_path / "serve.log",
+    )  # fmt: skip
+    procs = [serve]
+    session = open_session(ZenohOptions(connect=(endpoint,), multicast=False))
+    client = None
+    try:
+        zenoh = ZenohPoses(session, config.others)
+        log = (tmp_path / "serve.log").read_text
+        assert wait_until(lambda: bool(zenoh.status), timeout=60.0), log()
+        client = FoxgloveClient("127.0.0.1", port)
+        expected = {f"/relloc/{r}/pose" for r in config.others} | {
+            "/relloc/scene",
+            "/relloc/flags",
+            "/relloc/status",
+        }
+        assert wait_until(lambda: expected <= client.topics(), timeout=30.0), (
+            client.topics(),
+            client.error,
+        )
+        # subscribed once the status arrives through Foxglove: serve has the subscription
+        assert wait_until(lambda: bool(client.received("/relloc/status")), timeout=30.0)
+        src = relloc(*feed, "--no-multicast", "--connect", endpoint, log=tmp_path / "feed.log")
+        procs.append(src)
+        assert src.wait(timeout=180) == 0, (tmp_path / "feed.log").read_text()
+        # serve has every message once its received count stops moving for a status period
+        seen: list[int] = []
+
+        def settled() -> bool:
+            seen.append(zenoh.status[-1]["source"]["messages"])
+            return len(seen) > 150 and seen[-1] == seen[-150] > 0
+
+        assert wait_until(settled, timeout=60.0)
+        serve.send_signal(signal.SIGTERM)
+        assert serve.wait(timeout=60) == 0, log()
+    finally:
+        if client is not None:
+            client.close()
+        for proc in procs:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        session.close()
+    assert client.error is None, client.error
+    return client, zenoh, json.loads(summary.read_text())
+
+
+def check_channels(client: FoxgloveClient, zenoh: ZenohPoses, robots: tuple[str, ...]) -> None:
+    """Every channel decodes; every Foxglove pose is the Zenoh pose of its stamp."""
+    for robot in robots:
+        got = client.received(f"/relloc/{robot}/pose")
+        assert got, robot
+        for i, (_, msg) in enumerate(got):
+            key = (robot, msg.timestamp.seconds, msg.timestamp.nanos)
+            if key not in zenoh.poses and i == len(got) - 1:
+                continue  # the last, fused as serve stopped, may not have reached the session
+            x, y, frame = zenoh.poses[key]
+            assert (msg.pose.position.x, msg.pose.position.y) == (x, y)
+            assert msg.frame_id == frame
+    scenes = client.received("/relloc/scene")
+    assert scenes
+    ids = {e.id for _, s in scenes for e in s.entities}
+    assert {f"robot/{r}" for r in robots} <= ids
+    assert any(i.startswith("range/") for i in ids)
+    flags = client.received("/relloc/flags")
+    assert flags and set(flags[-1][1]["robots"]) == set(robots)
+    assert {"orientation_observable", "inconsistent", "recovering", "unseen"} <= set(flags[-1][1])
+    assert client.received("/relloc/status")[-1][1]["team"]
+
+
+def rate_of(got: list[tuple[float, Any]]) -> float:
+    """Messages a second between the first and the last received."""
+    return (len(got) - 1) / max(got[-1][0] - got[0][0], 1e-9)
+
+
+@pytest.mark.slow
+def test_a_client_sees_the_simulated_team_in_foxglove(tmp_path: Path) -> None:
+    team = tmp_path / "team.toml"
+    made = subprocess.run(
+        [sys.executable, "-m", "relloc.cli", "sim-robots", "--scenario", "multi", "--config-only",
+         "--write-config", str(team), "--particles", "500"],
+        capture_output=True, text=True, cwd=REPO, timeout=60,
+    )  # fmt: skip
+    assert made.returncode == 0, made.stderr
+    feed = ["sim-robots", "--scenario", "multi", "--config", str(team), "--rate", "2",
+            "--duration", "15", "--no-ground-truth"]  # fmt: skip
+    client, zenoh, summary = serve_with_viewer(tmp_path, team, feed, rate=2.0)
+    robots = TeamConfig.load(team).others
+    check_channels(client, zenoh, robots)
+    rates = {r: rate_of(client.received(f"/relloc/{r}/pose")) for r in robots}
+    print(f"\nsim: pose messages/s {rates}, estimates {summary['methods']['pf']['estimates']}")
+    assert all(rate <= 10.0 * 1.2 for rate in rates.values())  # --foxglove-rate 10
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+def test_the_replayed_shortbag_in_foxglove(tmp_path: Path, shared_data: Path) -> None:
+    """The acceptance run: the shortbag at 2x, at least 5 poses a second per robot."""
+    team = REPO / "configs" / "tiers" / f"{SHORTBAG}.toml"
+    feed = ["replay", str(shared_data / "tiers" / SHORTBAG), "--config", str(team), "--rate", "2"]
+    client, zenoh, summary = serve_with_viewer(tmp_path, team, feed, rate=2.0)
+    robots = TeamConfig.load(team).others
+    check_channels(client, zenoh, robots)
+    assert layout_topics(LAYOUT) <= client.topics()  # the layout is this team's
+    rates = {r: rate_of(client.received(f"/relloc/{r}/pose")) for r in robots}
+    n = {r: len(client.received(f"/relloc/{r}/pose")) for r in robots}
+    print(f"\nshortbag 2x: pose messages/s {rates}, messages {n}, "
+          f"estimates {summary['methods']['pf']['estimates']}")  # fmt: skip
+    assert all(rate >= 5.0 for rate in rates.values()), rates
+
+
+def test_the_layout_names_only_advertised_topics(tmp_path: Path) -> None:
+    """The shipped layout opens on what a server advertises (no live data needed)."""
+    from relloc.sinks.foxglove import FoxgloveSink
+
+    config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")
+    sink = FoxgloveSink(config, "127.0.0.1:0")
+    client = FoxgloveClient("127.0.0.1", sink.port, wanted=lambda topic: False)
+    try:
+        assert wait_until(lambda: len(client.topics()) == len(sink.topics), timeout=30.0)
+        topics = layout_topics(LAYOUT)
+        assert topics and topics <= client.topics(), topics - client.topics()
+        assert any(t.endswith("/scene") for t in topics)
+        assert "/relloc/flags" in topics
+    finally:
+        client.close()
+        sink.close()
+    assert client.error is None
+
+
+def test_without_the_extra_foxglove_says_what_to_install(monkeypatch: pytest.MonkeyPatch) -> None:
+    from relloc.cli.common import UserError
+    from relloc.cli.live import _check_foxglove
+
+    with pytest.raises(UserError, match="HOST"):
+        _check_foxglove("localhost:port")
+    monkeypatch.setitem(sys.modules, "foxglove", None)
+    with pytest.raises(UserError, match=r"relloc\[viewer\]"):
+        _check_foxglove("8765")
