@@ -234,3 +234,24 @@ def test_without_the_extra_foxglove_says_what_to_install(monkeypatch: pytest.Mon
     monkeypatch.setitem(sys.modules, "foxglove", None)
     with pytest.raises(UserError, match=r"relloc\[viewer\]"):
         _check_foxglove("8765")
+
+
+def test_an_onboard_serve_advertises_its_teammates_below_its_name() -> None:
+    from relloc.live import LiveServer, ServeOptions
+
+    config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")
+    session = open_session(ZenohOptions(multicast=False))
+    server = LiveServer(
+        config, session, ServeOptions(robot="turtle01", foxglove="127.0.0.1:0", particles=100)
+    )
+    assert server.viewer is not None
+    client = FoxgloveClient("127.0.0.1", server.viewer.port, wanted=lambda topic: False)
+    try:
+        expected = {f"/relloc/turtle01/{r}/pose" for r in ("turtle03", "turtle04", "turtle05")}
+        expected |= {"/relloc/turtle01/scene", "/relloc/turtle01/flags", "/relloc/turtle01/status"}
+        assert wait_until(lambda: client.topics() == expected, timeout=30.0), client.topics()
+    finally:
+        client.close()
+        server.close()
+        session.close()
+    assert client.error is None
