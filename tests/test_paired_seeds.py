@@ -43,7 +43,7 @@ def test_the_score_is_the_shape_ape_where_the_orientation_is_unobservable(tmp_pa
     }
 
 
-def _args(tmp_path: Path, a_flags: str, b_flags: str) -> object:
+def _args(tmp_path: Path, a_flags: str, b_flags: str, a_env: str = "", b_env: str = "") -> object:
     return type(
         "Args",
         (),
@@ -52,6 +52,8 @@ def _args(tmp_path: Path, a_flags: str, b_flags: str) -> object:
             "b_method": "pf_ul",
             "a_flags": a_flags,
             "b_flags": b_flags,
+            "a_env": a_env,
+            "b_env": b_env,
             "data": tmp_path,
             "work": tmp_path,
         },
@@ -66,7 +68,7 @@ def test_pairs_seed_by_seed_and_stops_at_two_identical_seeds(
     calls: list[tuple[str, tuple[str, ...], int]] = []
 
     def fake_run(
-        data: Path, name: str, flags: str, methods: list[str], seed: int, work: Path
+        data: Path, name: str, flags: str, methods: list[str], seed: int, work: Path, env: str = ""
     ) -> Path:
         calls.append((flags, tuple(methods), seed))
         value = 0.1 if independent else 0.1 + 0.01 * seed
@@ -82,6 +84,27 @@ def test_pairs_seed_by_seed_and_stops_at_two_identical_seeds(
     assert used == ([0, 1] if independent else [0, 1, 2, 3])
     assert [s for _, _, s in calls] == used
     assert [round(x["r1"], 3) for x in b] == [round(x["r1"] + 0.02, 3) for x in a]
+
+
+def test_variants_differing_in_environment_run_apart(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Equal flags but another environment (the NumPy step against the compiled one): each
+    variant is its own run, with its own environment."""
+    ps = _script()
+    calls: list[tuple[tuple[str, ...], str]] = []
+
+    def fake_run(
+        data: Path, name: str, flags: str, methods: list[str], seed: int, work: Path, env: str = ""
+    ) -> Path:
+        calls.append((tuple(methods), env))
+        return _report(tmp_path / f"{seed}{env}.json", {"pf": 0.1 + 0.01 * seed, "pf_ul": 0.2})
+
+    monkeypatch.setattr(ps, "_run", fake_run)
+    with ThreadPoolExecutor(1) as pool:
+        ps._paired(pool, _args(tmp_path, "", "", "RELLOC_COMPILED=0", ""), "rec", [0, 1, 2])
+    assert sorted(set(calls)) == [(("pf",), "RELLOC_COMPILED=0"), (("pf_ul",), "")]
+    assert len(calls) == 6
 
 
 def test_seed_lists_of_the_sweep_scripts() -> None:
