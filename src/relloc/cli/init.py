@@ -35,12 +35,14 @@ from typing import Any
 
 from relloc.cli.common import UserError
 from relloc.config import TeamConfig
-from relloc.drafting.calibrate import edit_config_text
-from relloc.drafting.team import DraftError, calibrate_draft, draft
-from relloc.drafting.writer import distro, quirks, to_toml
 
 
 def _cmd_init(args: argparse.Namespace) -> int:
+    # Imported here: drafting needs scipy.optimize (about 50 MB resident), which every other
+    # command, ``relloc serve`` among them, would pay for while its parser is built.
+    from relloc.drafting.calibrate import edit_config_text
+    from relloc.drafting.team import DraftError, calibrate_draft, draft
+    from relloc.drafting.writer import distro, quirks, to_toml
     from relloc.sources.rosbag import BagError, recording_name
 
     bag = Path(args.bag)
