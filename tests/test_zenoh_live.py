@@ -23,6 +23,7 @@ from waiting import wait_until
 
 from relloc.config import TeamConfig
 from relloc.events import OdometryEvent
+from relloc.filter import compiled
 from relloc.live import (
     EstimateCollector,
     LiveServer,
@@ -275,7 +276,12 @@ def serve_replayed(
         config,
         serve,
         ServeOptions(
-            particles=particles, seed=seed, reorder_window=1.0, clock_rate=rate, interface=interface
+            particles=particles,
+            seed=seed,
+            reorder_window=1.0,
+            clock_rate=rate,
+            interface=interface,
+            compiled=compiled.ENABLED,  # the step relloc run takes: the same draws
         ),
     )
     with Running(server) as live:

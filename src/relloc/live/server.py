@@ -21,6 +21,7 @@ from relloc.engine import Engine, Pipeline
 from relloc.estimate import Estimate
 from relloc.events import RangeEvent, WakeRule
 from relloc.faults import FaultInjector, Faults
+from relloc.filter import compiled
 from relloc.methods import DETECTION_METHODS
 from relloc.ros.interfaces import RosInterface
 from relloc.sinks.mcap import McapWriter
@@ -74,6 +75,10 @@ class ServeOptions:
     (:class:`~relloc.sinks.foxglove.FoxgloveSink`, the ``viewer`` extra); ``None``: none."""
     foxglove_rate: float = 10.0
     """At most this many messages a second on each Foxglove channel."""
+    compiled: bool | None = None
+    """Whether the particle filter's step runs compiled (numba) during :meth:`LiveServer.run`;
+    ``None``: :func:`relloc.filter.compiled.serve_default` (NumPy unless ``RELLOC_COMPILED=1``).
+    NumPy keeps numba unimported (a serve under 100 MB resident) at some more CPU."""
 
 
 class LiveServer:
@@ -214,8 +219,14 @@ class LiveServer:
         """Process messages until :meth:`stop` or ``duration`` seconds; returns :meth:`summary`.
 
         At the end, what is queued or held is processed, the pending batch is fused (one last
-        estimate) and a final status is published.
+        estimate) and a final status is published. The filter step is the one
+        :attr:`ServeOptions.compiled` chooses, for this run only.
         """
+        choice = self.options.compiled
+        with compiled.chosen(compiled.serve_default() if choice is None else choice):
+            return self._run(duration)
+
+    def _run(self, duration: float | None) -> dict[str, Any]:
         cpu_start = time.thread_time()
         now = time.time()
         deadline = math.inf if duration is None else now + duration
