@@ -41,6 +41,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
         check_writable(args.record.parent, "--record")
     if args.foxglove is not None:
         _check_foxglove(args.foxglove)
+    elif args.ground_truth:
+        raise UserError("--ground-truth feeds the viewer only: give --foxglove too")
     opts = options_from_args(
         ServeOptions,
         args,
@@ -241,6 +243,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     serve.add_argument(
         "--foxglove-rate", type=argtypes.positive, default=10.0, metavar="HZ",
         help="at most HZ messages a second on each Foxglove channel (default 10)",
+    )  # fmt: skip
+    serve.add_argument(
+        "--ground-truth", action="store_true",
+        help="also subscribe to the robots' motion capture (mocap_topic, as relloc replay "
+        "--ground-truth publishes it): the viewer's truth poses and errors, never the filter's",
     )  # fmt: skip
     add_zenoh_args(serve, "serve")
     serve.set_defaults(handler=_cmd_serve)

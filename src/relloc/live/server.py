@@ -75,6 +75,9 @@ class ServeOptions:
     (:class:`~relloc.sinks.foxglove.FoxgloveSink`, the ``viewer`` extra); ``None``: none."""
     foxglove_rate: float = 10.0
     """At most this many messages a second on each Foxglove channel."""
+    ground_truth: bool = False
+    """Subscribe to the robots' motion capture for the viewer's truth and error (its truth
+    sink; never the localizers'); off: not received at all."""
     compiled: bool | None = None
     """Whether the particle filter's step runs compiled (numba) during :meth:`LiveServer.run`;
     ``None``: :func:`relloc.filter.compiled.serve_default` (NumPy unless ``RELLOC_COMPILED=1``).
@@ -120,6 +123,7 @@ class LiveServer:
                 reorder_window=opts.reorder_window,
                 clock_rate=opts.clock_rate,
                 detections=any(m in DETECTION_METHODS for m in opts.methods),
+                ground_truth=opts.ground_truth,
                 subscribe_all=opts.subscribe_all,
                 own_prefix=out_prefix,
             ),

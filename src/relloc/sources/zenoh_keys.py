@@ -5,7 +5,9 @@ the ROS interface.
 their topic keys (:meth:`RosInterface.topic_key <relloc.ros.interfaces.RosInterface.topic_key>`:
 ``[<global prefix>/][<robot zenoh_scope>/]<topic without leading slash>`` on the bridge). A
 route of two robots (a range topic) belongs to no single robot, so it is subscribed below the
-scope of each of them (:func:`route_scopes`); a replay publishes it below the first.
+scope of each of them (:func:`route_scopes`); a replay publishes it below the first. Motion
+capture comes from no robot: with ``ground_truth`` it is subscribed below the global prefix
+alone (:func:`truth_scopes`), where ``relloc replay --ground-truth`` and ``sim-robots`` put it.
 """
 
 from __future__ import annotations
@@ -13,9 +15,10 @@ from __future__ import annotations
 from relloc.config import ConfigError, TeamConfig
 from relloc.ros.interfaces import RosInterface
 from relloc.sensors import Route
+from relloc.sensors.builtin import GROUND_TRUTH
 from relloc.sources.ingest import team_routes
 
-__all__ = ["build_routes", "route_scopes"]
+__all__ = ["build_routes", "route_scopes", "truth_scopes"]
 
 
 def route_scopes(
@@ -35,6 +38,13 @@ def route_scopes(
     return out
 
 
+def truth_scopes(config: TeamConfig) -> list[tuple[Route, str]]:
+    """Each robot's motion-capture route (``mocap_topic`` of its ``mocap_body``) with the
+    namespace it arrives below: none (the motion-capture system is no robot's)."""
+    routes = team_routes(config, odometry=False, ranges=False, detections=False, ground_truth=True)
+    return [(r, "") for r in routes if r.kind == GROUND_TRUTH.kind]
+
+
 def build_routes(
     config: TeamConfig,
     *,
@@ -43,19 +53,22 @@ def build_routes(
     odometry: bool = True,
     ranges: bool = True,
     detections: bool = True,
+    ground_truth: bool = False,
 ) -> dict[str, Route]:
     """Every topic key the team's data arrives on (:meth:`RosInterface.topic_key
     <relloc.ros.interfaces.RosInterface.topic_key>`, the bridge's by default), mapped to its
-    :class:`~relloc.sensors.Route`.
+    :class:`~relloc.sensors.Route`; with ``ground_truth``, the robots' motion capture too
+    (:func:`truth_scopes`: for the viewer's truth; the engine keeps it from the localizers).
 
     Raises :class:`~relloc.config.ConfigError` if two routes would share one key (e.g. two robots
     configured with the same odometry topic and no scopes).
     """
     iface = interface or RosInterface()
     routes: dict[str, Route] = {}
-    for route, scope in route_scopes(
-        config, odometry=odometry, ranges=ranges, detections=detections
-    ):
+    scoped = route_scopes(config, odometry=odometry, ranges=ranges, detections=detections)
+    if ground_truth:
+        scoped += truth_scopes(config)
+    for route, scope in scoped:
         key = iface.topic_key(route.topic, prefix=prefix, scope=scope)
         old = routes.get(key)
         if old is not None and old != route:

@@ -42,11 +42,12 @@ from relloc.ros.interfaces import (
 )
 from relloc.ros.zenoh_node import ZenohNode
 from relloc.sensors import sensor
+from relloc.sensors.builtin import GROUND_TRUTH
 from relloc.sources.clock import HeaderClock
 from relloc.sources.ingest import Converter, IngestStats
 from relloc.sources.reorder import ReorderBuffer
 from relloc.sources.rmw_envelope import RmwEnvelope, TransportStats
-from relloc.sources.zenoh_keys import build_routes, route_scopes
+from relloc.sources.zenoh_keys import build_routes, route_scopes, truth_scopes
 
 __all__ = ["Arrival", "ZenohSource", "ZenohSourceOptions"]
 
@@ -81,6 +82,11 @@ class ZenohSourceOptions:
     odometry: bool = True
     ranges: bool = True
     detections: bool = True
+    ground_truth: bool = False
+    """Also subscribe to the robots' motion capture (:func:`~relloc.sources.zenoh_keys.truth_scopes`)
+    as :class:`~relloc.events.GroundTruthEvent`: for the engine's truth sinks (a viewer's truth
+    and error), never the localizers'. Its messages never wake the engine thread: they wait
+    for the next that does (or the poll timeout), in arrival order."""
     subscribe_all: bool = False
     """Subscribe to ``<prefix>/**`` instead of each key (keys without a route count as
     ``unknown_key``): shows what else is published, at the cost of receiving it."""
@@ -129,6 +135,7 @@ class ZenohSource:
             odometry=opts.odometry,
             ranges=opts.ranges,
             detections=opts.detections,
+            ground_truth=opts.ground_truth,
         )
         for key, route in self.routes.items():
             missing = [t for t in route.msgtypes if not layouts(t)]
@@ -156,17 +163,19 @@ class ZenohSource:
         # The keys a wake rule can judge before decoding (rmw_zenoh: with the type relloc
         # expects): odometry and measurements, each with its kind and whether it is restamped.
         self._judged: dict[str, tuple[bool, str, bool]] = {}
+        # The keys that never wake it: motion capture (no localizer is fed it).
+        self._patient: set[str] = set()
         for key, route in self.routes.items():
             wake = sensor(route.kind).wake
-            if wake is None:
+            patient = route.kind == GROUND_TRUTH.kind
+            if wake is None and not patient:
                 continue
             judged = (wake == "odometry", route.kind, route.restamped)
-            if opts.interface.rmw:
-                for name, msgtype in self._dds_types[key].items():
-                    for hash_ in (HASH_NOT_SUPPORTED, *(lay.hash for lay in layouts(msgtype))):
-                        self._judged[f"{key}/{name}/{hash_}"] = judged
-            else:
-                self._judged[key] = judged
+            for data_key in self._data_keys(key):
+                if patient:
+                    self._patient.add(data_key)
+                else:
+                    self._judged[data_key] = judged
         self._restamped_kinds = tuple(sorted({r.kind for r in self.routes.values() if r.restamped}))
         self._restamp_offset: dict[str, float] = {}
         """Per kind, the header clock's offset when the rule was set, plus ``_RESTAMP_MARGIN``:
@@ -176,6 +185,16 @@ class ZenohSource:
         self._queue_full = 0
         self._ready: list[Arrival] = []
         """Events handled from the queue and released, not yet returned by :meth:`poll`."""
+
+    def _data_keys(self, key: str) -> list[str]:
+        """The keys a topic key's messages arrive on (rmw_zenoh: one per type and hash)."""
+        if not self.interface.rmw:
+            return [key]
+        return [
+            f"{key}/{name}/{hash_}"
+            for name, msgtype in self._dds_types[key].items()
+            for hash_ in (HASH_NOT_SUPPORTED, *(lay.hash for lay in layouts(msgtype)))
+        ]
 
     # ------------------------------------------------------------------ zenoh side
     @property
@@ -197,12 +216,15 @@ class ZenohSource:
         for expr in exprs:
             self._subscribers.append(session.declare_subscriber(expr, self.on_sample))
         if node is not None and self.interface.rmw:
-            for route, scope in route_scopes(
+            scoped = route_scopes(
                 self.config,
                 odometry=self.options.odometry,
                 ranges=self.options.ranges,
                 detections=self.options.detections,
-            ):
+            )
+            if self.options.ground_truth:
+                scoped += truth_scopes(self.config)
+            for route, scope in scoped:
                 for msgtype in route.msgtypes:
                     channel = self.interface.channel(
                         route.topic, msgtype, prefix=self.options.prefix, scope=scope
@@ -258,7 +280,7 @@ class ZenohSource:
             return True
         judged = self._judged.get(key)
         if judged is None:  # another kind, or no route (a rejection)
-            return True
+            return key not in self._patient
         odometry, kind, zero_stamps = judged
         t = 0.0
         if not zero_stamps and len(payload) >= 12 and payload[0] == 0 and payload[1] <= 1:
