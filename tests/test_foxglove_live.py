@@ -4,7 +4,9 @@ the team as the app would, during a live serve of a simulated team and of the re
 serve, sim-robots and replay run as processes, Zenoh peers on 127.0.0.1 with multicast off; the
 test's own Zenoh session hears serve's poses, and the client decodes every Foxglove channel. The
 decoded poses must be the Zenoh ones (same estimate, same numbers); the shipped layout's topics
-must be advertised. Every wait is on a condition.
+must be advertised whatever the robots' names. With ``--ground-truth`` on both sides the replayed
+motion capture reaches the viewer (truth poses, errors) and changes no estimate. Every wait is on
+a condition.
 """
 
 from __future__ import annotations
@@ -85,10 +87,17 @@ def layout_topics(path: Path) -> set[str]:
 
 
 def serve_with_viewer(
-    tmp_path: Path, team: Path, feed: list[str], *, rate: float, foxglove_rate: float = 10.0
+    tmp_path: Path,
+    team: Path,
+    feed: list[str],
+    *,
+    rate: float,
+    foxglove_rate: float = 10.0,
+    serve_args: tuple[str, ...] = (),
 ) -> tuple[FoxgloveClient, ZenohPoses, dict[str, Any]]:
-    """Start serve with ``--foxglove``, connect a client and a Zenoh session, run ``feed``
-    (``relloc`` arguments of the source, connected to serve) to its end, stop serve."""
+    """Start serve with ``--foxglove`` (and ``serve_args``), connect a client and a Zenoh
+    session, run ``feed`` (``relloc`` arguments of the source, connected to serve) to its end,
+    stop serve."""
     config = TeamConfig.load(team)
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     port = free_tcp_port()
@@ -96,7 +105,7 @@ def serve_with_viewer(
     serve = relloc(
         "serve", "--config", str(team), "--clock-rate", str(rate), "--json", str(summary),
         "--foxglove", f"127.0.0.1:{port}", "--foxglove-rate", str(foxglove_rate),
-        "--listen", endpoint, "--no-multicast", log=tmp_path / "serve.log",
+        "--listen", endpoint, "--no-multicast", *serve_args, log=tmp_path / "serve.log",
     )  # fmt: skip
     procs = [serve]
     session = open_session(ZenohOptions(connect=(endpoint,), multicast=False))
@@ -107,6 +116,8 @@ def serve_with_viewer(
         assert wait_until(lambda: bool(zenoh.status), timeout=60.0), log()
         client = FoxgloveClient("127.0.0.1", port)
         expected = {f"/relloc/{r}/pose" for r in config.others} | {
+            "/relloc/poses",
+            "/relloc/truth_poses",
             "/relloc/scene",
             "/relloc/flags",
             "/relloc/status",
@@ -154,6 +165,9 @@ def check_channels(client: FoxgloveClient, zenoh: ZenohPoses, robots: tuple[str,
             x, y, frame = zenoh.poses[key]
             assert (msg.pose.position.x, msg.pose.position.y) == (x, y)
             assert msg.frame_id == frame
+    many = client.received("/relloc/poses")
+    assert many and all(len(m.poses) <= len(robots) for _, m in many)
+    assert any(len(m.poses) == len(robots) for _, m in many)
     scenes = client.received("/relloc/scene")
     assert scenes
     ids = {e.id for _, s in scenes for e in s.entities}
@@ -161,6 +175,7 @@ def check_channels(client: FoxgloveClient, zenoh: ZenohPoses, robots: tuple[str,
     assert any(i.startswith("range/") for i in ids)
     flags = client.received("/relloc/flags")
     assert flags and set(flags[-1][1]["robots"]) == set(robots)
+    assert [e["robot"] for e in flags[-1][1]["by_index"]] == list(robots)
     assert {"orientation_observable", "inconsistent", "recovering", "unseen"} <= set(flags[-1][1])
     assert client.received("/relloc/status")[-1][1]["team"]
 
@@ -184,6 +199,9 @@ def test_a_client_sees_the_simulated_team_in_foxglove(tmp_path: Path) -> None:
     client, zenoh, summary = serve_with_viewer(tmp_path, team, feed, rate=2.0)
     robots = TeamConfig.load(team).others
     check_channels(client, zenoh, robots)
+    assert not any(r.startswith("turtle") for r in robots)  # the layout serves this team too
+    assert layout_topics(LAYOUT) <= client.topics(), layout_topics(LAYOUT) - client.topics()
+    assert not client.received("/relloc/truth_poses")  # no motion capture asked for
     rates = {r: rate_of(client.received(f"/relloc/{r}/pose")) for r in robots}
     print(f"\nsim: pose messages/s {rates}, estimates {summary['methods']['pf']['estimates']}")
     assert all(rate <= 10.0 * 1.2 for rate in rates.values())  # --foxglove-rate 10
@@ -192,13 +210,34 @@ def test_a_client_sees_the_simulated_team_in_foxglove(tmp_path: Path) -> None:
 @pytest.mark.slow
 @pytest.mark.shared_data
 def test_the_replayed_shortbag_in_foxglove(tmp_path: Path, shared_data: Path) -> None:
-    """The acceptance run: the shortbag at 2x, at least 5 poses a second per robot."""
+    """The acceptance run: the shortbag at 2x with its motion capture, at least 5 poses a
+    second per robot, its truth and errors in the viewer."""
     team = REPO / "configs" / "tiers" / f"{SHORTBAG}.toml"
-    feed = ["replay", str(shared_data / "tiers" / SHORTBAG), "--config", str(team), "--rate", "2"]
-    client, zenoh, summary = serve_with_viewer(tmp_path, team, feed, rate=2.0)
+    feed = ["replay", str(shared_data / "tiers" / SHORTBAG), "--config", str(team), "--rate", "2",
+            "--ground-truth"]  # fmt: skip
+    client, zenoh, summary = serve_with_viewer(
+        tmp_path, team, feed, rate=2.0, serve_args=("--ground-truth",)
+    )
     robots = TeamConfig.load(team).others
     check_channels(client, zenoh, robots)
-    assert layout_topics(LAYOUT) <= client.topics()  # the layout is this team's
+    assert layout_topics(LAYOUT) <= client.topics()  # the layout is this team's too
+    truths = {r: len(client.received(f"/relloc/{r}/truth")) for r in robots}
+    truth_poses = client.received("/relloc/truth_poses")
+    assert all(n > 0 for n in truths.values()), truths
+    assert truth_poses and any(len(m.poses) == len(robots) for _, m in truth_poses)
+    flags = [f for _, f in client.received("/relloc/flags")]
+    errors = {
+        r: [f["robots"][r]["error_m"] for f in flags if "error_m" in f["robots"][r]] for r in robots
+    }
+    assert all(errors.values()), errors
+    by_index = [f["by_index"][i].get("error_m") for f in flags for i in range(len(robots))]
+    assert sorted(e for e in by_index if e is not None) == sorted(
+        e for v in errors.values() for e in v
+    )
+    medians = {r: round(sorted(e)[len(e) // 2], 3) for r, e in errors.items()}
+    print(f"\nshortbag 2x truth: messages {truths}, truth_poses {len(truth_poses)}, "
+          f"error_m median {medians} over {[len(e) for e in errors.values()]} flags")  # fmt: skip
+    assert all(m < 2.0 for m in medians.values()), medians
     rates = {r: rate_of(client.received(f"/relloc/{r}/pose")) for r in robots}
     n = {r: len(client.received(f"/relloc/{r}/pose")) for r in robots}
     print(f"\nshortbag 2x: pose messages/s {rates}, messages {n}, "
@@ -248,10 +287,62 @@ def test_an_onboard_serve_advertises_its_teammates_below_its_name() -> None:
     client = FoxgloveClient("127.0.0.1", server.viewer.port, wanted=lambda topic: False)
     try:
         expected = {f"/relloc/turtle01/{r}/pose" for r in ("turtle03", "turtle04", "turtle05")}
-        expected |= {"/relloc/turtle01/scene", "/relloc/turtle01/flags", "/relloc/turtle01/status"}
+        expected |= {
+            f"/relloc/turtle01/{c}" for c in ("poses", "truth_poses", "scene", "flags", "status")
+        }
         assert wait_until(lambda: client.topics() == expected, timeout=30.0), client.topics()
     finally:
         client.close()
         server.close()
         session.close()
     assert client.error is None
+
+
+@pytest.mark.slow
+@pytest.mark.shared_data
+def test_the_truth_subscription_changes_no_estimate(shared_data: Path) -> None:
+    """The shortbag's messages, motion capture included, through the live source's own path
+    (:meth:`ZenohSource.handle`, no network: deterministic) into a server with and without
+    ``ground_truth``: the viewer gets every motion-capture pose, the estimates are identical."""
+    from rosbags.rosbag2 import Reader
+
+    from relloc.events import GroundTruthEvent
+    from relloc.live import LiveServer, ServeOptions
+
+    config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")
+    session = open_session(ZenohOptions(multicast=False))
+    runs: dict[bool, tuple[list[Any], list[GroundTruthEvent]]] = {}
+    try:
+        for truth in (False, True):
+            server = LiveServer(
+                config,
+                session,
+                ServeOptions(particles=300, seed=0, foxglove="127.0.0.1:0", ground_truth=truth),
+            )
+            assert server.viewer is not None
+            seen: list[GroundTruthEvent] = []
+            server.engine.truth_sinks.append(seen.append)
+            try:
+                with Reader(shared_data / "tiers" / SHORTBAG) as reader:
+                    for conn, ns, raw in reader.messages():
+                        key = server.options.interface.topic_key(conn.topic)
+                        if key in server.source.routes:
+                            server.source.handle(key, bytes(raw), ns * 1e-9)
+                            server.feed(server.source.release(ns * 1e-9))
+                server.feed(server.source.flush())
+                server.engine.finish()
+            finally:
+                server.close()
+            assert server.source.stats.rejected == {}
+            estimates = [
+                (e.t, {r: tuple(p) for r, p in e.positions.items()})
+                for e in server.pipelines[0].estimates
+            ]
+            runs[truth] = (estimates, seen)
+    finally:
+        session.close()
+    assert runs[False][1] == []
+    truths = runs[True][1]
+    assert {e.robot for e in truths} == set(config.robot_names)
+    assert runs[True][0] == runs[False][0] and len(runs[False][0]) > 50
+    print(f"\n{len(truths)} motion-capture poses; {len(runs[True][0])} estimates, identical")

@@ -6,15 +6,22 @@
 * ``<robot>/pose``, one per non-reference robot: ``foxglove.PoseInFrame``, the fields of
   :func:`~relloc.ros.estimate_msgs.estimate_pose` (the one conversion the Zenoh poses use:
   same estimate, same numbers);
+* ``poses``: ``foxglove.PosesInFrame``, the same poses of every non-reference robot in one
+  message (the config's order): a layout names it whatever the robots' names;
 * ``scene``: ``foxglove.SceneUpdate``: every robot, its 2-sigma covariance ellipse, the ranges
   heard since the last update as lines coloured by residual (measured minus estimated
   distance: green 0, red :data:`RED_RESIDUAL` m or more), rejected ones grey and labelled;
 * ``flags`` (JSON, per estimate): the status line, orientation observable, recovering, the
   watchdog's ``inconsistent``, robots unseen, and per robot its covariance, std and, where
-  motion capture reaches the engine (``truth_sinks``), its error;
+  motion capture reaches the engine (``truth_sinks``, ``serve --ground-truth``), its error
+  ``error_m``: by name in ``robots`` and by index (the config's order of the non-reference
+  robots, each entry naming its robot) in ``by_index``, which a plot's message path can name
+  without the robots' names (``/relloc/flags.by_index[0].error_m``);
 * ``status`` (JSON): what the server publishes on Zenoh as its status;
 * ``<robot>/truth``: ``foxglove.PoseInFrame`` relative to the reference (world axes), advertised
-  on the first motion-capture pose.
+  on the first motion-capture pose;
+* ``truth_poses``: ``foxglove.PosesInFrame``, every robot's ``truth`` in one message; advertised
+  from the start (so a layout can name it), silent without motion capture.
 
 Cost: a message is built only while a client subscribes to its channel (``has_sinks``), and at
 most ``rate`` times a wall second per channel. ``foxglove`` is the ``viewer`` extra, imported
@@ -110,7 +117,11 @@ class FoxgloveSink:
         clock: Callable[[], float] = time.monotonic,
     ) -> None:
         foxglove = require_sdk()
-        from foxglove.channels import PoseInFrameChannel, SceneUpdateChannel
+        from foxglove.channels import (
+            PoseInFrameChannel,
+            PosesInFrameChannel,
+            SceneUpdateChannel,
+        )
 
         if rate <= 0:
             raise ValueError(f"--foxglove-rate must be positive, got {rate}")
@@ -126,6 +137,8 @@ class FoxgloveSink:
             r: PoseInFrameChannel(f"{self.prefix}/{r}/pose", context=self._context)
             for r in config.others
         }
+        self.all_poses = PosesInFrameChannel(f"{self.prefix}/poses", context=self._context)
+        self.truth_poses = PosesInFrameChannel(f"{self.prefix}/truth_poses", context=self._context)
         self.scene = SceneUpdateChannel(f"{self.prefix}/scene", context=self._context)
         self.flags = foxglove.Channel(
             f"{self.prefix}/flags", schema=FLAGS_SCHEMA, context=self._context
@@ -147,7 +160,8 @@ class FoxgloveSink:
     @property
     def topics(self) -> list[str]:
         """Every topic advertised now."""
-        channels = [*self.poses.values(), self.scene, self.flags, self.status]
+        channels = [*self.poses.values(), self.all_poses, self.truth_poses, self.scene]
+        channels += [self.flags, self.status]
         return [c.topic() for c in [*channels, *self.truths.values()]]
 
     # ---------------------------------------------------------------- inputs
@@ -161,6 +175,8 @@ class FoxgloveSink:
         for robot, channel in self.poses.items():
             if robot in shown.positions and self._due(channel, now):
                 channel.log(self._pose(shown, robot))
+        if self._due(self.all_poses, now):
+            self.all_poses.log(self._poses(shown))
         if self._due(self.scene, now):
             self.scene.log(self._scene(shown))
             self._ranges.clear()
@@ -188,9 +204,12 @@ class FoxgloveSink:
         if channel is None:
             topic = f"{self.prefix}/{event.robot}/truth"
             channel = self.truths[event.robot] = PoseInFrameChannel(topic, context=self._context)
+        now = self._clock()
         relative = self._relative_truth(event.robot, event.t)
-        if relative is not None and self._due(channel, self._clock()):
+        if relative is not None and self._due(channel, now):
             channel.log(self._truth_pose(event, relative))
+        if self._due(self.truth_poses, now):
+            self.truth_poses.log(self._truth_poses(event.t))
 
     def publish_status(self, status: dict[str, Any]) -> None:
         """The server's status, as it goes out on Zenoh."""
@@ -231,6 +250,29 @@ class FoxgloveSink:
         return PoseInFrame(
             timestamp=_stamp(p.t), frame_id=p.frame_id, pose=_pose_of(p.x, p.y, p.z, p.yaw)
         )
+
+    def _poses(self, shown: Estimate) -> Any:
+        from foxglove.messages import PosesInFrame
+
+        poses = [estimate_pose(shown, r) for r in self.poses if r in shown.positions]
+        return PosesInFrame(
+            timestamp=_stamp(shown.t),
+            frame_id=poses[0].frame_id if poses else shown.frame_id,
+            poses=[_pose_of(p.x, p.y, p.z, p.yaw) for p in poses],
+        )
+
+    def _truth_poses(self, t: float) -> Any:
+        """Every robot's motion-capture pose fresh at ``t``, relative to the reference."""
+        from foxglove.messages import PosesInFrame
+
+        poses = []
+        for robot in self.poses:
+            relative = self._relative_truth(robot, t)
+            if relative is not None:
+                z = float(relative[2]) if len(relative) > 2 else 0.0
+                yaw = float(self._truth[robot].yaw)
+                poses.append(_pose_of(float(relative[0]), float(relative[1]), z, yaw))
+        return PosesInFrame(timestamp=_stamp(t), frame_id=self.config.reference, poses=poses)
 
     def _scene(self, shown: Estimate) -> Any:
         from foxglove.messages import (
@@ -366,6 +408,7 @@ class FoxgloveSink:
                 "mode_weight": round(estimate.mode_weight, 3),
                 "ess": None if estimate.ess is None else round(estimate.ess, 1),
                 "robots": robots,
+                "by_index": [{"robot": r, **robots.get(r, {})} for r in self.poses],
             }
         )
 
