@@ -275,6 +275,15 @@ def test_without_the_extra_foxglove_says_what_to_install(monkeypatch: pytest.Mon
         _check_foxglove("8765")
 
 
+def test_ground_truth_without_a_viewer_is_refused(capsys: pytest.CaptureFixture[str]) -> None:
+    """Only the viewer uses motion capture: ``--ground-truth`` alone would receive it for nothing."""
+    from relloc.cli import main
+
+    team = REPO / "configs" / "tiers" / f"{SHORTBAG}.toml"
+    assert main(["serve", "--config", str(team), "--ground-truth", "--no-multicast"]) == 2
+    assert "--foxglove" in capsys.readouterr().err
+
+
 def test_an_onboard_serve_advertises_its_teammates_below_its_name() -> None:
     from relloc.live import LiveServer, ServeOptions
 
