@@ -221,6 +221,12 @@ class UwbConfig(Checked):
     """Line-of-sight range noise (m) of the NLOS-aware likelihood (``range_model = "nlos"``,
     the default for raw ranges), wider than the training residuals' for the pair biases moving
     between sessions (docs/explanation/measurements.md, "Design measurements behind the filter's defaults")."""
+    range_delay: float = 0.0
+    """How long a range's stamp lags the geometry it measures (s): half the window of a
+    driver that averages its ranges (a LinkTrack set to 1 s averaging: 0.5), plus its latency.
+    The 3D smoother places each range at its stamp minus this; the planar kinds, whose robots
+    move a few cm in that time, read the stamp. ``relloc init`` measures it against motion
+    capture (:func:`relloc.drafting.tags.range_delay`)."""
     pairs: dict[str, PairCalibration] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -229,7 +235,12 @@ class UwbConfig(Checked):
             self,
             "uwb",
             positive=("sigma", "los_sigma"),
-            non_negative=("default_bias_sigma", "team_offset_sigma", "node_offset_sigma"),
+            non_negative=(
+                "default_bias_sigma",
+                "team_offset_sigma",
+                "node_offset_sigma",
+                "range_delay",
+            ),
         )
         dirs = self.msg_dirs
         if isinstance(dirs, str) or not all(isinstance(d, str) for d in dirs):

@@ -46,7 +46,7 @@ from relloc.sources.inspect_bag import BagInventory
 from relloc.sources.rosbag import _open_reader, _with_height
 from relloc.sources.tracks import interpolate_track
 
-__all__ = ["LEVER_MAX_M", "TagFit", "find_tags", "mocap_poses"]
+__all__ = ["LEVER_MAX_M", "TagFit", "find_tags", "mocap_poses", "pose_at"]
 
 LEVER_MAX_M = 1.0
 """A second tag sits at most this far from its body's origin, in x, in y (and in z) (m)."""
@@ -58,7 +58,9 @@ HUBER_M = 0.1
 """Residuals beyond this (m) weigh linearly, not quadratically (multipath pairs)."""
 SAMPLES_PER_PAIR = 200
 MIN_PARTNERS = 3
-"""A tag needs ranges to this many nodes on other bodies (lever arm x, y and its constant)."""
+"""A tag needs ranges to this many nodes on other bodies (lever arm x, y and its constant);
+in 3D, where each pair has its own constant and the bodies turn under the arm, to every other
+body's first tag where the team has fewer (three drones: two)."""
 BLOCK_S = 5.0
 """In 3D the covariance's clusters are a pair's samples over this many seconds: a pair's own
 bias takes up what its samples share, leaving errors that change as the geometry does."""
@@ -120,7 +122,7 @@ def mocap_poses(bag: Path, inv: BagInventory, bodies: Sequence[str]) -> dict[str
     return out
 
 
-def _pose_at(
+def pose_at(
     track: np.ndarray, t: np.ndarray, dim: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(position (n, dim), yaw (n,), valid)`` of a pose track at times ``t``: ``x, y`` and,
@@ -174,8 +176,8 @@ def _samples(
             continue
         if r.shape[0] > SAMPLES_PER_PAIR:
             r = r[np.linspace(0, r.shape[0] - 1, SAMPLES_PER_PAIR).astype(int)]
-        xa, yawa, oka = _pose_at(poses[body_of[a]], r[:, 0], dim)
-        xb, yawb, okb = _pose_at(poses[body_of[b]], r[:, 0], dim)
+        xa, yawa, oka = pose_at(poses[body_of[a]], r[:, 0], dim)
+        xb, yawb, okb = pose_at(poses[body_of[b]], r[:, 0], dim)
         ok = oka & okb & np.isfinite(r[:, 1])
         if not ok.any():
             continue
@@ -401,13 +403,14 @@ def find_tags(
     consts = _node_constants(pair_bias, first)
     found: dict[str, tuple[str, float, str, float, int]] = {}
     notes: list[str] = []
+    needed = MIN_PARTNERS if dimension == 2 else min(MIN_PARTNERS, len(mapping) - 1)
     for node in sorted(set(inv.nodes) - set(first)):
         scored: list[tuple[float, str, int]] = []
         for body in sorted(mapping):
             partners = [n for n in first if body_of[n] != body]
             pairs = [(node, n) for n in partners]
             s = _samples(inv, poses, {**body_of, node: body}, pairs, dimension)
-            if len(s.a) < MIN_PARTNERS:
+            if len(s.a) < needed:
                 continue
             if dimension == 2:
                 const = [node]
@@ -431,7 +434,7 @@ def find_tags(
             scored.append((model.rms(x), body, len(s.a)))
         if not scored:
             notes.append(
-                f"{node}: fits no motion-capture body (ranges to fewer than {MIN_PARTNERS} "
+                f"{node}: fits no motion-capture body (ranges to fewer than {needed} "
                 f"other nodes, a lever arm beyond {LEVER_MAX_M:g} m, or a range to the body's "
                 "first tag that says it is elsewhere): left out"
             )

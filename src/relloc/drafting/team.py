@@ -36,6 +36,7 @@ import numpy as np
 
 from relloc.config import TeamConfig
 from relloc.drafting.calibrate import Calibration, calibrate
+from relloc.drafting.delay import range_delay, shifted
 from relloc.drafting.frames import with_node_frames
 from relloc.drafting.tags import Poses, TagFit, find_tags, mocap_poses
 from relloc.ros.messages import MOCAP_TYPES
@@ -100,6 +101,9 @@ class Draft:
     dimension: int = 2
     height_spread: float = 0.0
     """Spread of the bodies' mocap heights (m; :data:`FLYING_SPREAD_M`)."""
+    range_delay: float = 0.0
+    """How long the range stamps lag the geometry (s; :func:`relloc.drafting.delay.range_delay`,
+    measured for a flying team only: a ground team's estimators read the stamps)."""
 
     def tags_of(self, robot: Robot) -> list[TagFit]:
         """The extra tags on ``robot`` (its first is :attr:`Robot.node`)."""
@@ -270,6 +274,7 @@ def draft(
     ranked = assign_nodes(inv, [r.body for r in robots], fixed=fixed, keep=2) if inv.ranges else []
     seconds = time.perf_counter() - start
     decided = False
+    delay = 0.0
     tags: list[TagFit] = []
     if ranked:
         best = ranked[0]
@@ -305,6 +310,17 @@ def draft(
             notes.append(
                 f"  pinned by --node: {', '.join(sorted(f'{r.name}={fixed[r.body]}' for r in robots if r.body in fixed))}"
             )
+        if dimension == 3 and decided:
+            delay, spread_at, spread_zero = range_delay(
+                inv, poses, {n: b for b, n in best.nodes.items()}, dimension
+            )
+            if delay > 0.0:
+                notes.append(
+                    f"range delay: the ranges measure the mocap distances {delay:.2f} s before "
+                    f"their stamps (spread about them {spread_at:.3f} m, {spread_zero:.3f} m at "
+                    "the stamps): an averaging driver"
+                )
+                inv = shifted(inv, delay)
         extra = sorted(set(inv.nodes) - set(best.nodes.values()))
         if extra and decided:
             name = {r.body: r.name for r in robots}
@@ -343,6 +359,7 @@ def draft(
         tags,
         dimension,
         spread,
+        delay,
     )
 
 

@@ -146,6 +146,11 @@ def to_toml(
         uwb["range_type"].comment("node frames: one topic per node, listing its peers")
         uwb.add("distance_field", frames.distance_field)
         uwb.add("peer_field", frames.peer_field)
+    if d.range_delay > 0.0:
+        uwb.add("range_delay", d.range_delay)
+        uwb["range_delay"].comment(
+            "s: the ranges measure the mocap distances this long before their stamps"
+        )
     doc.add(tomlkit.nl())
     if calibrated is None:
         doc.add(

@@ -201,7 +201,14 @@ class FlightSimulation(Simulation):
         )
         # the config states the simulated sensor's white noise (the 2D scenarios' default also
         # covers their heading-dependent term, which drones do not have)
-        uwb_config = replace(self.config.uwb, sigma=uwb.sigma, los_sigma=uwb.sigma)
+        # an averaged range measures the geometry half its window before its stamp, as the
+        # driver's data sheet would say
+        uwb_config = replace(
+            self.config.uwb,
+            sigma=uwb.sigma,
+            los_sigma=uwb.sigma,
+            range_delay=self.range_average / 2.0,
+        )
         self.config = replace(self.config, robots=robots, dimension=3, uwb=uwb_config)
         self._runner = _FlightRunner(self)
 

@@ -8,7 +8,8 @@ Every ``STEP_PERIOD`` one ``Pose3`` key per robot (:class:`.graph.PoseWindow`) g
   odometry a random walk of ``UNKNOWN_SPEED`` and ``UNKNOWN_TURN_RATE``;
 * per tag pair ranged in the step, the median of its bias-corrected ranges, its noise
   undivided (a step's ranges share their error); in a team without odometry the step's keys
-  are stamped at the median time of its ranges, since nothing carries the motion past them;
+  are stamped at the median measurement time of its ranges (stamp minus ``uwb.range_delay``),
+  since nothing carries the motion past them;
 * per robot with heights in the step (:class:`~relloc.events.HeightEvent`), their median.
 
 **Start** (:mod:`.start`): level poses from the start window's ranges and heights, one
@@ -200,7 +201,8 @@ class PoseSmootherLocalizer(Localizer):
         if t - self.t < STEP_PERIOD:
             return None
         if self._pending and not self._has_odometry:  # nothing carries the motion to t
-            t = max(float(np.median([m.t for m in self._pending])), self.t + 1e-3)
+            measured = float(np.median([m.t for m in self._pending])) - self.config.uwb.range_delay
+            t = max(measured, self.t + 1e-3)
         return self._advance(t)
 
     def _start(self, t: float, ranges: list[RangeEvent]) -> Estimate | None:
@@ -343,12 +345,17 @@ class PoseSmootherLocalizer(Localizer):
     def _prune(self, t: float) -> None:
         """Keep the hypotheses within ``PRUNE_COST`` of the best once every robot with
         odometry moved ``MOTION_TO_PRUNE`` (before, the pair biases' prior, not the
-        orientation, orders their costs), the best alone after ``HYPOTHESIS_TIME``."""
+        orientation, orders their costs), the best alone after ``HYPOTHESIS_TIME``; in a team
+        without odometry, every hypothesis until then."""
         moved = self._moved_each[[self._ref] if self._finding else self._gyros]
-        enough = moved.size == 0 or moved.min() >= MOTION_TO_PRUNE
-        if len(self.hypotheses) > 1 and (enough or t - self._t_start >= HYPOTHESIS_TIME):
+        late = t - self._t_start >= HYPOTHESIS_TIME
+        # without odometry the first steps' costs are ordered by the pair biases' prior and the
+        # windows' first linearisations, not by the orientation (a tenfold PRUNE_COST still
+        # dropped the right hypothesis on one seed of three of drones_six): all are kept
+        enough = moved.size > 0 and moved.min() >= MOTION_TO_PRUNE
+        if len(self.hypotheses) > 1 and (enough or late):
             costs = np.array([h.cost() for h in self.hypotheses])
-            keep = kept_by_cost(costs, PRUNE_COST, t - self._t_start >= HYPOTHESIS_TIME)
+            keep = kept_by_cost(costs, PRUNE_COST, late)
             self.hypotheses = [self.hypotheses[i] for i in keep]
             self.stats["smoother_hypotheses"] = len(self.hypotheses)
         self._observable = len(self.hypotheses) == 1 and (
@@ -395,14 +402,16 @@ class PoseSmootherLocalizer(Localizer):
         """One range per tag pair of ``events`` (their median, :meth:`RangeBatch.build`), the
         fixed bias removed; an online bias as the window's key, or with ``prior_bias`` its
         prior mean removed (the start's shape). Each tag's arm is where the tag was at the
-        median time of its pair's ranges in the robot's body frame at ``at`` (moved by the
+        median measurement time (stamp minus ``uwb.range_delay``) of its pair's ranges in the
+        robot's body frame at ``at`` (moved by the
         odometry between the two times), so that a step's key at ``at`` explains ranges
         taken before it."""
         models = [b for b in RangeBatch.build(events, self._context) if isinstance(b, RangeBatch)]
+        delay = self.config.uwb.range_delay  # the geometry a range measures is that much older
         times: dict[tuple[str, str], list[float]] = {}
         for m in events:
             na, nb = self.config.range_nodes(m)
-            times.setdefault((min(na, nb), max(na, nb)), []).append(m.t)
+            times.setdefault((min(na, nb), max(na, nb)), []).append(m.t - delay)
         rows: list[tuple[int, int, float, float, int, float]] = []
         names = self._names
         for b in models:
