@@ -82,3 +82,19 @@ def test_chosen_restores_the_switch() -> None:
     with compiled.chosen(False):
         assert not compiled.ENABLED
     assert before == compiled.ENABLED
+
+
+@pytest.mark.parametrize(
+    ("flag", "expected"), [((), None), (("--compiled",), True), (("--no-compiled",), False)]
+)
+def test_serve_chooses_the_step_on_the_command_line(
+    flag: tuple[str, ...], expected: bool | None
+) -> None:
+    """``--compiled``/``--no-compiled`` reach :attr:`ServeOptions.compiled`; neither: the
+    default (NumPy unless ``RELLOC_COMPILED=1``)."""
+    from relloc.cli import build_parser
+    from relloc.cli.common import options_from_args
+    from relloc.live.server import ServeOptions
+
+    args = build_parser().parse_args(["serve", "--config", "team.toml", *flag])
+    assert options_from_args(ServeOptions, args).compiled is expected

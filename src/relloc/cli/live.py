@@ -249,6 +249,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="also subscribe to the robots' motion capture (mocap_topic, as relloc replay "
         "--ground-truth publishes it): the viewer's truth poses and errors, never the filter's",
     )  # fmt: skip
+    serve.add_argument(
+        "--compiled", action=argparse.BooleanOptionalAction, default=None,
+        help="run the particle filter's step compiled (numba: less CPU, about 130 MB more "
+        "memory) or as NumPy (--no-compiled); default NumPy, RELLOC_COMPILED=1 compiled "
+        "(docs/howto/live-robots.md)",
+    )  # fmt: skip
     add_zenoh_args(serve, "serve")
     serve.set_defaults(handler=_cmd_serve)
 
