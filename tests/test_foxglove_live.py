@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from processes import relloc
 from waiting import wait_until
 
 pytest.importorskip("foxglove")
@@ -34,16 +35,6 @@ from relloc.ros.messages import POSE_WITH_COVARIANCE_STAMPED, decode
 REPO = Path(__file__).resolve().parents[1]
 LAYOUT = REPO / "layouts" / "relloc.foxglove-layout.json"
 SHORTBAG = "multi4_shortbag_20221011"
-
-
-def relloc(*args: str, log: Path) -> subprocess.Popen[bytes]:
-    with log.open("wb") as fh:
-        return subprocess.Popen(
-            [sys.executable, "-m", "relloc.cli", *args],
-            stdout=fh,
-            stderr=subprocess.STDOUT,
-            cwd=REPO,
-        )
 
 
 class ZenohPoses:

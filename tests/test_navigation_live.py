@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from processes import relloc
 
 from relloc.live import ZenohOptions, free_tcp_port, open_session
 from relloc.navigation.path import load_path
@@ -37,17 +38,6 @@ from relloc.ros.messages import (
 
 REPO = Path(__file__).resolve().parents[1]
 SMALL = REPO / "configs" / "paths" / "small_rectangle.toml"
-
-
-def relloc(*args: str, log: Path) -> subprocess.Popen[bytes]:
-    """Start ``relloc ARGS`` (this interpreter) with its output in ``log``."""
-    with log.open("wb") as fh:
-        return subprocess.Popen(
-            [sys.executable, "-m", "relloc.cli", *args],
-            stdout=fh,
-            stderr=subprocess.STDOUT,
-            cwd=REPO,
-        )
 
 
 def stop(proc: subprocess.Popen[bytes], timeout: float = 15.0) -> int:

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from processes import relloc
 from waiting import wait_until
 
 from relloc.config import TeamConfig
@@ -30,17 +31,6 @@ make_reader = pytest.importorskip("mcap.reader").make_reader
 DecoderFactory = pytest.importorskip("mcap_ros2.decoder").DecoderFactory
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def relloc(*args: str, log: Path) -> subprocess.Popen[bytes]:
-    """Start ``relloc ARGS`` (this interpreter) with its output in ``log``."""
-    with log.open("wb") as fh:
-        return subprocess.Popen(
-            [sys.executable, "-m", "relloc.cli", *args],
-            stdout=fh,
-            stderr=subprocess.STDOUT,
-            cwd=REPO,
-        )
 
 
 def read_mcap(path: Path) -> dict[str, list[tuple[str, int, Any]]]:
