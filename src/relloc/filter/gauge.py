@@ -21,8 +21,8 @@ def gauge(rel: FloatArray) -> FloatArray:
     ang = np.arctan2(rel[:, 0, 1], rel[:, 0, 0])
     out = _rotate(rel, -ang)
     if rel.shape[1] > 1:
-        flip = out[:, 1, 1] < 0.0
-        out[flip, :, 1] *= -1.0
+        # the mirrored ones' y negated: a product by -1 or 1 (exact), not a masked copy
+        out[:, :, 1] *= np.where(out[:, 1, 1] < 0.0, -1.0, 1.0)[:, None]
     return out
 
 

@@ -88,18 +88,28 @@ def range_mixture(
 ) -> tuple[FloatArray, FloatArray]:
     """Line-of-sight density and total density of the range mixture (module docstring),
     elementwise; ``sigma`` broadcasts against ``residual``. ``nlos_fraction`` 0 is the
-    symmetric Gaussian-plus-uniform model."""
-    z = residual / sigma
-    los = np.exp(-0.5 * z * z)
+    symmetric Gaussian-plus-uniform model. The element-wise passes run in place (the same
+    operations, in the same order, as the expressions in the comments), without a temporary
+    per operation."""
+    los = np.divide(residual, sigma)
+    z = los.copy()
+    los *= -0.5
+    los *= z
+    np.exp(los, out=los)  # exp(-0.5 * z * z)
     los *= (1.0 - nlos_fraction - eps) / (sigma * np.sqrt(2.0 * np.pi))
     if nlos_fraction <= 0.0:
         return los, los + eps / support
     w = np.sqrt(sigma * sigma + nlos_sigma * nlos_sigma)
-    u = residual / w
-    nlos = np.exp(-0.5 * u * u)
+    u = np.divide(residual, w, out=z)
+    nlos = np.multiply(u, -0.5)
+    nlos *= u
+    np.exp(nlos, out=nlos)  # exp(-0.5 * u * u)
     # (2 / w) phi(u) Phi(alpha u), Phi by the logistic approximation
     nlos *= 2.0 * nlos_fraction / (w * np.sqrt(2.0 * np.pi))
-    nlos /= 1.0 + np.exp(-_LOGISTIC_PROBIT * (nlos_sigma / sigma) * u)
+    u *= -_LOGISTIC_PROBIT * (nlos_sigma / sigma)
+    np.exp(u, out=u)
+    u += 1.0
+    nlos /= u  # nlos / (1 + exp(-_LOGISTIC_PROBIT * (nlos_sigma / sigma) * u))
     total = los + nlos
     total += eps / support
     return los, total

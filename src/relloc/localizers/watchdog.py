@@ -84,6 +84,10 @@ class ConsistencyWatchdog:
         """Times the estimate was found inconsistent."""
         self._since = -math.inf
         """When the window began to count (the last restart)."""
+        self._lists: tuple[FilterEstimate, list[list[float]], list[list[list[float]]]] | None
+        self._lists = None
+        """The estimate :meth:`_position` last read and its means and covariances as lists;
+        dropped at the end of :meth:`observe`."""
 
     @property
     def widening(self) -> float:
@@ -131,6 +135,7 @@ class ConsistencyWatchdog:
                     self._nis.setdefault(robot, deque()).append(entry)
                     self._over[robot] = self._over.get(robot, 0) + entry[2]
                     self._cusum[robot] = max(0.0, self._cusum.get(robot, 0.0) + step)
+        self._lists = None  # the estimate is not kept beyond its step
         shares = {}
         for robot, q in self._nis.items():
             while q and q[0][0] < t - WINDOW:
@@ -229,23 +234,27 @@ class ConsistencyWatchdog:
     ) -> list[tuple[str, str, float]]:
         """The NIS of a distance ``r`` (variance ``r_var``) between ``a`` and ``b`` and of the
         direction from ``b`` to ``a`` in the published frame, ``bearing`` as (angle,
-        variance)."""
+        variance). In Python floats (a few per range: NumPy calls on 2-vectors cost more than
+        their arithmetic), in the order the matrix products take."""
         pa, ca = self._position(a, fe)
         pb, cb = self._position(b, fe)
-        d = pa - pb
-        dist = float(math.hypot(d[0], d[1]))
+        dx, dy = pa[0] - pb[0], pa[1] - pb[1]
+        dist = math.hypot(dx, dy)
         if dist < 1e-6:
             return []
-        u = d / dist
-        c = ca + cb
+        ux, uy = dx / dist, dy / dist
+        c00, c01 = ca[0][0] + cb[0][0], ca[0][1] + cb[0][1]
+        c10, c11 = ca[1][0] + cb[1][0], ca[1][1] + cb[1][1]
         out = []
         if r is not None and r_var is not None:
-            mean, var = self._distance(a, b, fe, dist, float(u @ c @ u))
+            along = (ux * c00 + uy * c10) * ux + (ux * c01 + uy * c11) * uy
+            mean, var = self._distance(a, b, fe, dist, along)
             out.append((a, b, (r - mean) ** 2 / (r_var + var)))
         if bearing is not None:
-            n = np.array([-u[1], u[0]])
-            residual = math.remainder(bearing[0] - math.atan2(d[1], d[0]), math.tau)
-            out.append((a, b, residual**2 / (bearing[1] + float(n @ c @ n) / dist**2)))
+            nx, ny = -uy, ux
+            across = (nx * c00 + ny * c10) * nx + (nx * c01 + ny * c11) * ny
+            residual = math.remainder(bearing[0] - math.atan2(dy, dx), math.tau)
+            out.append((a, b, residual**2 / (bearing[1] + across / dist**2)))
         return out
 
     def _distance(
@@ -262,8 +271,17 @@ class ConsistencyWatchdog:
         mean, std = fe.summary.distances[i, j]
         return float(mean), float(std) ** 2
 
-    def _position(self, robot: str, fe: FilterEstimate) -> tuple[np.ndarray, np.ndarray]:
+    def _position(self, robot: str, fe: FilterEstimate) -> tuple[list[float], list[list[float]]]:
+        """``robot``'s published position and covariance in ``fe`` as lists (those of the last
+        estimate asked about are kept: a batch's ranges all read the same one)."""
         k = self._rows.get(robot)
         if k is None:  # the reference: the origin, exactly
-            return np.zeros(2), np.zeros((2, 2))
-        return fe.mean[k], fe.cov[k]
+            return _ORIGIN
+        lists = self._lists
+        if lists is None or lists[0] is not fe:
+            lists = self._lists = (fe, fe.mean.tolist(), fe.cov.tolist())
+        return lists[1][k], lists[2][k]
+
+
+_ORIGIN = ([0.0, 0.0], [[0.0, 0.0], [0.0, 0.0]])
+"""The reference's position and covariance (:meth:`ConsistencyWatchdog._position`)."""
