@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 from relloc.estimate import covariance_of
 from relloc.events import pair_key
 from relloc.filter import compiled
-from relloc.filter.gauge import gauge, procrustes_fit
+from relloc.filter.gauge import gauge, gauge_planes, procrustes_fit
 from relloc.filter.measurement import MeasurementModel
 
 FloatArray = NDArray[np.float64]
@@ -291,7 +291,10 @@ def summarize(
     step = max(1, m // SUMMARY_SAMPLE)
     sub = np.arange(0, m, step)
     ws = _normalised(w if step == 1 else w[sub])
-    template = np.einsum("m,mkd->kd", ws, gauge(rel if step == 1 else rel[sub]))
+    x, y = planes[:k], planes[k : 2 * k]
+    template = np.einsum(
+        "m,mkd->kd", ws, gauge_planes(x, y) if step == 1 else gauge_planes(x[:, sub], y[:, sub])
+    )
     c, s, hand = procrustes_fit(planes, template)
     labels, mode_w = _modes(np.arctan2(s, c), hand, w)
     members = labels == 0 if mode_w else np.ones(m, dtype=bool)
