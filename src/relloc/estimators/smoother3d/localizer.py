@@ -9,7 +9,9 @@ Every ``STEP_PERIOD`` one ``Pose3`` key per robot (:class:`.graph.PoseWindow`) g
 * per tag pair ranged in the step, the median of its bias-corrected ranges, its noise
   undivided (a step's ranges share their error); in a team without odometry the step's keys
   are stamped at the median measurement time of its ranges (stamp minus ``uwb.range_delay``),
-  since nothing carries the motion past them;
+  since nothing carries the motion past them, and the next step comes once the newest range is
+  ``STEP_PERIOD`` past that stamp: with a delay near the period, at every batch of ranges
+  (about 10 Hz on ``drones_six``; a fixed 0.1 s was worse there: docs/explanation/flying.md);
 * per robot with heights in the step (:class:`~relloc.events.HeightEvent`), their median.
 
 **Start** (:mod:`.start`): level poses from the start window's ranges and heights, one
