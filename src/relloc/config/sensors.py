@@ -226,7 +226,7 @@ class UwbConfig(Checked):
     driver that averages its ranges (a LinkTrack set to 1 s averaging: 0.5), plus its latency.
     The 3D smoother places each range at its stamp minus this; the planar kinds, whose robots
     move a few cm in that time, read the stamp. ``relloc init`` measures it against motion
-    capture (:func:`relloc.drafting.tags.range_delay`)."""
+    capture (:func:`relloc.drafting.delay.range_delay`)."""
     pairs: dict[str, PairCalibration] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
