@@ -161,6 +161,11 @@ class WeightedFilter:
             idx = systematic_resample(w, self.rng, n)
             self.n = n
         self._select(idx)
+        self._finish_resample()
+
+    def _finish_resample(self) -> None:
+        """After the rows are drawn: a ``reinject_fraction`` of the slots re-drawn from the
+        prior box, equal weights, the count and the hook; every resampling path ends here."""
         slots = reinjection_slots(self.n, self.reinject_fraction, self.rng)
         if slots.size:
             self._reinject(slots, self.prior.sample(self.rng, slots.size, self.layout.n_others))

@@ -413,6 +413,13 @@ DRONE_TAG_ARMS: tuple[Arm, Arm] = ((0.15, 0.0, 0.05), (-0.15, 0.0, 0.05))
 centre (the same on every drone)."""
 
 
+def _phased(path: FlightPath, seed: int, robot: str) -> FlightPath:
+    """``path`` with ``robot``'s phases drawn from the seed (three axes and the yaw), as every
+    drone scenario draws them."""
+    phases = stream(seed, "flight", robot).uniform(0.0, 2.0 * math.pi, size=4)
+    return replace(path, phase=tuple(phases[:3].tolist()), phase_yaw=float(phases[3]))
+
+
 def drones_scenario(
     seed: int = 0,
     *,
@@ -438,13 +445,10 @@ def drones_scenario(
     drones = []
     for i, path in enumerate(DRONE_PATHS):
         robot = f"d{i}"
-        phases = stream(seed, "flight", robot).uniform(0.0, 2.0 * math.pi, size=4)
-        yaw0 = path.yaw0
+        flown = _phased(path, seed, robot)
         if heading_offsets == "random":
             yaw0 = float(stream(seed, "initial-yaw", robot).uniform(-math.pi, math.pi))
-        flown = replace(
-            path, phase=tuple(phases[:3].tolist()), phase_yaw=float(phases[3]), yaw0=yaw0
-        )
+            flown = replace(flown, yaw0=yaw0)
         tags = ((f"n_{i}a", DRONE_TAG_ARMS[0]), (f"n_{i}b", DRONE_TAG_ARMS[1]))
         drones.append(Drone(robot, flown, tags))
     return FlightSimulation(
@@ -505,8 +509,7 @@ def drones_six_scenario(
     drones = []
     for i, path in enumerate(DRONE_PATHS[:3]):
         robot = f"d{i}"
-        phases = stream(seed, "flight", robot).uniform(0.0, 2.0 * math.pi, size=4)
-        flown = replace(path, phase=tuple(phases[:3].tolist()), phase_yaw=float(phases[3]))
+        flown = _phased(path, seed, robot)
         tags = tuple((f"n_{i}{'abcdef'[k]}", arm) for k, arm in enumerate(SIX_TAG_ARMS))
         drones.append(Drone(robot, flown, tags))
     return FlightSimulation(

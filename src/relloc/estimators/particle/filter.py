@@ -39,7 +39,6 @@ from relloc.filter.resampling import (
     ess,
     log_normalize,
     mixture_moments,
-    reinjection_slots,
     renormalize_into,
     systematic_resample,
     systematic_take,
@@ -251,12 +250,7 @@ class ParticleFilter(WeightedFilter):
         out = np.empty_like(self.particles)
         systematic_take(self._exp_logw(), float(self.rng.random()), self.particles, out)
         self.particles = out
-        slots = reinjection_slots(self.n, self.reinject_fraction, self.rng)
-        if slots.size:
-            self._reinject(slots, self.prior.sample(self.rng, slots.size, self.layout.n_others))
-        self.logw = np.full(self.n, -math.log(self.n))
-        self.resample_count += 1
-        self._after_resample()
+        self._finish_resample()
 
     def _reinject(self, slots: IntArray, positions: FloatArray) -> None:
         self.particles[slots, : self.layout.dim] = positions
