@@ -13,14 +13,13 @@ from __future__ import annotations
 
 import json
 import signal
-import subprocess
 import sys
 import threading
 from pathlib import Path
 from typing import Any
 
 import pytest
-from processes import relloc
+from processes import relloc, write_sim_team
 from waiting import wait_until
 
 pytest.importorskip("foxglove")
@@ -179,12 +178,7 @@ def rate_of(got: list[tuple[float, Any]]) -> float:
 @pytest.mark.slow
 def test_a_client_sees_the_simulated_team_in_foxglove(tmp_path: Path) -> None:
     team = tmp_path / "team.toml"
-    made = subprocess.run(
-        [sys.executable, "-m", "relloc.cli", "sim-robots", "--scenario", "multi", "--config-only",
-         "--write-config", str(team), "--particles", "500"],
-        capture_output=True, text=True, cwd=REPO, timeout=60,
-    )  # fmt: skip
-    assert made.returncode == 0, made.stderr
+    write_sim_team(team)
     feed = ["sim-robots", "--scenario", "multi", "--config", str(team), "--rate", "2",
             "--duration", "15", "--no-ground-truth"]  # fmt: skip
     client, zenoh, summary = serve_with_viewer(tmp_path, team, feed, rate=2.0)

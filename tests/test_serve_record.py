@@ -11,8 +11,6 @@ from __future__ import annotations
 
 import json
 import signal
-import subprocess
-import sys
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -20,7 +18,7 @@ from typing import Any
 
 import numpy as np
 import pytest
-from processes import relloc
+from processes import relloc, write_sim_team
 from waiting import wait_until
 
 from relloc.config import TeamConfig
@@ -49,12 +47,7 @@ def test_serve_records_what_it_publishes_to_mcap(tmp_path: Path) -> None:
         tmp_path / "live.mcap",
         tmp_path / "serve.json",
     )
-    made = subprocess.run(
-        [sys.executable, "-m", "relloc.cli", "sim-robots", "--scenario", "multi", "--config-only",
-         "--write-config", str(team), "--particles", "500"],
-        capture_output=True, text=True, cwd=REPO, timeout=60,
-    )  # fmt: skip
-    assert made.returncode == 0, made.stderr
+    write_sim_team(team)
     config = TeamConfig.load(team)
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
