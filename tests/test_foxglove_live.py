@@ -269,6 +269,28 @@ def test_ground_truth_without_a_viewer_is_refused(capsys: pytest.CaptureFixture[
     assert "--foxglove" in capsys.readouterr().err
 
 
+def test_with_motion_capture_every_truth_channel_is_advertised_from_the_start() -> None:
+    """A client that connects before the first motion capture subscribes to the truth with
+    the rest (a channel made later could be missed by a client connecting meanwhile)."""
+    from relloc.live import LiveServer, ServeOptions
+
+    config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")
+    session = open_session(ZenohOptions(multicast=False))
+    server = LiveServer(
+        config, session, ServeOptions(foxglove="127.0.0.1:0", ground_truth=True, particles=100)
+    )
+    assert server.viewer is not None
+    client = FoxgloveClient("127.0.0.1", server.viewer.port, wanted=lambda topic: False)
+    try:
+        truths = {f"/relloc/{r}/truth" for r in config.others}
+        assert wait_until(lambda: truths <= client.topics(), timeout=30.0), client.topics()
+    finally:
+        client.close()
+        server.close()
+        session.close()
+    assert client.error is None
+
+
 def test_an_onboard_serve_advertises_its_teammates_below_its_name() -> None:
     from relloc.live import LiveServer, ServeOptions
 

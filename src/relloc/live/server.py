@@ -168,6 +168,7 @@ class LiveServer:
             self.viewer = FoxgloveSink(
                 config, opts.foxglove, prefix=out_prefix, method=opts.methods[0],
                 rate=opts.foxglove_rate, rejections=lambda: sum(first.rejected.values()),
+                truth=opts.ground_truth,
             )  # fmt: skip
             if not opts.robot:
                 self.engine.sinks.append(self.viewer)

@@ -19,7 +19,8 @@
   without the robots' names (``/relloc/flags.by_index[0].error_m``);
 * ``status`` (JSON): what the server publishes on Zenoh as its status;
 * ``<robot>/truth``: ``foxglove.PoseInFrame`` relative to the reference (world axes), advertised
-  on the first motion-capture pose;
+  from the start when the sink is told motion capture comes (``truth``): a channel made while a
+  client connects could miss it, and a client connected first would subscribe late;
 * ``truth_poses``: ``foxglove.PosesInFrame``, every robot's ``truth`` in one message; advertised
   from the start (so a layout can name it), silent without motion capture.
 
@@ -115,6 +116,7 @@ class FoxgloveSink:
         rate: float = 10.0,
         rejections: Callable[[], int] | None = None,
         clock: Callable[[], float] = time.monotonic,
+        truth: bool = False,
     ) -> None:
         foxglove = require_sdk()
         from foxglove.channels import (
@@ -146,7 +148,11 @@ class FoxgloveSink:
         self.status = foxglove.Channel(
             f"{self.prefix}/status", schema=STATUS_SCHEMA, context=self._context
         )
-        self.truths: dict[str, Any] = {}
+        self.truths: dict[str, Any] = {
+            r: PoseInFrameChannel(f"{self.prefix}/{r}/truth", context=self._context)
+            for r in (config.others if truth else ())
+        }
+        """Each robot's truth channel, made up front with ``truth`` (none without)."""
         self._truth: dict[str, GroundTruthEvent] = {}
         self._sent: dict[str, float] = {}
         self._ranges: dict[tuple[str, str], tuple[RangeEvent, bool]] = {}
@@ -194,19 +200,15 @@ class FoxgloveSink:
         self._ranges[(event.robot_a, event.robot_b)] = (event, False)
 
     def truth(self, event: GroundTruthEvent) -> None:
-        """A motion-capture pose (an engine truth sink)."""
-        from foxglove.channels import PoseInFrameChannel
-
+        """A motion-capture pose (an engine truth sink): kept for the errors and
+        ``truth_poses``, and on the robot's own channel where the sink was made with ``truth``."""
         self._truth[event.robot] = event
         if event.robot not in self.poses:
             return
-        channel = self.truths.get(event.robot)
-        if channel is None:
-            topic = f"{self.prefix}/{event.robot}/truth"
-            channel = self.truths[event.robot] = PoseInFrameChannel(topic, context=self._context)
         now = self._clock()
         relative = self._relative_truth(event.robot, event.t)
-        if relative is not None and self._due(channel, now):
+        channel = self.truths.get(event.robot)
+        if relative is not None and channel is not None and self._due(channel, now):
             channel.log(self._truth_pose(event, relative))
         if self._due(self.truth_poses, now):
             self.truth_poses.log(self._truth_poses(event.t))
