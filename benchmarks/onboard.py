@@ -16,19 +16,17 @@ drop, and from END s its retries (every 0.5 s) open them again: the serves never
 Measured, against the simulator's truth: per view (robot R's estimate of O, in R's body frame;
 estimates in the formation frame are skipped and counted) the median position error
 (``ape_median``) and the share of estimates whose 95 % ellipse holds the truth
-(``coverage95``), in a run without the partition (and in the run with it); each serve process's
-CPU (% of a core, after ``--settle`` s, from ``/proc``) and peak RSS, beside a bare Zenoh
-subscriber to the whole team's keys (callback that only counts) over the same minutes, with
-the part of it the robot's own publisher thread took (``publisher_cpu_percent``: encoding and
-putting its topics, a robot's drivers' work) and its RSS at the end split into its own memory
-and mapped files (``rss_anon_mb``, ``rss_file_mb``: shared libraries, resident once per host);
+(``coverage95``), with and without the partition; each serve process's CPU (% of a core, after
+``--settle`` s, from ``/proc``) and peak RSS beside a bare Zenoh subscriber to the team's keys
+over the same minutes, the part its robot's publisher thread took (``publisher_cpu_percent``)
+and its RSS at the end as own memory and mapped files (``rss_anon_mb``, ``rss_file_mb``);
 ``partition_shift_m``: the largest distance between a view of one uncut robot by another at the
-same stamp in the run with the partition and the run without it, the same seed, over the
-partition; ``recovery_s``: the first time after END from which, for ``RECOVERY_HOLD`` s, every
-view of the cut robot has its trailing 1 s median error within 0.02 m of the same view's median
-error in the run without the partition, minus END (``null``: never). The cut robot's ``hears``
-during the partition and the relays' byte counts show that the partition took. Live runs are
-not bit-repeatable (arrival order across processes), so part of the shift is run-to-run noise.
+same stamp in the runs with and without the partition (same seed) over the partition;
+``recovery_s``: the first time after END from which, for ``RECOVERY_HOLD`` s, every view of the
+cut robot has its trailing 1 s median error within 0.02 m of the same view's median error
+without the partition, minus END (``null``: never); the cut robot's ``hears`` show the cut took.
+Live runs are not bit-repeatable (arrival order across processes): ``--floor`` adds a second
+run without the partition, ``partition_shift_floor_m`` the same statistic between the two.
 """
 
 from __future__ import annotations
@@ -99,6 +97,8 @@ class Options:
     seed: int = 0
     settle: float = 5.0
     """CPU is measured from this many seconds after the first message."""
+    floor: bool = False
+    """With a partition, a second run without it: ``partition_shift_floor_m``."""
 
 
 def team(robots: int, seed: int, duration: float) -> tuple[Any, Any]:
@@ -678,6 +678,18 @@ def run(opts: Options, workdir: Path, say: Any = print) -> dict[str, Any]:
     )
     out["partition_shift_m"] = shift["max_m"]
     out["partition_shift"] = shift
+    if opts.floor:
+        say("a second run without the partition: what arrival order alone moves")
+        again = run_team(opts, None, False, workdir, "again")
+        floor = partition_shift(
+            {me: r["views"] for me, r in again["robots"].items()},
+            {me: r["views"] for me, r in base["robots"].items()},
+            p,
+        )
+        out["partition_shift_floor_m"] = floor["max_m"]
+        out["partition_shift_floor"] = floor
+        say(f"between two runs without it, over the same seconds: up to {floor['max_m']} m "
+            f"(median {floor['median_m']})")  # fmt: skip
     medians = {o: v["ape_median"] for o, v in out["views"][p.robot].items()}
     rec = recovery(sim, cut["robots"][p.robot]["views"], medians, p, opts.duration)
     out["recovery_s"] = rec["recovery_s"]
@@ -720,7 +732,7 @@ def main(argv: list[str] | None = None) -> int:
     if partition is not None and partition.end >= args.duration:
         print("onboard.py: the partition must end before the run does", file=sys.stderr)
         return 2
-    opts = Options(args.robots, args.duration, partition, args.seed, args.settle)
+    opts = Options(args.robots, args.duration, partition, args.seed, args.settle, args.floor)
     with tempfile.TemporaryDirectory(prefix="relloc-onboard-") as tmp:
         out = run(opts, Path(tmp))
     out["context"] = f"Python {sys.version.split()[0]}, {os.cpu_count()} CPUs"
@@ -737,6 +749,11 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--partition", default=None, metavar="ROBOT:START:END")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--settle", type=float, default=5.0, help="CPU measured after S s")
+    p.add_argument(
+        "--floor",
+        action="store_true",
+        help="with --partition: a second run without it, for partition_shift_floor_m",
+    )
     p.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE")
     p.add_argument("--robot-process", default=None, help=argparse.SUPPRESS)
     return p

@@ -55,7 +55,7 @@ def test_bad_partitions_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
 def test_three_onboard_serves_one_cut_off(tmp_path: Path) -> None:
     out = tmp_path / "onboard.json"
     assert bench.main(["--robots", "3", "--duration", "9", "--settle", "2",
-                       "--partition", "r1:2:6", "--json", str(out)]) == 0  # fmt: skip
+                       "--partition", "r1:2:6", "--floor", "--json", str(out)]) == 0  # fmt: skip
     d = json.loads(out.read_text())
     robots = {"r0", "r1", "r2"}
     assert set(d["views"]) == robots
@@ -75,4 +75,5 @@ def test_three_onboard_serves_one_cut_off(tmp_path: Path) -> None:
     assert "r0" not in p["hears_during"]["r1"]
     assert p["rejoined_after_s"] is not None and p["rejoined_after_s"] < 2.0
     assert d["partition_shift"]["n"] > 0 and d["partition_shift_m"] is not None
+    assert d["partition_shift_floor"]["n"] > 0 and d["partition_shift_floor_m"] >= 0.0
     assert "recovery_s" in d and "recovery" in d
