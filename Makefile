@@ -1,7 +1,8 @@
 # Two entry points a new user needs: `make demo` and `make test`. Each creates .venv and installs.
 # `make demo` installs relloc alone (no PyTorch); `make test` adds the dev tools and the training
 # extra (PyTorch), because the test suite trains small models; it checks lint, format and types
-# (mypy on src/, configured in pyproject.toml) before the tests.
+# (mypy on src/, configured in pyproject.toml) before the tests, which run on two workers
+# (pytest-xdist; `-p no:xdist` or `-n 0` runs them in one process).
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
@@ -42,7 +43,7 @@ test: setup-test
 	$(BIN)/ruff check src tests benchmarks examples scripts
 	$(BIN)/ruff format --check src tests benchmarks examples scripts
 	$(BIN)/mypy
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q -n 2 --dist worksteal
 
 # The documentation site: its own environment (relloc and the `docs` extra); the command, config
 # and Python API reference pages are generated at build time by the hook docs/gen_reference.py.
