@@ -99,15 +99,24 @@ class Options:
     """CPU is measured from this many seconds after the first message."""
     floor: bool = False
     """With a partition, a second run without it: ``partition_shift_floor_m``."""
+    kind: str = ""
+    """The filter kind every serve runs (``[filter] kind``; empty: the team config's)."""
+    reorder_window: float = 0.0
+    """Every serve's reorder window (s; ``relloc serve --reorder-window``)."""
 
 
-def team(robots: int, seed: int, duration: float) -> tuple[Any, Any]:
-    """The simulated team and the config its servers use."""
+def team(robots: int, seed: int, duration: float, kind: str = "") -> tuple[Any, Any]:
+    """The simulated team and the config its servers use (filter ``kind`` if given)."""
+    from dataclasses import replace
+
     from relloc.live.sim_robots import sim_team_config
     from relloc.simulator.scenarios import grid_scenario
 
     sim = grid_scenario(seed, robots=robots, duration=duration)
-    return sim, sim_team_config(sim)
+    config = sim_team_config(sim)
+    if kind:
+        config = replace(config, filter=replace(config.filter, kind=kind))
+    return sim, config
 
 
 def peer_config(listen: list[str], connect: list[str]) -> Any:
@@ -291,7 +300,7 @@ def robot_process(spec: dict[str, Any]) -> int:
 
     tune_malloc()
     me = spec["robot"]
-    sim, config = team(spec["robots"], spec["seed"], spec["duration"])
+    sim, config = team(spec["robots"], spec["seed"], spec["duration"], spec["kind"])
     own = [
         ev
         for ev in sim.events()
@@ -302,7 +311,13 @@ def robot_process(spec: dict[str, Any]) -> int:
     server = LiveServer(
         config,
         session,
-        ServeOptions(robot=me, seed=spec["seed"], status_period=STATUS_PERIOD, keep_estimates=50),
+        ServeOptions(
+            robot=me,
+            seed=spec["seed"],
+            status_period=STATUS_PERIOD,
+            keep_estimates=50,
+            reorder_window=spec["reorder_window"],
+        ),
     )
     time_base = [0.0]
     sent = [0]
@@ -484,6 +499,7 @@ def run_team(
         for me in names:
             spec = {
                 "robot": me, "robots": opts.robots, "seed": opts.seed, "duration": opts.duration,
+                "kind": opts.kind, "reorder_window": opts.reorder_window,
                 "listen": mesh.listen(me), "connect": mesh.connect(me),
                 "out": str(workdir / f"{tag}_{me}.json"),
             }  # fmt: skip
@@ -631,6 +647,8 @@ def run(opts: Options, workdir: Path, say: Any = print) -> dict[str, Any]:
     base_views = {me: score_views(sim, me, base["robots"][me]["views"]) for me in names}
     out: dict[str, Any] = {
         "scenario": f"grid, {opts.robots} robots, seed {opts.seed}",
+        "filter_kind": opts.kind or config.filter.kind,
+        "reorder_window_s": opts.reorder_window,
         "robots": opts.robots,
         "duration_s": opts.duration,
         "settle_s": opts.settle,
@@ -711,9 +729,14 @@ def _line(out: dict[str, Any]) -> str:
         for v in vs.values()
         if v["coverage95"] is not None
     ]
-    return (
+    views = (
         f"views: APE median {min(apes):.3f}-{max(apes):.3f} m, coverage95 "
-        f"{min(covs):.0%}-{max(covs):.0%}; serve CPU {out['cpu_percent']} % of a core, bare "
+        f"{min(covs):.0%}-{max(covs):.0%}"
+        if apes and covs
+        else "views: none in a body frame"
+    )
+    return (
+        f"{views}; serve CPU {out['cpu_percent']} % of a core, bare "
         f"{out['bare_cpu_percent']} % (of serve's, its process's publisher of the robot's own "
         f"topics {out['publisher_cpu_percent']} %); peak RSS {out['rss_mb']} MB (at the end "
         f"{out['rss_anon_mb']} own + {out['rss_file_mb']} mapped files)"
@@ -732,7 +755,10 @@ def main(argv: list[str] | None = None) -> int:
     if partition is not None and partition.end >= args.duration:
         print("onboard.py: the partition must end before the run does", file=sys.stderr)
         return 2
-    opts = Options(args.robots, args.duration, partition, args.seed, args.settle, args.floor)
+    opts = Options(
+        args.robots, args.duration, partition, args.seed, args.settle, args.floor, args.kind,
+        args.reorder_window,
+    )  # fmt: skip
     with tempfile.TemporaryDirectory(prefix="relloc-onboard-") as tmp:
         out = run(opts, Path(tmp))
     out["context"] = f"Python {sys.version.split()[0]}, {os.cpu_count()} CPUs"
@@ -753,6 +779,10 @@ def _parser() -> argparse.ArgumentParser:
         "--floor",
         action="store_true",
         help="with --partition: a second run without it, for partition_shift_floor_m",
+    )
+    p.add_argument("--kind", default="", help="the serves' filter kind (default: the config's)")
+    p.add_argument(
+        "--reorder-window", type=float, default=0.0, help="every serve's reorder window (s)"
     )
     p.add_argument("--json", dest="json_path", type=Path, default=None, metavar="FILE")
     p.add_argument("--robot-process", default=None, help=argparse.SUPPRESS)

@@ -52,6 +52,17 @@ def test_bad_partitions_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert "END" in capsys.readouterr().err
 
 
+def test_the_serves_filter_kind_and_reorder_window_are_options() -> None:
+    _, config = bench.team(3, 0, 5.0, "smoother")
+    assert config.filter.kind == "smoother"
+    assert bench.team(3, 0, 5.0)[1].filter.kind == "auto"  # the config's own
+    args = bench._parser().parse_args(["--kind", "smoother", "--reorder-window", "0.3"])
+    assert (args.kind, args.reorder_window) == ("smoother", 0.3)
+    out = {"views": {"r0": {}}, "cpu_percent": {}, "bare_cpu_percent": None}
+    out |= {"publisher_cpu_percent": {}, "rss_mb": {}, "rss_anon_mb": {}, "rss_file_mb": {}}
+    assert bench._line(out).startswith("views: none in a body frame")
+
+
 def test_three_onboard_serves_one_cut_off(tmp_path: Path) -> None:
     out = tmp_path / "onboard.json"
     assert bench.main(["--robots", "3", "--duration", "9", "--settle", "2",
