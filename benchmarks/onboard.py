@@ -45,6 +45,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, cast
@@ -255,12 +256,22 @@ class Mesh:
 class _Tap:
     """Stands in for the server's sink: passes everything on, keeps what the onboard view
     publishes (``[t, robot, frame_id, x, y, cxx, cxy, cyy, unseen_s]``) and each status
-    (``[time, hears, messages received, own messages published]``)."""
+    (``[time, hears, messages received, those of them on the robot's own keys]``: both counted
+    by the source, so their difference is exactly what came from the others).
+    ``received`` gives the source's messages by key; ``own_keys`` are the keys the robot
+    publishes on."""
 
-    def __init__(self, sink: Any, time_base: list[float], sent: list[int]) -> None:
+    def __init__(
+        self,
+        sink: Any,
+        time_base: list[float],
+        received: Callable[[], dict[str, int]],
+        own_keys: set[str],
+    ) -> None:
         self._sink = sink
         self._time_base = time_base
-        self._sent = sent
+        self._received = received
+        self._own_keys = own_keys
         self.views: list[list[Any]] = []
         self.statuses: list[list[Any]] = []
 
@@ -280,9 +291,8 @@ class _Tap:
 
     def publish_status(self, status: dict[str, Any]) -> None:
         self._sink.publish_status(status)
-        self.statuses.append(
-            [status["time"], status["hears"], status["source"]["messages"], self._sent[0]]
-        )
+        own = sum(n for key, n in self._received().items() if key in self._own_keys)
+        self.statuses.append([status["time"], status["hears"], status["source"]["messages"], own])
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self._sink, name)
@@ -321,7 +331,8 @@ def robot_process(spec: dict[str, Any]) -> int:
     )
     time_base = [0.0]
     sent = [0]
-    tap = _Tap(server.sink, time_base, sent)
+    own_keys: set[str] = set()  # added to before a message goes out on one
+    tap = _Tap(server.sink, time_base, lambda: dict(server.source.stats.messages), own_keys)
     server.sink = cast(ZenohSink, tap)
     pubs = Publishers(session, node=f"{me}_robot")
     encoder = EventEncoder(config)
@@ -335,6 +346,7 @@ def robot_process(spec: dict[str, Any]) -> int:
                 return
             out = encoder.encode(ev, time_base[0])
             if out is not None:
+                own_keys.add(out[0].topic_key)
                 pubs.put(*out)
                 sent[0] += 1
             now = time.time()

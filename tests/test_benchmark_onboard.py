@@ -52,6 +52,35 @@ def test_bad_partitions_are_refused(capsys: pytest.CaptureFixture[str]) -> None:
     assert "END" in capsys.readouterr().err
 
 
+def test_own_messages_in_flight_are_not_counted_as_heard_from_others() -> None:
+    """The cut robot's foreign messages: both counts of a status come from its source, so one
+    of its own messages published but not yet received (under load) never counts as -1."""
+
+    class Sink:
+        def publish_status(self, status: dict[str, object]) -> None:
+            pass
+
+    received = {"r1/odom": 10, "uwb/r1/r2": 4}
+    own_keys = {"r1/odom", "uwb/r1/r2"}
+    tap = bench._Tap(Sink(), [0.0], lambda: dict(received), own_keys)
+    status = {"time": 10.0, "hears": ["r1", "r2"], "source": {"messages": 14}}
+    tap.publish_status(status)
+    own_keys.add("r1/cmd")  # a key published on, its message still on its way
+    received["r1/odom"] += 1
+    tap.publish_status(status | {"time": 11.0, "source": {"messages": 15}})
+    result = {"partition": {"cut_at_s": 5.0, "healed_at_s": 20.0}}
+    bench._partition_checks(
+        result, {"r1": {"statuses": tap.statuses}}, bench.Partition("r1", 5.0, 20.0), 0.0
+    )
+    assert result["partition"]["cut_robot_foreign_messages_during"] == 0
+    received["r0/odom"] = 1  # one message from another robot
+    tap.publish_status(status | {"time": 12.0, "source": {"messages": 16}})
+    bench._partition_checks(
+        result, {"r1": {"statuses": tap.statuses}}, bench.Partition("r1", 5.0, 20.0), 0.0
+    )
+    assert result["partition"]["cut_robot_foreign_messages_during"] == 1
+
+
 def test_the_serves_filter_kind_and_reorder_window_are_options() -> None:
     _, config = bench.team(3, 0, 5.0, "smoother")
     assert config.filter.kind == "smoother"
