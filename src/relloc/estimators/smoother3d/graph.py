@@ -9,7 +9,12 @@ zero within ``LEVEL_SIGMA``, so a key has four free coordinates, the 4-DoF state
 * **Motion**: per robot its odometry's displacement in its own body frame and its turn
   (:class:`Motion`), the turn less a constant gyro bias (a ``Vector1`` key per robot with
   odometry, kept in the window like the biases: a gyro's bias turns the whole formation in the
-  robot's view); without odometry a random walk (a native ``BetweenFactorPose3``).
+  robot's view); without odometry a random walk (a native ``BetweenFactorPose3``), and for a
+  robot with no odometry at all (``blind``), on every three consecutive keys, a constant
+  velocity: the change of the mean velocity and yaw rate between the two steps, of variance
+  ``q (dt1 + dt2) / 3`` for a white acceleration of density ``q`` (``CV_ACCELERATION``,
+  ``CV_YAW_ACCELERATION``): what pools a drone's ranges over seconds where nothing measures
+  its motion.
 * **Ranges**: per tag pair ranged in the step one Huber-robust factor
   ``|X_a arm_a - X_b arm_b| + b - z`` between the two tags (a Python ``CustomFactor``: GTSAM's
   ``RangeFactorWithTransform`` carries one lever arm, a tag pair has two), the pair's online
@@ -52,6 +57,10 @@ RESTAMP_FRACTION = 0.4
 """The constant keys (biases, offsets, gyro biases) are re-stamped every this fraction of the
 lag, so that the lag never marginalises them; not every step: a re-stamp makes iSAM2 re-order
 and re-eliminate the window (every step: four times slower)."""
+CV_ACCELERATION = 0.5
+"""Density (m^2/s^3 per axis) of the white acceleration of a robot without odometry."""
+CV_YAW_ACCELERATION = 0.05
+"""Density (rad^2/s^3) of the white yaw acceleration of a robot without odometry."""
 GYRO_BIAS_SIGMA = 0.003
 """Std (rad/s) of the prior of a robot's gyro bias (0.17 deg/s): a flight controller's gyro
 after its start-up calibration, or a VIO's yaw drift. A broader prior lets the reference's yaw
@@ -177,6 +186,35 @@ def _odometry(delta: FloatArray, dt: float) -> Error:
     return error
 
 
+def _constant_velocity(dt1: float, dt2: float) -> Error:
+    """The error of a robot's three consecutive keys ``(X_0, X_1, X_2)`` under a constant
+    velocity: the change of its mean velocity and yaw rate between the two steps,
+    ``(t_2 - t_1) / dt2 - (t_1 - t_0) / dt1`` (world axes) and the same of the yaw. A right
+    perturbation ``[w, v]`` of a level key moves its translation by ``R v`` and its yaw by
+    ``w_z``."""
+    yaw_row = np.array([0.0, 0.0, 1.0, 0.0, 0.0, 0.0])
+
+    def error(
+        factor: gtsam.CustomFactor, values: gtsam.Values, jacobians: list[FloatArray] | None
+    ) -> FloatArray:
+        keys = factor.keys()
+        poses = [values.atPose3(k) for k in keys]
+        t0, t1, t2 = (p.translation() for p in poses)
+        y0, y1, y2 = (p.rotation().yaw() for p in poses)
+        out = np.empty(4)
+        out[:3] = (t2 - t1) / dt2 - (t1 - t0) / dt1
+        out[3] = math.remainder(y2 - y1, math.tau) / dt2 - math.remainder(y1 - y0, math.tau) / dt1
+        if jacobians is not None:
+            for j, scale in enumerate((1.0 / dt1, -1.0 / dt1 - 1.0 / dt2, 1.0 / dt2)):
+                jac = np.zeros((4, 6))
+                jac[:3, 3:] = scale * poses[j].rotation().matrix()
+                jac[3] = scale * yaw_row
+                jacobians[j] = jac
+        return out
+
+    return error
+
+
 def _height(h: float) -> Error:
     """The error of a height ``h`` of key ``X``: ``z(X) - h``."""
 
@@ -191,6 +229,15 @@ def _height(h: float) -> Error:
     return error
 
 
+def _cv_noise(dt1: float, dt2: float) -> gtsam.noiseModel.Base:
+    """The constant-velocity factor's noise: white acceleration of density ``CV_ACCELERATION``
+    (``CV_YAW_ACCELERATION``) changes two adjacent steps' mean velocities by a variance of
+    ``q (dt1 + dt2) / 3``."""
+    span = (dt1 + dt2) / 3.0
+    q = np.array([CV_ACCELERATION] * 3 + [CV_YAW_ACCELERATION])
+    return gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(q * span))
+
+
 class PoseWindow:
     """A fixed-lag smoother of ``n`` robots' level poses, ``reference`` the pinned one (module
     docstring)."""
@@ -202,15 +249,21 @@ class PoseWindow:
         lag: float,
         biases: BiasPrior | None,
         gyros: NDArray[np.bool_] | None = None,
+        *,
+        blind: NDArray[np.bool_] | None = None,
     ) -> None:
         """``gyros``: which robots' odometry turns carry a gyro bias to estimate (none by
-        default)."""
+        default); ``blind``: which robots have no odometry at all, whose keys a constant
+        velocity ties (none by default; not a robot with odometry whose yaw is still sought)."""
         self.n = n
         self.reference = reference
         self.others = np.array([i for i in range(n) if i != reference], dtype=np.intp)
         self.smoother = gtsam.IncrementalFixedLagSmoother(lag)
         self.step = -1
         self._lag = lag
+        self.blind = np.zeros(n, bool) if blind is None else np.asarray(blind, bool)
+        self._last_dt = 0.0
+        """The previous step's length (s): the constant-velocity factors' first interval."""
         self._stamped = -np.inf
         self.prior = biases
         self.bias_mean = np.zeros(0) if biases is None else biases.mean
@@ -267,6 +320,7 @@ class PoseWindow:
             values.insert(key, np.zeros(1))
             stamps.insert((key, self._stamp(t)))
         self._stamped = t
+        self._last_dt = 0.0
         self._measurements(graph, keys, ranges, heights)
         self._update(graph, values, stamps)
 
@@ -296,6 +350,15 @@ class PoseWindow:
                 graph.add(gtsam.BetweenFactorPose3(prev[i], new[i], delta, noise))
             values.insert(new[i], pose_of(self.poses[i]).compose(delta))
             stamps.insert((new[i], self._stamp(t)))
+            if self.blind[i] and self.step >= 2 and self._last_dt > 0.0 < motion.dt:
+                graph.add(
+                    gtsam.CustomFactor(
+                        _cv_noise(self._last_dt, motion.dt),
+                        [self.keys(self.step - 2)[i], prev[i], new[i]],
+                        _constant_velocity(self._last_dt, motion.dt),
+                    )
+                )
+        self._last_dt = motion.dt
         if t - self._stamped >= RESTAMP_FRACTION * self._lag:  # constant keys kept in the lag
             for key in [*self.bias_keys, *self.offset_keys, *self.gyro_keys.values()]:
                 stamps.insert((key, self._stamp(t)))

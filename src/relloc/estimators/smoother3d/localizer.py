@@ -5,7 +5,8 @@ Every ``STEP_PERIOD`` one ``Pose3`` key per robot (:class:`.graph.PoseWindow`) g
 
 * its odometry since the last step (pose messages in the robot's own frame, with their z) as
   a displacement in its body frame and a turn, with stds that grow with the motion; without
-  odometry a random walk of ``UNKNOWN_SPEED`` and ``UNKNOWN_TURN_RATE``;
+  odometry a random walk of ``UNKNOWN_SPEED`` and ``UNKNOWN_TURN_RATE`` and, over its last
+  three keys, a constant velocity (:mod:`.graph`);
 * per tag pair ranged in the step, the median of its bias-corrected ranges, its noise
   undivided (a step's ranges share their error); in a team without odometry the step's keys
   are stamped at the median measurement time of its ranges (stamp minus ``uwb.range_delay``),
@@ -257,7 +258,9 @@ class PoseSmootherLocalizer(Localizer):
         gyros = None if self._finding else self._gyros
         self.hypotheses = []
         for m in range(poses.shape[0]):
-            window = PoseWindow(len(self._names), self._ref, LAG, self._prior, gyros)
+            window = PoseWindow(
+                len(self._names), self._ref, LAG, self._prior, gyros, blind=~self._gyros
+            )
             window.start(t, poses[m], sigma[m], ranges=terms, heights=heights)
             self.hypotheses.append(window)
 
