@@ -78,10 +78,37 @@ def test_a_kernel_runs_as_written_while_the_compiled_step_is_off(
 
 
 def test_chosen_restores_the_switch() -> None:
-    before = compiled.ENABLED
+    before = compiled.enabled()
     with compiled.chosen(False):
-        assert not compiled.ENABLED
-    assert before == compiled.ENABLED
+        assert not compiled.enabled()
+    assert before == compiled.enabled()
+
+
+def test_a_choice_stays_in_its_thread_and_ends_out_of_order_as_it_began() -> None:
+    """Two servers of one process end in the other order than they began: neither's choice
+    reaches the other thread, and the switch is as it was after both (it was left off, and an
+    offline run afterwards, or a server's ``compiled=compiled.ENABLED``, took the other step)."""
+    import threading
+
+    before, seen = compiled.ENABLED, []
+    entered, release = threading.Event(), threading.Event()
+
+    def server() -> None:
+        with compiled.chosen(False):
+            seen.append(compiled.enabled())
+            entered.set()
+            release.wait(5.0)
+
+    thread = threading.Thread(target=server)
+    thread.start()
+    assert entered.wait(5.0)
+    with compiled.chosen(True):  # the second server begins, then the first one ends
+        mine = compiled.enabled()
+        assert before == compiled.ENABLED
+        release.set()
+        thread.join(5.0)
+        assert compiled.enabled() == mine
+    assert seen == [False] and before == compiled.ENABLED == compiled.enabled()
 
 
 @pytest.mark.parametrize(

@@ -51,7 +51,7 @@ class LazyKernel:
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         if self.dispatcher is None:
-            if not ENABLED:
+            if not enabled():
                 return self.py_func(*args, **kwargs)
             compile_all()
         return self.dispatcher(*args, **kwargs)
@@ -106,19 +106,26 @@ def serve_default() -> bool:
     return AVAILABLE and os.environ.get("RELLOC_COMPILED") == "1"
 
 
+_CHOICE = threading.local()
+"""This thread's choice while in :func:`chosen` (``value``), else none."""
+
+
 @contextmanager
 def chosen(compiled: bool) -> Iterator[None]:
-    """:data:`ENABLED` set to ``compiled`` (never where numba is missing or ``RELLOC_COMPILED=0``)
-    for the block, and restored after it: a serve's choice does not outlive its run."""
-    global ENABLED
-    previous = ENABLED
-    ENABLED = compiled and AVAILABLE and os.environ.get("RELLOC_COMPILED", "1") != "0"
+    """The step set to ``compiled`` (never where numba is missing or ``RELLOC_COMPILED=0``) for
+    the block, in this thread only, and restored after it: a serve's choice does not outlive its
+    run, nor reaches another thread (servers of one process, an offline run beside them), and
+    :data:`ENABLED` is left as it is."""
+    previous = getattr(_CHOICE, "value", None)
+    _CHOICE.value = compiled and AVAILABLE and os.environ.get("RELLOC_COMPILED", "1") != "0"
     try:
         yield
     finally:
-        ENABLED = previous
+        _CHOICE.value = previous
 
 
 def enabled() -> bool:
-    """:data:`ENABLED`, as it is now."""
-    return ENABLED
+    """Whether the step takes its compiled passes in this thread: its :func:`chosen` block's
+    choice, else :data:`ENABLED` as it is now (read on every step)."""
+    value = getattr(_CHOICE, "value", None)
+    return ENABLED if value is None else bool(value)

@@ -73,12 +73,12 @@ class OdometryMotion:
         """Move the position columns of ``particles`` (``(M, D)``, ``D >= 2(N-1)``: online-bias
         columns may follow; in place); ``others`` indexes disp/sigma rows.
 
-        Compiled (:data:`relloc.filter.compiled.ENABLED`): one pass (module docstring), per
+        Compiled (:func:`relloc.filter.compiled.enabled`): one pass (module docstring), per
         particle the reference's shared draw, then each relative position's own; one word of
         ``rng``'s bit generator seeds it per call. NumPy: the noise drawn from ``rng`` into
         ``work`` (an ``(M, N-1, 2)`` buffer reused from step to step), then added."""
         own = np.sqrt(self.own_variance(sigma, others, dt))
-        if not compiled.ENABLED:
+        if not compiled.enabled():
             self._propagate_numpy(particles, others, reference, disp, sigma, own, rng, work)
             return
         if particles.dtype != np.float64 or particles.strides[1] != particles.itemsize:

@@ -167,7 +167,7 @@ class ParticleFilter(WeightedFilter):
     def predict(self, disp: FloatArray, sigma: FloatArray, dt: float) -> None:
         """Move particles by every robot's displacement ``disp`` (N, 2) with std ``sigma`` (N,),
         turn each formation by ``rotation_noise`` and walk the online bias beliefs."""
-        if not compiled.ENABLED:
+        if not compiled.enabled():
             m, k = self.particles.shape[0], self.layout.n_others
             if self._noise.shape != (m, k, 2):
                 self._noise = np.empty((m, k, 2))
@@ -187,7 +187,7 @@ class ParticleFilter(WeightedFilter):
         if not models:
             return True
         self.evidence.fused(models)
-        if compiled.ENABLED and all(
+        if compiled.enabled() and all(
             isinstance(model, RangeBatch) and model.fused for model in models
         ):
             return self._update_fused(models)  # type: ignore[arg-type]
@@ -244,7 +244,7 @@ class ParticleFilter(WeightedFilter):
         """:meth:`WeightedFilter.resample`; at a fixed count the systematic draw copies the
         rows in one compiled pass (:func:`~relloc.filter.resampling.systematic_take`, the same
         draw from the same uniform) instead of building the indices first."""
-        if self.count_rule is not None or not compiled.ENABLED:
+        if self.count_rule is not None or not compiled.enabled():
             super().resample()
             return
         out = np.empty_like(self.particles)
@@ -372,7 +372,7 @@ class ParticleFilter(WeightedFilter):
         (:class:`~relloc.filter.summary.DeferredSummary`): a step nobody publishes skips them."""
         w = self._exp_logw()
         m = self.particles.shape[0]
-        if compiled.ENABLED:
+        if compiled.enabled():
             summary = summarize_particles(
                 self.particles,
                 self.layout.n_others,
