@@ -102,7 +102,14 @@ def test_simulated_team_served_over_zenoh(sessions: tuple[Any, Any]) -> None:
     # The last estimate (its poses, shape and trace) and the final status are published as the
     # server ends: everything it published is waited for before anything is undeclared (a
     # loaded machine is slow), so that the counts below do not depend on timing.
-    assert wait_until(lambda: len(collector.estimates()) >= len(own), timeout=20.0)
+    # every robot's pose of the last estimate too: each is a message of its own
+    assert wait_until(
+        lambda: (
+            len(got := collector.estimates()) >= len(own)
+            and got[-1].positions.keys() == set(config.others)
+        ),
+        timeout=20.0,
+    )
     assert wait_until(
         lambda: len(shapes) == len(own) and len(collector.traces()) == len(own), timeout=20.0
     )
