@@ -18,18 +18,13 @@ def gauge(rel: FloatArray) -> FloatArray:
     """Formations ``(M, K, 2)`` in the declared gauge: robot 0 on the +x axis, robot 1 (if any)
     on the +y side. Deterministic; a formation with robot 0 at the reference keeps its angle."""
     rel = np.asarray(rel, float)
-    ang = np.arctan2(rel[:, 0, 1], rel[:, 0, 0])
-    out = _rotate(rel, -ang)
-    if rel.shape[1] > 1:
-        # the mirrored ones' y negated: a product by -1 or 1 (exact), not a masked copy
-        out[:, :, 1] *= np.where(out[:, 1, 1] < 0.0, -1.0, 1.0)[:, None]
-    return out
+    return gauge_planes(rel[:, :, 0].T, rel[:, :, 1].T)
 
 
 def gauge_planes(x: FloatArray, y: FloatArray) -> FloatArray:
     """:func:`gauge` of the formations whose coordinates are the planes ``x`` and ``y``
-    ``(K, M)`` (robot ``k``'s of every formation in row ``k``), as ``(M, K, 2)``: the same
-    operations on contiguous rows, to the same bits, instead of on strided columns."""
+    ``(K, M)`` (robot ``k``'s of every formation in row ``k``), as ``(M, K, 2)``: turned by
+    minus robot 0's angle, then the mirrored ones' y negated (a product by -1 or 1, exact)."""
     k, m = x.shape
     ang = np.arctan2(y[0], x[0])
     theta = -ang
@@ -42,15 +37,6 @@ def gauge_planes(x: FloatArray, y: FloatArray) -> FloatArray:
         gy *= np.where(gy[1] < 0.0, -1.0, 1.0)
     out = np.empty((m, k, 2))
     out[:, :, 0], out[:, :, 1] = gx.T, gy.T
-    return out
-
-
-def _rotate(rel: FloatArray, theta: FloatArray) -> FloatArray:
-    c, s = np.cos(theta)[:, None], np.sin(theta)[:, None]
-    x, y = rel[:, :, 0], rel[:, :, 1]
-    out = np.empty(rel.shape)
-    out[:, :, 0] = c * x - s * y
-    out[:, :, 1] = s * x + c * y
     return out
 
 
