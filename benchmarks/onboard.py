@@ -46,7 +46,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, cast
 
@@ -108,8 +108,6 @@ class Options:
 
 def team(robots: int, seed: int, duration: float, kind: str = "") -> tuple[Any, Any]:
     """The simulated team and the config its servers use (filter ``kind`` if given)."""
-    from dataclasses import replace
-
     from relloc.live.sim_robots import sim_team_config
     from relloc.simulator.scenarios import grid_scenario
 
@@ -701,21 +699,13 @@ def run(opts: Options, workdir: Path, say: Any = print) -> dict[str, Any]:
     out["cpu_percent_partitioned"] = cut["cpu_percent"]
     out["rss_mb_partitioned"] = cut["rss_mb"]
     out["partition"] = cut["partition"]
-    shift = partition_shift(
-        {me: r["views"] for me, r in cut["robots"].items()},
-        {me: r["views"] for me, r in base["robots"].items()},
-        p,
-    )
+    shift = partition_shift(_views(cut), _views(base), p)
     out["partition_shift_m"] = shift["max_m"]
     out["partition_shift"] = shift
     if opts.floor:
         say("a second run without the partition: what arrival order alone moves")
         again = run_team(opts, None, False, workdir, "again")
-        floor = partition_shift(
-            {me: r["views"] for me, r in again["robots"].items()},
-            {me: r["views"] for me, r in base["robots"].items()},
-            p,
-        )
+        floor = partition_shift(_views(again), _views(base), p)
         out["partition_shift_floor_m"] = floor["max_m"]
         out["partition_shift_floor"] = floor
         say(f"between two runs without it, over the same seconds: up to {floor['max_m']} m "
@@ -731,6 +721,11 @@ def run(opts: Options, workdir: Path, say: Any = print) -> dict[str, Any]:
         f"{p.robot}'s views back after {out['recovery_s']} s"
     )
     return out
+
+
+def _views(team_run: dict[str, Any]) -> dict[str, list[list[Any]]]:
+    """Each robot's view rows in a :func:`run_team` result."""
+    return {me: r["views"] for me, r in team_run["robots"].items()}
 
 
 def _line(out: dict[str, Any]) -> str:
