@@ -100,6 +100,9 @@ MOTION_TO_PRUNE = 2.0
 enough for a turn of the formation to show against the pair biases' prior."""
 RESTART_WINDOW = 2.0
 """Seconds of ranges a restart builds its start from."""
+CHOOSE_PERIOD = 1.0
+"""Seconds between choices of the hypothesis published while several are kept (their graphs'
+errors cost about as much as their steps)."""
 
 
 class PoseSmootherLocalizer(Localizer):
@@ -135,6 +138,8 @@ class PoseSmootherLocalizer(Localizer):
         self._chiral = chiral(np.zeros(int(mine.sum()), np.intp), self._arms[mine])
         """Whether the reference's own tags tell the formation from its mirror image."""
         self.hypotheses: list[PoseWindow] = []
+        self._published: tuple[PoseWindow, float] | None = None
+        """The hypothesis published while several are kept, and when it was chosen."""
         self.initialized = False
         self.t = math.nan
         self._t_start = math.nan
@@ -526,8 +531,21 @@ class PoseSmootherLocalizer(Localizer):
         return Motion(delta, sigma, measured, dt)
 
     # ---------------------------------------------------------------- the estimate
+    def _best(self, t: float) -> PoseWindow:
+        """The hypothesis to publish: while several are kept, the one whose graph fits the
+        measurements best (least cost), chosen again every ``CHOOSE_PERIOD``."""
+        if len(self.hypotheses) == 1:
+            return self.hypotheses[0]
+        if self._published is not None:
+            window, chosen = self._published
+            if any(h is window for h in self.hypotheses) and t - chosen < CHOOSE_PERIOD:
+                return window
+        best = min(self.hypotheses, key=lambda h: h.cost())
+        self._published = (best, t)
+        return best
+
     def _estimate(self, t: float) -> Estimate:
-        best = self.hypotheses[0]
+        best = self._best(t)
         rel, cov, yaw_var = best.relative()
         others = self.layout.others
         positions = {r: position_of(rel[k, :3]) for k, r in enumerate(others)}
