@@ -21,7 +21,7 @@ from relloc.estimators.smoother.localizer import SmootherLocalizer
 from relloc.evaluation.aligned_scores import RunAlignedResult
 from relloc.evaluation.metrics import GroundTruth, after, align
 from relloc.evaluation.report import MethodReport, evaluate
-from relloc.events import Event, OdometryEvent, RangeEvent
+from relloc.events import Event, GroundTruthEvent, OdometryEvent, RangeEvent
 from relloc.filter.factors import RangeTerms
 from relloc.methods import build_pipeline, filter_kind
 from relloc.simulator import multi_scenario
@@ -173,6 +173,25 @@ def test_the_smoothed_run_is_its_own_row_and_no_worse_than_the_causal_one(odomet
         localizer.smoothed_estimates() is not localizer.smoothed_estimates()
     )  # a copy of the cache
     assert SmootherLocalizer(pipelines[0].localizer.config).smoothed_estimates() == []
+
+
+def test_a_served_smoother_keeps_nothing_to_smooth_and_estimates_the_same() -> None:
+    """A live server's smoother (``keeps_run`` off) records no factor for a whole-run batch
+    (its memory stays bounded) and publishes exactly what a recording one does."""
+    sim = multi_scenario(seed=0, duration=8.0)
+    config = sim.config.with_filter(kind="smoother")
+    events = [e for e in sim.events() if not isinstance(e, GroundTruthEvent)]
+    runs = []
+    for keeps in (True, False):
+        pipeline = build_pipeline("pf", config)
+        pipeline.localizer.keeps_run = keeps
+        Engine([pipeline]).run(iter(events))
+        runs.append(pipeline)
+    kept, served = (p.localizer for p in runs)
+    assert isinstance(kept, SmootherLocalizer) and isinstance(served, SmootherLocalizer)
+    assert kept.smoothed_estimates() and served.smoothed_estimates() == []
+    assert kept.hypotheses[0].graphs and not served.hypotheses[0].graphs
+    assert [e.positions for e in runs[0].estimates] == [e.positions for e in runs[1].estimates]
 
 
 def test_relloc_run_writes_the_smoothed_row(tmp_path: Path) -> None:

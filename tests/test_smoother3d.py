@@ -141,13 +141,14 @@ def test_auto_flies_the_drones_and_the_planar_kinds_refuse_them() -> None:
         build_pipeline("multilateration", config)
 
 
-def _run(sim_factory, seed: int, duration: float):
+def _run(sim_factory, seed: int, duration: float, keeps_run: bool = True):
     """The scenario's run with online biases and no calibration (as ``relloc demo --bias
     online`` runs it)."""
     sim = sim_factory(seed, duration=duration)
     uncalibrated = dataclasses.replace(sim.config.uwb, pairs={})
     config = dataclasses.replace(sim.config, uwb=uncalibrated).with_modes(bias="online")
     loc = PoseSmootherLocalizer(config, seed=seed)
+    loc.keeps_run = keeps_run
     truth: dict[str, list[tuple[float, np.ndarray, float]]] = {}
     estimates = []
     for ev in sim.events():
@@ -213,6 +214,13 @@ def test_heights_are_validated_and_counted() -> None:
     assert loc.rejected == {"unknown_robot": 1, "invalid_height": 2}
 
 
+def test_a_served_run_keeps_nothing_to_smooth() -> None:
+    """A live server's localizer (``keeps_run`` off) publishes as before and holds no
+    smoothed run: its memory stays bounded."""
+    _, loc, estimates, _ = _run(drones_uwb_scenario, 0, 8.0, keeps_run=False)
+    assert estimates and loc.smoothed_estimates() == [] and not loc._unsmoothed
+
+
 def test_ranges_alone_leave_the_orientation_unobservable() -> None:
     """Two tags a drone and no odometry: ranges never tell the formation from its mirror
     image, and the estimate says so."""
@@ -226,7 +234,7 @@ def test_six_tags_a_drone_without_odometry_tell_the_orientation() -> None:
     before their stamps (the config's ``uwb.range_delay``), hypotheses kept 15 s and a
     constant velocity between keys: 0.35 / 0.29 m and 3.0 / 3.1 deg median (a random walk
     alone: 0.42 / 0.35 m and 4.6 / 3.6 deg; docs/explanation/flying.md)."""
-    sim, _, estimates, truth = _run(drones_six_scenario, 0, 30.0)
+    sim, loc, estimates, truth = _run(drones_six_scenario, 0, 30.0)
     assert sim.config.uwb.range_delay == 0.5
     assert estimates[-1].orientation_observable
     errors = _body_errors(estimates, truth, sim.config.reference, 10.0)
@@ -241,3 +249,11 @@ def test_six_tags_a_drone_without_odometry_tell_the_orientation() -> None:
     early = _body_errors(undecided, truth, sim.config.reference, 5.0)
     for robot, (ape, _, _) in early.items():
         assert np.median(ape) < 0.6, robot
+    # the run smoothed at a fixed lag: each step as the window saw it SMOOTH_DELAY later
+    smoothed = loc.smoothed_estimates()
+    assert [e.t for e in smoothed] == [e.t for e in estimates]
+    better = _body_errors(smoothed, truth, sim.config.reference, 10.0)
+    for robot, (ape, yaw, covered) in better.items():
+        assert np.median(ape) < 0.8 * np.median(errors[robot][0]), robot
+        assert np.median(yaw) < np.median(errors[robot][1]), robot
+        assert np.mean(covered) > 0.9, robot

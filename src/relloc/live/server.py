@@ -115,6 +115,8 @@ class LiveServer:
         self.pipelines: list[Pipeline] = [
             build_pipeline(m, config, seed=opts.seed, models=opts.models) for m in opts.methods
         ]
+        for p in self.pipelines:  # nothing smooths a served run afterwards: bounded memory
+            p.localizer.keeps_run = False
         self.source = ZenohSource(
             config,
             ZenohSourceOptions(

@@ -82,6 +82,9 @@ class Localizer:
         self.shape_wanted = True
         """Whether the estimates' consumers read their shape and distances (a live server sets
         it from whether anyone subscribes to its shape key); False leaves them out, uncomputed."""
+        self.keeps_run = True
+        """Whether a localizer that can smooth the whole run afterwards keeps what that needs
+        (a live server sets it False: its memory stays bounded)."""
         self.stats: Counter[str] = Counter()
         self.last_estimate: Estimate | None = None
         self.clock = TeamClock()

@@ -162,8 +162,11 @@ class GraphSmoother:
         reference: int,
         lag: float,
         biases: BiasPrior | None = None,
+        record: bool = True,
     ) -> None:
-        """``biases``: the prior of the online biases (none by default)."""
+        """``biases``: the prior of the online biases (none by default); ``record``: keep
+        every factor and key for :meth:`batch` (a live server's window keeps none)."""
+        self.record = record
         self.n = n
         self.reference = reference
         self.others = np.array([i for i in range(n) if i != reference], dtype=np.intp)
@@ -327,12 +330,13 @@ class GraphSmoother:
     ) -> None:
         self.smoother.update(graph, values, stamps)
         self.factors_added += graph.size()
-        self.graphs.append(graph)
         self._joint = None
         self._estimate = est = self.smoother.calculateEstimate()
-        for key in list(est.keys()):  # a gtsam.Values, not a dict
-            vector = gtsam.Symbol(key).chr() in (BIAS_CHR, OFFSET_CHR)
-            self.values[key] = est.atVector(key) if vector else est.atPoint2(key)
+        if self.record:
+            self.graphs.append(graph)
+            for key in list(est.keys()):  # a gtsam.Values, not a dict
+                vector = gtsam.Symbol(key).chr() in (BIAS_CHR, OFFSET_CHR)
+                self.values[key] = est.atVector(key) if vector else est.atPoint2(key)
         self.positions = np.array([est.atPoint2(key) for key in self.keys()], float).reshape(
             self.n, 2
         )

@@ -301,7 +301,9 @@ class SmootherLocalizer(SteppedLocalizer):
         )
         self.hypotheses = []
         for m in range(means.shape[0]):
-            smoother = GraphSmoother(n, self._ref_point, LAG, self._bias_prior)
+            smoother = GraphSmoother(
+                n, self._ref_point, LAG, self._bias_prior, record=self.keeps_run
+            )
             smoother.start(t, means[m], covs[m], ranges=merged, relative=relative)
             self.hypotheses.append(smoother)
         self._placed = placed
@@ -363,7 +365,8 @@ class SmootherLocalizer(SteppedLocalizer):
         self.watchdog.restart(t)
         if self._open is not None:
             self._carry_biases(self._open.smoother)
-            self._segments.append(self._open)
+            if self.keeps_run:
+                self._segments.append(self._open)
             self._open = None
         if not self._start_from(t, list(self._recent), [o for _, o in self._recent_rel]):
             self.initialized = False
@@ -518,8 +521,9 @@ class SmootherLocalizer(SteppedLocalizer):
         if self._open is None:
             self._open = _Segment(best)
         self._open.smoother = best
-        self._open.steps.append(best.step)
-        self._open.estimates.append(est)
+        if self.keeps_run:
+            self._open.steps.append(best.step)
+            self._open.estimates.append(est)
         return est
 
     # ---------------------------------------------------------------- the smoothed run
@@ -535,6 +539,8 @@ class SmootherLocalizer(SteppedLocalizer):
         the causal estimate's; the covariances are not widened. A segment whose batch is
         indeterminate keeps its causal estimates. Cached until a step is published; never
         computed while serving unless called."""
+        if not self.keeps_run:
+            return []
         segments = [*self._segments, *([] if self._open is None else [self._open])]
         count = sum(len(s.steps) for s in segments)
         if self._smoothed is None or self._smoothed[0] != count:

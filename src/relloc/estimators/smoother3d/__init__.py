@@ -20,7 +20,12 @@ KIND = register(
         "smoother3d",
         "relloc.estimators.smoother3d.localizer:PoseSmootherLocalizer",
         Capabilities(
-            headings=True, online_biases=True, sightings=False, detections=False, dimensions=(3,)
+            headings=True,
+            online_biases=True,
+            sightings=False,
+            detections=False,
+            smoothed=True,
+            dimensions=(3,),
         ),
         "a fixed-lag smoother of level poses (x, y, z, yaw) in 3D (GTSAM Pose3): body-frame "
         "odometry, heights, ranges between tags with lever arms, online pair biases",

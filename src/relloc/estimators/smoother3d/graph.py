@@ -461,6 +461,17 @@ class PoseWindow:
             return None
         return np.array([est.atPose3(k).translation() for k in keys])
 
+    def relative_at(self, step: int) -> FloatArray | None:
+        """Each non-reference robot's ``(x, y, z, yaw)`` in the reference's level body frame at
+        ``step`` ``(N-1, 4)`` as the window estimates it now (smoothed by every measurement
+        since); ``None`` where the window no longer holds the step's keys."""
+        est = self._estimate
+        keys = self.keys(step)
+        if not all(est.exists(k) for k in keys):
+            return None
+        xr = est.atPose3(keys[self.reference])
+        return np.array([row_of(xr.between(est.atPose3(keys[i]))) for i in self.others.tolist()])
+
     def offset_estimates(self) -> tuple[list[float], list[float]]:
         """Each shared offset's estimate and std (the window's marginal)."""
         if not self.offset_keys:

@@ -26,12 +26,14 @@ before (nor ever without odometry).
 body frame with their covariances (:meth:`.graph.PoseWindow.relative`), the online biases
 (:class:`~relloc.localizers.priors.BiasPrior`, as the 2D smoother's). Sightings and detections
 are counted as ``smoother3d_<stat>_unused``. GTSAM's ``RuntimeError`` restarts from the last
-``RESTART_WINDOW`` of ranges.
+``RESTART_WINDOW`` of ranges. **Smoothed** (:meth:`~PoseSmootherLocalizer.smoothed_estimates`,
+the row ``<method>_smoothed``): each published step as the window saw it ``SMOOTH_DELAY`` later.
 """
 
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import logging
 import math
 from collections import deque
@@ -100,6 +102,9 @@ MOTION_TO_PRUNE = 2.0
 enough for a turn of the formation to show against the pair biases' prior."""
 RESTART_WINDOW = 2.0
 """Seconds of ranges a restart builds its start from."""
+SMOOTH_DELAY = 5.0
+"""Seconds after a step at which the smoothed run takes its poses from the window (half the
+lag: the step's keys are still in it)."""
 CHOOSE_PERIOD = 1.0
 """Seconds between choices of the hypothesis published while several are kept (their graphs'
 errors cost about as much as their steps)."""
@@ -138,6 +143,9 @@ class PoseSmootherLocalizer(Localizer):
         self._chiral = chiral(np.zeros(int(mine.sum()), np.intp), self._arms[mine])
         """Whether the reference's own tags tell the formation from its mirror image."""
         self.hypotheses: list[PoseWindow] = []
+        self._unsmoothed: deque[tuple[int, Estimate]] = deque()
+        """The published steps not yet smoothed, with their causal estimates."""
+        self._smoothed: list[Estimate] = []
         self._published: tuple[PoseWindow, float] | None = None
         """The hypothesis published while several are kept, and when it was chosen."""
         self.initialized = False
@@ -261,6 +269,7 @@ class PoseSmootherLocalizer(Localizer):
         """One window per hypothesis ``poses`` ``(M, N, 4)`` (stds ``sigma``), started at ``t``
         with ``terms`` and ``heights``; without odometry's turns while the yaws are sought."""
         gyros = None if self._finding else self._gyros
+        self._smooth(math.inf)  # the old windows' last word on their steps
         self.hypotheses = []
         for m in range(poses.shape[0]):
             window = PoseWindow(
@@ -578,4 +587,38 @@ class PoseSmootherLocalizer(Localizer):
             shape_gauge="" if observable else OWN_FRAME,
         )
         self.last_estimate = est
+        if self.keeps_run:
+            if self.publishes(t):
+                self._unsmoothed.append((best.step, est))
+            self._smooth(t - SMOOTH_DELAY)
         return est
+
+    # ---------------------------------------------------------------- the smoothed run
+    def smoothed_estimates(self) -> list[Estimate]:
+        """The run smoothed at a fixed lag: each published step's poses as the window
+        estimated them ``SMOOTH_DELAY`` later (the run's last steps: at its end), the rest of
+        the causal estimate kept (covariances too: not narrowed; biases, flags). ``[]`` where
+        the run was not kept (:attr:`keeps_run`)."""
+        if not self.keeps_run:
+            return []
+        self._smooth(math.inf)
+        return list(self._smoothed)
+
+    def _smooth(self, until: float) -> None:
+        """Smooth the published steps up to ``until`` with what the best window estimates of
+        them now (every hypothesis steps in lockstep); a step it no longer holds keeps its
+        causal poses."""
+        best = self._best(self.t) if self.hypotheses else None
+        while self._unsmoothed and self._unsmoothed[0][1].t <= until:
+            step, causal = self._unsmoothed.popleft()
+            rel = None if best is None else best.relative_at(step)
+            if rel is None:
+                self._smoothed.append(causal)
+                continue
+            others = self.layout.others
+            positions = {r: position_of(rel[k, :3]) for k, r in enumerate(others)}
+            yaws = {r: (float(rel[k, 3]), causal.yaws[r][1]) for k, r in enumerate(others)}
+            shape = {} if causal.orientation_observable else dict(positions)
+            self._smoothed.append(
+                dataclasses.replace(causal, positions=positions, yaws=yaws, shape=shape)
+            )
