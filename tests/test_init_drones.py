@@ -20,7 +20,7 @@ import pytest
 
 from relloc.cli import main
 from relloc.config import TeamConfig
-from relloc.events import GroundTruthEvent, RangeEvent
+from relloc.events import GroundTruthEvent, RangeEvent, pair_key
 from relloc.ros import messages as rm
 from relloc.ros.stores import custom_types, register_types
 from relloc.simulator.flight import FlightSimulation, drones_six_scenario, drones_uwb_scenario
@@ -149,3 +149,13 @@ def test_init_measures_the_delay_of_averaged_ranges(tmp_path: Path) -> None:
     assert err.max() < 0.08 and float(np.median(err)) < 0.06, dict(
         zip(nodes, err.round(3), strict=True)
     )
+    # the pair biases the draft calibrates compare the ranges with the 3D tag distances at the
+    # measured delay (in the plane and at the stamps: 0.15-0.72 m for biases of 0.1-0.5)
+    true_bias = {
+        pair_key(str(ids[a]), str(ids[b])): v
+        for key, v in sim.true_biases.items()
+        for a, b in [key.split("-")]
+    }
+    assert sorted(cfg.uwb.pairs) == sorted(true_bias)
+    off = np.array([cfg.uwb.pairs[k].bias - v for k, v in true_bias.items()])
+    assert np.abs(off).max() < 0.08 and off.std() < 0.03, (off.min(), off.max(), off.std())

@@ -121,29 +121,36 @@ def pair_samples_from_bag(
     config: TeamConfig,
     *,
     max_gap: float = 0.1,
-    lag: float = 0.0,
+    lag: float | None = None,
     span: tuple[float, float] | None = None,
 ) -> dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Matched samples per node pair: ``pair_key -> (t, measured range, mocap distance)``, the
     distance between the two tags where a config's tags have lever arms.
 
     ``lag`` (s) compares each range with the mocap distance ``lag`` seconds before its header
-    stamp (UWB ranges can trail the geometry by up to about 0.2 s). Ranges without two valid
-    interpolated mocap positions are left out. ``span``: only the events between these seconds
-    from the recording's start (:mod:`relloc.sources.span`).
+    stamp (UWB ranges can trail the geometry by up to about 0.2 s; an averaging driver by half
+    its window); ``None``: the config's ``uwb.range_delay``. A flying team (``dimension`` 3)
+    is compared in 3D: the mocap heights and the arms' z count (a drone 1 m above its partner
+    3 m away is 0.16 m further than the plane says). Ranges without two valid interpolated
+    mocap positions are left out. ``span``: only the events between these seconds from the
+    recording's start (:mod:`relloc.sources.span`).
     """
+    if lag is None:
+        lag = config.uwb.range_delay
+    flying = config.dimension == 3
     bag = RosbagSource(path, config, ground_truth=True, detections=False, odometry=False)
     source: Iterable[Event] = bag if span is None else SpanSource(bag, span)
     robots = set(config.robot_names)
-    tracks: dict[str, list[tuple[float, float, float, float]]] = defaultdict(list)
+    tracks: dict[str, list[tuple[float, float, float, float, float]]] = defaultdict(list)
     ranges: dict[str, list[tuple[float, str, str, float, str, str]]] = defaultdict(list)
     for ev in source:
         if isinstance(ev, GroundTruthEvent) and ev.robot in robots:
-            tracks[ev.robot].append((ev.t, ev.position[0], ev.position[1], ev.yaw))
+            z = ev.position[2] if len(ev.position) > 2 else 0.0
+            tracks[ev.robot].append((ev.t, ev.position[0], ev.position[1], ev.yaw, z))
         elif isinstance(ev, RangeEvent):
             na, nb = config.range_nodes(ev)
             ranges[ev.node_pair].append((ev.t, ev.robot_a, ev.robot_b, ev.distance, na, nb))
-    arrays = {r: np.array(v, dtype=float).reshape(-1, 4) for r, v in tracks.items()}
+    arrays = {r: np.array(v, dtype=float).reshape(-1, 5) for r, v in tracks.items()}
     arms = config.has_lever_arms
     out: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
     for key, rows in ranges.items():
@@ -158,13 +165,16 @@ def pair_samples_from_bag(
         if arms:  # the tags' positions: each at its lever arm in its body's frame
             xa, ya = _tag(a, t - lag, max_gap, xa, ya, config.lever_arm(node_a))
             xb, yb = _tag(b, t - lag, max_gap, xb, yb, config.lever_arm(node_b))
+        diff = [xa - xb, ya - yb]
+        if flying:
+            za, _, _ = interpolate_track(a[:, 0], a[:, 4], a[:, 4], t - lag, max_gap=max_gap)
+            zb, _, _ = interpolate_track(b[:, 0], b[:, 4], b[:, 4], t - lag, max_gap=max_gap)
+            arm_a, arm_b = config.lever_arm(node_a), config.lever_arm(node_b)
+            dz_arms = (arm_a[2] if len(arm_a) > 2 else 0.0) - (arm_b[2] if len(arm_b) > 2 else 0.0)
+            diff.append(za - zb + dz_arms)
         ok = va & vb
         if ok.any():
-            out[key] = (
-                t[ok],
-                measured[ok],
-                geometry.norm(np.stack([xa - xb, ya - yb], axis=-1))[ok],
-            )
+            out[key] = (t[ok], measured[ok], geometry.norm(np.stack(diff, axis=-1))[ok])
     return out
 
 
@@ -193,7 +203,7 @@ def pair_biases_from_bag(
     config: TeamConfig,
     *,
     max_gap: float = 0.1,
-    lag: float = 0.0,
+    lag: float | None = None,
     fit_scale: bool = False,
     min_samples: int = 20,
     span: tuple[float, float] | None = None,
