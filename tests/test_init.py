@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import tomllib
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -178,6 +179,8 @@ def test_init_finds_mocap_by_type_on_world_topics(
     assert len(cfg.uwb.pairs) == 3  # biases calibrated from the /<body>/world mocap
     assert all(0.25 < p.bias < 0.35 for p in cfg.uwb.pairs.values())
     assert cfg.robot("tb1").heading_offset_deg != 0.0
+    # a ground team keeps the filter's range noise model (only a flying team's is measured)
+    assert "sigma" not in tomllib.loads(out.read_text())["uwb"]
 
 
 @pytest.mark.parametrize(

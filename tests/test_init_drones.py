@@ -159,3 +159,5 @@ def test_init_measures_the_delay_of_averaged_ranges(tmp_path: Path) -> None:
     assert sorted(cfg.uwb.pairs) == sorted(true_bias)
     off = np.array([cfg.uwb.pairs[k].bias - v for k, v in true_bias.items()])
     assert np.abs(off).max() < 0.08 and off.std() < 0.03, (off.min(), off.max(), off.std())
+    # and the team's range noise is what those pairs leave (3 cm simulated), not the default
+    assert 0.03 <= cfg.uwb.sigma <= 0.06 and cfg.uwb.los_sigma == cfg.uwb.sigma, raw["uwb"]

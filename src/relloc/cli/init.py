@@ -41,7 +41,7 @@ def _cmd_init(args: argparse.Namespace) -> int:
     # Imported here: drafting needs scipy.optimize (about 50 MB resident), which every other
     # command, ``relloc serve`` among them, would pay for while its parser is built.
     from relloc.drafting.calibrate import edit_config_text
-    from relloc.drafting.team import DraftError, calibrate_draft, draft
+    from relloc.drafting.team import DraftError, calibrate_draft, draft, range_sigma
     from relloc.drafting.writer import distro, quirks, to_toml
     from relloc.sources.rosbag import BagError, recording_name
 
@@ -56,9 +56,14 @@ def _cmd_init(args: argparse.Namespace) -> int:
         if not args.no_calibrate and inv.ranges:
             cal, cal_notes = calibrate_draft(bag, text, d)
             if cal is not None:
-                text = edit_config_text(
-                    to_toml(inv, d, recording_name(bag), list(cal.heading_offset_deg)), cal
+                drafted = to_toml(
+                    inv,
+                    d,
+                    recording_name(bag),
+                    list(cal.heading_offset_deg),
+                    range_sigma=range_sigma(d, cal),
                 )
+                text = edit_config_text(drafted, cal)
     except (BagError, DraftError) as exc:
         raise UserError(str(exc)) from None
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -59,10 +59,13 @@ def to_toml(
     calibrated: list[str] | None = None,
     *,
     lever_arms: bool = True,
+    range_sigma: float | None = None,
 ) -> str:
     """The drafted config as TOML text with comments; ``calibrated`` (the robots that get a
     heading offset) marks the draft as one that :func:`calibrate_draft` will fill in;
-    ``lever_arms`` writes the extra tags' estimated lever arms (else zeros, to be measured)."""
+    ``lever_arms`` writes the extra tags' estimated lever arms (else zeros, to be measured);
+    ``range_sigma`` (a flying team's, :func:`relloc.drafting.team.range_sigma`) is written as
+    ``[uwb] sigma`` and ``los_sigma``."""
     doc = tomlkit.document()
     doc.add(
         tomlkit.comment(
@@ -151,6 +154,10 @@ def to_toml(
         uwb["range_delay"].comment(
             "s: the ranges measure the mocap distances this long before their stamps"
         )
+    if range_sigma is not None:
+        uwb.add("sigma", range_sigma)
+        uwb["sigma"].comment("m: the median spread the calibrated pair biases leave")
+        uwb.add("los_sigma", range_sigma)
     doc.add(tomlkit.nl())
     if calibrated is None:
         doc.add(
@@ -163,6 +170,7 @@ def to_toml(
             tomlkit.comment(
                 "Pair biases: median of range - mocap distance on this bag (relloc calibrate); the robust "
                 "sigma of what is left is in each comment, left unset so the filter's noise model applies"
+                + (" (in 3D: [uwb] sigma, their median)" if range_sigma is not None else "")
             )
         )
     doc.add("uwb", uwb)
