@@ -9,7 +9,6 @@ compared after the common height both share is taken out.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import tomllib
 from pathlib import Path
@@ -20,60 +19,20 @@ import pytest
 
 from relloc.cli import main
 from relloc.config import TeamConfig
-from relloc.events import GroundTruthEvent, RangeEvent, pair_key
-from relloc.ros import messages as rm
-from relloc.ros.stores import custom_types, register_types
+from relloc.events import pair_key
 from relloc.simulator.flight import FlightSimulation, drones_six_scenario, drones_uwb_scenario
+from relloc.simulator.flight_bag import tag_ids, write_flight_bag
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "examples" / "uwb_drivers" / "linktrack_ros2"
-FRAME = "nlink_parser/msg/LinktrackNodeframe2"
-T0 = 1_700_000_000.0
-
-
-def _ids() -> dict[str, int]:
-    """The simulation's tags ``n_<i>a``/``n_<i>b`` as LinkTrack ids (numbers): 2i+1, 2i+2."""
-    return {f"n_{i}{s}": 2 * i + k for i in range(5) for k, s in ((1, "a"), (2, "b"))}
-
-
-def _frame(store: Any, t: float, node: int, peer: int, distance: float) -> Any:
-    msg = rm.zero_message(FRAME)
-    peers = [
-        store.types["nlink_parser/msg/LinktrackNode2"](
-            role=1, id=peer, dis=distance, fp_rssi=0.0, rx_rssi=0.0
-        )
-    ]
-    header = dataclasses.replace(msg.header, stamp=rm.time_msg(t))
-    return dataclasses.replace(msg, id=node, nodes=peers, header=header)
 
 
 def _drone_bag(
-    path: Path, sim: FlightSimulation | None = None, ids: dict[str, int] | None = None
-) -> tuple[Path, dict[str, tuple[float, float, float]]]:
+    path: Path, sim: FlightSimulation | None = None
+) -> tuple[Path, dict[str, tuple[float, ...]]]:
     """A drone flight as a bag (``drones_uwb``, 25 s, by default); the true lever arm of each
-    LinkTrack id (``ids``: the simulation's tag -> its id)."""
-    from rosbags.rosbag2 import StoragePlugin, Writer
-
-    register_types(custom_types(EXAMPLES))
+    LinkTrack id (the tags numbered 1, 2, ... as the robots list them)."""
     sim = sim or drones_uwb_scenario(seed=0, duration=25.0)
-    ids = ids or _ids()
-    store = rm.typestore()
-    with Writer(path, version=9, storage_plugin=StoragePlugin.SQLITE3) as writer:
-        conns: dict[str, Any] = {}
-
-        def put(topic: str, msgtype: str, t: float, msg: Any) -> None:
-            if topic not in conns:
-                conns[topic] = writer.add_connection(topic, msgtype, typestore=store)
-            writer.write(conns[topic], round(t * 1e9), rm.encode(msg, msgtype))
-
-        for ev in sim.events():
-            t = ev.t + T0
-            if isinstance(ev, GroundTruthEvent):
-                pose = rm.pose_stamped_msg(dataclasses.replace(ev, t=t))
-                put(f"/{ev.robot}/world", rm.POSE_STAMPED, t, pose)
-            elif isinstance(ev, RangeEvent):
-                a, b = ids[ev.node_a], ids[ev.node_b]
-                put(f"/n{a}/range", FRAME, t, _frame(store, t, a, b, ev.distance))
-    return path, {str(ids[n]): arm for n, arm in sim.lever_arms.items()}
+    return path, write_flight_bag(path, sim, EXAMPLES)
 
 
 @pytest.fixture(scope="module")
@@ -131,8 +90,8 @@ def test_init_measures_the_delay_of_averaged_ranges(tmp_path: Path) -> None:
     its stamp, so it measures the geometry 0.5 s before the stamp; the draft says so
     (``uwb.range_delay``), and the lever arms fitted at the measured times hold."""
     sim = drones_six_scenario(seed=0, duration=60.0)
-    ids = {f"n_{i}{c}": 6 * i + k + 1 for i in range(3) for k, c in enumerate("abcdef")}
-    bag, truth = _drone_bag(tmp_path / "six", sim, ids)
+    ids = tag_ids(sim)
+    bag, truth = _drone_bag(tmp_path / "six", sim)
     out = tmp_path / "six.toml"
     assert main(["init", str(bag), "--out", str(out)]) == 0
     raw = tomllib.loads(out.read_text())
