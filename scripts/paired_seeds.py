@@ -13,9 +13,10 @@ static team without odometry).
         --seeds 0-19 --b-method pf_ul --a-flags "$M" --b-flags "$M" --bound 0.01
 
 ``--a-env``/``--b-env KEY=VALUE`` set a variant's environment (``RELLOC_COMPILED=0``: the
-particle filter's NumPy step). Equal flags and environments run both methods in one
-``relloc run``. Runs go in ``--jobs`` processes (one numpy
-thread each); every run's JSON stays under ``--work`` and is reused (keyed by flags and methods
+particle filter's NumPy step). ``--recordings`` takes the UWB recordings unless told;
+``MRCLAM_Dataset6`` (no UWB) is run only when named. Equal flags and environments run both
+methods in one ``relloc run``. Runs go in ``--jobs`` processes (one numpy thread each); every
+run's JSON stays under ``--work`` and is reused (keyed by flags and methods
 only: empty it after changing the code or the models); a recording whose first two seeds agree
 exactly in both variants (the smoother draws no random numbers) is not run on the others. ``--page FILE --section NAME`` writes the table between the page's markers
 (``relloc.evaluation.pages``): docs/explanation/self-calibration.md, docs/explanation/range-correction.md.
@@ -59,8 +60,12 @@ RECORDINGS = {
         "configs/tiers_uwb_rel/case4.toml",
         5.0,
     ),
+    "MRCLAM_Dataset6": ("mrclam/MRCLAM_Dataset6", "configs/mrclam/dataset6.toml", 30.0),
 }
-"""The shared recordings with UWB ranges and their warm-up windows (those of the results pages)."""
+"""The shared recordings and their warm-up windows (those of the results pages): the UWB teams
+and the MRCLAM session (camera sightings of teammates, no UWB; about a minute a run)."""
+UWB_RECORDINGS = [name for name in RECORDINGS if not name.startswith("MRCLAM")]
+"""What ``--recordings`` runs unless told: the recordings with UWB ranges."""
 
 
 def _label(seeds: list[int]) -> str:
@@ -116,11 +121,16 @@ def _run(
 
 
 def _scores(path: Path, method: str) -> dict[str, float]:
-    """Per robot the APE median, or the shape APE median where the orientation is unobservable."""
+    """Per robot the APE median, or the shape APE median where the orientation is unobservable;
+    robots without a score (the reference) left out."""
     scenario = next(iter(json.loads(path.read_text())["scenarios"].values()))
     m = scenario["methods"][method]
-    shape = (m.get("orientation_unobservable_fraction") or 0.0) > 0.5
-    return {r: v["shape_ape_median" if shape else "ape_median"] for r, v in m["robots"].items()}
+    key = (
+        "shape_ape_median"
+        if (m.get("orientation_unobservable_fraction") or 0.0) > 0.5
+        else "ape_median"
+    )
+    return {r: v[key] for r, v in m["robots"].items() if v.get(key) is not None}
 
 
 def main() -> None:
@@ -128,7 +138,7 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
     )
     p.add_argument("--data", type=Path, default=Path("../shared/data"))
-    p.add_argument("--recordings", default=",".join(RECORDINGS), help="comma-separated names")
+    p.add_argument("--recordings", default=",".join(UWB_RECORDINGS), help="comma-separated names")
     p.add_argument(
         "--seeds", type=argtypes.seeds, default="0-19", help="LO-HI or a comma-separated list"
     )
