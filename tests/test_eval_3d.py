@@ -125,6 +125,7 @@ def test_json_of_a_3d_run_has_the_2d_keys_with_hand_computed_values() -> None:
         assert fields["ape_mean"] == pytest.approx(ape)
         assert fields["n"] == 9  # after the 2 s warm-up
         assert fields["yaw_error_median_deg"] == pytest.approx(abs(math.degrees(YAW_ERROR[robot])))
+        assert fields["yaw_error_mean_deg"] == pytest.approx(abs(math.degrees(YAW_ERROR[robot])))
         assert fields["coverage95"] == 1.0
         assert fields["ate_rmse"] == pytest.approx(0.0, abs=1e-9)  # a constant offset
         assert fields["run_aligned_ape_median"] is not None

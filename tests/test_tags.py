@@ -222,7 +222,11 @@ def test_a_published_yaw_is_scored_against_the_motion_capture_in_its_frame() -> 
     run = MethodRun("pf", estimates, truth, ["r1"], 0.0, 0.5, {})
     result = YawError().compute(run)
     assert len(result.errors_deg["r1"]) == 16  # after the warm-up
-    assert result.robot_json() == {"r1": {"yaw_error_median_deg": 2.0}}
+    # 16 after the warm-up: 9 at 2 deg, 7 at 4 deg
+    mean = (9 * 2.0 + 7 * 4.0) / 16
+    assert result.robot_json() == {
+        "r1": {"yaw_error_median_deg": 2.0, "yaw_error_mean_deg": pytest.approx(mean)}
+    }
     assert result.cells("r1") == {"yaw err. (deg)": "2.0"}
 
 

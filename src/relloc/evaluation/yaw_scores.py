@@ -5,7 +5,8 @@ in the frame of the estimate, the reference's body frame where the reference has
 :class:`YawError` pairs every published yaw after the warm-up with the truth in the same frame
 (the robot's motion-capture yaw less the reference's in the body frame, less the frame's
 rotation in the heading frame) and reports the median absolute error per robot in degrees:
-``yaw_error_median_deg`` in the JSON, a column of the run table. A flying team's 3D estimates
+``yaw_error_median_deg`` in the JSON, a column of the run table; the JSON has the mean as well
+(``yaw_error_mean_deg``: the statistic published relative-pose figures give). A flying team's 3D estimates
 publish every robot's yaw in the reference's yaw-only body frame (z up): scored the same way.
 """
 
@@ -30,8 +31,18 @@ class YawResult(MetricResult):
         values = self.errors_deg.get(robot, [])
         return float(np.median(values)) if values else math.nan
 
+    def mean(self, robot: str) -> float:
+        values = self.errors_deg.get(robot, [])
+        return float(np.mean(values)) if values else math.nan
+
     def robot_json(self) -> dict[str, dict[str, Any]]:
-        return {r: {"yaw_error_median_deg": num(self.median(r))} for r in self.errors_deg}
+        return {
+            r: {
+                "yaw_error_median_deg": num(self.median(r)),
+                "yaw_error_mean_deg": num(self.mean(r)),
+            }
+            for r in self.errors_deg
+        }
 
     def cells(self, robot: str) -> dict[str, str]:
         if not self.errors_deg.get(robot):
