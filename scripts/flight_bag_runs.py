@@ -5,7 +5,7 @@ bag (motion capture, LinkTrack frames, nothing else), then ``relloc run --bias o
 draft. This does the same on ``drones_six`` flights (``relloc.simulator.flight_bag``), seed by
 seed, so that every step between the bag and the figures is the one the recording takes (the
 draft's node mapping, lever arms, range delay, pair biases and range noise included), and
-prints per seed and robot the APE mean and median, the yaw error median and the 95 % coverage of
+prints per seed and robot the APE mean and median, the yaw error's and the 95 % coverage of
 ``pf`` and ``pf_smoothed``. ``--body-term A`` adds the simulator's heading-dependent range error
 (``UwbErrorModel.orientation_amplitude``: a tag's signal through the drone's body) of about A m.
 
@@ -81,8 +81,8 @@ def main_() -> None:
         f"bag, `relloc init`, `relloc run --bias online`, after {WARMUP:g} s; "
         "`scripts/flight_bag_runs.py`",
         "",
-        "| seed | reference | robot | `pf` mean / median | yaw | coverage "
-        "| `pf_smoothed` mean / median | yaw | coverage |",
+        "| seed | reference | robot | `pf` mean / median | yaw mean / median | coverage "
+        "| `pf_smoothed` mean / median | yaw mean / median | coverage |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for seed in args.seeds:
@@ -93,7 +93,7 @@ def main_() -> None:
             for row in (causal[robot], smoothed[robot]):
                 cells += [
                     f"{row['ape_mean']:.2f} / {row['ape_median']:.2f} m",
-                    f"{row['yaw_error_median_deg']:.1f} deg",
+                    f"{row['yaw_error_mean_deg']:.1f} / {row['yaw_error_median_deg']:.1f} deg",
                     f"{100 * row['coverage95']:.0f} %",
                 ]
             lines.append(f"| {seed} | {reference} | {robot} | " + " | ".join(cells) + " |")
