@@ -46,9 +46,8 @@ def _run(seed: int, duration: float, body: float, work: Path) -> tuple[dict[str,
     if not bag.exists():
         uwb = dataclasses.replace(SIX_TAG_UWB, orientation_amplitude=body)
         write_flight_bag(bag, drones_six_scenario(seed, duration=duration, uwb=uwb), LINKTRACK)
-    quiet = contextlib.redirect_stdout(io.StringIO())
     if not draft.exists():
-        with quiet:
+        with contextlib.redirect_stdout(io.StringIO()):
             if main(["init", str(bag), "--out", str(draft)]) != 0:
                 raise SystemExit(f"relloc init could not draft {bag}")
     if not report.exists():
