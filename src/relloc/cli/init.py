@@ -41,7 +41,7 @@ def _cmd_init(args: argparse.Namespace) -> int:
     # Imported here: drafting needs scipy.optimize (about 50 MB resident), which every other
     # command, ``relloc serve`` among them, would pay for while its parser is built.
     from relloc.drafting.calibrate import edit_config_text
-    from relloc.drafting.team import DraftError, calibrate_draft, draft, range_sigma
+    from relloc.drafting.team import DraftError, calibrate_draft, draft
     from relloc.drafting.writer import distro, quirks, to_toml
     from relloc.sources.rosbag import BagError, recording_name
 
@@ -61,7 +61,7 @@ def _cmd_init(args: argparse.Namespace) -> int:
                     d,
                     recording_name(bag),
                     list(cal.heading_offset_deg),
-                    range_sigma=range_sigma(d, cal),
+                    range_sigma=cal.range_sigma,
                 )
                 text = edit_config_text(drafted, cal)
     except (BagError, DraftError) as exc:

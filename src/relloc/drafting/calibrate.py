@@ -38,6 +38,9 @@ class Calibration:
     """Per node pair (``"n_3-n_7"``): bias, scale and the robust sigma of what is left."""
     heading_offset_deg: dict[str, float] = field(default_factory=dict)
     fit_scale: bool = False
+    range_sigma: float | None = None
+    """A flying team's range noise (m), which ``relloc init`` writes as ``[uwb] sigma``
+    (:func:`relloc.drafting.team.range_sigma`); ``None``: not measured."""
 
     def summary(self) -> dict[str, Any]:
         out: dict[str, Any] = {

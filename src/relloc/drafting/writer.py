@@ -156,7 +156,7 @@ def to_toml(
         )
     if range_sigma is not None:
         uwb.add("sigma", range_sigma)
-        uwb["sigma"].comment("m: the median spread the calibrated pair biases leave")
+        uwb["sigma"].comment("m: the RMS of what the calibrated pair biases leave")
         uwb.add("los_sigma", range_sigma)
     doc.add(tomlkit.nl())
     if calibrated is None:
@@ -170,7 +170,11 @@ def to_toml(
             tomlkit.comment(
                 "Pair biases: median of range - mocap distance on this bag (relloc calibrate); the robust "
                 "sigma of what is left is in each comment, left unset so the filter's noise model applies"
-                + (" (in 3D: [uwb] sigma, their median)" if range_sigma is not None else "")
+                + (
+                    " (in 3D: [uwb] sigma, the RMS of what is left)"
+                    if range_sigma is not None
+                    else ""
+                )
             )
         )
     doc.add("uwb", uwb)
