@@ -66,7 +66,8 @@ def test_init_drafts_a_flying_team(
     assert "dimension 3" in printed and "lever arm" in printed
     assert "range_delay" not in raw["uwb"]  # ranges at their stamps: no delay said
     # the range noise drafted is the RMS the pair biases leave, NLOS spikes included (3 % of
-    # 0.3-1.5 m over 5 cm of noise: about 0.17 m), not their robust spread (about 0.05)
+    # 0.3-1.5 m over 5 cm of noise, each counted at most 1 m: about 0.15 m), not their robust
+    # spread (about 0.05)
     assert 0.1 < raw["uwb"]["sigma"] < 0.3 and raw["uwb"]["los_sigma"] == raw["uwb"]["sigma"]
 
     run = tmp_path / "run.json"

@@ -38,7 +38,7 @@ from relloc.config import TeamConfig
 from relloc.drafting.calibrate import Calibration, calibrate
 from relloc.drafting.delay import range_delay, shifted
 from relloc.drafting.frames import with_node_frames
-from relloc.drafting.tags import Poses, TagFit, find_tags, mocap_poses
+from relloc.drafting.tags import CLIP_M, Poses, TagFit, find_tags, mocap_poses
 from relloc.ros.messages import MOCAP_TYPES
 from relloc.sources.inspect_bag import (
     Assignment,
@@ -370,14 +370,16 @@ def range_sigma(bag: Path, config: TeamConfig) -> float | None:
     draft states what the recording measured rather than the default, a ground team's
     NLOS-aware model's. The RMS, not a robust spread: on raw ranges with NLOS spikes the robust
     spread (5 cm) weighed the spikes too much (distance errors 0.026-0.038 m against
-    0.017-0.020 with the RMS, 0.17 m); on averaged ranges the two agree (0.040 / 0.041 m)."""
+    0.017-0.021 with the RMS, 0.15 m); on averaged ranges the two agree (0.040 / 0.041 m).
+    Each residual counts at most :data:`~relloc.drafting.tags.CLIP_M`: one garbage range (a
+    driver's 100 m) must not make every range weigh nothing."""
     from relloc.evaluation.calibration import pair_samples_from_bag
 
     samples = pair_samples_from_bag(bag, config)
     left = [m - d - np.median(m - d) for _, m, d in samples.values() if m.size]
     if not left:
         return None
-    pooled = np.concatenate(left)
+    pooled = np.minimum(np.abs(np.concatenate(left)), CLIP_M)
     return round(float(np.sqrt(np.mean(pooled * pooled))), 3)
 
 
