@@ -38,7 +38,7 @@ from relloc.config import TeamConfig
 from relloc.drafting.calibrate import Calibration, calibrate
 from relloc.drafting.delay import range_delay, shifted
 from relloc.drafting.frames import with_node_frames
-from relloc.drafting.tags import CLIP_M, Poses, TagFit, find_tags, mocap_poses
+from relloc.drafting.tags import Poses, TagFit, find_tags, mocap_poses
 from relloc.ros.messages import MOCAP_TYPES
 from relloc.sources.inspect_bag import (
     Assignment,
@@ -48,7 +48,7 @@ from relloc.sources.inspect_bag import (
     robot_number,
 )
 
-__all__ = ["Draft", "DraftError", "Robot", "calibrate_draft", "draft", "range_sigma"]
+__all__ = ["Draft", "DraftError", "Robot", "calibrate_draft", "draft"]
 
 
 class DraftError(ValueError):
@@ -363,26 +363,6 @@ def draft(
     )
 
 
-def range_sigma(bag: Path, config: TeamConfig) -> float | None:
-    """A flying team's range noise (m): the RMS over every matched range of what its pair's
-    calibrated bias leaves, outliers included (``None``: nothing matched). The 3D smoother
-    weighs every range by ``[uwb] sigma`` alone (an online bias takes the pair's offset), so the
-    draft states what the recording measured rather than the default, a ground team's
-    NLOS-aware model's. The RMS, not a robust spread: on raw ranges with NLOS spikes the robust
-    spread (5 cm) weighed the spikes too much (distance errors 0.026-0.038 m against
-    0.017-0.021 with the RMS, 0.15 m); on averaged ranges the two agree (0.040 / 0.041 m).
-    Each residual counts at most :data:`~relloc.drafting.tags.CLIP_M`: one garbage range (a
-    driver's 100 m) must not make every range weigh nothing."""
-    from relloc.evaluation.calibration import pair_samples_from_bag
-
-    samples = pair_samples_from_bag(bag, config)
-    left = [m - d - np.median(m - d) for _, m, d in samples.values() if m.size]
-    if not left:
-        return None
-    pooled = np.minimum(np.abs(np.concatenate(left)), CLIP_M)
-    return round(float(np.sqrt(np.mean(pooled * pooled))), 3)
-
-
 def calibrate_draft(bag: Path, text: str, d: Draft) -> tuple[Calibration | None, list[str]]:
     """What ``relloc calibrate --headings`` estimates, from this bag's motion capture, for the
     drafted config ``text``; ``None`` (and why) when the mapping is undecided or nothing matched.
@@ -397,8 +377,7 @@ def calibrate_draft(bag: Path, text: str, d: Draft) -> tuple[Calibration | None,
     except CalibrationError as exc:
         return None, [f"not calibrated: {exc}"]
     headings = {r: deg + 0.0 for r, deg in cal.heading_offset_deg.items()}  # no -0.0
-    noise = range_sigma(bag, config) if d.dimension == 3 else None
-    cal = Calibration(cal.source, cal.pairs, headings, cal.fit_scale, noise)
+    cal = Calibration(cal.source, cal.pairs, headings, cal.fit_scale, cal.range_sigma)
     notes = [
         "calibrated from this bag's motion capture (in-sample: a run of this bag with it scores "
         "against the truth it was fitted to; --no-calibrate leaves it out):"
@@ -414,9 +393,9 @@ def calibrate_draft(bag: Path, text: str, d: Draft) -> tuple[Calibration | None,
                 f"(widest {widest})"
             )
         notes.append(line)
-        if noise is not None:
+        if cal.range_sigma is not None:
             notes.append(
-                f"  range noise {noise:.3f} m (RMS of what the biases leave, outliers included): "
+                f"  range noise {cal.range_sigma:.3f} m (RMS of what the biases leave, outliers included): "
                 "written as [uwb] sigma and los_sigma, what the flying team's smoother weighs "
                 "every range by"
             )

@@ -64,8 +64,9 @@ def to_toml(
     """The drafted config as TOML text with comments; ``calibrated`` (the robots that get a
     heading offset) marks the draft as one that :func:`calibrate_draft` will fill in;
     ``lever_arms`` writes the extra tags' estimated lever arms (else zeros, to be measured);
-    ``range_sigma`` (a flying team's, :func:`relloc.drafting.team.range_sigma`) is written as
-    ``[uwb] sigma`` and ``los_sigma``."""
+    ``range_sigma`` (a flying team's,
+    :attr:`relloc.drafting.calibrate.Calibration.range_sigma`) is written as ``[uwb] sigma``
+    and ``los_sigma``."""
     doc = tomlkit.document()
     doc.add(
         tomlkit.comment(

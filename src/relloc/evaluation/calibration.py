@@ -33,8 +33,10 @@ __all__ = [
     "interpolate_track",
     "pair_biases_from_bag",
     "pair_biases_from_csv",
+    "pair_biases_from_samples",
     "pair_samples_from_bag",
     "rank_node_assignments",
+    "residual_rms",
 ]
 
 """Columns of the TIERS UWB-error training table."""
@@ -216,6 +218,18 @@ def pair_biases_from_bag(
     if no pair could be matched with motion capture.
     """
     samples = pair_samples_from_bag(path, config, max_gap=max_gap, lag=lag, span=span)
+    return pair_biases_from_samples(samples, path, fit_scale=fit_scale, min_samples=min_samples)
+
+
+def pair_biases_from_samples(
+    samples: Mapping[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+    path: str | Path,
+    *,
+    fit_scale: bool = False,
+    min_samples: int = 20,
+) -> dict[str, PairCalibration]:
+    """:func:`pair_biases_from_bag` from the matched samples of the recording at ``path``
+    (:func:`pair_samples_from_bag`), for a caller that reads them once for more than this."""
     name = recording_name(path)
     result = {
         key: calibrate_pair(measured, true, fit_scale=fit_scale, source=name)
@@ -228,6 +242,18 @@ def pair_biases_from_bag(
             "both robots (check uwb_node and mocap_body in the config)"
         )
     return result
+
+
+def residual_rms(
+    samples: Mapping[str, tuple[np.ndarray, np.ndarray, np.ndarray]], clip: float
+) -> float | None:
+    """The RMS over every matched range of what its pair's median error leaves, each residual
+    counted at most ``clip`` (m); ``None`` where nothing matched."""
+    left = [m - d - np.median(m - d) for _, m, d in samples.values() if m.size]
+    if not left:
+        return None
+    pooled = np.minimum(np.abs(np.concatenate(left)), clip)
+    return float(np.sqrt(np.mean(pooled * pooled)))
 
 
 # ---------------------------------------------------------------------------- from the CSV
