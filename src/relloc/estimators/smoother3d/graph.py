@@ -13,8 +13,8 @@ zero within ``LEVEL_SIGMA``, so a key has four free coordinates, the 4-DoF state
   robot with no odometry at all (``blind``), on every three consecutive keys, a constant
   velocity: the change of the mean velocity and yaw rate between the two steps, of variance
   ``q (dt1 + dt2) / 3`` for a white acceleration of density ``q`` (``CV_ACCELERATION``,
-  ``CV_YAW_ACCELERATION``): what pools a drone's ranges over seconds where nothing measures
-  its motion.
+  smaller vertically, ``CV_YAW_ACCELERATION``): what pools a drone's ranges over seconds where
+  nothing measures its motion.
 * **Ranges**: per tag pair ranged in the step one Huber-robust factor
   ``|X_a arm_a - X_b arm_b| + b - z`` between the two tags (a Python ``CustomFactor``: GTSAM's
   ``RangeFactorWithTransform`` carries one lever arm, a tag pair has two), the pair's online
@@ -59,6 +59,10 @@ lag, so that the lag never marginalises them; not every step: a re-stamp makes i
 and re-eliminate the window (every step: four times slower)."""
 CV_ACCELERATION = 0.5
 """Density (m^2/s^3 per axis) of the white acceleration of a robot without odometry."""
+CV_VERTICAL_ACCELERATION = 0.05
+"""Density (m^2/s^3) of its vertical acceleration: a multirotor holds its height and changes it
+slowly (thrust), where it turns and accelerates sideways freely; and the ranges of a level
+formation see heights least (docs/explanation/flying.md)."""
 CV_YAW_ACCELERATION = 0.05
 """Density (rad^2/s^3) of the white yaw acceleration of a robot without odometry."""
 GYRO_BIAS_SIGMA = 0.003
@@ -231,10 +235,10 @@ def _height(h: float) -> Error:
 
 def _cv_noise(dt1: float, dt2: float) -> gtsam.noiseModel.Base:
     """The constant-velocity factor's noise: white acceleration of density ``CV_ACCELERATION``
-    (``CV_YAW_ACCELERATION``) changes two adjacent steps' mean velocities by a variance of
-    ``q (dt1 + dt2) / 3``."""
+    (vertically ``CV_VERTICAL_ACCELERATION``, yaw ``CV_YAW_ACCELERATION``) changes two adjacent
+    steps' mean velocities by a variance of ``q (dt1 + dt2) / 3``."""
     span = (dt1 + dt2) / 3.0
-    q = np.array([CV_ACCELERATION] * 3 + [CV_YAW_ACCELERATION])
+    q = np.array([CV_ACCELERATION, CV_ACCELERATION, CV_VERTICAL_ACCELERATION, CV_YAW_ACCELERATION])
     return gtsam.noiseModel.Diagonal.Sigmas(np.sqrt(q * span))
 
 
