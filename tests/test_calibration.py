@@ -15,6 +15,7 @@ from relloc.evaluation.calibration import (
     calibrate_pair,
     heading_offsets_from_bag,
     interpolate_track,
+    median_standard_error,
     pair_biases_from_bag,
     pair_biases_from_csv,
     rank_node_assignments,
@@ -38,6 +39,27 @@ def test_known_bias_is_recovered_despite_outliers() -> None:
     assert cal.scale == 1.0
     assert cal.sigma == pytest.approx(0.05, abs=0.01)
     assert cal.source == "synthetic"
+
+
+def test_median_standard_error_counts_blocks_not_samples() -> None:
+    """Independent errors: about 1.25 sigma / sqrt(n). Errors shared within a block (an
+    averaging driver) are as many samples as blocks: the error is that of the blocks."""
+    rng = np.random.default_rng(3)
+    t = np.arange(0.0, 100.0, 1.0)  # 100 samples, 20 blocks of 5 s
+    true = np.full(t.size, 4.0)
+    iid = true + 0.2 + rng.normal(0.0, 0.05, t.size)
+    se = median_standard_error(t, iid, true, block_s=5.0, clip=1.0)
+    assert se == pytest.approx(1.2533 * 0.05 / math.sqrt(t.size), rel=0.35)
+    shared = true + 0.2 + np.repeat(rng.normal(0.0, 0.05, 20), 5)  # one error per block
+    se_shared = median_standard_error(t, shared, true, block_s=5.0, clip=1.0)
+    assert se_shared is not None and se is not None and se_shared > 1.5 * se
+    assert se_shared == pytest.approx(1.2533 * 0.05 / math.sqrt(20), rel=0.5)
+    # a garbage range counts at most `clip`; a constant pair is floored; two blocks: unknown
+    spiked = iid.copy()
+    spiked[10] = 100.0
+    assert median_standard_error(t, spiked, true, block_s=5.0, clip=1.0) < 0.02  # 1.25 unclipped
+    assert median_standard_error(t, true + 0.2, true, block_s=5.0, clip=1.0) == 0.005
+    assert median_standard_error(t[:9], iid[:9], true[:9], block_s=5.0, clip=1.0) is None
 
 
 def test_scale_is_fitted_only_when_distances_span_enough() -> None:

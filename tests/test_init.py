@@ -180,7 +180,9 @@ def test_init_finds_mocap_by_type_on_world_topics(
     assert all(0.25 < p.bias < 0.35 for p in cfg.uwb.pairs.values())
     assert cfg.robot("tb1").heading_offset_deg != 0.0
     # a ground team keeps the filter's range noise model (only a flying team's is measured)
-    assert "sigma" not in tomllib.loads(out.read_text())["uwb"]
+    raw = tomllib.loads(out.read_text())["uwb"]
+    assert "sigma" not in raw
+    assert not any("bias_sigma" in p for p in raw["pairs"].values())  # nor its biases' errors
 
 
 @pytest.mark.parametrize(

@@ -124,3 +124,7 @@ def test_init_measures_the_delay_of_averaged_ranges(tmp_path: Path) -> None:
     assert np.abs(off).max() < 0.08 and off.std() < 0.03, (off.min(), off.max(), off.std())
     # and the team's range noise is what those pairs leave (3 cm simulated), not the default
     assert 0.03 <= cfg.uwb.sigma <= 0.06 and cfg.uwb.los_sigma == cfg.uwb.sigma, raw["uwb"]
+    # each bias as well as this bag knows it (60 ranges a pair, 5 s blocks: about a centimetre),
+    # what its online bias starts from, not the 5 cm between sessions
+    errors = np.array([p.bias_sigma for p in cfg.uwb.pairs.values()])
+    assert errors.min() > 0.003 and errors.max() < 0.03, (errors.min(), errors.max())

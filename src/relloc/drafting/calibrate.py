@@ -22,15 +22,22 @@ the robust spread (5 cm) weighed the spikes too much (distance errors 0.026-0.03
 0.017-0.021 with the RMS, 0.15 m); on averaged ranges the two agree (0.040 / 0.041 m). Each
 residual counts at most ``CLIP_M``: one garbage range (a driver's 100 m) must not make every
 range weigh nothing.
+
+With ``bias_errors`` (``relloc init``, a flying team) each pair's ``bias_sigma`` is its bias's
+standard error on this bag, not the spread between sessions the online biases otherwise start
+from: a run of the same bag starts from what its motion capture told (108 drone pair biases
+each free by 5 cm took the formation's tilt for biases: docs/explanation/flying.md).
 """
 
 from __future__ import annotations
 
 import tomllib
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import tomlkit
 from tomlkit.items import Item, Table
 
@@ -73,11 +80,13 @@ def calibrate(
     headings: bool = False,
     fit_scale: bool = False,
     span: tuple[float, float] | None = None,
+    bias_errors: bool = False,
 ) -> Calibration:
     """Pair calibration (and optionally heading offsets) from ``source``: a recording with UWB
     ranges and motion capture (:attr:`~relloc.sources.table.SourceKind.calibrates`: a rosbag2
     bag, only the events of ``span``: seconds from its start), or a CSV of UWB errors
-    (``node_map``: CSV robot number -> node)."""
+    (``node_map``: CSV robot number -> node). ``bias_errors``: each bag pair's ``bias_sigma``
+    is its bias's standard error on this bag (module docstring)."""
     from relloc.evaluation import calibration
 
     range_sigma: float | None = None
@@ -105,6 +114,8 @@ def calibrate(
 
             range_sigma = calibration.residual_rms(samples, CLIP_M)
             range_sigma = None if range_sigma is None else round(range_sigma, 3)
+        if bias_errors:
+            pairs = _with_bias_errors(pairs, samples)
     offsets: dict[str, float] = {}
     if headings:
         offsets = {
@@ -112,6 +123,21 @@ def calibrate(
             for r, deg in calibration.heading_offsets_from_bag(source, config).items()
         }
     return Calibration(str(source), dict(pairs), offsets, fit_scale, range_sigma)
+
+
+def _with_bias_errors(
+    pairs: dict[str, PairCalibration],
+    samples: Mapping[str, tuple[np.ndarray, np.ndarray, np.ndarray]],
+) -> dict[str, PairCalibration]:
+    """``pairs`` with each one's ``bias_sigma`` its standard error on the matched ``samples``."""
+    from relloc.drafting.tags import BLOCK_S, CLIP_M
+    from relloc.evaluation.calibration import median_standard_error
+
+    out = {}
+    for key, pair in pairs.items():
+        se = median_standard_error(*samples[key], block_s=BLOCK_S, clip=CLIP_M)
+        out[key] = pair if se is None else replace(pair, bias_sigma=round(se, 4))
+    return out
 
 
 def _set(table: Table, key: str, value: Any, comment: str | None = None) -> None:
@@ -134,6 +160,8 @@ def _pair_values(cal: PairCalibration, existing: dict[str, Any], fit_scale: bool
         values["scale"] = cal.scale
     if "sigma" in existing and cal.sigma is not None:
         values["sigma"] = cal.sigma
+    if cal.bias_sigma is not None:
+        values["bias_sigma"] = cal.bias_sigma
     values["source"] = cal.source
     return values
 

@@ -373,7 +373,12 @@ def calibrate_draft(bag: Path, text: str, d: Draft) -> tuple[Calibration | None,
         return None, ["not calibrated: the node mapping is undecided (rerun with --node)"]
     config = TeamConfig.from_dict(tomllib.loads(text))
     try:
-        cal = calibrate(bag, config, headings=any(r.odom for r in d.robots))
+        cal = calibrate(
+            bag,
+            config,
+            headings=any(r.odom for r in d.robots),
+            bias_errors=config.dimension == 3,
+        )
     except CalibrationError as exc:
         return None, [f"not calibrated: {exc}"]
     headings = {r: deg + 0.0 for r, deg in cal.heading_offset_deg.items()}  # no -0.0
@@ -398,6 +403,12 @@ def calibrate_draft(bag: Path, text: str, d: Draft) -> tuple[Calibration | None,
                 f"  range noise {cal.range_sigma:.3f} m (RMS of what the biases leave, outliers included): "
                 "written as [uwb] sigma and los_sigma, what the flying team's smoother weighs "
                 "every range by"
+            )
+        errors = [p.bias_sigma for p in cal.pairs.values() if p.bias_sigma is not None]
+        if errors:
+            notes.append(
+                f"  each pair bias known to {min(errors):.3f}..{max(errors):.3f} m on this bag "
+                "(standard error): written as bias_sigma, what the online biases start from"
             )
     if headings:
         shown = ", ".join(f"{r} {deg:+.2f}" for r, deg in headings.items())

@@ -172,7 +172,8 @@ def to_toml(
                 "Pair biases: median of range - mocap distance on this bag (relloc calibrate); the robust "
                 "sigma of what is left is in each comment, left unset so the filter's noise model applies"
                 + (
-                    " (in 3D: [uwb] sigma, the RMS of what is left)"
+                    " (in 3D: [uwb] sigma, the RMS of what is left; each bias_sigma the bias's "
+                    "standard error on this bag: for another session, delete them)"
                     if range_sigma is not None
                     else ""
                 )

@@ -31,6 +31,7 @@ __all__ = [
     "calibrate_pair",
     "heading_offsets_from_bag",
     "interpolate_track",
+    "median_standard_error",
     "pair_biases_from_bag",
     "pair_biases_from_csv",
     "pair_biases_from_samples",
@@ -254,6 +255,27 @@ def residual_rms(
         return None
     pooled = np.minimum(np.abs(np.concatenate(left)), clip)
     return float(np.sqrt(np.mean(pooled * pooled)))
+
+
+MIN_BIAS_SIGMA = 0.005
+"""Smallest standard error stated for a calibrated bias (m): half the UWB's 1 cm step."""
+
+
+def median_standard_error(
+    t: np.ndarray, measured: np.ndarray, true: np.ndarray, *, block_s: float, clip: float
+) -> float | None:
+    """The standard error (m) of a pair's median error (:func:`calibrate_pair`'s ``bias``):
+    ``1.2533`` (the median's against the mean's, Gaussian errors) times the mean's, its
+    residuals summed per ``block_s`` seconds (neighbouring ranges share their errors: an
+    averaging driver, a slow geometry) and each counted at most ``clip``; at least
+    ``MIN_BIAS_SIGMA``. ``None`` with fewer than three blocks (no spread to measure)."""
+    r = np.asarray(measured, float) - np.asarray(true, float)
+    r = np.clip(r - np.median(r), -clip, clip)
+    blocks = np.floor((np.asarray(t, float) - float(np.min(t))) / block_s).astype(np.intp)
+    if np.unique(blocks).size < 3:
+        return None
+    sums = np.bincount(blocks, weights=r)
+    return max(1.2533 * math.sqrt(float(np.sum(sums * sums))) / r.size, MIN_BIAS_SIGMA)
 
 
 # ---------------------------------------------------------------------------- from the CSV
