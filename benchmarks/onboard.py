@@ -18,7 +18,9 @@ estimates in the formation frame are skipped and counted) the median position er
 (``ape_median``) and the share of estimates whose 95 % ellipse holds the truth
 (``coverage95``), with and without the partition; each serve process's CPU (% of a core, after
 ``--settle`` s, from ``/proc``) and peak RSS beside a bare Zenoh subscriber to the team's keys
-over the same minutes, the part its robot's publisher thread took (``publisher_cpu_percent``)
+over the same minutes, the part its robot's publisher thread took (``publisher_cpu_percent``),
+the ratios to the bare subscriber of the process (``cpu_ratio``) and of the serve alone, the
+process less that thread (``serve_cpu_ratio``: the robot's drivers' work is not the serve's),
 and its RSS at the end as own memory and mapped files (``rss_anon_mb``, ``rss_file_mb``);
 ``partition_shift_m``: the largest distance between a view of one uncut robot by another at the
 same stamp in the runs with and without the partition (same seed) over the partition;
@@ -685,6 +687,12 @@ def run(opts: Options, workdir: Path, say: Any = print) -> dict[str, Any]:
             me: round_finite(c / bare_cpu, 2) if c is not None else None
             for me, c in out["cpu_percent"].items()
         }
+        out["serve_cpu_ratio"] = {
+            me: round_finite((c - out["publisher_cpu_percent"][me]) / bare_cpu, 2)
+            if c is not None and out["publisher_cpu_percent"].get(me) is not None
+            else None
+            for me, c in out["cpu_percent"].items()
+        }
     say(_line(out))
     if opts.partition is None:
         return out
@@ -745,8 +753,10 @@ def _line(out: dict[str, Any]) -> str:
     return (
         f"{views}; serve CPU {out['cpu_percent']} % of a core, bare "
         f"{out['bare_cpu_percent']} % (of serve's, its process's publisher of the robot's own "
-        f"topics {out['publisher_cpu_percent']} %); peak RSS {out['rss_mb']} MB (at the end "
-        f"{out['rss_anon_mb']} own + {out['rss_file_mb']} mapped files)"
+        f"topics {out['publisher_cpu_percent']} %)"
+        + (f", the serve alone {out['serve_cpu_ratio']}x bare" if "serve_cpu_ratio" in out else "")
+        + f"; peak RSS {out['rss_mb']} MB (at the end {out['rss_anon_mb']} own + "
+        f"{out['rss_file_mb']} mapped files)"
     )
 
 

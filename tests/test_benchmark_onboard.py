@@ -107,6 +107,10 @@ def test_three_onboard_serves_one_cut_off(tmp_path: Path) -> None:
                 "formation_skipped", "views_partitioned"):  # fmt: skip
         assert set(d[key]) == robots, key
     assert d["bare_cpu_percent"] is not None and all(v > 0 for v in d["rss_mb"].values())
+    for me in robots:  # the serve alone: the process less its robot's publisher thread
+        serve = d["cpu_percent"][me] - d["publisher_cpu_percent"][me]
+        assert d["serve_cpu_ratio"][me] == pytest.approx(serve / d["bare_cpu_percent"], abs=0.01)
+        assert d["serve_cpu_ratio"][me] <= d["cpu_ratio"][me]
     p = d["partition"]
     assert p["robot"] == "r1" and p["relay_bytes_during"] == 0 and p["statuses_during"] >= 2
     # nothing from the others reached r1 while cut: it hears only itself and r2, whom the
