@@ -232,10 +232,11 @@ def test_six_tags_a_drone_without_odometry_tell_the_orientation() -> None:
     """``drones_six`` (1 Hz averaged ranges, no odometry, online biases), 30 s of seed 0: the
     reference's six tags make the orientation observable. Ranges placed half their window
     before their stamps (the config's ``uwb.range_delay``), hypotheses kept 15 s (the
-    least-cost one published) and a constant velocity between keys: 0.26 / 0.25 m and 2.9 /
-    2.7 deg median (the first hypothesis published: 0.35 / 0.29 m and 3.0 / 3.1 deg; a random
-    walk alone: 0.42 / 0.35 m and 4.6 / 3.6 deg; docs/explanation/flying.md); smoothed 5 s
-    later, 0.17 / 0.15 m and 1.0 / 2.1 deg."""
+    least-cost one published) and a constant velocity between keys, vertically a tenth of the
+    horizontal: 0.25 / 0.23 m and 2.8 / 3.1 deg median (isotropic: 0.26 / 0.25 m and 2.9 / 2.7
+    deg; the first hypothesis published: 0.35 / 0.29 m; a random walk alone: 0.42 / 0.35 m and
+    4.6 / 3.6 deg; docs/explanation/flying.md); smoothed 5 s later, 0.15 / 0.19 m and 1.6 /
+    2.8 deg."""
     sim, loc, estimates, truth = _run(drones_six_scenario, 0, 30.0)
     assert sim.config.uwb.range_delay == 0.5
     assert estimates[-1].orientation_observable
