@@ -516,7 +516,7 @@ def test_the_shortbag_replayed_into_a_secure_serve_gives_the_plain_runs_ape(
     client = open_role(folder, "team", connect=(port,))
     try:
         assert wait_until(lambda: len(serve.info.links()) == 1, timeout=10)
-        estimates, _, _ = serve_replayed(bag, config, serve, client, particles, seed, rate)
+        estimates, _, server = serve_replayed(bag, config, serve, client, particles, seed, rate)
     finally:
         client.close()
         serve.close()
@@ -524,7 +524,9 @@ def test_the_shortbag_replayed_into_a_secure_serve_gives_the_plain_runs_ape(
     served = ape_against_bag(estimates, bag, config, warmup=offline.warmup, t0=offline.t0)
     print(
         f"secure: served mean APE median {served['mean_median']:.3f} m over {len(estimates)} "
-        f"estimates; relloc run {pf.mean_ape_median:.3f} m over {pf.n_estimates}"
+        f"estimates; relloc run {pf.mean_ape_median:.3f} m over {pf.n_estimates}; "
+        f"{server.source.stats.out_of_order} events out of order"
     )
+    assert server.source.stats.out_of_order == 0
     assert abs(len(estimates) - pf.n_estimates) <= 2
     assert served["mean_median"] == pytest.approx(pf.mean_ape_median, rel=0.10)

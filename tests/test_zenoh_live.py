@@ -276,7 +276,7 @@ def serve_replayed(
 ) -> tuple[list[Any], Any, LiveServer]:
     """Replay ``bag`` at ``rate`` from ``client`` into a live server on ``serve``: every estimate
     it published, as collected on ``client``, the replay's stats and the server (a reorder window
-    of 4 s: the replay shares the process; see :func:`test_replayed_shortbag_matches_relloc_run`)."""
+    of 4 s, released by the stamps alone: see :func:`test_replayed_shortbag_matches_relloc_run`)."""
     interface = interface or RosInterface()
     collector = EstimateCollector(client, config, interface=interface)
     server = LiveServer(
@@ -286,6 +286,7 @@ def serve_replayed(
             particles=particles,
             seed=seed,
             reorder_window=4.0,
+            reorder_hold=math.inf,  # released by the stamps: a stalled replay changes nothing
             clock_rate=rate,
             interface=interface,
             compiled=compiled.ENABLED,  # the step relloc run takes: the same draws
@@ -318,14 +319,14 @@ def test_replayed_shortbag_matches_relloc_run(
     bridge and on rmw_zenoh (the same bytes under other keys, with rmw_zenoh attachments).
 
     Same particles, same seed; the reorder window restores the header order the rosbag source
-    produces, so the filter sees the same event sequence. A wide one (4 s of header time, held
-    at most 2 s of wall time at 2x): the replay shares this process, and its thread, starved
-    of the GIL by the engine's on a loaded machine, falls behind its schedule; with a 0.2 s window
-    some events come out of order under load, and the filter, fed another sequence, lands
-    elsewhere. Beside a CPU hog the process stalls for up to about a second: the engine, first
-    to run after it, lets out by the hold what it held before the samples that came meanwhile
-    reach it, and with a 1 s window (0.5 s held) up to 16 events came out of order, the APE off
-    by up to 75 %.
+    produces, so the filter sees the same event sequence. The buffer lets events out by their
+    stamps alone (``reorder_hold`` infinite), never because they waited: the replay shares this
+    process, and its thread, starved of the GIL by the engine's on a loaded machine, falls
+    behind its schedule; an event let out because it waited (a hold on the wall clock) comes out
+    before the samples sent after such a stall, and the filter, fed another sequence, lands
+    elsewhere: with a 1 s window held 0.5 s, up to 16 events out of order beside a CPU hog, the
+    APE off by up to 75 %; with 4 s held 2 s, the secure replay of one run of the whole suite
+    ended at 0.187 against 0.159.
     """
     bag = shared_data / "tiers" / SHORTBAG
     config = TeamConfig.load(REPO / "configs" / "tiers" / f"{SHORTBAG}.toml")
@@ -345,6 +346,7 @@ def test_replayed_shortbag_matches_relloc_run(
         f"estimates; relloc run {offline.mean_ape_median:.3f} m over {offline.n_estimates}; "
         f"{server.source.stats.out_of_order} events out of order"
     )
+    assert server.source.stats.out_of_order == 0
     assert abs(len(estimates) - offline.n_estimates) <= 2
     assert served["mean_median"] == pytest.approx(offline.mean_ape_median, rel=0.10)
     for robot, s in offline.robots.items():

@@ -355,3 +355,26 @@ def test_one_future_stamp_does_not_disable_the_reorder_window() -> None:
     )  # let out after its hold (the localizer rejects it)
     normal = [t for t in stamps if t < T0 + 10.0]
     assert normal == sorted(normal) and src.stats.out_of_order == 0
+
+
+@pytest.mark.parametrize(("hold", "late"), [(None, 1), (math.inf, 0)])
+def test_an_infinite_hold_keeps_the_order_through_a_stalled_publisher(
+    hold: float | None, late: int
+) -> None:
+    """A publisher stalled for 1 s while one of its messages waits (a replay starved of the
+    GIL): with the hold on the wall clock (the window at ``clock_rate``: 0.2 s) the waiting one
+    is let out and the one stamped before it, sent after the stall, is late; released by the
+    stamps alone (``reorder_hold`` infinite) both come out in order."""
+    src = ZenohSource(team(), ZenohSourceOptions(reorder_window=0.2, reorder_hold=hold))
+    out = src.release(T0)
+    src.handle("a/odom", odom_payload("a", T0 + 0.1), T0 + 0.1)
+    out += src.release(T0 + 1.1)  # the stall: the engine runs, the publisher does not
+    src.handle("a/odom", odom_payload("a", T0 + 0.05), T0 + 1.1)
+    for k in range(3, 8):
+        src.handle("a/odom", odom_payload("a", T0 + 0.1 * k), T0 + 1.1 + 0.01 * k)
+        out += src.release(T0 + 1.1 + 0.01 * k)
+    out += src.flush()
+    assert len(out) == 7 and src.stats.out_of_order == late
+    assert [a.event.t for a in out][:2] == (
+        [T0 + 0.1, T0 + 0.05] if late else [T0 + 0.05, T0 + 0.1]
+    )

@@ -56,6 +56,9 @@ class ServeOptions:
     """Reorder-buffer window (s of header time); 0: lowest latency (see ``docs/explanation/live-engine.md``)."""
     clock_rate: float = 1.0
     """Header seconds per wall second: pair with ``relloc replay --rate``."""
+    reorder_hold: float | None = None
+    """Wall seconds an event waits in the reorder buffer at most (``None``: the window on the
+    wall clock; ``math.inf``: released by the stamps alone, a replay compared to a run)."""
     status_period: float = 1.0
     trace: bool = False
     subscribe_all: bool = False
@@ -124,6 +127,7 @@ class LiveServer:
                 interface=opts.interface,
                 reorder_window=opts.reorder_window,
                 clock_rate=opts.clock_rate,
+                reorder_hold=opts.reorder_hold,
                 detections=any(m in DETECTION_METHODS for m in opts.methods),
                 ground_truth=opts.ground_truth,
                 subscribe_all=opts.subscribe_all,

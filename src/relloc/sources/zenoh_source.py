@@ -79,6 +79,10 @@ class ZenohSourceOptions:
     """Header-time window (s) of the reorder buffer; 0 passes events through as they come."""
     clock_rate: float = 1.0
     """Header seconds per wall second (a recording replayed at ``--rate 2``: 2)."""
+    reorder_hold: float | None = None
+    """Wall seconds an event is held at most, so that a quiet team is not held back (``None``:
+    the window at ``clock_rate``). ``math.inf`` releases by the stamps alone: a replay whose
+    thread a loaded machine stalls still comes out in the order a run sees."""
     odometry: bool = True
     ranges: bool = True
     detections: bool = True
@@ -148,9 +152,10 @@ class ZenohSource:
         self._envelope = RmwEnvelope(self._dds_types)
         self.transport: TransportStats = self._envelope.stats
         self.clock = HeaderClock(opts.clock_rate, config.clock_offset)
-        self.buffer: ReorderBuffer[Arrival] = ReorderBuffer(
-            opts.reorder_window, hold=opts.reorder_window / opts.clock_rate
-        )
+        hold = opts.reorder_hold
+        if hold is None:
+            hold = opts.reorder_window / opts.clock_rate
+        self.buffer: ReorderBuffer[Arrival] = ReorderBuffer(opts.reorder_window, hold=hold)
         self._converter = Converter(self.stats, self.clock, log, opts.interface.distro)
         # Zenoh's threads append to the inbox (a deque: appends and pops are atomic, its order
         # is the arrival order) and put a token on the wake queue when the engine thread has to
