@@ -2,7 +2,7 @@
 biases (one belief per UWB node pair, offsets they share: :func:`bias_layout`,
 :class:`BiasPrior`), the covariance a published estimate
 keeps per axis (:func:`covariance_floor`) and about the formation's rotation
-(``ROTATION_FLOOR``). Shared by the kinds of :mod:`relloc.estimators`, so that one kind never
+(``ROTATION_FLOOR``, :func:`with_rotation_floor`). Shared by the kinds of :mod:`relloc.estimators`, so that one kind never
 imports another's localizer for them.
 """
 
@@ -214,6 +214,15 @@ orientation is resolved: a range error that follows the robots' headings (an ant
 turns the apparent motion of every robot alike, about its amplitude over the robots' turning
 radius (docs/explanation/scaling.md: 2.5-3 degrees on the grid), which no fusion of ranges and odometry
 can tell from a turn of the formation."""
+
+
+def with_rotation_floor(mean: FloatArray, cov: FloatArray, std: float) -> FloatArray:
+    """``cov`` ``(K, 2, 2)`` plus a turn of the whole formation about the reference of ``std``
+    rad: ``std^2 J J^T`` per robot, ``J = (-y, x)`` the derivative of its position ``mean``
+    ``(K, 2)`` by the turn (:data:`ROTATION_FLOOR` says why a published covariance keeps one)."""
+    x, y = mean[:, 0], mean[:, 1]
+    turn = np.stack([np.stack([y * y, -x * y], axis=1), np.stack([-x * y, x * x], axis=1)], axis=1)
+    return cov + std**2 * turn
 
 
 def covariance_floor(config: TeamConfig, range_model: str) -> float:

@@ -20,6 +20,7 @@ from relloc.filter.ranges import RangeBatch, range_mixture
 from relloc.filter.resampling import log_normalize
 from relloc.filter.state import StateLayout
 from relloc.filter.summary import ORIENTATION_MAX_STD, Evidence, summarize
+from relloc.localizers.priors import with_rotation_floor
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -250,11 +251,8 @@ class RangeGraphFilter(WeightedFilter):
             if own >= ORIENTATION_MAX_STD:
                 summary = replace(summary, orientation_observable=False)
         if self.rotation_floor > 0.0 and summary.orientation_observable:
-            x, y = summary.mean[:, 0], summary.mean[:, 1]
-            turn = np.stack(
-                [np.stack([y * y, -x * y], axis=1), np.stack([-x * y, x * x], axis=1)], axis=1
-            )
-            summary = replace(summary, cov=summary.cov + self.rotation_floor**2 * turn)
+            cov = with_rotation_floor(summary.mean, summary.cov, self.rotation_floor)
+            summary = replace(summary, cov=cov)
         return FilterEstimate(
             summary.mean, summary.cov, float(1.0 / np.sum(w * w)), summary=summary
         )

@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from relloc.filter.gauge import gauge
 from relloc.filter.summary import ModeSummary
+from relloc.localizers.priors import with_rotation_floor
 
 FloatArray = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -63,11 +64,7 @@ def moments(
     """Published positions ``(K, 2)``, covariances ``(K, 2, 2)`` and summary of the smoother's
     relative positions ``mean`` with marginal covariances ``cov`` (module docstring)."""
     if observable:
-        x, y = mean[:, 0], mean[:, 1]
-        turn = np.stack(
-            [np.stack([y * y, -x * y], axis=1), np.stack([-x * y, x * x], axis=1)], axis=1
-        )
-        cov = cov + rotation_floor**2 * turn
+        cov = with_rotation_floor(mean, cov, rotation_floor)
     summary = _summary(mean, cov, observable)
     if observable:
         return mean, cov, summary
