@@ -121,3 +121,7 @@ def test_three_onboard_serves_one_cut_off(tmp_path: Path) -> None:
     assert d["partition_shift"]["n"] > 0 and d["partition_shift_m"] is not None
     assert d["partition_shift_floor"]["n"] > 0 and d["partition_shift_floor_m"] >= 0.0
     assert "recovery_s" in d and "recovery" in d
+    # the recovery test on the run without the partition: a number of seconds, or why not
+    floor = d["recovery_floor"]
+    assert d["recovery_floor_s"] == floor["recovery_s"]
+    assert floor["recovery_s"] is not None or floor["why"]
