@@ -1,5 +1,5 @@
 """Where an onboard view's error comes from: the grid team seen from each robot, as simulated
-and with the odometry's heading errors taken out.
+and with error sources taken out of the simulator.
 
 ``relloc serve --robot R`` runs the team's filter with R as the reference and turns the estimate
 into R's body frame by R's odometry yaw. This runs the same offline, in header order, on
@@ -19,8 +19,7 @@ Per condition: the worst view from each viewer (its median over the seeds), the 
 views and seeds, the share of the views at most ``--bound`` m, and the worst view over all
 viewers and seeds once each estimate is turned about its viewer by the angle that fits its
 teammates best (``after a turn``: what is left when the bearing of the formation is not
-counted). ``--page FILE --section NAME``
-writes the table between the page's markers.
+counted). ``--page FILE --section NAME`` writes the table between the page's markers.
 
     .venv/bin/python scripts/onboard_view_oracle.py --seeds 0-4 --robots 6 --duration 60
 """

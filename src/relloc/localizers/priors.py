@@ -1,9 +1,9 @@
 """What every estimator kind starts from and publishes at least: the prior of the online pair
 biases (one belief per UWB node pair, offsets they share: :func:`bias_layout`,
-:class:`BiasPrior`), the covariance a published estimate
-keeps per axis (:func:`covariance_floor`) and about the formation's rotation
-(``ROTATION_FLOOR``, :func:`with_rotation_floor`). Shared by the kinds of :mod:`relloc.estimators`, so that one kind never
-imports another's localizer for them.
+:class:`BiasPrior`), the covariance a published estimate keeps per axis
+(:func:`covariance_floor`) and about the formation's rotation (``ROTATION_FLOOR``,
+:func:`with_rotation_floor`). Shared by the kinds of :mod:`relloc.estimators`, so that one kind
+never imports another's localizer for them.
 """
 
 from __future__ import annotations
