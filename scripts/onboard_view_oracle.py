@@ -88,7 +88,8 @@ def best_turn_errors(pairs: dict[str, Paired]) -> dict[str, float]:
     gt = np.stack([pairs[r].gt[keep] for r in robots], axis=1)
     cross = np.sum(est[..., 0] * gt[..., 1] - est[..., 1] * gt[..., 0], axis=1)
     dot = np.sum(est[..., 0] * gt[..., 0] + est[..., 1] * gt[..., 1], axis=1)
-    c, s = np.cos(np.arctan2(cross, dot)), np.sin(np.arctan2(cross, dot))
+    angle = np.arctan2(cross, dot)
+    c, s = np.cos(angle), np.sin(angle)
     x = c[:, None] * est[..., 0] - s[:, None] * est[..., 1]
     y = s[:, None] * est[..., 0] + c[:, None] * est[..., 1]
     errors = np.hypot(x - gt[..., 0], y - gt[..., 1])

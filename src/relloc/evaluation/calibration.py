@@ -250,11 +250,18 @@ def residual_rms(
 ) -> float | None:
     """The RMS over every matched range of what its pair's median error leaves, each residual
     counted at most ``clip`` (m); ``None`` where nothing matched."""
-    left = [m - d - np.median(m - d) for _, m, d in samples.values() if m.size]
+    left = [_left_by_median(m, d, clip) for _, m, d in samples.values() if m.size]
     if not left:
         return None
-    pooled = np.minimum(np.abs(np.concatenate(left)), clip)
+    pooled = np.concatenate(left)
     return float(np.sqrt(np.mean(pooled * pooled)))
+
+
+def _left_by_median(measured: np.ndarray, true: np.ndarray, clip: float) -> np.ndarray:
+    """What a pair's median error (its bias) leaves of each range's error, clipped to
+    ``+-clip`` (m): one garbage range counts at most ``clip``."""
+    r = np.asarray(measured, float) - np.asarray(true, float)
+    return np.clip(r - np.median(r), -clip, clip)
 
 
 MIN_BIAS_SIGMA = 0.005
@@ -269,8 +276,7 @@ def median_standard_error(
     residuals summed per ``block_s`` seconds (neighbouring ranges share their errors: an
     averaging driver, a slow geometry) and each counted at most ``clip``; at least
     ``MIN_BIAS_SIGMA``. ``None`` with fewer than three blocks (no spread to measure)."""
-    r = np.asarray(measured, float) - np.asarray(true, float)
-    r = np.clip(r - np.median(r), -clip, clip)
+    r = _left_by_median(measured, true, clip)
     blocks = np.floor((np.asarray(t, float) - float(np.min(t))) / block_s).astype(np.intp)
     if np.unique(blocks).size < 3:
         return None
