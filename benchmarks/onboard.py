@@ -304,7 +304,7 @@ def robot_process(spec: dict[str, Any]) -> int:
     """Robot ``spec["robot"]``: its onboard serve, and the publisher of its own topics."""
     import zenoh
 
-    from relloc.events import OdometryEvent, RangeEvent
+    from relloc.events import measured_by
     from relloc.live import LiveServer, ServeOptions
     from relloc.live.publish import EventEncoder, Publishers
     from relloc.malloc import tune_malloc
@@ -313,12 +313,7 @@ def robot_process(spec: dict[str, Any]) -> int:
     tune_malloc()
     me = spec["robot"]
     sim, config = team(spec["robots"], spec["seed"], spec["duration"], spec["kind"])
-    own = [
-        ev
-        for ev in sim.events()
-        if (isinstance(ev, OdometryEvent) and ev.robot == me)
-        or (isinstance(ev, RangeEvent) and ev.robot_a == me)
-    ]
+    own = [ev for ev in sim.events() if measured_by(ev, me)]
     session = zenoh.open(peer_config(spec["listen"], spec["connect"]))
     server = LiveServer(
         config,

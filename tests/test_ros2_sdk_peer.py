@@ -106,7 +106,7 @@ def test_serve_localizes_a_team_published_by_the_sdk(
     out = served(distro, serve_distro, tmp_path_factory)
     assert out["clone_attempts"] == []
     assert out["serve_exit"] == 0, out["serve_output"]
-    assert out["serve_received_all"], out["serve_output"]
+    assert out["serve_received_all"], (out["sent"], out["transport"], out["serve_output"])
     assert out["rejected"] == {}  # no decode_error, no unknown_type
     transport = out["transport"]
     assert transport["unknown_type_hash"] == {} and transport["lost"] == {}

@@ -200,6 +200,19 @@ WAKE_ALWAYS = WakeRule(-math.inf, -math.inf, math.inf, -math.inf)
 """Every event is urgent."""
 
 
+def measured_by(event: object, robot: str) -> bool:
+    """Whether ``event`` comes from ``robot``'s own sensors, as its drivers publish it on board:
+    its odometry, detections and height, the ranges its node measures (``robot_a``, the end that
+    initiates a two-way range) and its sightings. Never ground truth."""
+    if isinstance(event, RangeEvent):
+        return event.robot_a == robot
+    if isinstance(event, SightingEvent):
+        return event.observer == robot
+    if isinstance(event, (OdometryEvent, DetectionEvent, HeightEvent)):
+        return event.robot == robot
+    return False
+
+
 def pair_key(a: str, b: str) -> str:
     """Order-independent key for a pair of names: ``pair_key("n_7", "n_3") == "n_3-n_7"``."""
     lo, hi = sorted((a, b))
