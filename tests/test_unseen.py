@@ -145,3 +145,61 @@ def test_a_robot_measured_without_its_odometry_moves_in_the_filter_and_is_found_
         for robot, p in est.positions.items():
             x, y, _ = sim.true_poses(robot, t)[0]
             assert np.hypot(p[0] - (x - x0), p[1] - (y - y0)) < 0.2, (est.t, robot)
+
+
+def test_odometry_back_after_a_silence_does_not_move_the_robot_by_the_gap_again() -> None:
+    """r1's odometry alone silent 10-20 s while the others still range it: the filter moved it
+    by its ranges meanwhile, so when its odometry returns it goes on from there. Applying the
+    whole gap's displacement at once moved it by 1.4 m more than the run without the silence;
+    now it stays within 0.25 m of that run. A silence of 1 s keeps its displacement."""
+    import math
+
+    from relloc.events import OdometryEvent
+    from relloc.simulator.scenarios import grid_scenario
+
+    sim = grid_scenario(0, robots=4, duration=30.0)
+
+    def r1_track(end: float) -> tuple[dict[float, tuple[float, ...]], ParticleFilterLocalizer]:
+        """r1's estimates with its odometry silent from 10 s to ``end``."""
+        loc = ParticleFilterLocalizer(sim.config, seed=0)
+        out: dict[float, tuple[float, ...]] = {}
+        for ev in sim.events():
+            if isinstance(ev, GroundTruthEvent):
+                continue
+            if isinstance(ev, OdometryEvent) and ev.robot == "r1" and 10.0 <= ev.t < end:
+                continue
+            out.update((round(e.t, 3), e.positions["r1"]) for e in loc.process(ev))
+        return out, loc
+
+    whole, _ = r1_track(10.0)
+    gapped, loc = r1_track(20.0)
+    assert loc.stats["odometry_resumed"] == 1
+    shifts = [math.dist(p, whole[t]) for t, p in gapped.items() if 19.0 <= t <= 23.0 and t in whole]
+    assert len(shifts) > 30 and max(shifts) < 0.25
+    _, loc = r1_track(11.0)
+    assert loc.stats["odometry_resumed"] == 0 and loc.stats["odometry"] > 0
+
+
+def test_measurements_follow_a_robot_once_they_fix_its_position() -> None:
+    """Over a silence of more than 2 s: one teammate's ranges leave the robot on a circle (its
+    odometry's displacement then still applies); a second teammate's, or a range and bearing,
+    fix it. A silence of 2 s or less never counts as followed."""
+    from relloc.events import RangeEvent, SightingEvent
+    from relloc.simulator.scenarios import grid_scenario
+
+    heard = ParticleFilterLocalizer(grid_scenario(0, robots=4).config, seed=0).heard
+
+    def followed(batch: list[object], back: float = 15.0) -> bool:
+        heard.carry("r1", 10.0)
+        heard.carry("r1", 12.0)  # already carried: the silence began at 10 s
+        heard.note(batch)
+        return heard.resume("r1", back)
+
+    assert not followed([RangeEvent(11.0, "r1", "r0", 3.0), RangeEvent(11.1, "r0", "r1", 3.0)])
+    assert followed([RangeEvent(11.0, "r1", "r0", 3.0), RangeEvent(11.0, "r2", "r1", 2.0)])
+    assert followed([SightingEvent(11.0, "r0", "r1", range=3.0, bearing=0.5)])
+    assert not followed([SightingEvent(11.0, "r0", "r1", range=None, bearing=0.5)])
+    assert not followed(
+        [RangeEvent(11.0, "r1", "r0", 3.0), RangeEvent(11.0, "r2", "r1", 2.0)], 12.0
+    )
+    assert heard.carried == {}

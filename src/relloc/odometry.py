@@ -116,6 +116,11 @@ class OdometryTrack:
     def last_time(self) -> float:
         return self._t[-1] if self._t else -math.inf
 
+    def first_after(self, t: float) -> float | None:
+        """The stamp of the first message after ``t`` still held (``None``: none)."""
+        i = bisect.bisect_right(self._t, t)
+        return self._t[i] if i < len(self._t) else None
+
     def add(self, ev: OdometryEvent) -> None:
         """Append a message; its time must be later than the last one's (the caller checks)."""
         prev = self._last_event

@@ -142,12 +142,21 @@ class SteppedLocalizer(Localizer):
                 continue
             if math.isnan(before[0]):
                 before = now  # odometry started since the last step: no known motion yet
+            track = self.odometry.tracks[robot]
+            carried = self.heard.carried.get(robot)
+            back = None if carried is None else track.first_after(carried[0])
+            if back is not None and self.heard.resume(robot, back):
+                # its measurements followed it through its odometry's silence: it moves on
+                # from the first message after it, not by the silence's displacement again
+                before = self.odometry.pose(robot, back)
+                self.stats["odometry_resumed"] += 1
             disp[i] = (now[0] - before[0], now[1] - before[1])
             dist = math.hypot(*disp[i])
             turn = abs(math.remainder(now[2] - before[2], math.tau))
             sigma[i] = self.motion.step_sigma(dist, turn)
-            if self.heard.moving_unknown(robot, t, self.odometry.tracks[robot]):
+            if self.heard.moving_unknown(robot, t, track):
                 sigma[i] = max(sigma[i], self.heard.unseen_speed * dt)
+                self.heard.carry(robot, track.last_time)
             self._anchor[robot] = now
         self.t = t
         return disp, sigma, dt
