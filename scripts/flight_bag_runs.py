@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from relloc.cli import argtypes, main
-from relloc.evaluation.pages import missing_section, write_between
+from relloc.evaluation.pages import check_page_args, print_table
 from relloc.simulator.flight import SIX_TAG_UWB, drones_six_scenario
 from relloc.simulator.flight_bag import write_flight_bag
 
@@ -71,10 +71,7 @@ def main_() -> None:
     p.add_argument("--page", type=Path, default=None)
     p.add_argument("--section", default=None)
     args = p.parse_args()
-    if (args.page is None) != (args.section is None):
-        raise SystemExit("--page and --section go together")
-    if args.page is not None and (problem := missing_section(args.page, args.section)) is not None:
-        raise SystemExit(problem)
+    check_page_args(args.page, args.section)
     lines = [
         f"`drones_six`, {args.duration:g} s, heading term {args.body_term:g} m, written as a MURP "
         f"bag, `relloc init`, `relloc run --bias online`, after {WARMUP:g} s; "
@@ -96,9 +93,7 @@ def main_() -> None:
                     f"{100 * row['coverage95']:.0f} %",
                 ]
             lines.append(f"| {seed} | {reference} | {robot} | " + " | ".join(cells) + " |")
-    print("\n".join(lines))
-    if args.page is not None:
-        write_between(args.page, args.section, "\n".join(lines))
+    print_table(lines, args.page, args.section)
 
 
 if __name__ == "__main__":

@@ -37,7 +37,7 @@ from relloc.cli import argtypes
 from relloc.engine import Engine
 from relloc.evaluation.gauges import body_frame_paired
 from relloc.evaluation.metrics import GroundTruth, Paired
-from relloc.evaluation.pages import missing_section, write_between
+from relloc.evaluation.pages import check_page_args, print_table
 from relloc.evaluation.report import evaluate
 from relloc.methods import build_pipeline
 from relloc.simulator.error_models import OdometryErrorModel, UwbErrorModel
@@ -107,10 +107,7 @@ def main() -> None:
     p.add_argument("--page", type=Path, default=None)
     p.add_argument("--section", default=None)
     args = p.parse_args()
-    if (args.page is None) != (args.section is None):
-        raise SystemExit("--page and --section go together")
-    if args.page is not None and (problem := missing_section(args.page, args.section)):
-        raise SystemExit(problem)
+    check_page_args(args.page, args.section)
     viewers = [f"r{k}" for k in range(args.robots)]
     seeds = ", ".join(str(s) for s in args.seeds)
     lines = [
@@ -134,9 +131,7 @@ def main() -> None:
         cells.append(f"{turned:.2f}")
         lines.append(f"| {name} | " + " | ".join(cells) + " |")
         print(lines[-1], flush=True)
-    print("\n".join(lines))
-    if args.page is not None:
-        write_between(args.page, args.section, "\n".join(lines))
+    print_table(lines, args.page, args.section)
 
 
 if __name__ == "__main__":

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from relloc.cli import argtypes
-from relloc.evaluation.pages import missing_section, write_between
+from relloc.evaluation.pages import check_page_args, print_table
 from relloc.runs.sweep import SweepJob, run_job
 
 RECORDINGS = {
@@ -156,10 +156,7 @@ def main() -> None:
     p.add_argument("--page", type=Path, default=None, help="Markdown page to write the table into")
     p.add_argument("--section", default=None, help="the page's section (its markers' name)")
     args = p.parse_args()
-    if (args.page is None) != (args.section is None):
-        raise SystemExit("--page and --section go together")
-    if args.page is not None and (problem := missing_section(args.page, args.section)) is not None:
-        raise SystemExit(problem)
+    check_page_args(args.page, args.section)
     seeds = args.seeds
     names = args.recordings.split(",")
     lines = [
@@ -188,9 +185,7 @@ def main() -> None:
                     f"| {name} | {robot} | {va.mean():.3f} | {vb.mean():.3f} | {d.mean():+.3f} +- {se:.3f} "
                     f"| {d[worst]:+.3f} (seed {used[worst]}) | {count} |"
                 )
-    print("\n".join(lines))
-    if args.page is not None:
-        write_between(args.page, args.section, "\n".join(lines))
+    print_table(lines, args.page, args.section)
 
 
 def _paired(

@@ -44,7 +44,7 @@ from onboard_view_oracle import CONDITIONS
 
 from relloc.cli import argtypes
 from relloc.engine import Engine
-from relloc.evaluation.pages import missing_section, write_between
+from relloc.evaluation.pages import check_page_args, print_table
 from relloc.events import Event, measured_by
 from relloc.methods import build_pipeline
 from relloc.simulator.runner import Simulation
@@ -164,10 +164,7 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--page", type=Path, default=None)
     p.add_argument("--section", default=None)
     args = p.parse_args(argv)
-    if (args.page is None) != (args.section is None):
-        raise SystemExit("--page and --section go together")
-    if args.page is not None and (problem := missing_section(args.page, args.section)):
-        raise SystemExit(problem)
+    check_page_args(args.page, args.section)
     if unknown := set(args.conditions) - set(CONDITIONS):
         raise SystemExit(f"unknown conditions {sorted(unknown)}; choose from {list(CONDITIONS)}")
     seeds = ", ".join(str(s) for s in args.seeds)
@@ -184,9 +181,7 @@ def main(argv: list[str] | None = None) -> None:
         for condition in args.conditions:
             lines.append(row(kind, condition, args))
             print(lines[-1], flush=True)
-    print("\n".join(lines))
-    if args.page is not None:
-        write_between(args.page, args.section, "\n".join(lines))
+    print_table(lines, args.page, args.section)
 
 
 if __name__ == "__main__":

@@ -29,6 +29,25 @@ def missing_section(path: Path, *names: str) -> str | None:
     return None
 
 
+def check_page_args(page: Path | None, section: str | None) -> None:
+    """Exit before any work where a script's ``--page`` and ``--section`` cannot be written:
+    one without the other, or a page without the section's markers."""
+    if (page is None) != (section is None):
+        raise SystemExit("--page and --section go together")
+    problem = None if page is None or section is None else missing_section(page, section)
+    if problem is not None:
+        raise SystemExit(problem)
+
+
+def print_table(lines: list[str], page: Path | None, section: str | None) -> None:
+    """Print a table's ``lines``; with a ``page`` (:func:`check_page_args`), write them between
+    the markers of its ``section`` too."""
+    text = "\n".join(lines)
+    print(text)
+    if page is not None and section is not None:
+        write_between(page, section, text)
+
+
 def write_between(path: Path, name: str, body: str) -> None:
     """Replace the text between the markers of section ``name`` in ``path`` with ``body``; a
     page without them is an error (the figures would land nowhere a reader looks)."""
